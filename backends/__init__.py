@@ -1,0 +1,1 @@
+"""Backbone families (installed as ``controlgs_adapter.backends``)."""

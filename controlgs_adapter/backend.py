@@ -1,0 +1,114 @@
+"""The backend interface: how to recognise and adapt one neural-Gaussian model family.
+
+A backend never imports the family's code: it duck-types the model on its real attribute names.
+Built-in backends live in ``controlgs_adapter.backends`` and register through
+``controlgs_register_backends`` exactly like third-party ones.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any, ClassVar
+
+import torch
+from torch import nn
+
+from .errors import TargetError
+
+__all__ = ["Backend", "get_attr_path", "set_attr_path"]
+
+
+def get_attr_path(obj: Any, path: str) -> Any:
+    """``get_attr_path(model, "network.prediction_net.0")``; integer parts index sequences."""
+    for part in path.split("."):
+        obj = obj[int(part)] if part.isdigit() and not hasattr(obj, part) else getattr(obj, part)
+    return obj
+
+
+def set_attr_path(obj: Any, path: str, value: Any) -> None:
+    """Set the attribute (or sequence item) at a dotted ``path``."""
+    head, _, last = path.rpartition(".")
+    parent = get_attr_path(obj, head) if head else obj
+    if last.isdigit() and not hasattr(parent, last):
+        parent[int(last)] = value
+    else:
+        setattr(parent, last, value)
+
+
+class Backend:
+    """Base class of backend plug-ins. Subclasses set :attr:`name` and implement :meth:`matches`,
+    :meth:`decoder_paths` and :meth:`anchor_positions`; the rest has defaults that fit the
+    Scaffold-GS layout.
+
+    Vocabulary: a *decoder* is a module whose first ``nn.Linear`` (``FC1``) gets the injection; a
+    *row* is one row of the decoder input; :meth:`rows_per_anchor` rows belong to each anchor
+    (row ``r`` is anchor ``anchor_ids[r // rows_per_anchor]``).
+    """
+
+    name: ClassVar[str] = ""
+
+    def matches(self, model: Any) -> bool:
+        """True if this backend knows the model (duck-typed on attribute names)."""
+        raise NotImplementedError
+
+    def decoder_paths(self, model: Any) -> list[str]:
+        """Dotted attribute paths of all decoders that may be targeted, e.g. ``["mlp_opacity", ...]``."""
+        raise NotImplementedError
+
+    def default_targets(self, model: Any) -> list[str]:
+        """Decoders targeted when ``ControlGS.wrap(targets=None)``: by default all of them."""
+        return self.decoder_paths(model)
+
+    def first_linear_path(self, model: Any, decoder_path: str) -> str:
+        """Dotted path of the decoder's first Linear (FC1). Default: child ``0`` of a Sequential."""
+        return f"{decoder_path}.0"
+
+    def anchor_positions(self, model: Any) -> torch.Tensor:
+        """``[A, 3]`` anchor positions exactly as the decoder sees them (world units)."""
+        raise NotImplementedError
+
+    def num_anchors(self, model: Any) -> int:
+        """Number of anchors A (rows of the condition table)."""
+        return int(self.anchor_positions(model).shape[0])
+
+    def rows_per_anchor(self, model: Any) -> int:
+        """How many consecutive decoder rows belong to one anchor (CompGS: K; Scaffold-GS: 1)."""
+        return 1
+
+    def make_hookable(self, model: Any, decoder_path: str) -> nn.Module | None:
+        """Make a decoder take hooks (e.g. rebuild a TorchScript decoder as an eager module with
+        identical outputs) and install it on the model. Return the original module (to restore on
+        unwrap) or None if nothing changed. Called only after every check passed."""
+        from .torchscript import eager_from_script  # local: only needed for TorchScript decoders
+
+        module = get_attr_path(model, decoder_path)
+        if isinstance(module, torch.jit.ScriptModule):
+            set_attr_path(model, decoder_path, eager_from_script(module, name=decoder_path))
+            return module
+        return None
+
+    def check_decoder(self, model: Any, decoder_path: str) -> nn.Linear | torch.jit.ScriptModule:
+        """Return FC1 of a decoder, or raise :class:`TargetError` saying what is wrong."""
+        try:
+            fc1 = get_attr_path(model, self.first_linear_path(model, decoder_path))
+        except (AttributeError, IndexError, KeyError, TypeError) as e:
+            raise TargetError(f"{self.name}: decoder {decoder_path!r} has no first layer: {e}") from e
+        ok = isinstance(fc1, nn.Linear) or (
+            isinstance(fc1, torch.jit.ScriptModule) and getattr(fc1, "original_name", "") == "Linear"
+        )
+        if not ok:
+            raise TargetError(f"{self.name}: first layer of {decoder_path!r} must be a Linear, got {type(fc1).__name__}")
+        return fc1
+
+    def fingerprint(self, model: Any) -> str:
+        """SHA-256 (hex, 16 chars) over anchor positions and every decoder's weights: identifies the
+        backbone an adapter was trained on."""
+        h = hashlib.sha256()
+        pos = self.anchor_positions(model).detach().to("cpu", torch.float32).contiguous()
+        h.update(str(tuple(pos.shape)).encode())
+        h.update(pos.numpy().tobytes())
+        for path in self.decoder_paths(model):
+            for k, v in sorted(get_attr_path(model, path).state_dict().items()):
+                h.update(f"{path}.{k}{tuple(v.shape)}".encode())
+                h.update(v.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
+        return h.hexdigest()[:16]

@@ -1,0 +1,79 @@
+"""Input checks for the public API (kornia/gsplat style): each raises with the argument's name,
+what was expected and what came.
+
+Shapes are given as sequences whose items are ints (exact), strings (symbolic: equal names must
+agree) or ``"*"`` (any number of leading dims, only first).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from .errors import InputValueError, ShapeError
+
+__all__ = ["check_tensor", "check_image", "check_finite", "check_same_device"]
+
+
+def check_tensor(
+    name: str,
+    x: object,
+    shape: Sequence[int | str] | None = None,
+    *,
+    dtypes: Sequence[torch.dtype] | None = None,
+    finite: bool = False,
+    dims: dict[str, int] | None = None,
+) -> dict[str, int]:
+    """Validate ``x`` and return the sizes bound to the symbolic dims of ``shape``.
+
+    Example: ``check_tensor("image", img, ["*", 3, "H", "W"], dtypes=(torch.float32, torch.float64))``.
+    ``dims`` pre-binds symbolic names (e.g. ``{"H": 64}``).
+    """
+    if not isinstance(x, torch.Tensor):
+        raise InputValueError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    bound: dict[str, int] = dict(dims or {})
+    if shape is not None:
+        spec = list(shape)
+        star = bool(spec) and spec[0] == "*"
+        fixed = spec[1:] if star else spec
+        if (x.dim() < len(fixed)) if star else (x.dim() != len(fixed)):
+            want = ("[..., " if star else "[") + ", ".join(map(str, fixed)) + "]"
+            raise ShapeError(f"{name} must have shape {want}, got {list(x.shape)}")
+        for i, (want, got) in enumerate(zip(fixed, x.shape[x.dim() - len(fixed):])):
+            if isinstance(want, int) and want != got:
+                raise ShapeError(
+                    f"{name} must have size {want} in dim {i - len(fixed)} (shape {list(shape)}), got {list(x.shape)}"
+                )
+            if isinstance(want, str):
+                if want in bound and bound[want] != got:
+                    raise ShapeError(f"{name}: dim '{want}' must be {bound[want]}, got {got} (shape {list(x.shape)})")
+                bound[want] = int(got)
+    if dtypes is not None and x.dtype not in tuple(dtypes):
+        raise InputValueError(f"{name} must have dtype in {[str(d) for d in dtypes]}, got {x.dtype}")
+    if finite:
+        check_finite(name, x)
+    return bound
+
+
+def check_finite(name: str, x: torch.Tensor) -> None:
+    """Raise if ``x`` holds NaN or Inf, saying how many."""
+    if x.is_floating_point() or x.is_complex():
+        bad = ~torch.isfinite(x)
+        if bool(bad.any()):
+            raise InputValueError(f"{name} contains {int(bad.sum())} non-finite value(s) (NaN/Inf) out of {x.numel()}")
+
+
+def check_image(name: str, x: object, *, finite: bool = True) -> dict[str, int]:
+    """An image ``[..., 3, H, W]`` of float32/float64 with H, W >= 1."""
+    b = check_tensor(name, x, ["*", 3, "H", "W"], dtypes=(torch.float32, torch.float64), finite=finite)
+    if b["H"] < 1 or b["W"] < 1:
+        raise ShapeError(f"{name} must have H, W >= 1, got {list(x.shape)}")  # type: ignore[union-attr]
+    return b
+
+
+def check_same_device(**tensors: torch.Tensor) -> None:
+    """All named tensors live on one device."""
+    devs = {k: v.device for k, v in tensors.items() if isinstance(v, torch.Tensor)}
+    if len(set(devs.values())) > 1:
+        raise InputValueError("tensors must be on one device, got " + ", ".join(f"{k}={d}" for k, d in devs.items()))

@@ -1,0 +1,1 @@
+"""Assets shipped with the package (PSF bank, built-in scene backbone)."""

@@ -1,0 +1,39 @@
+"""Exception taxonomy. Every error subclasses a built-in so existing ``except`` clauses keep working."""
+
+from __future__ import annotations
+
+
+class ControlGSError(Exception):
+    """Root of every error raised by controlgs-adapter."""
+
+
+class ShapeError(ControlGSError, ValueError):
+    """A tensor argument has the wrong shape."""
+
+
+class InputValueError(ControlGSError, ValueError):
+    """An argument has a wrong value: NaN/Inf, out of range, empty, wrong dtype or device."""
+
+
+class StateError(InputValueError):
+    """A run-time state (downsample, power saving, gaze) is outside its physical range."""
+
+
+class NoMatchingBackendError(ControlGSError, TypeError):
+    """No registered backend recognises the model passed to ``ControlGS.wrap``."""
+
+
+class TargetError(ControlGSError, ValueError):
+    """A requested target decoder does not exist or cannot take an injector."""
+
+
+class IncompatibleAdapterError(ControlGSError, ValueError):
+    """An adapter file does not fit the model it is loaded onto (each mismatch is listed)."""
+
+
+class FileFormatError(ControlGSError, ValueError):
+    """A file is missing, truncated, foreign or of an unsupported format version."""
+
+
+class PluginLoadError(ControlGSError, RuntimeError):
+    """An installed plug-in failed to load (raised only in strict mode)."""

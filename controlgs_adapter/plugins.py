@@ -1,0 +1,167 @@
+"""The plug-in manager (pluggy), following pytest's model.
+
+Built-in backends, stages and schedules are plug-in modules listed in :data:`BUILTIN_PLUGINS`,
+registered through the same hooks a third party uses. Installed plug-ins come from the
+entry-point group ``controlgs_adapter``; one that fails to load is reported (name and
+distribution) and skipped, unless strict mode is on (``strict=True`` or
+``CONTROLGS_STRICT_PLUGINS=1``), where it raises :class:`PluginLoadError`.
+``CONTROLGS_DISABLE_PLUGIN_AUTOLOAD=1`` skips entry points entirely.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import os
+import warnings
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import pluggy
+
+from . import hookspecs
+from .errors import PluginLoadError
+
+__all__ = [
+    "BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "PluginInfo", "get_plugin_manager", "register_plugin",
+    "unregister_plugin", "backends", "stages", "schedules", "plugin_report", "load_failures",
+]
+
+ENTRY_POINT_GROUP = "controlgs_adapter"
+BUILTIN_DIST = "controlgs-adapter (built-in)"
+
+#: Modules of built-in plug-ins, registered in this order (later ones are called first by pluggy).
+BUILTIN_PLUGINS: tuple[str, ...] = (
+    "controlgs_adapter.schedules",
+    "controlgs_adapter.backends.builtin",
+    "controlgs_adapter.downstream.builtin",
+)
+
+
+@dataclass(frozen=True)
+class PluginInfo:
+    """What one registered item is and where it comes from."""
+
+    kind: str  # "backend" | "stage" | "schedule"
+    name: str
+    plugin: str  # the plug-in's registered name
+    source: str  # distribution "name version", "controlgs-adapter (built-in)" or "runtime"
+    obj: Any
+
+
+_pm: pluggy.PluginManager | None = None
+_sources: dict[str, str] = {}
+_failures: list[str] = []
+_cache: dict[str, dict[str, PluginInfo]] = {}
+
+
+def _strict_default() -> bool:
+    return os.environ.get("CONTROLGS_STRICT_PLUGINS", "") not in ("", "0")
+
+
+def get_plugin_manager(*, strict: bool | None = None) -> pluggy.PluginManager:
+    """The process-wide plug-in manager (built on first use)."""
+    global _pm
+    if _pm is None:
+        strict = _strict_default() if strict is None else strict
+        pm = pluggy.PluginManager(hookspecs.PROJECT)
+        pm.add_hookspecs(hookspecs)
+        for mod in BUILTIN_PLUGINS:
+            pm.register(importlib.import_module(mod), name=mod)
+            _sources[mod] = BUILTIN_DIST
+        if os.environ.get("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", "") in ("", "0"):
+            _load_entry_points(pm, strict)
+        _pm = pm
+    return _pm
+
+
+def _load_entry_points(pm: pluggy.PluginManager, strict: bool) -> None:
+    for dist in importlib.metadata.distributions():
+        for ep in dist.entry_points:
+            if ep.group != ENTRY_POINT_GROUP or pm.get_plugin(ep.name) is not None or pm.is_blocked(ep.name):
+                continue
+            dist_name = f"{dist.metadata['name']} {dist.version}"
+            try:
+                pm.register(ep.load(), name=ep.name)
+                pm.check_pending()
+            except Exception as e:  # noqa: BLE001 - a broken plug-in must not break the host
+                msg = f"plug-in {ep.name!r} from {dist_name} failed to load: {type(e).__name__}: {e}"
+                if strict:
+                    raise PluginLoadError(msg) from e
+                if pm.get_plugin(ep.name) is not None:
+                    pm.unregister(name=ep.name)
+                _failures.append(msg)
+                warnings.warn(msg + " (skipped; CONTROLGS_STRICT_PLUGINS=1 makes this fatal)", RuntimeWarning, stacklevel=3)
+                continue
+            _sources[ep.name] = dist_name
+
+
+def register_plugin(plugin: Any, name: str | None = None) -> str:
+    """Register a plug-in object or module at run time; returns its registered name."""
+    pm = get_plugin_manager()
+    registered = pm.register(plugin, name=name)
+    if registered is None:
+        raise PluginLoadError(f"plug-in {name or plugin!r} is blocked")
+    pm.check_pending()
+    _sources[registered] = "runtime"
+    _cache.clear()
+    return registered
+
+
+def unregister_plugin(name: str) -> None:
+    """Remove a run-time registered plug-in by name."""
+    get_plugin_manager().unregister(name=name)
+    _sources.pop(name, None)
+    _cache.clear()
+
+
+def load_failures() -> list[str]:
+    """Messages of installed plug-ins that failed to load (non-strict mode)."""
+    get_plugin_manager()
+    return list(_failures)
+
+
+def _collect(kind: str, hook_name: str, key: Callable[[Any], str]) -> dict[str, PluginInfo]:
+    if kind in _cache:
+        return _cache[kind]
+    pm = get_plugin_manager()
+    out: dict[str, PluginInfo] = {}
+    caller = getattr(pm.hook, hook_name)
+    # pluggy calls implementations last-registered first; keep that priority order
+    for impl in reversed(caller.get_hookimpls()):
+        plugin_name = pm.get_name(impl.plugin) or repr(impl.plugin)
+        source = _sources.get(plugin_name, "runtime")
+        for obj in impl.function() or ():
+            name = key(obj)
+            prev = out.get(name)
+            if prev is not None:
+                if source == BUILTIN_DIST and prev.source != BUILTIN_DIST:
+                    warnings.warn(f"{kind} {name!r} from {prev.plugin} ({prev.source}) replaces the built-in",
+                                  UserWarning, stacklevel=3)
+                    continue
+                raise PluginLoadError(
+                    f"{kind} {name!r} is registered twice: by {prev.plugin} ({prev.source}) and {plugin_name} ({source})"
+                )
+            out[name] = PluginInfo(kind, name, plugin_name, source, obj)
+    _cache[kind] = out
+    return out
+
+
+def backends() -> dict[str, PluginInfo]:
+    """Registered backends by name, in the order ``ControlGS.wrap`` tries them."""
+    return _collect("backend", "controlgs_register_backends", lambda b: b.name)
+
+
+def stages() -> dict[str, PluginInfo]:
+    """Registered downstream stage classes by name."""
+    return _collect("stage", "controlgs_register_stages", lambda s: s.name)
+
+
+def schedules() -> dict[str, PluginInfo]:
+    """Registered strength schedules by module name."""
+    return _collect("schedule", "controlgs_register_schedules", lambda s: s.name)
+
+
+def plugin_report() -> list[PluginInfo]:
+    """Everything registered, for ``controlgs plugins``."""
+    return [*backends().values(), *stages().values(), *schedules().values()]

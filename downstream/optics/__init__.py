@@ -1,0 +1,1 @@
+"""Optics: PSF banks and shift-variant PSF operators."""

@@ -1,0 +1,26 @@
+import math
+
+import pytest
+import torch
+from hypothesis import given, strategies as st
+
+from controlgs_adapter import Camera, RuntimeState
+from controlgs_adapter.errors import StateError
+
+
+@pytest.mark.parametrize("kw", [dict(downsample=0.5), dict(downsample=float("nan")), dict(power_saving=1.0),
+                                dict(power_saving=-0.1), dict(gaze=(2.0, 0.0))])
+def test_runtime_state_rejects_out_of_range(kw):
+    with pytest.raises(StateError) as e:
+        RuntimeState(**kw)
+    assert next(iter(kw)) in str(e.value)
+
+
+@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(0.5, 20))
+def test_normalized_screen_matches_pixel_convention(x, y, z):
+    k = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(torch.eye(4, dtype=torch.float64), k, 64, 48)
+    p = cam.normalized_screen(torch.tensor([[x, y, z]], dtype=torch.float64))[0]
+    u, v = 50 * x / z + 32, 50 * y / z + 24
+    assert math.isclose(float(p[0]), 2 * u / 64 - 1, abs_tol=1e-9)
+    assert math.isclose(float(p[1]), 2 * v / 48 - 1, abs_tol=1e-9)
