@@ -7,4 +7,8 @@ from controlgs_adapter.hookspecs import hookimpl
 
 @hookimpl(trylast=True)
 def controlgs_register_backends() -> list:
-    return []
+    # ControlGS.wrap takes the first backend that matches: more specific families go before
+    # scaffold_gs, which recognises anything with Scaffold-GS's decoder attribute names.
+    from .scaffold_gs import ScaffoldGSBackend
+
+    return [ScaffoldGSBackend()]

@@ -1,10 +1,172 @@
-"""Strength schedules (paper Eqs. 10-11). Placeholder: filled in by the core issue."""
+"""Injection-strength schedules (paper Eqs. 10-11).
+
+Each condition module ``m`` turns the run-time state into a control value ``alpha = f_m(s)`` and
+maps it linearly between two endpoints to a strength
+
+    lambda = clamp((alpha - lo) / (hi - lo), 0, 1)
+
+(``lo`` gives no injection, ``hi`` full injection; states outside the range clamp). The
+built-in modules:
+
+============  ============================================  ==========  ============
+module        control value f_m                             per anchor  endpoints
+============  ============================================  ==========  ============
+lens          ||p||_2, p = anchor's normalised screen pos.  yes         0 .. sqrt(2)
+resample      log2(d), d = S / display sampling rate        no          0 .. 3
+display       rho = 1 - P_target / P_ref                    no          0 .. 0.8
+foveation     ||p - gaze||_2 (0 when gaze is None)          yes         0 .. e_max
+============  ============================================  ==========  ============
+
+The endpoints are configuration (``ControlGS.wrap(endpoints={"lens": (0.0, 1.2)})``); the
+foveation default ``e_max = sqrt(2)`` (gaze at the centre, anchor at a corner) is this library's
+choice, the paper does not give one. A plug-in adds a schedule by subclassing
+:class:`StrengthSchedule` and returning an instance from ``controlgs_register_schedules``.
+"""
 
 from __future__ import annotations
 
-from controlgs_adapter.hookspecs import hookimpl
+import math
+from typing import ClassVar
+
+import torch
+
+from .checks import check_tensor
+from .errors import InputValueError
+from .hookspecs import hookimpl
+from .state import RuntimeState
+
+__all__ = [
+    "StrengthSchedule", "LensSchedule", "ResampleSchedule", "DisplaySchedule", "FoveationSchedule",
+    "BUILTIN_SCHEDULES",
+]
+
+
+class StrengthSchedule:
+    """Maps a run-time state to the injection strength of one condition module.
+
+    Subclasses set :attr:`name`, :attr:`per_anchor`, the default endpoints and implement
+    :meth:`control`.
+
+    Args:
+        lo: control value with no injection (default :attr:`default_lo`).
+        hi: control value with full injection (default :attr:`default_hi`); ``hi != lo`` (``hi <
+            lo`` inverts the schedule).
+    """
+
+    name: ClassVar[str] = ""
+    #: True if the control value depends on the anchor's screen position (needs ``screen_xy``).
+    per_anchor: ClassVar[bool] = False
+    default_lo: ClassVar[float] = 0.0
+    default_hi: ClassVar[float] = 1.0
+    #: what the control value is, for ``repr`` and the docs
+    control_doc: ClassVar[str] = ""
+
+    def __init__(self, lo: float | None = None, hi: float | None = None) -> None:
+        lo = self.default_lo if lo is None else lo
+        hi = self.default_hi if hi is None else hi
+        if not (isinstance(lo, (int, float)) and isinstance(hi, (int, float))) or not (math.isfinite(lo) and math.isfinite(hi)):
+            raise InputValueError(f"schedule {self.name!r}: endpoints must be finite numbers, got lo={lo!r}, hi={hi!r}")
+        if lo == hi:
+            raise InputValueError(f"schedule {self.name!r}: endpoints must differ, got lo = hi = {lo!r}")
+        self.lo, self.hi = float(lo), float(hi)
+
+    def with_endpoints(self, lo: float | None = None, hi: float | None = None) -> "StrengthSchedule":
+        """A copy with other endpoints (None keeps this one's)."""
+        return type(self)(self.lo if lo is None else lo, self.hi if hi is None else hi)
+
+    def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> torch.Tensor | float:
+        """Control value alpha: ``[R]`` for per-anchor schedules (``screen_xy`` is ``[R, 2]``
+        normalised screen positions, +inf for anchors behind the camera), a float otherwise."""
+        raise NotImplementedError
+
+    def strength(self, state: RuntimeState, screen_xy: torch.Tensor | None = None, *, rows: int | None = None,
+                 dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> torch.Tensor:
+        """Injection strength ``lambda`` in [0, 1], ``[R]``.
+
+        Args:
+            state: the run-time state.
+            screen_xy: ``[R, 2]`` normalised screen positions of the rows' anchors (needed if
+                :attr:`per_anchor`; otherwise only its length is used).
+            rows: R when ``screen_xy`` is None (global schedules only).
+        """
+        if screen_xy is not None:
+            check_tensor("screen_xy", screen_xy, ["R", 2])
+            rows, device = screen_xy.shape[0], screen_xy.device if device is None else device
+        elif self.per_anchor:
+            raise InputValueError(f"schedule {self.name!r} is per anchor and needs screen_xy [R, 2], got None")
+        if rows is None:
+            raise InputValueError("strength() needs screen_xy or rows")
+        alpha = self.control(state, screen_xy)
+        if isinstance(alpha, torch.Tensor):
+            return self._normalise(alpha.to(dtype=dtype, device=device))
+        return torch.full((rows,), self.scalar_strength(alpha), dtype=dtype, device=device)
+
+    def scalar_strength(self, alpha: float) -> float:
+        """``clamp((alpha - lo) / (hi - lo), 0, 1)`` for one control value."""
+        return min(max((alpha - self.lo) / (self.hi - self.lo), 0.0), 1.0)
+
+    def _normalise(self, alpha: torch.Tensor) -> torch.Tensor:
+        return ((alpha - self.lo) / (self.hi - self.lo)).clamp(0.0, 1.0)
+
+    def endpoints(self) -> dict[str, float]:
+        return {"lo": self.lo, "hi": self.hi}
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.control_doc}: {self.lo:g} -> 0, {self.hi:g} -> 1)"
+
+
+class LensSchedule(StrengthSchedule):
+    """Lens correction: radius of the anchor's projected screen position about the optical centre."""
+
+    name = "lens"
+    per_anchor = True
+    default_lo, default_hi = 0.0, math.sqrt(2.0)
+    control_doc = "||p||_2"
+
+    def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> torch.Tensor:
+        return torch.linalg.vector_norm(screen_xy, dim=-1)
+
+
+class ResampleSchedule(StrengthSchedule):
+    """Anti-aliasing resampling: log2 of the downsampling factor d (1 -> none, 8 -> full)."""
+
+    name = "resample"
+    default_lo, default_hi = 0.0, 3.0
+    control_doc = "log2(d)"
+
+    def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> float:
+        return math.log2(state.downsample)
+
+
+class DisplaySchedule(StrengthSchedule):
+    """Display mapping: the power-saving ratio rho = 1 - P_target / P_ref."""
+
+    name = "display"
+    default_lo, default_hi = 0.0, 0.8
+    control_doc = "rho"
+
+    def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> float:
+        return state.power_saving
+
+
+class FoveationSchedule(StrengthSchedule):
+    """Foveation: eccentricity ``||p - gaze||_2`` in normalised screen units; no gaze -> 0."""
+
+    name = "foveation"
+    per_anchor = True
+    default_lo, default_hi = 0.0, math.sqrt(2.0)
+    control_doc = "||p - gaze||_2"
+
+    def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> torch.Tensor:
+        if state.gaze is None:
+            return torch.zeros(screen_xy.shape[:-1], dtype=screen_xy.dtype, device=screen_xy.device)
+        gaze = torch.tensor(state.gaze, dtype=screen_xy.dtype, device=screen_xy.device)
+        return torch.linalg.vector_norm(screen_xy - gaze, dim=-1)
+
+
+BUILTIN_SCHEDULES: tuple[type[StrengthSchedule], ...] = (LensSchedule, ResampleSchedule, DisplaySchedule, FoveationSchedule)
 
 
 @hookimpl(trylast=True)
-def controlgs_register_schedules() -> list:
-    return []
+def controlgs_register_schedules() -> list[StrengthSchedule]:
+    return [cls() for cls in BUILTIN_SCHEDULES]

@@ -1,0 +1,72 @@
+"""Backend for Scaffold-GS (city-super/Scaffold-GS) and models laid out like it.
+
+Scaffold-GS's ``GaussianModel`` is a plain Python object (not an ``nn.Module``) holding the
+decoders ``mlp_opacity``, ``mlp_cov``, ``mlp_color`` (``nn.Sequential`` whose child 0 is
+``Linear(feat_dim + 3 (+1) (+appearance_dim), feat_dim)``), an optional ``mlp_feature_bank``
+(not a target: it re-weights the feature before the decoders) and the anchors ``_anchor [A, 3]``
+(``get_anchor``). A loaded checkpoint holds the decoders as TorchScript traces; they are rebuilt
+as eager modules when wrapped (:meth:`Backend.make_hookable`).
+
+Row mapping: Scaffold-GS's renderer slices every decoder input with the boolean visibility mask,
+so row i belongs to anchor ``visible_mask.nonzero()[i]`` (:meth:`visible_rows_to_anchor_ids`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from controlgs_adapter.backend import Backend
+from controlgs_adapter.checks import check_tensor
+from controlgs_adapter.errors import InputValueError
+
+__all__ = ["ScaffoldGSBackend"]
+
+ATTRIBUTE_DECODERS: tuple[str, ...] = ("mlp_opacity", "mlp_cov", "mlp_color")
+FEATURE_BANK = "mlp_feature_bank"
+
+
+def _is_decoder(obj: Any) -> bool:
+    return isinstance(obj, (nn.Module, torch.jit.ScriptModule))
+
+
+class ScaffoldGSBackend(Backend):
+    """Recognises any object with the three Scaffold-GS attribute decoders and anchors.
+
+    Matching is duck-typed: ``mlp_opacity``, ``mlp_cov``, ``mlp_color`` are modules and the object
+    has ``get_anchor`` or ``_anchor``. It is the most generic backend, so the built-in list tries
+    it last (Octree-GS, HAC, ... share these attribute names).
+    """
+
+    name = "scaffold_gs"
+
+    def matches(self, model: Any) -> bool:
+        has_decoders = all(_is_decoder(getattr(model, d, None)) for d in ATTRIBUTE_DECODERS)
+        return has_decoders and (hasattr(model, "get_anchor") or hasattr(model, "_anchor"))
+
+    def decoder_paths(self, model: Any) -> list[str]:
+        extra = [FEATURE_BANK] if _is_decoder(getattr(model, FEATURE_BANK, None)) else []
+        return [*ATTRIBUTE_DECODERS, *extra]
+
+    def default_targets(self, model: Any) -> list[str]:
+        return list(ATTRIBUTE_DECODERS)
+
+    def anchor_positions(self, model: Any) -> torch.Tensor:
+        anchors = getattr(model, "get_anchor", None)
+        if anchors is None:
+            anchors = model._anchor
+        elif callable(anchors) and not isinstance(anchors, torch.Tensor):
+            anchors = anchors()
+        check_tensor("model.get_anchor", anchors, ["A", 3])
+        return anchors
+
+    @staticmethod
+    def visible_rows_to_anchor_ids(visible_mask: torch.Tensor) -> torch.Tensor:
+        """``[A]`` bool visibility mask -> ``[R]`` long ids (row i = i-th visible anchor, ascending),
+        exactly the order in which Scaffold-GS's renderer feeds the decoders."""
+        check_tensor("visible_mask", visible_mask, ["A"])
+        if visible_mask.dtype != torch.bool:
+            raise InputValueError(f"visible_mask must be a bool tensor, got {visible_mask.dtype}")
+        return visible_mask.nonzero().squeeze(1)

@@ -1,0 +1,553 @@
+"""``ControlGS``: wrap a trained neural-Gaussian backbone with a condition injector.
+
+    cgs = ControlGS.wrap(model)                                   # model code unchanged
+    with cgs.conditioned(RuntimeState(downsample=4, power_saving=0.4), camera=cam, anchor_ids=ids):
+        image = render(...)                                       # decoders see the injection
+    cgs.save("scene.controlgs.safetensors")
+    cgs = ControlGS.load("scene.controlgs.safetensors", model)
+
+``wrap`` follows PEFT's rule: it checks everything (backend, targets, widths, modules, endpoints)
+before it changes anything on the model, and ``unwrap`` puts back exactly what was there.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import weakref
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import torch
+from torch import nn
+
+from . import plugins
+from .backend import Backend, get_attr_path, set_attr_path
+from .errors import (FileFormatError, IncompatibleAdapterError, InputValueError, NoMatchingBackendError, ShapeError,
+                     StateError, TargetError)
+from .injector import ConditionInjector, InjectionContext
+from .io import load_tensors, read_header, save_tensors
+from .schedules import StrengthSchedule
+from .state import Camera, RuntimeState
+from .torchscript import eager_from_script
+
+__all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION"]
+
+ADAPTER_KIND = "controlgs_adapter"
+ADAPTER_FORMAT_VERSION = 1
+DEFAULT_MODULES = ("lens", "resample", "display")
+
+# FC1 modules that carry a live injector hook -> the ControlGS that owns it (wrapping twice is an error)
+_ATTACHED: "weakref.WeakKeyDictionary[nn.Module, ControlGS]" = weakref.WeakKeyDictionary()
+
+
+@dataclass(frozen=True)
+class Target:
+    """One decoder that receives the injection.
+
+    Attributes:
+        decoder: dotted path of the decoder on the model (``"mlp_opacity"``).
+        fc1: dotted path of its first Linear (``"mlp_opacity.0"``).
+        in_features, out_features: FC1's widths (``out_features`` = D1).
+        from_torchscript: the decoder was a TorchScript module, rebuilt as an eager one.
+    """
+
+    decoder: str
+    fc1: str
+    in_features: int
+    out_features: int
+    from_torchscript: bool = False
+
+    def as_header(self) -> dict[str, Any]:
+        return {"decoder": self.decoder, "fc1": self.fc1, "in_features": self.in_features, "out_features": self.out_features}
+
+
+@dataclass
+class _Plan:
+    target: Target
+    eager: nn.Module | None  # the eager rebuild of a TorchScript decoder (dry run), else None
+
+
+def _describe(backend: Backend) -> str:
+    doc = (type(backend).__doc__ or "").strip().splitlines()
+    return f"{backend.name} ({doc[0].rstrip('.') if doc else type(backend).__qualname__})"
+
+
+def _select_backend(model: Any, backend: str | Backend | None) -> Backend:
+    if isinstance(backend, Backend):
+        chosen = backend
+    else:
+        registered = {name: info.obj for name, info in plugins.backends().items()}
+        listing = "; ".join(_describe(b) for b in registered.values()) or "none"
+        if backend is None:
+            for b in registered.values():
+                if b.matches(model):
+                    return b
+            raise NoMatchingBackendError(
+                f"no registered backend recognises a {type(model).__name__}; registered backends: {listing}"
+            )
+        if backend not in registered:
+            raise NoMatchingBackendError(f"backend {backend!r} is not registered; registered backends: {listing}")
+        chosen = registered[backend]
+    if not chosen.matches(model):
+        raise NoMatchingBackendError(f"backend {_describe(chosen)} does not recognise a {type(model).__name__}")
+    return chosen
+
+
+def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
+    """Resolve one target without changing the model; raise TargetError saying what is wrong."""
+    try:
+        decoder = get_attr_path(model, path)
+    except (AttributeError, IndexError, KeyError, TypeError):
+        raise TargetError(
+            f"{backend.name}: the model has no decoder {path!r}; its decoders: {backend.decoder_paths(model)}"
+        ) from None
+    fc1_path = backend.first_linear_path(model, path)
+    eager = None
+    if isinstance(decoder, torch.jit.ScriptModule):
+        if not fc1_path.startswith(path + "."):
+            raise TargetError(f"{backend.name}: FC1 path {fc1_path!r} of TorchScript decoder {path!r} is not inside it")
+        eager = eager_from_script(decoder, name=path)
+        try:
+            fc1 = get_attr_path(eager, fc1_path[len(path) + 1:])
+        except (AttributeError, IndexError, KeyError, TypeError) as e:
+            raise TargetError(f"{backend.name}: decoder {path!r} has no first layer {fc1_path!r}: {e}") from e
+    else:
+        fc1 = backend.check_decoder(model, path)
+    if not isinstance(fc1, nn.Linear):
+        raise TargetError(f"{backend.name}: first layer {fc1_path!r} of {path!r} must be an eager nn.Linear, got {type(fc1).__name__}")
+    if fc1 in _ATTACHED:
+        raise TargetError(f"{fc1_path!r} already carries a ControlGS injector: unwrap() the existing wrapper first")
+    target = Target(path, fc1_path, fc1.in_features, fc1.out_features, eager is not None)
+    return _Plan(target, eager)
+
+
+def _check_modules(modules: Sequence[str], cond_dim: int, endpoints: Mapping[str, Sequence[float]] | None,
+                   ) -> dict[str, StrengthSchedule]:
+    if isinstance(modules, str) or not isinstance(modules, Sequence):
+        raise InputValueError(f"modules must be a sequence of module names, got {modules!r}")
+    registered = {name: info.obj for name, info in plugins.schedules().items()}
+    if not modules:
+        raise InputValueError(f"modules must name at least one condition module; registered: {sorted(registered)}")
+    dupes = sorted({m for m in modules if list(modules).count(m) > 1})
+    if dupes:
+        raise InputValueError(f"modules lists {dupes} more than once")
+    unknown = [m for m in modules if m not in registered]
+    if unknown:
+        raise InputValueError(f"unknown condition module(s) {unknown}; registered schedules: {sorted(registered)}")
+    if isinstance(cond_dim, bool) or not isinstance(cond_dim, int) or cond_dim <= 0:
+        raise InputValueError(f"cond_dim must be a positive int, got {cond_dim!r}")
+    endpoints = dict(endpoints or {})
+    stray = sorted(set(endpoints) - set(modules))
+    if stray:
+        raise InputValueError(f"endpoints given for {stray}, which are not among modules {list(modules)}")
+    schedules = {}
+    for m in modules:
+        lo_hi = endpoints.get(m)
+        if lo_hi is None:
+            schedules[m] = registered[m]
+            continue
+        if isinstance(lo_hi, Mapping):
+            lo_hi = (lo_hi.get("lo"), lo_hi.get("hi"))
+        if len(lo_hi) != 2:
+            raise InputValueError(f"endpoints[{m!r}] must be (lo, hi), got {lo_hi!r}")
+        schedules[m] = registered[m].with_endpoints(*lo_hi)
+    return schedules
+
+
+def _backbone_tensors(model: Any) -> list[torch.Tensor]:
+    """Every parameter/tensor of the backbone that autograd could train: the model's parameters if
+    it is an ``nn.Module``, else those of its module attributes and its tensor attributes."""
+    if isinstance(model, nn.Module):
+        return list(model.parameters())
+    found: dict[int, torch.Tensor] = {}
+    for value in vars(model).values():
+        if isinstance(value, nn.Module):
+            found.update((id(p), p) for p in value.parameters())
+        elif isinstance(value, torch.Tensor) and value.is_leaf:
+            found[id(value)] = value
+    return list(found.values())
+
+
+class ControlGS:
+    """A backbone wrapped with a :class:`~controlgs_adapter.injector.ConditionInjector`.
+
+    Build with :meth:`wrap` or :meth:`load`. Attributes: ``model``, ``backend``, ``injector``,
+    ``targets`` (what it attached to), ``modules``, ``schedules``, ``state_blind``,
+    ``num_anchors``, ``rows_per_anchor``, ``fingerprint`` (of the backbone).
+    """
+
+    def __init__(self, model: Any, backend: Backend, injector: ConditionInjector, targets: list[Target],
+                 schedules: dict[str, StrengthSchedule], state_blind: bool, fingerprint: str,
+                 originals: dict[str, nn.Module], grad_flags: list[tuple[torch.Tensor, bool]]) -> None:
+        self.model, self.backend, self.injector = model, backend, injector
+        self.targets = tuple(targets)
+        self.schedules = dict(schedules)
+        self.state_blind = bool(state_blind)
+        self.num_anchors = injector.num_anchors
+        self.rows_per_anchor = backend.rows_per_anchor(model)
+        self.fingerprint = fingerprint
+        self._originals = originals
+        self._grad_flags = grad_flags
+        self._wrapped = True
+
+    # ------------------------------------------------------------------ wrap / unwrap
+    @classmethod
+    def wrap(cls, model: Any, modules: Sequence[str] = DEFAULT_MODULES, cond_dim: int = 8,
+             backend: str | Backend | None = None, targets: Sequence[str] | None = None,
+             endpoints: Mapping[str, Sequence[float]] | None = None, state_blind: bool = False) -> "ControlGS":
+        """Attach a condition injector to every target decoder of ``model``.
+
+        Args:
+            model: a trained backbone (e.g. Scaffold-GS's ``GaussianModel``); its code is not changed.
+            modules: condition modules (registered schedules: ``lens``, ``resample``, ``display``,
+                ``foveation``, plug-ins').
+            cond_dim: N, size of each per-anchor condition.
+            backend: backend name (or instance) to use; None picks the first registered backend
+                that recognises the model.
+            targets: decoder paths to inject into; None = the backend's defaults.
+            endpoints: ``{module: (lo, hi)}`` control values of zero and full strength.
+            state_blind: ablation: strength 1 for every module, whatever the state.
+
+        Raises:
+            NoMatchingBackendError, TargetError, InputValueError, ShapeError: before anything on the
+            model has changed.
+        """
+        chosen = _select_backend(model, backend)
+        schedules = _check_modules(modules, cond_dim, endpoints)
+        if targets is None:
+            targets = chosen.default_targets(model)
+        if isinstance(targets, str) or not isinstance(targets, Sequence) or not targets:
+            raise TargetError(f"targets must be a non-empty sequence of decoder paths, got {targets!r}")
+        if len(set(targets)) != len(targets):
+            raise TargetError(f"targets lists a decoder more than once: {list(targets)}")
+        plans = [_inspect_target(model, chosen, t) for t in targets]
+        positions = chosen.anchor_positions(model)
+        num_anchors = chosen.num_anchors(model)
+        if num_anchors < 1 or positions.shape[0] != num_anchors:
+            raise ShapeError(f"{chosen.name}: the model has {num_anchors} anchors and positions {list(positions.shape)}")
+        rpa = chosen.rows_per_anchor(model)
+        if not isinstance(rpa, int) or rpa < 1:
+            raise TargetError(f"{chosen.name}: rows_per_anchor must be an int >= 1, got {rpa!r}")
+        fingerprint = chosen.fingerprint(model)
+
+        # -- every check passed: now change the model (rolled back if a backend hook still fails)
+        originals: dict[str, nn.Module] = {}
+        try:
+            for plan in plans:
+                original = chosen.make_hookable(model, plan.target.decoder)
+                if original is not None:
+                    originals[plan.target.decoder] = original
+            fc1s = [get_attr_path(model, p.target.fc1) for p in plans]
+            for p, fc1 in zip(plans, fc1s):
+                if not isinstance(fc1, nn.Linear) or fc1.out_features != p.target.out_features:
+                    raise TargetError(f"{chosen.name}: make_hookable left {p.target.fc1!r} as {fc1!r}")
+        except BaseException:
+            for path, original in originals.items():
+                set_attr_path(model, path, original)
+            raise
+        weight = fc1s[0].weight
+        dtype = weight.dtype if weight.dtype in (torch.float32, torch.float64) else torch.float32
+        injector = ConditionInjector(num_anchors, list(schedules), cond_dim,
+                                     {p.target.decoder: p.target.out_features for p in plans},
+                                     device=weight.device, dtype=dtype)
+        grad_flags = [(t, t.requires_grad) for t in _backbone_tensors(model)]
+        for t, _ in grad_flags:
+            t.requires_grad_(False)
+        cgs = cls(model, chosen, injector, [p.target for p in plans], schedules, state_blind, fingerprint,
+                  originals, grad_flags)
+        for p, fc1 in zip(plans, fc1s):
+            injector.attach(p.target.decoder, fc1)
+            _ATTACHED[fc1] = cgs
+        return cgs
+
+    def unwrap(self) -> Any:
+        """Remove the hooks, put back the original (TorchScript) decoders and the backbone's
+        ``requires_grad`` flags. Returns the model; this wrapper cannot be used afterwards."""
+        self._check_live()
+        for t in self.targets:
+            _ATTACHED.pop(get_attr_path(self.model, t.fc1), None)
+        self.injector.detach()
+        for path, original in self._originals.items():
+            set_attr_path(self.model, path, original)
+        for tensor, flag in self._grad_flags:
+            tensor.requires_grad_(flag)
+        self._wrapped = False
+        return self.model
+
+    def _check_live(self) -> None:
+        if not self._wrapped:
+            raise StateError("this ControlGS was unwrapped; wrap the model again")
+
+    # ------------------------------------------------------------------ run time
+    @property
+    def modules(self) -> tuple[str, ...]:
+        """Names of the wrapped condition modules."""
+        return self.injector.module_names
+
+    def trainable_parameters(self) -> Iterator[nn.Parameter]:
+        """The adapter's parameters (conditions and projections); the backbone stays frozen."""
+        return self.injector.parameters()
+
+    def anchor_ids(self, anchor_ids: torch.Tensor | None) -> torch.Tensor:
+        """Normalise ``LongTensor[R]`` / ``BoolTensor[A]`` / None (all anchors) to ``LongTensor[R]``
+        on the injector's device, checking range and shape."""
+        device = next(self.injector.parameters()).device
+        a = self.num_anchors
+        if anchor_ids is None:
+            return torch.arange(a, device=device)
+        if not isinstance(anchor_ids, torch.Tensor):
+            raise InputValueError(f"anchor_ids must be a LongTensor[R], a BoolTensor[{a}] or None, got {type(anchor_ids).__name__}")
+        if anchor_ids.dtype == torch.bool:
+            if anchor_ids.shape != (a,):
+                raise ShapeError(f"anchor_ids as a mask must have shape [{a}] (one per anchor), got {list(anchor_ids.shape)}")
+            return anchor_ids.to(device).nonzero().squeeze(1)
+        if anchor_ids.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8, torch.int8):
+            raise InputValueError(f"anchor_ids must be an integer or bool tensor, got {anchor_ids.dtype}")
+        if anchor_ids.dim() != 1:
+            raise ShapeError(f"anchor_ids must have shape [R], got {list(anchor_ids.shape)}")
+        ids = anchor_ids.to(device=device, dtype=torch.int64)
+        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= a):
+            raise InputValueError(f"anchor_ids must lie in [0, {a}), got values in [{int(ids.min())}, {int(ids.max())}]")
+        return ids
+
+    def strengths(self, state: RuntimeState, camera: Camera | None = None,
+                  anchor_ids: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Injection strength of every wrapped module for the given anchors: ``{module: [R]}``."""
+        self._check_live()
+        ids = self.anchor_ids(anchor_ids)
+        out = {}
+        for m, lam in self._strengths(state, camera, ids, self.modules, skip_zero=False).items():
+            out[m] = lam if isinstance(lam, torch.Tensor) else torch.full(ids.shape, lam, device=ids.device)
+        return out
+
+    def _strengths(self, state: RuntimeState, camera: Camera | None, ids: torch.Tensor, modules: Sequence[str],
+                   *, skip_zero: bool) -> dict[str, torch.Tensor | float]:
+        if not isinstance(state, RuntimeState):
+            raise InputValueError(f"state must be a RuntimeState, got {type(state).__name__}")
+        if self.state_blind:
+            return {m: 1.0 for m in modules}
+        screen = None
+        out: dict[str, torch.Tensor | float] = {}
+        for m in modules:
+            schedule = self.schedules[m]
+            if not schedule.per_anchor:
+                lam = schedule.scalar_strength(float(schedule.control(state, None)))
+                if lam != 0.0 or not skip_zero:
+                    out[m] = lam
+                continue
+            if screen is None:
+                if not isinstance(camera, Camera):
+                    raise InputValueError(
+                        f"module {m!r} needs each anchor's screen position: pass camera=Camera(...) "
+                        f"(Camera.from_scaffold converts a Scaffold-GS camera), got {type(camera).__name__}"
+                    )
+                positions = self.backend.anchor_positions(self.model).detach()
+                screen = camera.normalized_screen(positions.index_select(0, ids.to(positions.device)))
+            lam_t = schedule.strength(state, screen, dtype=torch.float32, device=ids.device)
+            if not skip_zero or bool(lam_t.any()):
+                out[m] = lam_t
+        return out
+
+    @contextlib.contextmanager
+    def conditioned(self, state: RuntimeState, camera: Camera | None = None, anchor_ids: torch.Tensor | None = None,
+                    *, modules: Sequence[str] | None = None) -> Iterator["ControlGS"]:
+        """Inject the conditions into every target decoder called inside the block.
+
+        Args:
+            state: the run-time state (downsample, power saving, gaze).
+            camera: the view's camera; needed by per-anchor modules (lens, foveation).
+            anchor_ids: which anchor each decoder row belongs to: ``LongTensor[R]`` (row i =
+                anchor ``anchor_ids[i]``), ``BoolTensor[A]`` visibility mask (rows = visible anchors,
+                ascending), or None (all anchors). With ``rows_per_anchor`` K > 1, row r belongs to
+                ``anchor_ids[r // K]``. A decoder called with another row count raises ShapeError.
+            modules: restrict the injection to these wrapped modules (others are off, not computed).
+        """
+        self._check_live()
+        ids = self.anchor_ids(anchor_ids)
+        if modules is None:
+            active = self.modules
+        else:
+            active = tuple(modules)
+            unknown = [m for m in active if m not in self.modules]
+            if unknown:
+                raise InputValueError(f"modules {unknown} are not wrapped; wrapped modules: {list(self.modules)}")
+        strengths = self._strengths(state, camera, ids, active, skip_zero=True)
+        self.injector.activate(InjectionContext(ids, strengths, self.rows_per_anchor))
+        try:
+            yield self
+        finally:
+            self.injector.deactivate()
+
+    # ------------------------------------------------------------------ files
+    def header(self) -> dict[str, Any]:
+        """The JSON header :meth:`save` writes (without the fields io adds)."""
+        return {
+            "backend": self.backend.name,
+            "modules": list(self.modules),
+            "cond_dim": self.injector.cond_dim,
+            "schedules": {m: {"class": type(s).__qualname__, "per_anchor": s.per_anchor, **s.endpoints()}
+                          for m, s in self.schedules.items()},
+            "state_blind": self.state_blind,
+            "targets": [t.as_header() for t in self.targets],
+            "num_anchors": self.num_anchors,
+            "rows_per_anchor": self.rows_per_anchor,
+            "fingerprint": self.fingerprint,
+        }
+
+    def save(self, path: str | Path, dtype: torch.dtype | None = None) -> Path:
+        """Write the adapter to one ``.safetensors`` file (atomically).
+
+        Args:
+            dtype: storage dtype of the conditions: None (as trained, float32) or
+                ``torch.float16`` (half the size; see docs/adapter.md for the effect on output).
+                Projections are always stored as trained.
+        """
+        self._check_live()
+        if dtype not in (None, torch.float16, torch.float32):
+            raise InputValueError(f"dtype must be None, torch.float16 or torch.float32, got {dtype!r}")
+        tensors = dict(self.injector.state_dict())
+        if dtype is not None:
+            for m in self.modules:
+                tensors[f"conditions.{m}"] = tensors[f"conditions.{m}"].to(dtype)
+        header = {**self.header(), "condition_dtype": str(tensors[f"conditions.{self.modules[0]}"].dtype).removeprefix("torch.")}
+        return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
+
+    @classmethod
+    def load(cls, path: str | Path, model: Any) -> "ControlGS":
+        """Wrap ``model`` and load the adapter saved at ``path`` onto it.
+
+        Raises:
+            FileFormatError: the file is missing, truncated, foreign or of a newer format.
+            IncompatibleAdapterError: listing every mismatch with the model (backend, anchor count,
+                decoder widths, backbone fingerprint, tensors).
+        """
+        header = read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+        spec = _header_spec(path, header)
+        problems: list[str] = []
+        registered = plugins.backends()
+        backend = None
+        if spec["backend"] not in registered:
+            problems.append(f"backend: the adapter was made for {spec['backend']!r}, which is not registered "
+                            f"(registered: {sorted(registered)})")
+        else:
+            backend = registered[spec["backend"]].obj
+            if not backend.matches(model):
+                try:
+                    other = _select_backend(model, None).name
+                except NoMatchingBackendError:
+                    other = "no registered backend"
+                problems.append(f"backend: the adapter was made for {spec['backend']!r}; this model is recognised by {other}")
+                backend = None
+        if backend is not None:
+            problems += _model_mismatches(model, backend, spec)
+        tensors, _ = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+        problems += _tensor_mismatches(tensors, spec)
+        if problems:
+            raise IncompatibleAdapterError(f"{path}: the adapter does not fit this model:\n  - " + "\n  - ".join(problems))
+        cgs = cls.wrap(model, modules=spec["modules"], cond_dim=spec["cond_dim"], backend=backend,
+                       targets=[t["decoder"] for t in spec["targets"]],
+                       endpoints={m: (s["lo"], s["hi"]) for m, s in spec["schedules"].items()},
+                       state_blind=spec["state_blind"])
+        state = cgs.injector.state_dict()
+        cgs.injector.load_state_dict({k: v.to(state[k].dtype) for k, v in tensors.items()})
+        return cgs
+
+    # ------------------------------------------------------------------ reporting
+    def summary(self) -> str:
+        """What is attached where, the schedules and the parameter counts."""
+        n_cond = sum(p.numel() for p in self.injector.conditions.parameters())
+        n_proj = sum(p.numel() for p in self.injector.projections.parameters())
+        lines = [
+            f"ControlGS on {type(self.model).__name__} via backend {self.backend.name!r}"
+            + ("" if self._wrapped else " (unwrapped)"),
+            f"  anchors: {self.num_anchors} ({self.rows_per_anchor} decoder row(s) per anchor), "
+            f"backbone fingerprint {self.fingerprint}",
+            f"  modules: {', '.join(self.modules)}; N = {self.injector.cond_dim} per module"
+            + ("; state-blind (strength 1)" if self.state_blind else ""),
+            "  targets:",
+        ]
+        for t in self.targets:
+            note = "  (rebuilt from TorchScript)" if t.from_torchscript else ""
+            lines.append(f"    {t.fc1}: Linear({t.in_features} -> {t.out_features}){note}")
+        lines.append("  schedules:")
+        lines += [f"    {m}: {s!r}" for m, s in self.schedules.items()]
+        lines.append(f"  trainable: {n_cond + n_proj:,} parameters (conditions {n_cond:,}, projections {n_proj:,})")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (f"ControlGS(backend={self.backend.name!r}, anchors={self.num_anchors}, modules={list(self.modules)}, "
+                f"cond_dim={self.injector.cond_dim}, targets={[t.fc1 for t in self.targets]}"
+                + (", state_blind=True" if self.state_blind else "") + ("" if self._wrapped else ", unwrapped") + ")")
+
+
+_HEADER_FIELDS: dict[str, type | tuple[type, ...]] = {
+    "backend": str, "modules": list, "cond_dim": int, "schedules": dict, "state_blind": bool, "targets": list,
+    "num_anchors": int, "rows_per_anchor": int, "fingerprint": str,
+}
+
+
+def _header_spec(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
+    bad = [k for k, t in _HEADER_FIELDS.items() if not isinstance(header.get(k), t)]
+    if not bad:
+        for m in header["modules"]:
+            s = header["schedules"].get(m)
+            if not isinstance(s, dict) or not all(isinstance(s.get(k), (int, float)) for k in ("lo", "hi")):
+                bad.append(f"schedules.{m}")
+        for i, t in enumerate(header["targets"]):
+            if not isinstance(t, dict) or not isinstance(t.get("decoder"), str) or not all(
+                    isinstance(t.get(k), int) for k in ("in_features", "out_features")):
+                bad.append(f"targets[{i}]")
+    if bad:
+        raise FileFormatError(f"{path}: adapter header is missing or has malformed field(s) {bad}")
+    return header
+
+
+def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any]) -> list[str]:
+    problems = []
+    a = backend.num_anchors(model)
+    if a != spec["num_anchors"]:
+        problems.append(f"anchor count: the adapter has {spec['num_anchors']} anchors, the model {a}")
+    rpa = backend.rows_per_anchor(model)
+    if rpa != spec["rows_per_anchor"]:
+        problems.append(f"rows per anchor: the adapter expects {spec['rows_per_anchor']}, the model has {rpa}")
+    for t in spec["targets"]:
+        try:
+            got = _inspect_target(model, backend, t["decoder"]).target
+        except TargetError as e:
+            problems.append(f"target {t['decoder']!r}: {e}")
+            continue
+        if (got.in_features, got.out_features) != (t["in_features"], t["out_features"]):
+            problems.append(f"target {t['decoder']!r}: the adapter was made for Linear({t['in_features']} -> "
+                            f"{t['out_features']}), the model has Linear({got.in_features} -> {got.out_features})")
+    fp = backend.fingerprint(model)
+    if fp != spec["fingerprint"]:
+        problems.append(f"backbone fingerprint: the adapter was trained on backbone {spec['fingerprint']}, "
+                        f"this model is {fp} (other anchors or decoder weights)")
+    return problems
+
+
+def _tensor_mismatches(tensors: dict[str, torch.Tensor], spec: dict[str, Any]) -> list[str]:
+    n, a = spec["cond_dim"], spec["num_anchors"]
+    widths = sorted({t["out_features"] for t in spec["targets"]})
+    expected: dict[str, tuple[int, ...]] = {}
+    for m in spec["modules"]:
+        expected[f"conditions.{m}"] = (a, n)
+        for d1 in widths:
+            expected[f"projections.{m}.d{d1}.weight"] = (d1, n)
+    problems = []
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    if missing:
+        problems.append(f"tensors missing from the file: {missing}")
+    if unexpected:
+        problems.append(f"unexpected tensors in the file: {unexpected}")
+    for k in sorted(set(expected) & set(tensors)):
+        v = tensors[k]
+        if tuple(v.shape) != expected[k]:
+            problems.append(f"tensor {k!r}: shape {list(v.shape)}, expected {list(expected[k])}")
+        elif not v.is_floating_point():
+            problems.append(f"tensor {k!r}: dtype {v.dtype}, expected a floating-point type")
+        elif not bool(torch.isfinite(v).all()):
+            problems.append(f"tensor {k!r}: contains NaN/Inf")
+    return problems

@@ -1,0 +1,168 @@
+"""The condition injector (paper Eq. 9): per-anchor conditions, shared projections, FC1 hooks.
+
+For every target decoder with first linear layer ``FC1`` (output width ``D1``)::
+
+    h = FC1(x) + sum_m lambda[v, m] * A_m(C[v, m])
+
+``C[:, m]`` is ``[A, N]`` (zero-initialised, so the wrapped model starts as the backbone) and
+``A_m: R^N -> R^D1`` is a bias-free Linear shared by all anchors, one per module and distinct
+``D1``. The sum is computed once per :meth:`ConditionInjector.activate` context and width and
+reused by every decoder of that width; modules whose strength is zero for every row are left out,
+and outside a context the hooks return at once (outputs bit-identical to the backbone).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from .errors import ShapeError, StateError
+
+__all__ = ["ConditionInjector", "InjectionContext"]
+
+
+@dataclass
+class InjectionContext:
+    """What one ``conditioned`` block injects.
+
+    Attributes:
+        anchor_ids: ``[R_a]`` long, the anchor of each group of ``rows_per_anchor`` decoder rows.
+        strengths: module -> ``[R_a]`` per-anchor strength tensor or a float shared by all rows;
+            only modules with some non-zero strength are listed.
+        rows_per_anchor: decoder rows per anchor (row r belongs to ``anchor_ids[r // K]``).
+    """
+
+    anchor_ids: torch.Tensor
+    strengths: dict[str, torch.Tensor | float]
+    rows_per_anchor: int = 1
+    cache: dict[tuple[int, bool], tuple[tuple[int, ...], torch.Tensor]] = field(default_factory=dict)
+
+    @property
+    def rows(self) -> int:
+        return int(self.anchor_ids.shape[0]) * self.rows_per_anchor
+
+
+class ConditionInjector(nn.Module):
+    """Conditions and projections of one wrapped model, and the hooks that inject them.
+
+    Args:
+        num_anchors: A, rows of every condition table.
+        modules: condition module names (``"lens"``, ``"resample"``, ...).
+        cond_dim: N, size of one condition vector.
+        widths: FC1 output width ``D1`` of each target (target name -> ``D1``).
+
+    Parameters (state-dict keys): ``conditions.<module>`` ``[A, N]``;
+    ``projections.<module>.d<D1>.weight`` ``[D1, N]``.
+    """
+
+    def __init__(self, num_anchors: int, modules: Sequence[str], cond_dim: int, widths: dict[str, int],
+                 *, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> None:
+        super().__init__()
+        self.num_anchors, self.cond_dim = int(num_anchors), int(cond_dim)
+        self.module_names = tuple(modules)
+        self.widths = dict(widths)
+        self.conditions = nn.ParameterDict(
+            {m: nn.Parameter(torch.zeros(num_anchors, cond_dim, device=device, dtype=dtype)) for m in modules}
+        )
+        self.projections = nn.ModuleDict()
+        for m in modules:
+            per_width = nn.ModuleDict()
+            for d1 in sorted(set(widths.values())):
+                proj = nn.Linear(cond_dim, d1, bias=False, device=device, dtype=dtype)
+                nn.init.kaiming_uniform_(proj.weight, a=math.sqrt(5.0))  # nn.Linear's own (Kaiming) init
+                per_width[f"d{d1}"] = proj
+            self.projections[m] = per_width
+        self._ctx: InjectionContext | None = None
+        self._handles: list[torch.utils.hooks.RemovableHandle] = []
+
+    # -- attaching -------------------------------------------------------------------------------
+    def attach(self, name: str, fc1: nn.Linear) -> None:
+        """Register the injection hook on target ``name``'s first Linear."""
+        if self.widths.get(name) != fc1.out_features:
+            raise ShapeError(f"target {name!r}: FC1 width {fc1.out_features} != declared {self.widths.get(name)}")
+        self._handles.append(fc1.register_forward_hook(self._make_hook(name, fc1.out_features)))
+
+    def detach(self) -> None:
+        """Remove every hook."""
+        for h in self._handles:
+            h.remove()
+        self._handles.clear()
+        self._ctx = None
+
+    # -- contexts --------------------------------------------------------------------------------
+    @property
+    def context(self) -> InjectionContext | None:
+        return self._ctx
+
+    def activate(self, ctx: InjectionContext) -> None:
+        if self._ctx is not None:
+            raise StateError("already inside a conditioned block: nested blocks are not supported")
+        unknown = set(ctx.strengths) - set(self.module_names)
+        if unknown:
+            raise StateError(f"strengths for unknown module(s) {sorted(unknown)}; wrapped modules: {list(self.module_names)}")
+        self._ctx = ctx
+
+    def deactivate(self) -> None:
+        self._ctx = None
+
+    # -- the injection ---------------------------------------------------------------------------
+    def injection(self, ctx: InjectionContext, width: int) -> torch.Tensor | None:
+        """``[R_a, D1]`` sum of the active modules' scaled projected conditions, or None if no
+        module is active. Cached per context, width and grad mode; recomputed if a parameter was
+        changed in place since (e.g. an optimizer step inside one block)."""
+        if not ctx.strengths:
+            return None
+        key = (width, torch.is_grad_enabled())
+        versions = tuple(self.conditions[m]._version for m in ctx.strengths) + tuple(
+            self.projections[m][f"d{width}"].weight._version for m in ctx.strengths
+        )
+        hit = ctx.cache.get(key)
+        if hit is not None and hit[0] == versions:
+            return hit[1]
+        ids = ctx.anchor_ids
+        zs, ws = [], []
+        for m, lam in ctx.strengths.items():
+            c = self.conditions[m].index_select(0, ids)  # [R_a, N]
+            w = self.projections[m][f"d{width}"].weight  # [D1, N]
+            if isinstance(lam, torch.Tensor):
+                c = c * lam.to(c.dtype).unsqueeze(-1)
+            elif lam != 1.0:
+                w = w * lam
+            zs.append(c)
+            ws.append(w)
+        z = zs[0] if len(zs) == 1 else torch.cat(zs, dim=-1)  # [R_a, M*N]
+        w = ws[0] if len(ws) == 1 else torch.cat(ws, dim=-1)  # [D1, M*N]
+        inj = z @ w.transpose(0, 1)  # [R_a, D1]
+        ctx.cache[key] = (versions, inj)
+        return inj
+
+    def _make_hook(self, name: str, width: int):
+        def hook(module: nn.Module, inputs: tuple, out: torch.Tensor) -> torch.Tensor | None:
+            ctx = self._ctx
+            if ctx is None:
+                return None
+            if out.dim() != 2 or out.shape[0] != ctx.rows:
+                raise ShapeError(
+                    f"decoder {name!r} was called with {out.shape[0] if out.dim() else 0} rows "
+                    f"(FC1 output {list(out.shape)}) but the conditioned block expects {ctx.rows} rows "
+                    f"= {ctx.anchor_ids.shape[0]} anchor ids x {ctx.rows_per_anchor} rows per anchor; "
+                    "pass the ids of exactly the anchors whose rows the decoder sees"
+                )
+            inj = self.injection(ctx, width)
+            if inj is None:
+                return None
+            inj = inj.to(out.dtype)
+            k = ctx.rows_per_anchor
+            if k == 1:
+                return out + inj
+            return (out.unflatten(0, (-1, k)) + inj.unsqueeze(1)).flatten(0, 1)
+
+        return hook
+
+    def extra_repr(self) -> str:
+        return (f"anchors={self.num_anchors}, modules={list(self.module_names)}, cond_dim={self.cond_dim}, "
+                f"widths={sorted(set(self.widths.values()))}")
