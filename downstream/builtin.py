@@ -7,4 +7,10 @@ from controlgs_adapter.hookspecs import hookimpl
 
 @hookimpl(trylast=True)
 def controlgs_register_stages() -> list:
-    return []
+    from .display import DisplayStage
+    from .foveation import FoveationStage
+    from .lens import LensPrewarp
+    from .oled import OLEDStage
+    from .resample import ResampleStage
+
+    return [FoveationStage, LensPrewarp, ResampleStage, DisplayStage, OLEDStage]

@@ -1,0 +1,183 @@
+"""Display mapping P_disp: uniform dimming to a power target (paper Eq. 5, Supp. "Display Mapping").
+
+Power model (paper Eq. 7 / S2, dynamic OLED power, no static term), on linear RGB:
+``P(I) = mean_{x,y}(alpha R + beta G + gamma B)`` with panel coefficients
+``(alpha, beta, gamma) = (228.52, 205.66, 567.64)``. The paper writes a sum over pixels; the mean
+is used here so that the power of the rendered image at the display resolution S/d and of the
+reference at S are comparable (a sum would scale with the pixel count). Negative values emit no
+light and count as 0. :func:`display_power_watts` gives watts as ``3/1000 * P`` (the scale used by
+the same group's PowerGS: full white = 3.0055 W).
+
+Uniform dimming: with ``P_ref = P(reference)`` (the ground-truth image) and
+``P_target = (1 - rho) P_ref``, the image is scaled by ``P_target / P(image)`` so that its power
+equals the target (the paper's equal-power comparison; this brightens an image darker than the
+target unless ``brighten=False``), then clipped to the display range [0, 1]. The power after
+dimming equals the target exactly unless clipping happens (the clipped fraction is reported).
+Gradients flow through ``P(image)``; the reference is a constant. Conventions:
+- ``rho == 0`` means power saving is off: the stage is the identity (it is skipped).
+- no reference: ``P_ref = P(image)``, i.e. the image is scaled by ``1 - rho``.
+- ``P(image) == 0`` (a black image): there is nothing to scale; the scale is 1 (no NaN, zero
+  gradient through the power).
+
+Domain: linear light. Shapes: ``[..., 3, H, W]``; power ``[...]`` (one value per image).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+
+from controlgs_adapter.checks import check_image, check_same_device
+from controlgs_adapter.errors import InputValueError, StateError
+from controlgs_adapter.state import RuntimeState
+
+from .color import srgb_to_linear
+from .stage import Stage, StageContext
+
+__all__ = [
+    "PANEL_COEFFICIENTS", "WATTS_PER_UNIT", "display_power", "display_power_watts", "display_mapping",
+    "DisplayStage",
+]
+
+#: OLED power coefficients (alpha, beta, gamma) for linear (R, G, B), paper Supp. Eq. S2.
+PANEL_COEFFICIENTS: tuple[float, float, float] = (228.52, 205.66, 567.64)
+#: Watts per unit of :func:`display_power` (PowerGS' scale 3 / 1000).
+WATTS_PER_UNIT: float = 3.0 / 1000.0
+
+_TINY_POWER = 1e-12  # below this an image is black: no scaling
+
+
+def _check_coefficients(coefficients: Sequence[float]) -> tuple[float, float, float]:
+    c = tuple(float(v) for v in coefficients)
+    if len(c) != 3 or not all(math.isfinite(v) and v >= 0 for v in c) or sum(c) <= 0:
+        raise InputValueError(f"coefficients must be 3 finite non-negative numbers, not all 0, got {coefficients!r}")
+    return c  # type: ignore[return-value]
+
+
+def _power(linear: torch.Tensor, c: tuple[float, float, float]) -> torch.Tensor:
+    emitted = linear.clamp(min=0.0)
+    per_channel = emitted.mean(dim=(-2, -1))  # [..., 3]
+    weights = torch.tensor(c, dtype=linear.dtype, device=linear.device)
+    return (per_channel * weights).sum(-1)  # [...]
+
+
+def display_power(
+    image: torch.Tensor, coefficients: Sequence[float] = PANEL_COEFFICIENTS, *, encoding: str = "linear"
+) -> torch.Tensor:
+    """Dynamic display power ``mean(alpha R + beta G + gamma B)`` of ``image``.
+
+    Args:
+        image: ``[..., 3, H, W]``; ``encoding`` says whether it is linear light or sRGB-encoded.
+        coefficients: panel coefficients (alpha, beta, gamma).
+        encoding: ``"linear"`` or ``"srgb"``.
+    Returns:
+        ``[...]`` power in panel units (full white = alpha + beta + gamma).
+    """
+    check_image("image", image)
+    if encoding not in ("linear", "srgb"):
+        raise InputValueError(f"encoding must be 'linear' or 'srgb', got {encoding!r}")
+    linear = srgb_to_linear(image) if encoding == "srgb" else image
+    return _power(linear, _check_coefficients(coefficients))
+
+
+def display_power_watts(
+    image: torch.Tensor, coefficients: Sequence[float] = PANEL_COEFFICIENTS, *, encoding: str = "linear"
+) -> torch.Tensor:
+    """:func:`display_power` in watts (``3/1000`` of it; full white with the default panel = 3.0055 W)."""
+    return display_power(image, coefficients, encoding=encoding) * WATTS_PER_UNIT
+
+
+def _check_rho(rho: object) -> float:
+    try:
+        value = float(rho)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise StateError(f"rho (power saving) must be a real number in [0, 1), got {rho!r}") from None
+    if not math.isfinite(value) or not 0.0 <= value < 1.0:
+        raise StateError(f"rho (power saving) must be a finite number in [0, 1), got {rho!r}")
+    return value
+
+
+def display_mapping(
+    image: torch.Tensor,
+    rho: float,
+    reference: torch.Tensor | None = None,
+    *,
+    coefficients: Sequence[float] = PANEL_COEFFICIENTS,
+    brighten: bool = True,
+    return_stats: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Uniformly dim ``image`` to ``(1 - rho) P_ref`` and clip to the display range [0, 1].
+
+    Args:
+        image: ``[..., 3, H, W]`` linear light (the rendered, resampled image).
+        rho: power saving in [0, 1).
+        reference: ``[..., 3, H_r, W_r]`` linear light (the ground truth, any resolution,
+            broadcastable leading dims) giving ``P_ref``; None: ``P_ref = P(image)``.
+        coefficients: panel coefficients (alpha, beta, gamma).
+        brighten: if False, never scale up (``scale = min(1, P_target / P(image))``).
+        return_stats: also return ``{"scale", "power_target", "power", "clipped_fraction"}``
+            (each ``[...]``; ``power`` is that of the clipped output).
+    Returns:
+        ``[..., 3, H, W]`` dimmed and clipped image (and the stats if asked).
+    """
+    check_image("image", image)
+    rho = _check_rho(rho)
+    c = _check_coefficients(coefficients)
+    power = _power(image, c)  # [...]
+    if reference is None:
+        power_ref = power.detach()
+    else:
+        check_image("reference", reference)
+        check_same_device(image=image, reference=reference)
+        power_ref = _power(reference.detach().to(image.dtype), c)
+    target = (1.0 - rho) * power_ref
+    black = power <= _TINY_POWER
+    safe_power = torch.where(black, torch.ones_like(power), power)
+    scale = torch.where(black, torch.ones_like(power), target / safe_power)
+    if not brighten:
+        scale = scale.clamp(max=1.0)
+    dimmed = image * scale[..., None, None, None]
+    out = dimmed.clamp(0.0, 1.0)
+    if not return_stats:
+        return out
+    with torch.no_grad():
+        clipped = ((dimmed < 0.0) | (dimmed > 1.0)).to(image.dtype).mean(dim=(-3, -2, -1))
+        stats = {"scale": scale.detach(), "power_target": target.detach(), "power": _power(out.detach(), c),
+                 "clipped_fraction": clipped}
+    return out, stats
+
+
+class DisplayStage(Stage):
+    """P_disp: uniform dimming to ``(1 - state.power_saving) * P(reference)``, then clipping.
+
+    ``ctx.reference`` is the sRGB ground truth at S (decoded here); without it the image's own
+    power is the reference. Records ``display.scale``, ``display.power_target``, ``display.power``
+    and ``display.clipped_fraction`` into ``ctx.record``.
+
+    Args:
+        coefficients: panel coefficients (alpha, beta, gamma) of the power model.
+        brighten: see :func:`display_mapping`.
+    """
+
+    name = "display"
+    domain = "linear"
+    resolution = "keep"
+    order = 30.0
+
+    def __init__(self, coefficients: Sequence[float] = PANEL_COEFFICIENTS, brighten: bool = True) -> None:
+        super().__init__()
+        self.coefficients = _check_coefficients(coefficients)
+        self.brighten = bool(brighten)
+
+    def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
+        return state.power_saving == 0.0
+
+    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+        reference = None if ctx.reference is None else srgb_to_linear(ctx.reference)
+        out, stats = display_mapping(image, state.power_saving, reference, coefficients=self.coefficients,
+                                     brighten=self.brighten, return_stats=True)
+        if ctx.record is not None:
+            ctx.record.update({f"display.{k}": v for k, v in stats.items()})
+        return out

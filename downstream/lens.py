@@ -1,0 +1,349 @@
+"""Lens correction by pre-warping, P_lens (paper Eq. 2, Supp. "Lens Correction Through Pre-Warping").
+
+The headset lens maps a display point ``p`` to the virtual-image point ``D_c(p)`` (its chief ray,
+per colour channel c; pincushion for a magnifier). To make the eye see the rendered image ``I``
+the display must show ``J_c(p) = I_c(D_c(p))``: as a map of points the pre-warp is ``D_c^-1``
+("inverse distortion"), and applied by backward sampling it reads ``I`` at ``D_c(p)``. The stage
+therefore holds, per channel, a *sampling grid* ``[3, H, W, 2]``: for every display pixel the
+(x, y) position in the rendered image to sample, in normalised coordinates ([-1, 1], pixel
+centres, ``align_corners=False``), plus a per-pixel, per-channel gain ``[3, H, W]`` that corrects
+colour shifts of the display-optics path. Sampling is bilinear; outside the image is black.
+
+Sources of the grid (all :class:`PrewarpMap` modules, evaluated at any image size):
+- :class:`RadialMap`: ``grid_c(p) = p (1 + k_c1 r^2 + k_c2 r^4 + ...)``, r measured with the
+  aspect ratio corrected (the longer axis spans [-1, 1]). Default: a one-term fit to the chief
+  rays of the Google-Cardboard lens (``CARDBOARD_RADIAL``), for tests and users without a bank.
+- :class:`LUTMap`: a lookup table (grid + gain), e.g. from the optics bank's chief rays with
+  :meth:`LensPrewarp.from_chief_ray_map`, or baked from a learned map.
+- :class:`MLPMap`: a small MLP (x, y) -> per-channel displacement and log-gain, zero-initialised
+  (identity), trained end to end through the optics; :meth:`LensPrewarp.bake` turns it into a LUT.
+
+Domain: linear light (bilinear sampling interpolates emitted light, like a compositor sampling an
+sRGB texture).
+"""
+
+from __future__ import annotations
+
+from typing import Literal, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from controlgs_adapter.checks import check_image, check_same_device, check_tensor
+from controlgs_adapter.errors import InputValueError, ShapeError
+from controlgs_adapter.state import RuntimeState
+
+from .stage import Stage, StageContext
+
+__all__ = [
+    "CARDBOARD_RADIAL", "pixel_grid", "lens_prewarp", "invert_map", "PrewarpMap", "RadialMap", "LUTMap",
+    "MLPMap", "LensPrewarp",
+]
+
+#: Radial coefficients k1 per channel (R, G, B) fitted to the Cardboard lens's chief rays (the
+#: display corner of a 1024 px, 24 mm display lands at 606.5 / 611.8 / 617.1 px from the centre
+#: for 656 / 550 / 486 nm, notes/optics.md): ``1 + 2 k1 = landing / 512`` at the corner (r^2 = 2).
+CARDBOARD_RADIAL: tuple[tuple[float], tuple[float], tuple[float]] = (
+    (0.5 * (606.5 / 512.0 - 1.0),), (0.5 * (611.8 / 512.0 - 1.0),), (0.5 * (617.1 / 512.0 - 1.0),),
+)
+
+_FLOATS = (torch.float32, torch.float64)
+
+
+def pixel_grid(size: tuple[int, int], dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Normalised (x, y) of the pixel centres of an ``(H, W)`` image, ``[H, W, 2]`` (identity grid)."""
+    h, w = int(size[0]), int(size[1])
+    ys = (torch.arange(h, dtype=dtype, device=device) + 0.5) * (2.0 / h) - 1.0
+    xs = (torch.arange(w, dtype=dtype, device=device) + 0.5) * (2.0 / w) - 1.0
+    return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)
+
+
+def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | None = None) -> torch.Tensor:
+    """Per-channel bilinear warp and gain.
+
+    Args:
+        image: ``[..., 3, H, W]`` rendered image (linear light).
+        grid: ``[3, Ho, Wo, 2]`` per channel, for every output pixel, the normalised (x, y)
+            position in ``image`` to sample (``align_corners=False``; outside -> 0).
+        gain: ``[3, Ho, Wo]`` per-pixel, per-channel factor, or None (1).
+    Returns:
+        ``[..., 3, Ho, Wo]``, ``out_c = gain_c * image_c(grid_c)``.
+    """
+    check_image("image", image)
+    b = check_tensor("grid", grid, [3, "Ho", "Wo", 2], dtypes=(image.dtype,), finite=True)
+    check_same_device(image=image, grid=grid)
+    if gain is not None:
+        check_tensor("gain", gain, [3, "Ho", "Wo"], dtypes=(image.dtype,), dims=b, finite=True)
+        check_same_device(image=image, gain=gain)
+    h, w = image.shape[-2:]
+    lead = image.shape[:-3]
+    per_channel = image.reshape(-1, 3, h, w).transpose(0, 1)  # [3, B, H, W]: channels as the batch
+    warped = F.grid_sample(per_channel, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    if gain is not None:
+        warped = warped * gain[:, None]
+    return warped.transpose(0, 1).reshape(*lead, 3, b["Ho"], b["Wo"])
+
+
+def _interp_regular(values: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Bilinear interpolation, linear extrapolation outside, of ``values`` ``[C, Gh, Gw, D]`` sampled
+    at the cell centres of a regular ``Gh x Gw`` grid over [-1, 1]^2 (pixel-centre convention),
+    at normalised (x, y) ``points`` ``[C, ..., 2]`` -> ``[C, ..., D]``. Needs Gh, Gw >= 2."""
+    c, gh, gw, d = values.shape
+    pts = points.reshape(c, -1, 2)
+    fx = (pts[..., 0] + 1.0) * (0.5 * gw) - 0.5  # continuous cell index
+    fy = (pts[..., 1] + 1.0) * (0.5 * gh) - 0.5
+    x0 = fx.detach().floor().clamp(0, gw - 2).long()
+    y0 = fy.detach().floor().clamp(0, gh - 2).long()
+    tx, ty = (fx - x0)[..., None], (fy - y0)[..., None]
+    ci = torch.arange(c, device=values.device)[:, None]
+
+    def at(yy: torch.Tensor, xx: torch.Tensor) -> torch.Tensor:
+        return values[ci, yy, xx]  # [C, P, D]
+
+    out = ((1 - ty) * ((1 - tx) * at(y0, x0) + tx * at(y0, x0 + 1))
+           + ty * ((1 - tx) * at(y0 + 1, x0) + tx * at(y0 + 1, x0 + 1)))
+    return out.reshape(*points.shape[:-1], d)
+
+
+def invert_map(forward_map: torch.Tensor, size: tuple[int, int], *, iterations: int = 30, tol: float = 1e-9) -> torch.Tensor:
+    """Numerically invert per-channel 2-D maps given on a regular grid.
+
+    Args:
+        forward_map: ``[3, Gh, Gw, 2]``: ``F_c`` sampled at the cell centres of a regular grid over
+            [-1, 1]^2 (normalised (x, y), pixel-centre convention), bilinearly interpolated and
+            linearly extrapolated in between; must be locally invertible.
+        size: ``(H, W)`` of the output grid.
+    Returns:
+        ``[3, H, W, 2]`` grid ``G_c`` with ``F_c(G_c(q)) = q`` at the pixel centres q (Newton's method
+        in float64, no gradient through it).
+    """
+    check_tensor("forward_map", forward_map, [3, "Gh", "Gw", 2], dtypes=_FLOATS, finite=True)
+    if min(forward_map.shape[1:3]) < 2:
+        raise ShapeError(f"forward_map needs at least 2x2 samples, got {list(forward_map.shape)}")
+    with torch.no_grad():
+        fmap = forward_map.detach().double()
+        target = pixel_grid(size, torch.float64, fmap.device).expand(3, -1, -1, -1)
+        g = 2.0 * target - _interp_regular(fmap, target)  # first-order inverse as the start
+        eps = 1e-6
+        ex = torch.tensor([eps, 0.0], dtype=torch.float64, device=fmap.device)
+        ey = torch.tensor([0.0, eps], dtype=torch.float64, device=fmap.device)
+        for _ in range(iterations):
+            r = _interp_regular(fmap, g) - target  # [3, H, W, 2]
+            if float(r.abs().max()) < tol:
+                break
+            jx = (_interp_regular(fmap, g + ex) - _interp_regular(fmap, g - ex)) / (2 * eps)  # dF/dx
+            jy = (_interp_regular(fmap, g + ey) - _interp_regular(fmap, g - ey)) / (2 * eps)  # dF/dy
+            det = jx[..., 0] * jy[..., 1] - jy[..., 0] * jx[..., 1]
+            if bool((det.abs() < 1e-12).any()):
+                raise InputValueError("forward_map is not invertible (its Jacobian vanishes somewhere)")
+            dx = (jy[..., 1] * r[..., 0] - jy[..., 0] * r[..., 1]) / det
+            dy = (jx[..., 0] * r[..., 1] - jx[..., 1] * r[..., 0]) / det
+            g = g - torch.stack([dx, dy], dim=-1)
+    return g.to(forward_map.dtype)
+
+
+class PrewarpMap(nn.Module):
+    """Source of the pre-warp: ``forward(size, dtype, device) -> (grid [3, H, W, 2], gain [3, H, W] | None)``."""
+
+    def is_identity(self) -> bool:
+        """True if the map is the identity (grid = pixel centres, gain = 1)."""
+        raise NotImplementedError
+
+    def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor | None]:  # noqa: D102
+        raise NotImplementedError
+
+
+class RadialMap(PrewarpMap):
+    """``grid_c(p) = p * (1 + sum_k coefficients[c, k] r^(2k+2))`` (aspect-corrected r), gain 1.
+
+    Args:
+        coefficients: ``[3, K]`` radial coefficients per channel (R, G, B).
+        learnable: make the coefficients a trainable parameter.
+    """
+
+    def __init__(self, coefficients: Sequence[Sequence[float]] | torch.Tensor = CARDBOARD_RADIAL, learnable: bool = False) -> None:
+        super().__init__()
+        k = torch.as_tensor(coefficients, dtype=torch.float64)
+        check_tensor("coefficients", k, [3, "K"], finite=True)
+        k = k.float()
+        if learnable:
+            self.coefficients = nn.Parameter(k)
+        else:
+            self.register_buffer("coefficients", k)
+
+    def is_identity(self) -> bool:  # noqa: D102
+        return not bool(self.coefficients.detach().any())
+
+    def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, None]:  # noqa: D102
+        p = pixel_grid(size, dtype, device)  # [H, W, 2]
+        h, w = size
+        aspect = torch.tensor([w, h], dtype=dtype, device=device) / max(h, w)
+        r2 = ((p * aspect) ** 2).sum(-1)  # [H, W]
+        k = self.coefficients.to(dtype)  # [3, K]
+        powers = r2[None] ** torch.arange(1, k.shape[1] + 1, device=device, dtype=dtype)[:, None, None]  # [K, H, W]
+        factor = 1.0 + torch.einsum("ck,khw->chw", k, powers)  # [3, H, W]
+        return p[None] * factor[..., None], None
+
+
+class LUTMap(PrewarpMap):
+    """A lookup table: grid ``[3, Hl, Wl, 2]`` and gain ``[3, Hl, Wl]`` (None: 1) at pixel centres
+    of an ``Hl x Wl`` image; for another size the displacement and gain are interpolated bilinearly
+    (linearly extrapolated at the border)."""
+
+    def __init__(self, grid: torch.Tensor, gain: torch.Tensor | None = None) -> None:
+        super().__init__()
+        b = check_tensor("grid", grid, [3, "H", "W", 2], dtypes=_FLOATS, finite=True)
+        if min(b["H"], b["W"]) < 2:
+            raise ShapeError(f"grid needs at least 2x2 pixels, got {list(grid.shape)}")
+        if gain is None:
+            gain = torch.ones(3, b["H"], b["W"], dtype=grid.dtype, device=grid.device)
+        check_tensor("gain", gain, [3, "H", "W"], dtypes=_FLOATS, dims=b, finite=True)
+        ident = pixel_grid((b["H"], b["W"]), grid.dtype, grid.device)
+        self.register_buffer("displacement", (grid.detach() - ident).float())  # [3, Hl, Wl, 2]
+        self.register_buffer("gain", gain.detach().float())  # [3, Hl, Wl]
+
+    def is_identity(self) -> bool:  # noqa: D102
+        return not bool(self.displacement.any()) and bool((self.gain == 1).all())
+
+    def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: D102
+        disp, gain = self.displacement.to(dtype), self.gain.to(dtype)
+        p = pixel_grid(size, dtype, device)
+        if tuple(size) != tuple(disp.shape[1:3]):
+            table = torch.cat([disp, gain[..., None]], dim=-1)  # [3, Hl, Wl, 3]
+            table = _interp_regular(table, p.expand(3, -1, -1, -1))
+            disp, gain = table[..., :2], table[..., 2]
+        return p[None] + disp, gain
+
+
+class MLPMap(PrewarpMap):
+    """Learned map: an MLP from normalised (x, y) to 3 x (dx, dy, log gain), zero-initialised last
+    layer (identity at init); :meth:`LensPrewarp.bake` tabulates it.
+
+    Args:
+        hidden: width of the hidden layers.
+        layers: number of hidden layers.
+        frequencies: number of Fourier-feature octaves of (x, y) fed to the MLP (0: raw x, y).
+    """
+
+    def __init__(self, hidden: int = 64, layers: int = 2, frequencies: int = 4) -> None:
+        super().__init__()
+        if hidden < 1 or layers < 1 or frequencies < 0:
+            raise InputValueError(f"hidden, layers must be >= 1 and frequencies >= 0, got {hidden}, {layers}, {frequencies}")
+        self.frequencies = int(frequencies)
+        width_in = 2 + 4 * self.frequencies
+        mods: list[nn.Module] = []
+        for i in range(layers):
+            mods += [nn.Linear(width_in if i == 0 else hidden, hidden), nn.SiLU()]
+        last = nn.Linear(hidden, 9)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+        self.mlp = nn.Sequential(*mods, last)
+
+    def is_identity(self) -> bool:  # noqa: D102
+        last = self.mlp[-1]
+        return not bool(last.weight.detach().any()) and not bool(last.bias.detach().any())
+
+    def _encode(self, p: torch.Tensor) -> torch.Tensor:
+        if self.frequencies == 0:
+            return p
+        scales = torch.pi * 2.0 ** torch.arange(self.frequencies, dtype=p.dtype, device=p.device)  # [F]
+        angles = (p[..., None] * scales).flatten(-2)  # [..., 2F]
+        return torch.cat([p, torch.sin(angles), torch.cos(angles)], dim=-1)
+
+    def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: D102
+        p = pixel_grid(size, dtype, device)  # [H, W, 2]
+        mlp_dtype = self.mlp[-1].weight.dtype
+        out = self.mlp(self._encode(p.to(mlp_dtype))).to(dtype)  # [H, W, 9]
+        out = out.reshape(*p.shape[:2], 3, 3).permute(2, 0, 1, 3)  # [3, H, W, (dx, dy, log gain)]
+        return p[None] + out[..., :2], torch.exp(out[..., 2])
+
+
+class LensPrewarp(Stage):
+    """P_lens: per-channel pre-warp and gain from a :class:`PrewarpMap` (default: Cardboard radial).
+
+    A map with trainable parameters is never skipped in training mode (even while it is still
+    the identity, so that it receives gradients).
+
+    Args:
+        prewarp_map: the map; default ``RadialMap(coefficients)``.
+        coefficients: ``[3, K]`` radial coefficients, only when ``prewarp_map`` is None.
+    """
+
+    name = "lens"
+    domain = "linear"
+    resolution = "keep"
+    order = 10.0
+
+    def __init__(self, prewarp_map: PrewarpMap | None = None, *, coefficients: Sequence[Sequence[float]] | torch.Tensor | None = None) -> None:
+        super().__init__()
+        if prewarp_map is not None and coefficients is not None:
+            raise InputValueError("give either prewarp_map or coefficients, not both")
+        self.map = prewarp_map if prewarp_map is not None else RadialMap(CARDBOARD_RADIAL if coefficients is None else coefficients)
+
+    @classmethod
+    def radial(cls, coefficients: Sequence[Sequence[float]] | torch.Tensor, learnable: bool = False) -> "LensPrewarp":
+        """Analytic radial polynomial map, ``coefficients`` ``[3, K]``."""
+        return cls(RadialMap(coefficients, learnable=learnable))
+
+    @classmethod
+    def from_lut(cls, grid: torch.Tensor, gain: torch.Tensor | None = None) -> "LensPrewarp":
+        """From a sampling grid ``[3, H, W, 2]`` and gain ``[3, H, W]`` (see :class:`LUTMap`)."""
+        return cls(LUTMap(grid, gain))
+
+    @classmethod
+    def learned(cls, hidden: int = 64, layers: int = 2, frequencies: int = 4) -> "LensPrewarp":
+        """A trainable :class:`MLPMap` (identity at init)."""
+        return cls(MLPMap(hidden, layers, frequencies))
+
+    @classmethod
+    def from_chief_ray_map(
+        cls,
+        chief_ray_map: torch.Tensor,
+        size: tuple[int, int],
+        *,
+        direction: Literal["display_to_eye", "eye_to_display"] = "display_to_eye",
+        gain: torch.Tensor | None = None,
+    ) -> "LensPrewarp":
+        """Build the LUT that compensates the lens's chief-ray mapping.
+
+        Args:
+            chief_ray_map: ``[3, Gh, Gw, 2]`` per channel (R, G, B primaries), sampled at the cell
+                centres of a regular ``Gh x Gw`` grid over [-1, 1]^2 (normalised (x, y)):
+                - ``"display_to_eye"`` (what a PSF bank stores: a chief ray per display field
+                  point): the virtual-image position, in the normalised frame of the rendered
+                  image, where the display point is seen. The grid is this map at the display
+                  pixel centres (interpolated).
+                - ``"eye_to_display"`` (rays traced from the eye): the display position that shows
+                  the virtual-image point; it is inverted numerically (:func:`invert_map`).
+            size: ``(H, W)`` of the LUT (the display/native resolution).
+            gain: optional ``[3, H, W]`` per-channel gain.
+        """
+        check_tensor("chief_ray_map", chief_ray_map, [3, "Gh", "Gw", 2], dtypes=_FLOATS, finite=True)
+        if min(chief_ray_map.shape[1:3]) < 2:
+            raise ShapeError(f"chief_ray_map needs at least 2x2 samples, got {list(chief_ray_map.shape)}")
+        if direction == "display_to_eye":
+            p = pixel_grid(size, chief_ray_map.dtype, chief_ray_map.device).expand(3, -1, -1, -1)
+            grid = _interp_regular(chief_ray_map.detach(), p)
+        elif direction == "eye_to_display":
+            grid = invert_map(chief_ray_map, size)
+        else:
+            raise InputValueError(f"direction must be 'display_to_eye' or 'eye_to_display', got {direction!r}")
+        return cls(LUTMap(grid, gain))
+
+    def bake(self, size: tuple[int, int]) -> "LensPrewarp":
+        """A LUT copy of this stage's map at ``(H, W)`` (fixed, cheap at inference)."""
+        tensors = [*self.map.parameters(), *self.map.buffers()]
+        device = tensors[0].device if tensors else torch.device("cpu")
+        with torch.no_grad():
+            grid, gain = self.map(size, torch.float32, device)
+            return LensPrewarp(LUTMap(grid, gain))
+
+    def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
+        if self.training and any(p.requires_grad for p in self.map.parameters()):
+            return False
+        return self.map.is_identity()
+
+    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+        grid, gain = self.map(tuple(image.shape[-2:]), image.dtype, image.device)
+        return lens_prewarp(image, grid, gain)

@@ -1,0 +1,243 @@
+"""The end-to-end XR operator E_s of paper Eq. 8, composed from stages.
+
+    I_eye = O_phys(D_phys(P_disp(P_res(P_lens(I; s_lens); s_res); s_disp)))
+
+Built-in stages, their default order and colour domain (every built-in works in linear light,
+so the pipeline decodes the sRGB render once before the first stage that runs and encodes the
+result once at the end):
+
+    order  name       paper            resolution           domain
+      5    foveation  (stub)           keep                 linear   (identity, always skipped)
+     10    lens       P_lens           keep (S)             linear
+     20    resample   P_res            S -> round(S/d)      linear
+     30    display    P_disp           keep (S/d)           linear
+     40    oled       D_phys           S/d -> S             linear
+     50    optics     O_phys           keep (S)             linear   (plug-in "optics", optional)
+
+Stages before the first physical stage (``oled`` or ``optics``) are post-processing; their
+output is the "post" intermediate. A stage that is the identity at the current state is skipped
+without any work (no call, no domain conversion). A third-party stage sets ``after``/``before``
+to the name of a stage to be inserted right after/before it.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Mapping, Sequence
+
+import torch
+from torch import nn
+
+from controlgs_adapter.checks import check_image, check_same_device
+from controlgs_adapter.errors import InputValueError, ShapeError
+from controlgs_adapter.state import RuntimeState
+
+from .color import convert_domain
+from .stage import Stage, StageContext
+
+__all__ = ["Pipeline", "PHYSICAL_STAGES"]
+
+#: Names of the stages that model the physical display-optics path (paper Eq. 6); everything
+#: ordered before the first of them is post-processing.
+PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
+
+
+def _registered_stages() -> dict[str, type[Stage]]:
+    from controlgs_adapter import plugins
+
+    return {name: info.obj for name, info in plugins.stages().items()}
+
+
+def _resolve_order(stages: Sequence[Stage]) -> list[Stage]:
+    """Sort by ``order`` (then name); then insert the stages with ``after``/``before`` next to
+    their anchor (in their own ``(order, name)`` order). An anchor that is not in the pipeline
+    is placed where its registered ``order`` would put it."""
+    by_name = {s.name: s for s in stages}
+    plain = sorted((s for s in stages if not (s.after or s.before)), key=lambda s: (s.order, s.name))
+    pending = sorted((s for s in stages if s.after or s.before), key=lambda s: (s.order, s.name))
+    result: list[Stage] = list(plain)
+    following: dict[str, list[Stage]] = {}  # stages inserted right after an anchor
+    visiting: set[str] = set()
+
+    def anchor_order(name: str, who: Stage) -> float:
+        registered = _registered_stages()
+        if name not in registered:
+            raise InputValueError(
+                f"stage {who.name!r} wants to go next to {name!r}, which is neither in the pipeline nor registered "
+                f"(registered: {sorted(registered)})"
+            )
+        return float(registered[name].order)
+
+    def insert(s: Stage) -> None:
+        if s in result:
+            return
+        if s.name in visiting:
+            raise InputValueError(f"stage placement constraints form a cycle through {s.name!r}")
+        visiting.add(s.name)
+        anchor = s.after or s.before
+        if anchor in by_name and by_name[anchor] not in result:
+            insert(by_name[anchor])
+        if anchor in by_name:
+            if s.after:
+                chain = [by_name[anchor], *following.get(anchor, [])]
+                pos = result.index(chain[-1]) + 1
+                following.setdefault(anchor, []).append(s)
+            else:
+                pos = result.index(by_name[anchor])
+        else:
+            a = anchor_order(anchor, s)
+            plain_before = [i for i, t in enumerate(result) if t in plain and (t.order <= a if s.after else t.order < a)]
+            pos = plain_before[-1] + 1 if plain_before else 0
+        result.insert(pos, s)
+        if s.after and s.before and s.before in by_name and by_name[s.before] in result:
+            if result.index(by_name[s.before]) < pos:
+                raise InputValueError(f"stage {s.name!r}: after={s.after!r} and before={s.before!r} contradict")
+        visiting.discard(s.name)
+
+    for s in pending:
+        insert(s)
+    return result
+
+
+class Pipeline(nn.Module):
+    """The downstream operator E_s: renderer output (sRGB, native S) -> eye-space sRGB image.
+
+    Args:
+        stages: stage instances (unique names); their order is resolved from ``order`` and
+            ``after``/``before``, not from the sequence.
+    """
+
+    def __init__(self, stages: Sequence[Stage] = ()) -> None:
+        super().__init__()
+        names: list[str] = []
+        for i, s in enumerate(stages):
+            if not isinstance(s, Stage):
+                raise InputValueError(f"stages[{i}] must be a Stage instance, got {type(s).__name__}")
+            if not s.name:
+                raise InputValueError(f"stages[{i}] ({type(s).__name__}) has no name")
+            if s.domain not in ("srgb", "linear"):
+                raise InputValueError(f"stage {s.name!r} has domain {s.domain!r}; expected 'srgb' or 'linear'")
+            names.append(s.name)
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise InputValueError(f"stage names must be unique, got duplicates {dup}")
+        self.stages = nn.ModuleList(_resolve_order(list(stages)))
+
+    @classmethod
+    def from_config(cls, effects: Mapping[str, Any] | Iterable[str]) -> "Pipeline":
+        """Build the pipeline a scene calls for.
+
+        Args:
+            effects: stage names -> spec, where spec is False/None (absent), True (defaults), a dict
+                of constructor keyword arguments (e.g. ``{"resample": {"max_factor": 8}}``,
+                ``{"lens": {"coefficients": [[0.1], [0.1], [0.1]]}}``) or a ready Stage instance;
+                or an iterable of names (all with defaults). Names are those of registered stages
+                (:func:`controlgs_adapter.plugins.stages`), e.g. ``lens``, ``resample``,
+                ``display`` (power saving), ``foveation``, ``optics`` (needs the optics plug-in).
+                The physical display ``oled`` is always included unless set to False.
+        """
+        spec: dict[str, Any] = dict(effects) if isinstance(effects, Mapping) else {n: True for n in effects}
+        spec.setdefault("oled", True)
+        registered = _registered_stages()
+        stages: list[Stage] = []
+        for name, value in spec.items():
+            if value is None or value is False:
+                continue
+            if isinstance(value, Stage):
+                if value.name != name:
+                    raise InputValueError(f"effects[{name!r}] is a stage named {value.name!r}")
+                stages.append(value)
+                continue
+            if name not in registered:
+                raise InputValueError(
+                    f"effects names unknown stage {name!r}; registered stages: {sorted(registered)}"
+                    + (" (the optics stage comes from the optics plug-in)" if name == "optics" else "")
+                )
+            if value is True:
+                stages.append(registered[name]())
+            elif isinstance(value, Mapping):
+                stages.append(registered[name](**value))
+            else:
+                raise InputValueError(f"effects[{name!r}] must be a bool, a dict of options or a Stage, got {type(value).__name__}")
+        return cls(stages)
+
+    @property
+    def names(self) -> list[str]:
+        """Stage names in execution order."""
+        return [s.name for s in self.stages]
+
+    def __getitem__(self, name: str) -> Stage:
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise KeyError(f"no stage {name!r} in this pipeline (stages: {self.names})")
+
+    def __contains__(self, name: object) -> bool:
+        return any(s.name == name for s in self.stages)
+
+    def active(self, state: RuntimeState) -> list[str]:
+        """Names of the stages that run at ``state`` (the others are the identity there)."""
+        return [s.name for s in self.stages if not s.is_identity(state)]
+
+    def forward(
+        self,
+        image: torch.Tensor,
+        state: RuntimeState,
+        reference: torch.Tensor | None = None,
+        record: bool = False,
+        native_size: tuple[int, int] | None = None,
+    ) -> torch.Tensor | tuple[torch.Tensor, dict[str, Any]]:
+        """Run E_s.
+
+        Args:
+            image: ``[..., 3, H, W]`` rendered image, sRGB-encoded, at the native size S (or already
+                at the display size round(S/d) for the no-supersampling baseline).
+            state: the run-time state (downsample d, power saving rho, gaze).
+            reference: ``[..., 3, S_h, S_w]`` ground truth (sRGB) at S; gives the display's P_ref
+                and the native size.
+            record: also return the intermediates.
+            native_size: ``(S_h, S_w)``; default: the reference's size, else the image's.
+        Returns:
+            ``[..., 3, S_h, S_w]`` eye-space sRGB image; with ``record`` also a dict with the
+            sRGB images ``rendered``, ``post`` (after post-processing, display size),
+            ``displayed`` (emitted by the display, at S), ``eye`` (detached copies), the list
+            ``stages_run`` and ``diagnostics`` (what stages recorded, e.g.
+            ``display.clipped_fraction``).
+        """
+        check_image("image", image)
+        if not isinstance(state, RuntimeState):
+            raise InputValueError(f"state must be a RuntimeState, got {type(state).__name__}")
+        if reference is not None:
+            check_image("reference", reference)
+            check_same_device(image=image, reference=reference)
+        if native_size is None:
+            native = tuple(reference.shape[-2:]) if reference is not None else tuple(image.shape[-2:])
+        else:
+            native = (int(native_size[0]), int(native_size[1]))
+            if reference is not None and tuple(reference.shape[-2:]) != native:
+                raise ShapeError(f"reference must be at native_size {native}, got {list(reference.shape)}")
+        if image.shape[-2] > native[0] or image.shape[-1] > native[1]:
+            raise ShapeError(f"image {list(image.shape)} is larger than the native size {native}")
+        ctx = StageContext(native_size=native, reference=reference, record={} if record else None)
+        x, domain = image, "srgb"
+        rendered_post: torch.Tensor | None = None
+        displayed: torch.Tensor | None = None
+        ran: list[str] = []
+        for stage in self.stages:
+            if record and rendered_post is None and stage.name in PHYSICAL_STAGES:
+                rendered_post = convert_domain(x, domain, "srgb").detach()
+            if stage.is_identity(state):
+                continue
+            x = stage(convert_domain(x, domain, stage.domain), state, ctx)
+            domain = stage.domain
+            ran.append(stage.name)
+            if record and stage.name == "oled":
+                displayed = convert_domain(x, domain, "srgb").detach()
+        eye = convert_domain(x, domain, "srgb")
+        if not record:
+            return eye
+        post = eye.detach() if rendered_post is None else rendered_post
+        intermediates = {
+            "rendered": image.detach(), "post": post, "displayed": post if displayed is None else displayed,
+            "eye": eye.detach(), "stages_run": ran, "diagnostics": ctx.record,
+        }
+        return eye, intermediates
