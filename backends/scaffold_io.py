@@ -1,0 +1,351 @@
+"""Read and write Scaffold-GS output directories without the original repository or CUDA.
+
+Layout (exactly as Scaffold-GS's ``Scene.save`` / ``train.py`` write it)::
+
+    <model>/cfg_args                                   str(argparse.Namespace(**model_params))
+    <model>/point_cloud/iteration_<N>/point_cloud.ply  binary little-endian, float32 vertex fields
+        x, y, z, nx, ny, nz (zeros), f_offset_0 .. f_offset_{3K-1}, f_anchor_feat_0 .. f_anchor_feat_{F-1},
+        opacity, scale_0 .. scale_5 (log), rot_0 .. rot_3
+    <model>/point_cloud/iteration_<N>/{opacity,cov,color}_mlp.pt   torch.jit.trace of each decoder ('split')
+        [+ feature_bank_mlp.pt if use_feat_bank] [+ embedding_appearance.pt if appearance_dim > 0]
+    or  <model>/point_cloud/iteration_<N>/checkpoints.pth          ('unite') dict of state dicts:
+        opacity_mlp, cov_mlp, color_mlp [, feature_bank_mlp] [, appearance]
+
+``f_offset_{c * K + k}`` is coordinate ``c`` of offset ``k`` (Scaffold-GS saves
+``_offset.transpose(1, 2).flatten(1)``). Nothing is unpickled: TorchScript goes through
+``torch.jit.load``, state dicts through ``torch.load(weights_only=True)``, ``cfg_args`` through an
+``ast`` literal parser. See ``docs/reference-model.md``.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import re
+import shutil
+import tempfile
+from argparse import Namespace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from controlgs_adapter.errors import FileFormatError, TargetError
+from controlgs_adapter.io import atomic_write
+from controlgs_adapter.torchscript import eager_from_script
+
+from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields, write_ply
+from .reference_model import NeuralGaussianModel, _knn_sq_dists
+
+__all__ = ["save_scaffold_dir", "load_scaffold_dir", "latest_iteration", "MLP_FILES"]
+
+#: decoder attribute -> (TorchScript file in 'split' mode, key of checkpoints.pth in 'unite' mode)
+MLP_FILES: dict[str, tuple[str, str]] = {
+    "mlp_opacity": ("opacity_mlp.pt", "opacity_mlp"),
+    "mlp_cov": ("cov_mlp.pt", "cov_mlp"),
+    "mlp_color": ("color_mlp.pt", "color_mlp"),
+    "mlp_feature_bank": ("feature_bank_mlp.pt", "feature_bank_mlp"),
+    "embedding_appearance": ("embedding_appearance.pt", "appearance"),
+}
+_UNITE_FILE = "checkpoints.pth"
+_OPTION_KEYS = ("feat_dim", "n_offsets", "use_feat_bank", "appearance_dim", "add_opacity_dist", "add_cov_dist",
+                "add_color_dist")
+
+
+# ============================================================================ saving
+
+def _cfg_namespace(model: NeuralGaussianModel, model_path: Path) -> Namespace:
+    """Scaffold-GS's ``ModelParams`` as ``train.py`` records them (same keys, same order)."""
+    return Namespace(
+        sh_degree=3, feat_dim=model.feat_dim, n_offsets=model.n_offsets, voxel_size=model.voxel_size,
+        update_depth=3, update_init_factor=16, update_hierachy_factor=4, use_feat_bank=model.use_feat_bank,
+        source_path="", model_path=str(model_path), images="images", resolution=-1, white_background=False,
+        data_device="cuda", eval=True, lod=0, appearance_dim=model.appearance_dim, lowpoly=False, ds=1, ratio=1,
+        undistorted=False, add_opacity_dist=model.add_opacity_dist, add_cov_dist=model.add_cov_dist,
+        add_color_dist=model.add_color_dist,
+    )
+
+
+def _ply_fields(model: NeuralGaussianModel) -> dict[str, np.ndarray]:
+    def cols(prefix: str, x: torch.Tensor) -> dict[str, np.ndarray]:
+        x = x.detach().to("cpu", torch.float32).numpy()
+        return {f"{prefix}{i}": np.ascontiguousarray(x[:, i]) for i in range(x.shape[1])}
+
+    a = model.num_anchors
+    anchor = model._anchor.detach().to("cpu", torch.float32).numpy()
+    offsets = model._offset.detach().transpose(1, 2).flatten(1)  # [A, 3K]: column c*K + k
+    return {
+        "x": anchor[:, 0].copy(), "y": anchor[:, 1].copy(), "z": anchor[:, 2].copy(),
+        "nx": np.zeros(a, np.float32), "ny": np.zeros(a, np.float32), "nz": np.zeros(a, np.float32),
+        **cols("f_offset_", offsets), **cols("f_anchor_feat_", model._anchor_feat),
+        "opacity": model._opacity.detach().to("cpu", torch.float32).numpy()[:, 0].copy(),
+        **cols("scale_", model._scaling), **cols("rot_", model._rotation),
+    }
+
+
+def _mlp_inputs(model: NeuralGaussianModel) -> dict[str, int]:
+    f = model.feat_dim
+    widths = {"mlp_opacity": f + 3 + model.opacity_dist_dim, "mlp_cov": f + 3 + model.cov_dist_dim,
+              "mlp_color": f + 3 + model.color_dist_dim + model.appearance_dim}
+    if model.use_feat_bank:
+        widths["mlp_feature_bank"] = 3 + 1
+    return widths
+
+
+def save_scaffold_dir(model: NeuralGaussianModel, path: str | os.PathLike, iteration: int,
+                      mlp_mode: str = "split") -> Path:
+    """Write ``model`` as a Scaffold-GS output directory (module docstring) and return the
+    ``point_cloud/iteration_<iteration>`` folder.
+
+    ``mlp_mode="split"`` traces each decoder with ``torch.jit.trace`` on a ``torch.rand(1, width)``
+    example in eval mode (as Scaffold-GS's ``save_mlp_checkpoints``; traced from a float32 CPU copy
+    so the files load anywhere); ``"unite"`` writes one ``checkpoints.pth`` of state dicts. The
+    iteration folder is assembled in a temporary sibling and renamed into place, and ``cfg_args``
+    is written atomically, so a reader never sees a half-written model.
+    """
+    if mlp_mode not in ("split", "unite"):
+        raise ValueError(f"mlp_mode must be 'split' or 'unite', got {mlp_mode!r}")
+    if int(iteration) < 0:
+        raise ValueError(f"iteration must be >= 0, got {iteration!r}")
+    root = Path(path)
+    parent = root / "point_cloud"
+    parent.mkdir(parents=True, exist_ok=True)
+    final = parent / f"iteration_{int(iteration)}"
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=parent))
+    try:
+        write_ply(tmp / "point_cloud.ply", _ply_fields(model))
+        modules = {name: getattr(model, name) for name in MLP_FILES if getattr(model, name, None) is not None}
+        if mlp_mode == "split":
+            examples = {name: torch.rand(1, width) for name, width in _mlp_inputs(model).items()}
+            examples["embedding_appearance"] = torch.zeros((1,), dtype=torch.long)
+            for name, module in modules.items():
+                cpu = copy.deepcopy(module).to("cpu", torch.float32).eval()
+                torch.jit.trace(cpu, examples[name]).save(str(tmp / MLP_FILES[name][0]))
+        else:
+            state = {MLP_FILES[name][1]: {k: v.detach().to("cpu", torch.float32) for k, v in m.state_dict().items()}
+                     for name, m in modules.items()}
+            torch.save(state, tmp / _UNITE_FILE)
+        backup = None
+        if final.exists():
+            backup = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=parent))
+            os.replace(final, backup / final.name)
+        os.replace(tmp, final)
+        if backup is not None:
+            shutil.rmtree(backup, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    cfg = str(_cfg_namespace(model, root))
+    atomic_write(root / "cfg_args", lambda p: Path(p).write_text(cfg))
+    return final
+
+
+# ============================================================================ loading
+
+def latest_iteration(path: str | os.PathLike) -> int:
+    """Largest ``N`` of the ``<path>/point_cloud/iteration_<N>`` folders."""
+    parent = Path(path) / "point_cloud"
+    its = [int(m.group(1)) for p in (parent.iterdir() if parent.is_dir() else ())
+           if p.is_dir() and (m := re.fullmatch(r"iteration_(\d+)", p.name))]
+    if not its:
+        raise FileFormatError(f"{parent}: no point_cloud/iteration_<N> folder (not a Scaffold-GS output directory)")
+    return max(its)
+
+
+def _indexed(fields: dict[str, np.ndarray], prefix: str, source: str) -> list[np.ndarray]:
+    """Columns ``prefix0 .. prefix{n-1}`` sorted by index (Scaffold-GS sorts by the integer suffix)."""
+    idx = sorted(int(n[len(prefix):]) for n in fields if n.startswith(prefix) and n[len(prefix):].isdigit())
+    if idx != list(range(len(idx))):
+        missing = sorted(set(range(max(idx, default=-1) + 1)) - set(idx))
+        raise FileFormatError(f"{source}: PLY fields {prefix}* are not numbered 0..n-1 (missing {prefix}{missing[0]})"
+                              if missing else f"{source}: no PLY fields {prefix}*")
+    return [fields[f"{prefix}{i}"] for i in idx]
+
+
+def _read_anchors(ply: Path) -> dict[str, np.ndarray]:
+    fields, _ = read_ply(ply)
+    src = str(ply)
+    require_fields(fields, ["x", "y", "z", "opacity", *(f"scale_{i}" for i in range(6)),
+                            *(f"rot_{i}" for i in range(4)), "f_offset_0", "f_anchor_feat_0"], source=src)
+    for name, col in fields.items():
+        if col.dtype.kind != "f":
+            raise FileFormatError(f"{src}: PLY field {name!r} must be float, got {col.dtype}")
+        bad = int((~np.isfinite(col)).sum())
+        if bad:
+            raise FileFormatError(f"{src}: PLY field {name!r} holds {bad} non-finite value(s)")
+    offsets = _indexed(fields, "f_offset_", src)
+    if len(offsets) % 3:
+        raise FileFormatError(f"{src}: {len(offsets)} PLY fields f_offset_* is not 3 x n_offsets")
+    scales = _indexed(fields, "scale_", src)
+    rots = _indexed(fields, "rot_", src)
+    if len(scales) != 6 or len(rots) != 4:
+        raise FileFormatError(f"{src}: expected PLY fields scale_0..scale_5 and rot_0..rot_3, got "
+                              f"{len(scales)} scale_* and {len(rots)} rot_*")
+    k = len(offsets) // 3
+    stack = lambda cols: np.stack(cols, axis=1).astype(np.float32)  # noqa: E731
+    return {
+        "anchor": stack([fields["x"], fields["y"], fields["z"]]),
+        "offset": stack(offsets).reshape(-1, 3, k).transpose(0, 2, 1),  # [A, K, 3]
+        "feat": stack(_indexed(fields, "f_anchor_feat_", src)),
+        "opacity": stack([fields["opacity"]]),
+        "scaling": stack(scales),
+        "rotation": stack(rots),
+    }
+
+
+def _expected_layers(name: str, opts: dict[str, Any]) -> list[tuple[str, tuple[int, int] | None]]:
+    """``[(layer type, (in, out) for Linear)]`` of a decoder for the given widths and options."""
+    f, k, a = opts["feat_dim"], opts["n_offsets"], opts["appearance_dim"]
+    d_in, d_out, act = {
+        "mlp_opacity": (f + 3 + int(opts["add_opacity_dist"]), k, "Tanh"),
+        "mlp_cov": (f + 3 + int(opts["add_cov_dist"]), 7 * k, None),
+        "mlp_color": (f + 3 + int(opts["add_color_dist"]) + a, 3 * k, "Sigmoid"),
+        "mlp_feature_bank": (4, 3, "Softmax"),
+    }[name]
+    return [("Linear", (d_in, f)), ("ReLU", None), ("Linear", (f, d_out)), *([(act, None)] if act else [])]
+
+
+def _describe(module: nn.Module) -> list[tuple[str, tuple[int, int] | None]]:
+    return [(type(m).__name__, (m.in_features, m.out_features) if isinstance(m, nn.Linear) else None)
+            for m in (module.children() if isinstance(module, nn.Sequential) else [module])]
+
+
+class _Decoders:
+    """The decoders of one iteration folder as state dicts, in either mode, before any width check."""
+
+    def __init__(self, folder: Path) -> None:
+        split = {n: folder / f for n, (f, _) in MLP_FILES.items()}
+        self.mode = "split" if any(p.is_file() for p in split.values()) else "unite"
+        self.state: dict[str, dict[str, torch.Tensor]] = {}
+        self.layers: dict[str, list] = {}  # split mode: rebuilt layer list, checked against the options
+        self.source: dict[str, str] = {}
+        if self.mode == "split":
+            for name, p in split.items():
+                if not p.is_file():
+                    continue
+                script = load_torchscript(p)
+                self.source[name] = str(p)
+                if name == "embedding_appearance":
+                    self.state[name] = {k: v.detach().clone() for k, v in script.state_dict().items()}
+                    continue
+                try:
+                    eager = eager_from_script(script, name=name)
+                except TargetError as e:
+                    raise FileFormatError(f"{p}: decoder {name!r} cannot be rebuilt as an eager module: {e}") from e
+                self.layers[name] = _describe(eager)
+                self.state[name] = eager.state_dict()
+            missing = [MLP_FILES[n][0] for n in ("mlp_opacity", "mlp_cov", "mlp_color") if n not in self.state]
+            if missing:
+                raise FileFormatError(f"{folder}: missing MLP file(s) {missing} (split mode: TorchScript traces)")
+        else:
+            unite = folder / _UNITE_FILE
+            if not unite.is_file():
+                raise FileFormatError(
+                    f"{folder}: missing MLPs: neither the TorchScript traces {[f for f, _ in MLP_FILES.values()][:3]} "
+                    f"nor {_UNITE_FILE} is there")
+            blob = load_state_dict_file(unite)
+            for name, (_, key) in MLP_FILES.items():
+                if key in blob:
+                    if not isinstance(blob[key], dict):
+                        raise FileFormatError(f"{unite}: entry {key!r} is not a state dict")
+                    self.state[name], self.source[name] = blob[key], f"{unite} [{key!r}]"
+            missing = [MLP_FILES[n][1] for n in ("mlp_opacity", "mlp_cov", "mlp_color") if n not in self.state]
+            if missing:
+                raise FileFormatError(f"{unite}: missing MLP entr(y/ies) {missing}")
+
+    def weight(self, name: str, key: str) -> torch.Tensor:
+        sd = self.state[name]
+        if key not in sd or not isinstance(sd[key], torch.Tensor):
+            raise FileFormatError(f"{self.source[name]}: decoder {name!r} has no tensor {key!r} (keys: {sorted(sd)})")
+        return sd[key]
+
+
+def _infer_options(anchors: dict[str, np.ndarray], dec: _Decoders, cfg: dict[str, Any], cfg_src: str) -> dict[str, Any]:
+    """Widths/options from cfg_args where present, else from the files; then every width is checked."""
+    f, k = anchors["feat"].shape[1], anchors["offset"].shape[1]
+    emb = dec.weight("embedding_appearance", "embedding.weight") if "embedding_appearance" in dec.state else None
+    a = int(emb.shape[1]) if emb is not None else 0
+
+    def first_in(name: str) -> int:
+        w = dec.weight(name, "0.weight")
+        if w.dim() != 2:
+            raise FileFormatError(f"{dec.source[name]}: decoder {name!r} layer 0 weight must be 2-D, got {list(w.shape)}")
+        return int(w.shape[1])
+
+    inferred = {"feat_dim": f, "n_offsets": k, "appearance_dim": a, "use_feat_bank": "mlp_feature_bank" in dec.state,
+                "add_opacity_dist": first_in("mlp_opacity") - f - 3 == 1, "add_cov_dist": first_in("mlp_cov") - f - 3 == 1,
+                "add_color_dist": first_in("mlp_color") - f - 3 - a == 1}
+    opts = {key: cfg.get(key, inferred[key]) for key in _OPTION_KEYS}
+    for key in _OPTION_KEYS:  # cfg_args against the PLY and the MLP files
+        if key in cfg and type(inferred[key])(cfg[key]) != inferred[key]:
+            where = {"feat_dim": "PLY fields f_anchor_feat_*", "n_offsets": "PLY fields f_offset_* (3 x n_offsets)",
+                     "appearance_dim": "embedding_appearance", "use_feat_bank": "feature bank MLP"}.get(key, "MLP input width")
+            raise FileFormatError(f"{cfg_src}: {key}={cfg[key]!r} disagrees with the files ({where} give {inferred[key]!r})")
+    for name in ("mlp_opacity", "mlp_cov", "mlp_color", "mlp_feature_bank"):
+        if name not in dec.state:
+            continue
+        want = _expected_layers(name, opts)
+        got = dec.layers.get(name)
+        if got is None:  # unite mode: only the Linear shapes are in the file
+            got = [("Linear", tuple(dec.weight(name, f"{i}.weight").shape[::-1])) if kind == "Linear" else (kind, None)
+                   for i, (kind, _) in enumerate(want)]
+        if got != want:
+            raise FileFormatError(
+                f"{dec.source[name]}: decoder {name!r} has layers {got}, expected {want} for feat_dim={f}, "
+                f"n_offsets={k} (PLY: {k} offsets, {f} features) and the options "
+                f"{ {key: opts[key] for key in _OPTION_KEYS[2:]} }")
+    return opts
+
+
+def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
+                      device: str | torch.device = "cpu") -> NeuralGaussianModel:
+    """Load a Scaffold-GS output directory as a :class:`NeuralGaussianModel` (eager decoders).
+
+    Args:
+        path: the model directory (holding ``cfg_args`` and ``point_cloud/``).
+        iteration: which ``point_cloud/iteration_<N>``; None = the largest N.
+        device: where the returned model lives.
+
+    Widths and options come from ``cfg_args`` (keys ``feat_dim, n_offsets, appearance_dim,
+    use_feat_bank, add_{opacity,cov,color}_dist, voxel_size``) and are checked against the PLY and
+    every decoder's layer types and shapes; keys missing from ``cfg_args`` (or a missing
+    ``cfg_args``) are inferred from the files. TorchScript decoders are rebuilt as eager
+    ``nn.Sequential`` s with identical outputs (:func:`controlgs_adapter.torchscript.eager_from_script`).
+
+    Raises:
+        FileFormatError: naming the file and the field: no iteration folder, missing/truncated
+            PLY or missing PLY fields, non-finite values, missing MLP, MLP widths that do not fit
+            the PLY's feature/offset counts or cfg_args, unreadable TorchScript or state dict
+            (arbitrary pickled objects are refused).
+    """
+    root = Path(path)
+    it = latest_iteration(root) if iteration is None else int(iteration)
+    folder = root / "point_cloud" / f"iteration_{it}"
+    if not folder.is_dir():
+        raise FileFormatError(f"{folder}: no such iteration folder (latest is {latest_iteration(root)})")
+    cfg_path = root / "cfg_args"
+    cfg = read_cfg_args(cfg_path) if cfg_path.is_file() else {}
+    anchors = _read_anchors(folder / "point_cloud.ply")
+    dec = _Decoders(folder)
+    opts = _infer_options(anchors, dec, cfg, str(cfg_path))
+    voxel = float(cfg.get("voxel_size", 0) or 0)
+    if voxel <= 0:  # Scaffold-GS picks it from the point cloud when the argument is <= 0
+        sample = torch.from_numpy(anchors["anchor"][:: max(1, len(anchors["anchor"]) // 2048)]).double()
+        d = _knn_sq_dists(sample, 1)[:, 0].sqrt() if len(sample) > 1 else torch.ones(1)
+        voxel = float(d[d > 0].median()) if bool((d > 0).any()) else 1.0
+    num_cameras = int(dec.state["embedding_appearance"]["embedding.weight"].shape[0]) if opts["appearance_dim"] else 1
+    model = NeuralGaussianModel(anchors["anchor"].shape[0], voxel_size=voxel, num_cameras=num_cameras,
+                                **{key: opts[key] for key in _OPTION_KEYS})
+    with torch.no_grad():
+        for attr, key in (("_anchor", "anchor"), ("_offset", "offset"), ("_anchor_feat", "feat"),
+                          ("_opacity", "opacity"), ("_scaling", "scaling"), ("_rotation", "rotation")):
+            getattr(model, attr).copy_(torch.from_numpy(np.ascontiguousarray(anchors[key])))
+    for name, sd in dec.state.items():
+        try:
+            getattr(model, name).load_state_dict(sd, strict=True)
+        except RuntimeError as e:
+            raise FileFormatError(f"{dec.source[name]}: decoder {name!r} does not fit: {str(e).splitlines()[0]} "
+                                  f"{' '.join(str(e).split())[:300]}") from e
+    return model.to(device).eval()
