@@ -1,0 +1,490 @@
+"""Differentiable EWA Gaussian splatter in pure PyTorch (CPU-first, any device).
+
+``rasterize`` renders 3D Gaussians with the conventions of 3D Gaussian Splatting (Kerbl et al. 2023);
+``backends/splatter_reference.py`` holds the brute-force float64 oracle the tests compare against.
+
+Conventions (all shared with the reference; see ``rasterize``'s docstring for the full list):
+
+* camera: OpenCV axes (x right, y down, z forward), ``Camera.world_to_camera`` ``[4, 4]`` and
+  ``Camera.intrinsics`` ``[3, 3]`` in pixels; pixel ``(i, j)`` has its centre at ``(i + 0.5, j + 0.5)``.
+* Gaussian ``n``: mean ``mu_n`` (world), covariance ``R(q_n) diag(s_n)^2 R(q_n)^T`` with the quaternion
+  ``q_n = (w, x, y, z)`` normalised here, opacity ``o_n`` in [0, 1], a colour.
+
+How it is fast (2 CPU cores, no compiled extension):
+
+1. project only the Gaussians in front of the near plane; drop those whose screen footprint misses
+   the image (``visible``);
+2. bin the footprints into ``tile_size`` x ``tile_size`` tiles, sort the (tile, depth) records, and
+   cut the tiles into chunks of at most ``_PAIR_BUDGET`` (pixel, Gaussian) pairs, so that memory is
+   bounded whatever the scene (never a dense [pixels x Gaussians] tensor);
+3. per chunk, expand the records into the (pixel, Gaussian) pairs inside each footprint, drop those
+   with alpha < 1/255, sort them by pixel (stable, so each pixel's run stays in depth order) and
+   composite all pixels at once with a segmented scan of ``log(1 - alpha)``;
+4. the compositing is a ``torch.autograd.Function`` with a hand-written backward (the 3DGS
+   back-to-front suffix sums as a reverse segmented scan); the pairs are kept for the backward pass
+   while they fit in ``_CACHE_PAIRS``, otherwise recomputed chunk by chunk (as the CUDA kernel does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from controlgs_adapter.checks import check_same_device, check_tensor
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.state import Camera
+
+__all__ = [
+    "RasterOutput",
+    "rasterize",
+    "project_gaussians",
+    "composite_features",
+    "NEAR_PLANE",
+    "LOW_PASS",
+    "EXTENT_SIGMAS",
+    "FRUSTUM_MARGIN",
+    "ALPHA_MAX",
+    "ALPHA_MIN",
+    "TRANSMITTANCE_MIN",
+]
+
+NEAR_PLANE = 0.2  # Gaussians with camera-space z <= this are culled (3DGS ``in_frustum``)
+LOW_PASS = 0.3  # px^2 added to the diagonal of every 2D covariance (3DGS anti-aliasing filter)
+EXTENT_SIGMAS = 3.0  # footprint half-width, in standard deviations along the major axis
+FRUSTUM_MARGIN = 0.15  # the Jacobian's x/z, y/z are clamped to the image +- this fraction of its size
+ALPHA_MAX = 0.99  # per-splat alpha clamp
+ALPHA_MIN = 1.0 / 255.0  # splats with alpha below this are skipped
+TRANSMITTANCE_MIN = 1e-4  # a splat that would take T below this is not drawn, nor is any behind it
+
+_PAIR_BUDGET = 1 << 21  # (pixel, Gaussian) pairs expanded at once (~100 MB of temporaries)
+_CACHE_PAIRS = 1 << 23  # pairs kept from forward for backward; beyond this backward recomputes
+
+
+@dataclass
+class RasterOutput:
+    """Result of ``rasterize``.
+
+    Attributes:
+        color: ``[3, H, W]`` composited colour, background blended in.
+        alpha: ``[1, H, W]`` accumulated opacity ``1 - T_final``.
+        depth: ``[1, H, W]`` alpha-weighted camera-space depth ``sum_i w_i z_i`` (divide by ``alpha``
+            for the expected depth of the drawn surface).
+        visible: ``[N]`` bool, Gaussian in front of the near plane with a footprint touching the image.
+    """
+
+    color: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    visible: torch.Tensor
+
+
+# ----------------------------------------------------------------------------- projection
+
+
+def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Quaternions ``[M, 4]`` (w, x, y, z), any non-zero norm -> rotation matrices ``[M, 3, 3]``."""
+    w, x, y, z = (q / q.norm(dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+def project_gaussians(
+    means_cam: torch.Tensor,  # [M, 3] camera-space means, z > 0
+    scales: torch.Tensor,  # [M, 3]
+    rotations: torch.Tensor,  # [M, 4] world-space quaternions (w, x, y, z)
+    world_to_camera: torch.Tensor,  # [4, 4]
+    intrinsics: torch.Tensor,  # [3, 3]
+    width: int,
+    height: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """EWA projection: means2d ``[M, 2]`` (pixels), 2D covariance ``(a, b, c)`` ``[M, 3]`` (px^2,
+    ``[[a, b], [b, c]]``, low-pass included) and its inverse, the conic ``[M, 3]``.
+
+    ``Sigma_2D = J W R S S^T R^T W^T J^T + 0.3 I`` with ``W`` the camera rotation and ``J`` the
+    Jacobian of ``(fx x / z + cx, fy y / z + cy)`` at the mean, whose ``x/z`` and ``y/z`` are clamped
+    to the image extent widened by ``FRUSTUM_MARGIN`` of its size on each side (3DGS's 1.3 x FoV).
+    """
+    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
+    x, y, z = means_cam.unbind(-1)
+    u = fx * x / z + cx
+    v = fy * y / z + cy
+    lim_x = ((cx + FRUSTUM_MARGIN * width) / fx, (width * (1 + FRUSTUM_MARGIN) - cx) / fx)
+    lim_y = ((cy + FRUSTUM_MARGIN * height) / fy, (height * (1 + FRUSTUM_MARGIN) - cy) / fy)
+    tx = torch.minimum(torch.maximum(x / z, -lim_x[0]), lim_x[1])  # clamped x / z
+    ty = torch.minimum(torch.maximum(y / z, -lim_y[0]), lim_y[1])
+    rot = world_to_camera[:3, :3] @ _quat_to_rotmat(rotations)  # [M, 3, 3] camera-space rotation
+    # rows of J @ rot: J = [[fx / z, 0, -fx tx / z], [0, fy / z, -fy ty / z]] (tx, ty already / z)
+    j0 = (fx / z).unsqueeze(-1) * (rot[:, 0, :] - tx.unsqueeze(-1) * rot[:, 2, :])  # [M, 3]
+    j1 = (fy / z).unsqueeze(-1) * (rot[:, 1, :] - ty.unsqueeze(-1) * rot[:, 2, :])
+    j0, j1 = j0 * scales, j1 * scales  # (J W R S) rows
+    a = (j0 * j0).sum(-1) + LOW_PASS
+    b = (j0 * j1).sum(-1)
+    c = (j1 * j1).sum(-1) + LOW_PASS
+    det = a * c - b * b
+    cov2d = torch.stack([a, b, c], dim=-1)
+    conic = torch.stack([c / det, -b / det, a / det], dim=-1)
+    return torch.stack([u, v], dim=-1), cov2d, conic
+
+
+def _footprints(
+    means2d: torch.Tensor, cov2d: torch.Tensor, opacity: torch.Tensor, width: int, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel-index rectangles ``[M, 4]`` (x0, x1, y0, y1, inclusive, clipped to the image; empty when
+    x0 > x1 or y0 > y1), not differentiable (hard supports):
+
+    * the footprint: pixels whose centre lies within ``EXTENT_SIGMAS * sqrt(lambda_max)`` of the mean
+      along both axes;
+    * the candidates: the footprint cut to the bounding box of the ellipse where
+      ``alpha >= ALPHA_MIN`` (``d^T Sigma^-1 d <= 2 ln(255 o)``, half-widths ``sqrt(2 ln(255 o) a)``,
+      ``sqrt(2 ln(255 o) c)``); pixels outside it cannot be drawn, so skipping them changes nothing.
+    """
+    with torch.no_grad():
+        a, b, c = cov2d.unbind(-1)
+        mid = 0.5 * (a + c)
+        lam = mid + torch.sqrt(torch.clamp(mid * mid - (a * c - b * b), min=0.0))
+        r = EXTENT_SIGMAS * torch.sqrt(lam)
+        level = 2.0 * torch.log(torch.clamp(opacity / ALPHA_MIN, min=1e-30))  # < 0: never drawn
+        slack = 1.0 + 1e-6
+        rx = torch.minimum(r, torch.sqrt(torch.clamp(level * a, min=0.0)) * slack)
+        ry = torch.minimum(r, torch.sqrt(torch.clamp(level * c, min=0.0)) * slack)
+        u, v = means2d.unbind(-1)
+        big = float(4 * max(width, height) + 4)  # keep the float -> int conversion in range
+
+        def rect(hx: torch.Tensor, hy: torch.Tensor) -> torch.Tensor:
+            out = torch.stack(
+                [torch.ceil(u - hx - 0.5), torch.floor(u + hx - 0.5), torch.ceil(v - hy - 0.5), torch.floor(v + hy - 0.5)],
+                dim=-1,
+            ).clamp(-big, big).long()
+            out[:, 0].clamp_(min=0)
+            out[:, 1].clamp_(max=width - 1)
+            out[:, 2].clamp_(min=0)
+            out[:, 3].clamp_(max=height - 1)
+            return out
+
+        candidates = rect(rx, ry)
+        candidates[level < 0, 1] = -1  # empty
+        return rect(r, r), candidates
+
+
+# ----------------------------------------------------------------------------- tiling
+
+
+@dataclass
+class _Tiling:
+    """(tile, Gaussian) records sorted by (tile, depth), each clipped to its tile, and the chunks."""
+
+    gauss: torch.Tensor  # [R] int64 Gaussian (index into depth-sorted arrays)
+    x0: torch.Tensor  # [R] int64 first pixel column of the clipped rectangle
+    y0: torch.Tensor  # [R] int64 first pixel row
+    wx: torch.Tensor  # [R] int64 rectangle width
+    count: torch.Tensor  # [R] int64 pixels in the rectangle
+    chunks: list[tuple[int, int, int]]  # (first record, end record, number of pairs)
+
+
+def _bin_tiles(rect: torch.Tensor, width: int, tile_size: int) -> _Tiling:
+    """Bin rectangles ``rect`` ``[M, 4]`` (Gaussians already in depth order) into tiles."""
+    dev = rect.device
+    ids = ((rect[:, 0] <= rect[:, 1]) & (rect[:, 2] <= rect[:, 3])).nonzero().squeeze(1)  # non-empty
+    rect = rect.index_select(0, ids)
+    x0, x1, y0, y1 = rect.unbind(-1)
+    tiles_x = (width + tile_size - 1) // tile_size
+    tx0, tx1, ty0, ty1 = x0 // tile_size, x1 // tile_size, y0 // tile_size, y1 // tile_size
+    ntx = tx1 - tx0 + 1
+    n_rec = ntx * (ty1 - ty0 + 1)  # [M']
+    owner = torch.repeat_interleave(torch.arange(rect.shape[0], device=dev), n_rec)  # [R] in depth order
+    local = torch.arange(owner.numel(), device=dev) - torch.repeat_interleave(torch.cumsum(n_rec, 0) - n_rec, n_rec)
+    ntx_r = ntx[owner]
+    tx = tx0[owner] + local % ntx_r
+    ty = ty0[owner] + local // ntx_r
+    tile, order = torch.sort((ty * tiles_x + tx).int(), stable=True)  # stable: depth order kept per tile
+    owner, tx, ty = owner[order], tx[order], ty[order]
+    rx0 = torch.maximum(x0[owner], tx * tile_size)
+    rx1 = torch.minimum(x1[owner], tx * tile_size + tile_size - 1)
+    ry0 = torch.maximum(y0[owner], ty * tile_size)
+    ry1 = torch.minimum(y1[owner], ty * tile_size + tile_size - 1)
+    wx = rx1 - rx0 + 1
+    count = wx * (ry1 - ry0 + 1)
+    # chunks: runs of whole tiles with about _PAIR_BUDGET pairs each
+    ends = torch.cumsum(count, 0)
+    tile_first = torch.ones_like(tile, dtype=torch.bool)
+    tile_first[1:] = tile[1:] != tile[:-1]
+    first_idx = tile_first.nonzero().squeeze(1)  # record index where each tile begins
+    bucket = ((ends - count)[first_idx] // _PAIR_BUDGET).tolist()
+    first_idx_l, ends_l = first_idx.tolist(), ends.tolist()
+    chunks: list[tuple[int, int, int]] = []
+    r_begin = 0
+    for i in range(1, len(first_idx_l) + 1):
+        if i == len(first_idx_l) or bucket[i] != bucket[i - 1]:
+            r_end = first_idx_l[i] if i < len(first_idx_l) else owner.numel()
+            chunks.append((r_begin, r_end, ends_l[r_end - 1] - (ends_l[r_begin - 1] if r_begin else 0)))
+            r_begin = r_end
+    return _Tiling(ids.index_select(0, owner), rx0, ry0, wx, count, chunks)
+
+
+@dataclass
+class _Pairs:
+    """The candidate (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by
+    (pixel, depth)."""
+
+    gauss: torch.Tensor  # [P] int64
+    pix: torch.Tensor  # [P] int64 flat pixel index y * W + x
+    dx: torch.Tensor  # [P] pixel centre - mean, x
+    dy: torch.Tensor  # [P]
+    alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G), all >= ALPHA_MIN
+    clamped: torch.Tensor  # [P] bool, alpha hit ALPHA_MAX
+    t_before: torch.Tensor  # [P] transmittance in front of the splat
+    drawn: torch.Tensor  # [P] bool, T after the splat stays >= TRANSMITTANCE_MIN
+    seg_end: torch.Tensor  # [P] int64 index of the last pair of the same pixel
+
+
+def _expand_pairs(
+    tiling: _Tiling, chunk: tuple[int, int, int], means2d: torch.Tensor, conic: torch.Tensor,
+    opacity: torch.Tensor, width: int,
+) -> _Pairs:
+    r0, r1, n = chunk
+    dev, dtype = means2d.device, means2d.dtype
+    count = tiling.count[r0:r1]
+    g_rec = tiling.gauss[r0:r1]
+    # per record: offsets of its first pixel centre from the mean, its conic, opacity, first pixel id
+    ox = tiling.x0[r0:r1].to(dtype) + 0.5 - means2d[:, 0].index_select(0, g_rec)
+    oy = tiling.y0[r0:r1].to(dtype) + 0.5 - means2d[:, 1].index_select(0, g_rec)
+    rec_vals = torch.stack([ox, oy, *conic.index_select(0, g_rec).unbind(-1), opacity.index_select(0, g_rec)])
+    pix0 = (tiling.y0[r0:r1] * width + tiling.x0[r0:r1]).int()
+    # expand to pairs (gathers by the record index are monotone, hence cache-friendly)
+    rec = torch.repeat_interleave(torch.arange(r1 - r0, device=dev), count)  # [n]
+    local = torch.arange(n, device=dev) - (torch.cumsum(count, 0) - count).index_select(0, rec)
+    wx = tiling.wx[r0:r1].index_select(0, rec)
+    ly = local // wx
+    lx = local - ly * wx
+    ox, oy, ca, cb, cc, o = rec_vals.index_select(1, rec).unbind(0)
+    dx = ox + lx.to(dtype)
+    dy = oy + ly.to(dtype)
+    raw = o * torch.exp(-0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy)
+    keep = (raw >= ALPHA_MIN).nonzero().squeeze(1)
+    pix = (pix0.index_select(0, rec) + (ly * width + lx).int()).index_select(0, keep)
+    pix, order = torch.sort(pix, stable=True)  # runs per pixel, depth order kept inside each run
+    sel = keep.index_select(0, order)
+    pix = pix.long()
+    gauss = g_rec.index_select(0, rec.index_select(0, sel))
+    dx, dy, raw = dx.index_select(0, sel), dy.index_select(0, sel), raw.index_select(0, sel)
+    clamped = raw > ALPHA_MAX
+    alpha = torch.where(clamped, torch.full_like(raw, ALPHA_MAX), raw)
+    # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
+    log_t = torch.log1p(-alpha.double())
+    first = torch.ones_like(pix, dtype=torch.bool)
+    first[1:] = pix[1:] != pix[:-1]
+    starts = first.nonzero().squeeze(1)
+    seg = torch.cumsum(first, 0) - 1
+    excl = torch.cumsum(log_t, 0) - log_t
+    log_before = excl - excl.index_select(0, starts).index_select(0, seg)
+    t_before = torch.exp(log_before).to(dtype)
+    drawn = (log_before + log_t) >= torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=torch.float64))
+    seg_end = torch.cat([starts[1:] - 1, starts.new_tensor([pix.numel() - 1])]).index_select(0, seg)
+    return _Pairs(gauss, pix, dx, dy, alpha, clamped, t_before, drawn, seg_end)
+
+
+class _Composite(torch.autograd.Function):
+    """Front-to-back alpha compositing of per-Gaussian features over the tiled pairs."""
+
+    @staticmethod
+    def forward(ctx, means2d, conic, opacity, feats, tiling, width, height):  # type: ignore[override]
+        hw, nf = width * height, feats.shape[1]
+        out = feats.new_zeros(nf, hw)
+        cached: list[_Pairs] = []
+        total = sum(c[2] for c in tiling.chunks)
+        feats_t = feats.t().contiguous()  # [F, M]
+        for chunk in tiling.chunks:
+            p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
+            w = p.alpha * p.t_before * p.drawn
+            for k in range(nf):
+                out[k].index_add_(0, p.pix, w * feats_t[k].index_select(0, p.gauss))
+            if total <= _CACHE_PAIRS:
+                cached.append(p)
+        ctx.tiling, ctx.width, ctx.cached = tiling, width, (cached if total <= _CACHE_PAIRS else None)
+        ctx.save_for_backward(means2d, conic, opacity, feats)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        means2d, conic, opacity, feats = ctx.saved_tensors
+        tiling, width = ctx.tiling, ctx.width
+        grad_out = grad_out.contiguous()
+        nf = feats.shape[1]
+        feats_t = feats.t().contiguous()
+        g_feats = torch.zeros_like(feats_t)  # [F, M]
+        g_geo = means2d.new_zeros(6, means2d.shape[0])  # u, v, conic a, b, c, opacity
+        for i, chunk in enumerate(tiling.chunks):
+            p = ctx.cached[i] if ctx.cached is not None else _expand_pairs(
+                tiling, chunk, means2d, conic, opacity, width)
+            w = p.alpha * p.t_before * p.drawn
+            f = torch.zeros_like(w)  # dL/dw per pair: feats . grad_out at the pixel
+            for k in range(nf):
+                g_pix = grad_out[k].index_select(0, p.pix)
+                f += feats_t[k].index_select(0, p.gauss) * g_pix
+                g_feats[k].index_add_(0, p.gauss, w * g_pix)
+            # dL/dalpha_k = T_k f_k - (sum_{j > k} w_j f_j) / (1 - alpha_k): reverse segmented scan
+            wf = (w * f).double()
+            csum = torch.cumsum(wf, 0)
+            behind = (csum.index_select(0, p.seg_end) - csum).to(w.dtype)
+            g_alpha = (p.t_before * f - behind / (1 - p.alpha)) * p.drawn
+            g_pow = torch.where(p.clamped, torch.zeros_like(g_alpha), g_alpha * p.alpha)  # dalpha/dpower = alpha
+            ca, cb, cc, o = torch.cat([conic, opacity.unsqueeze(-1)], -1).t().contiguous().index_select(1, p.gauss)
+            dx, dy = p.dx, p.dy
+            per_pair = (
+                g_pow * (ca * dx + cb * dy),  # d power / d u = -d power / d dx
+                g_pow * (cb * dx + cc * dy),
+                -0.5 * g_pow * dx * dx,
+                -g_pow * dx * dy,
+                -0.5 * g_pow * dy * dy,
+                g_pow / o,  # alpha = o G  ->  d alpha / d o = G = alpha / o (o > 0 since alpha >= 1/255)
+            )
+            for k, val in enumerate(per_pair):
+                g_geo[k].index_add_(0, p.gauss, val)
+        g_means2d = g_geo[:2].t()
+        g_conic = g_geo[2:5].t()
+        return g_means2d, g_conic, g_geo[5], g_feats.t(), None, None, None
+
+
+def composite_features(
+    means2d: torch.Tensor,  # [M, 2]
+    cov2d: torch.Tensor,  # [M, 3]
+    conic: torch.Tensor,  # [M, 3]
+    opacity: torch.Tensor,  # [M]
+    feats: torch.Tensor,  # [M, F]
+    depth_order: torch.Tensor,  # [M] keys, smaller is drawn first
+    width: int,
+    height: int,
+    tile_size: int = 16,
+) -> torch.Tensor:
+    """Composite any per-Gaussian features front to back: ``[F, H, W]`` = ``sum_i w_i f_i`` with
+    ``w_i = alpha_i prod_{j<i} (1 - alpha_j)`` under the 3DGS cut-offs (see ``rasterize``).
+    Differentiable w.r.t. ``means2d``, ``conic``, ``opacity`` and ``feats``; ``cov2d`` only sets the
+    footprint. All Gaussians must have non-empty footprints (``rasterize`` culls the others)."""
+    order = torch.argsort(depth_order, stable=True)
+    means2d, cov2d, conic, opacity, feats = (t[order] for t in (means2d, cov2d, conic, opacity, feats))
+    _, candidates = _footprints(means2d, cov2d, opacity, width, height)
+    tiling = _bin_tiles(candidates, width, tile_size)
+    out = _Composite.apply(means2d, conic.contiguous(), opacity.contiguous(), feats.contiguous(), tiling, width, height)
+    return out.reshape(feats.shape[1], height, width)
+
+
+# ----------------------------------------------------------------------------- public API
+
+
+def _check_inputs(means, scales, rotations, opacities, colors, camera, background) -> int:
+    floats = (torch.float32, torch.float64)
+    n = check_tensor("means", means, ["N", 3], dtypes=floats, finite=True)["N"]
+    dims = {"N": n}
+    check_tensor("scales", scales, ["N", 3], dtypes=(means.dtype,), finite=True, dims=dims)
+    check_tensor("rotations", rotations, ["N", 4], dtypes=(means.dtype,), finite=True, dims=dims)
+    check_tensor("opacities", opacities, ["N"], dtypes=(means.dtype,), finite=True, dims=dims)
+    check_tensor("colors", colors, ["N", 3], dtypes=(means.dtype,), finite=True, dims=dims)
+    if not isinstance(camera, Camera):
+        raise InputValueError(f"camera must be a controlgs_adapter.state.Camera, got {type(camera).__name__}")
+    tensors = dict(means=means, scales=scales, rotations=rotations, opacities=opacities, colors=colors)
+    if background is not None:
+        check_tensor("background", background, [3], dtypes=(means.dtype,), finite=True)
+        tensors["background"] = background
+    check_same_device(**tensors)
+    if n:
+        if bool((scales < 0).any()):
+            raise InputValueError(f"scales must be >= 0 (linear, not log), got min {float(scales.min()):.4g}")
+        if bool(((opacities < 0) | (opacities > 1)).any()):
+            raise InputValueError(
+                f"opacities must lie in [0, 1], got range [{float(opacities.min()):.4g}, {float(opacities.max()):.4g}]"
+            )
+        if bool((rotations.detach().norm(dim=-1) == 0).any()):
+            raise InputValueError("rotations must be non-zero quaternions (w, x, y, z), got an all-zero row")
+    if not (isinstance(camera.width, int) and camera.width >= 1 and camera.height >= 1):
+        raise InputValueError(f"camera size must be >= 1 x 1, got {camera.width}x{camera.height}")
+    return n
+
+
+def rasterize(
+    means: torch.Tensor,
+    scales: torch.Tensor,
+    rotations: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    camera: Camera,
+    background: torch.Tensor | None = None,
+    *,
+    tile_size: int = 16,
+) -> RasterOutput:
+    """Render 3D Gaussians with EWA splatting and front-to-back alpha compositing.
+
+    Args:
+        means: ``[N, 3]`` world-space centres.
+        scales: ``[N, 3]`` standard deviations along the local axes (linear, >= 0; zero is allowed:
+            the low-pass filter keeps the footprint at least ~0.55 px).
+        rotations: ``[N, 4]`` quaternions ``(w, x, y, z)``, normalised here (non-zero).
+        opacities: ``[N]`` in [0, 1].
+        colors: ``[N, 3]`` any finite values (not clamped).
+        camera: ``Camera`` (OpenCV axes; ``world_to_camera`` ``[4, 4]``, ``intrinsics`` ``[3, 3]``
+            in pixels at ``camera.width`` x ``camera.height``).
+        background: ``[3]`` colour behind everything (default black).
+        tile_size: tile edge in pixels used to bin the footprints (affects speed and memory only).
+
+    Returns:
+        ``RasterOutput(color [3, H, W], alpha [1, H, W], depth [1, H, W], visible [N] bool)``, with
+        ``H, W = camera.height, camera.width``. All tensors share the dtype (float32 or float64) and
+        device of ``means``; gradients flow to means, scales, rotations, opacities, colors and background.
+
+    Conventions (3DGS, Kerbl et al. 2023; shared with ``rasterize_reference``):
+        * camera-space mean ``p = R_wc mu + t_wc``; depth ``z = p_z``; Gaussians with
+          ``z <= NEAR_PLANE`` (0.2, scene units) are culled;
+        * projected mean ``(u, v) = (fx p_x / z + cx, fy p_y / z + cy)`` in pixels, pixel ``(i, j)``
+          centred at ``(i + 0.5, j + 0.5)``;
+        * 3D covariance ``Sigma = R(q) diag(s)^2 R(q)^T``; 2D covariance
+          ``J R_wc Sigma R_wc^T J^T + 0.3 I`` (px^2), the Jacobian evaluated at the mean with
+          ``p_x / z``, ``p_y / z`` clamped to the image widened by 15 % of its size per side;
+        * footprint: the pixels whose centre lies within ``3 sqrt(lambda_max)`` of ``(u, v)`` along
+          both axes (``lambda_max`` the largest eigenvalue of the 2D covariance); ``visible`` marks the
+          Gaussians with a non-empty footprint in the image;
+        * ``alpha_i = min(0.99, o_i exp(-0.5 d^T Sigma_2D^-1 d))``, ``d`` = pixel centre - ``(u, v)``;
+          splats with ``alpha_i < 1/255`` are skipped;
+        * per pixel, splats in ascending ``z`` (ties: input order); ``T_i = prod_{j<i} (1 - alpha_j)``;
+          splat ``i`` is drawn only if ``T_i (1 - alpha_i) >= 1e-4``, and nothing behind the first that
+          is not; ``w_i = alpha_i T_i``;
+        * ``color = sum_i w_i c_i + T_final background``, ``alpha = 1 - T_final = sum_i w_i``,
+          ``depth = sum_i w_i z_i``.
+        The cut-offs (near plane, footprint, 1/255, 1e-4, 0.99 clamp) have zero gradient.
+
+    Supersampling: render at ``camera`` and area-pool (``downstream.resample.area_resample``), or
+    render directly at ``camera.scaled(d)``.
+    """
+    n = _check_inputs(means, scales, rotations, opacities, colors, camera, background)
+    if not (isinstance(tile_size, int) and tile_size >= 1):
+        raise InputValueError(f"tile_size must be a positive int, got {tile_size!r}")
+    width, height = camera.width, camera.height
+    dtype, dev = means.dtype, means.device
+    w2c = camera.world_to_camera.to(device=dev, dtype=dtype)
+    k = camera.intrinsics.to(device=dev, dtype=dtype)
+    means_cam = means @ w2c[:3, :3].t() + w2c[:3, 3]  # [N, 3]
+    visible = torch.zeros(n, dtype=torch.bool, device=dev)
+    front = (means_cam[:, 2] > NEAR_PLANE).nonzero().squeeze(1)  # [M0]
+    means2d, cov2d, conic = project_gaussians(
+        means_cam[front], scales[front], rotations[front], w2c, k, width, height
+    )
+    rect, _ = _footprints(means2d, cov2d, opacities[front], width, height)
+    on_screen = ((rect[:, 0] <= rect[:, 1]) & (rect[:, 2] <= rect[:, 3])).nonzero().squeeze(1)
+    idx = front[on_screen]  # [M]
+    visible[idx] = True
+    z = means_cam[idx, 2]
+    feats = torch.cat([colors[idx], z.unsqueeze(-1), torch.ones_like(z).unsqueeze(-1)], dim=-1)  # [M, 5]
+    out = composite_features(
+        means2d[on_screen], cov2d[on_screen], conic[on_screen], opacities[idx], feats, z.detach(),
+        width, height, tile_size,
+    )  # [5, H, W]
+    alpha = out[4:5]
+    color = out[:3]
+    if background is not None:
+        color = color + (1 - alpha) * background.view(3, 1, 1)
+    return RasterOutput(color=color, alpha=alpha, depth=out[3:4], visible=visible)
