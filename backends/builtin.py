@@ -9,6 +9,10 @@ from controlgs_adapter.hookspecs import hookimpl
 def controlgs_register_backends() -> list:
     # ControlGS.wrap takes the first backend that matches: more specific families go before
     # scaffold_gs, which recognises anything with Scaffold-GS's decoder attribute names.
+    from .compgs import CompGSBackend
+    from .contextgs import ContextGSBackend
+    from .hac import HACBackend
+    from .octree_gs import OctreeGSBackend
     from .scaffold_gs import ScaffoldGSBackend
 
-    return [ScaffoldGSBackend()]
+    return [OctreeGSBackend(), HACBackend(), ContextGSBackend(), CompGSBackend(), ScaffoldGSBackend()]

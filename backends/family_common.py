@@ -1,0 +1,141 @@
+"""Pieces shared by the Octree-GS, HAC/HAC++, ContextGS and CompGS backends: reading their output
+directories (iteration folders, PLY column groups, state-dict MLPs) and turning masks into the
+anchor ids that :meth:`ControlGS.conditioned` takes.
+
+Every reader raises :class:`~controlgs_adapter.errors.FileFormatError` naming the file and what is
+missing; nothing here unpickles arbitrary objects.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from controlgs_adapter.checks import check_tensor
+from controlgs_adapter.errors import FileFormatError, ShapeError
+
+__all__ = [
+    "anchor_ids_from_mask", "iteration_dir", "ply_columns", "ply_offsets", "mlp_from_state_dict",
+    "has_attrs", "voxel_snap",
+]
+
+
+def has_attrs(obj: object, names: Sequence[str]) -> bool:
+    """True if every dotted name resolves on ``obj`` (values may be None)."""
+    for name in names:
+        cur = obj
+        for part in name.split("."):
+            if not hasattr(cur, part):
+                return False
+            cur = getattr(cur, part)
+    return True
+
+
+def anchor_ids_from_mask(mask: torch.Tensor, num_anchors: int | None = None, *, name: str = "visible_mask") -> torch.Tensor:
+    """``[A]`` bool mask -> ``[R]`` ascending anchor ids: the order boolean indexing gives, i.e.
+    row ``i`` of a decoder input sliced with ``mask`` is anchor ``ids[i]``."""
+    check_tensor(name, mask, ["A"] if num_anchors is None else [num_anchors], dtypes=(torch.bool,))
+    return mask.nonzero().squeeze(1)
+
+
+def voxel_snap(anchor: torch.Tensor, voxel_size: float) -> torch.Tensor:
+    """HAC/HAC++ ``get_anchor`` of a not-decoded model: ``round(anchor / voxel_size) * voxel_size``. ``[A, 3]``."""
+    return torch.round(anchor / voxel_size) * voxel_size
+
+
+def iteration_dir(root: str | Path, iteration: int | None, *, family: str) -> Path:
+    """``<root>/point_cloud/iteration_<it>``: the given iteration or the highest one present."""
+    pc = Path(root) / "point_cloud"
+    if not pc.is_dir():
+        raise FileFormatError(f"{Path(root)}: not a {family} output directory (no 'point_cloud/' folder)")
+    found = {int(m.group(1)): p for p in pc.iterdir() if p.is_dir() and (m := re.fullmatch(r"iteration_(\d+)", p.name))}
+    if iteration is None:
+        if not found:
+            raise FileFormatError(f"{pc}: no 'iteration_<N>' folder")
+        return found[max(found)]
+    if iteration not in found:
+        raise FileFormatError(f"{pc}: no 'iteration_{iteration}' folder (present: {sorted(found)})")
+    return found[iteration]
+
+
+def ply_columns(fields: Mapping[str, np.ndarray], prefix: str, *, source: str, count: int | None = None) -> np.ndarray:
+    """Stack ``<prefix>0 .. <prefix>{n-1}`` into ``[V, n]`` float32 (n = ``count`` or all present)."""
+    n = count
+    if n is None:
+        n = 0
+        while f"{prefix}{n}" in fields:
+            n += 1
+    names = [f"{prefix}{i}" for i in range(n)]
+    missing = [k for k in names if k not in fields]
+    if missing or n == 0:
+        raise FileFormatError(f"{source}: missing PLY field(s) {missing or [prefix + '0']}")
+    return np.stack([fields[k].astype(np.float32) for k in names], axis=1)
+
+
+def ply_offsets(fields: Mapping[str, np.ndarray], n_offsets: int, *, source: str) -> np.ndarray:
+    """Scaffold-family offsets: ``f_offset_{c*K + k}`` is coordinate c of offset k. -> ``[V, K, 3]``."""
+    flat = ply_columns(fields, "f_offset_", source=source)
+    if flat.shape[1] != 3 * n_offsets:
+        raise FileFormatError(f"{source}: expected {3 * n_offsets} f_offset_* fields (3 x n_offsets={n_offsets}), got {flat.shape[1]}")
+    return np.ascontiguousarray(flat.reshape(-1, 3, n_offsets).transpose(0, 2, 1))
+
+
+def mlp_from_state_dict(state: Mapping[str, torch.Tensor], activations: Mapping[int, nn.Module], *, name: str,
+                        source: str) -> nn.Sequential:
+    """Rebuild an ``nn.Sequential`` of Linears (at the indices the keys ``<i>.weight`` name) with
+    the given activation modules at the other indices, e.g. ``{1: ReLU(), 3: Tanh()}``.
+
+    Raises :class:`FileFormatError` naming ``source``/``name`` if a Linear index collides with an
+    activation or the layer widths do not chain.
+    """
+    if not isinstance(state, Mapping):
+        raise FileFormatError(f"{source}: entry {name!r} is not a state dict (got {type(state).__name__})")
+    linear_ids = sorted({int(k.split(".")[0]) for k in state if re.fullmatch(r"\d+\.weight", k)})
+    if not linear_ids:
+        raise FileFormatError(f"{source}: entry {name!r} holds no '<i>.weight' Linear weights (keys: {sorted(state)[:6]})")
+    size = max([*linear_ids, *activations]) + 1
+    layers: list[nn.Module] = []
+    prev_out = None
+    for i in range(size):
+        if i in linear_ids:
+            if i in activations:
+                raise FileFormatError(f"{source}: {name!r} has a Linear at index {i} where an activation was expected")
+            w = state[f"{i}.weight"]
+            b = state.get(f"{i}.bias")
+            if w.dim() != 2 or (prev_out is not None and w.shape[1] != prev_out):
+                raise FileFormatError(f"{source}: {name!r} layer {i} weight {list(w.shape)} does not take the previous width {prev_out}")
+            lin = nn.Linear(w.shape[1], w.shape[0], bias=b is not None)
+            with torch.no_grad():
+                lin.weight.copy_(w)
+                if b is not None:
+                    lin.bias.copy_(b)
+            layers.append(lin)
+            prev_out = w.shape[0]
+        elif i in activations:
+            layers.append(activations[i])
+        else:
+            raise FileFormatError(f"{source}: {name!r} has no layer at index {i} (keys: {sorted(state)})")
+    return nn.Sequential(*layers)
+
+
+def check_first_width(decoder: nn.Module, want_in: int, *, name: str, source: str, layout: str) -> None:
+    """Raise if the decoder's first Linear does not take ``want_in`` inputs (the family's layout)."""
+    fc1 = next(m for m in decoder.modules() if isinstance(m, nn.Linear))
+    if fc1.in_features != want_in:
+        raise FileFormatError(f"{source}: {name} takes {fc1.in_features} inputs, the configuration gives {want_in} ({layout})")
+
+
+def as_param(x: np.ndarray | torch.Tensor, requires_grad: bool = False) -> nn.Parameter:
+    """A float32 frozen parameter from an array."""
+    t = torch.as_tensor(np.ascontiguousarray(x) if isinstance(x, np.ndarray) else x, dtype=torch.float32)
+    return nn.Parameter(t.clone(), requires_grad=requires_grad)
+
+
+def check_rows(name: str, x: torch.Tensor, rows: int) -> None:
+    if x.shape[0] != rows:
+        raise ShapeError(f"{name} must have {rows} rows (one per anchor), got {list(x.shape)}")

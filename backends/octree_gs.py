@@ -1,0 +1,319 @@
+"""Backend and loader for Octree-GS (city-super/Octree-GS).
+
+Octree-GS is Scaffold-GS with all level-of-detail anchors in **one flat tensor**: ``_anchor [A, 3]``
+with ``_level [A, 1]`` (int) and ``_extra_level [A]`` (float). Per view, ``set_anchor_mask``
+keeps the anchors whose level is at most the level predicted from their distance
+(``_anchor_mask [A]``), and ``prefilter_voxel`` returns a full-length mask ``LOD ∧ frustum``; the
+renderer slices every decoder input with it, so decoder row i is anchor ``mask.nonzero()[i]``
+(:func:`lod_anchor_ids`). The decoders are Scaffold-GS's with an optional level scalar after
+``[feat, view, (dist)]`` (``add_level``) and the appearance code last (colour only); FC1 is
+``mlp_x[0]`` with width ``feat_dim``. Anchor positions are the raw ``_anchor`` (the LOD distance
+uses the voxel centre, but the decoder's view/distance inputs use the raw anchor).
+
+On disk (``Scene.save``): ``point_cloud/iteration_<it>/point_cloud.ply`` with properties
+``x,y,z, level, extra_level, info, f_offset_*, f_anchor_feat_*, opacity, scale_0..5, rot_0..3``
+(``info[0]`` = voxel size, ``info[1]`` = standard distance), the decoders as TorchScript
+``opacity_mlp.pt, cov_mlp.pt, color_mlp.pt [, feature_bank_mlp.pt, embedding_appearance.pt]`` or
+one ``checkpoints.pth`` ('unite' mode), and ``<model>/cfg_args``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from controlgs_adapter.checks import check_tensor
+from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError, TargetError
+from controlgs_adapter.torchscript import eager_from_script
+
+from .family_common import (as_param, check_first_width, has_attrs, iteration_dir, mlp_from_state_dict, ply_columns,
+                            ply_offsets)
+from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields
+from .scaffold_gs import ScaffoldGSBackend
+
+__all__ = ["OctreeGSBackend", "OctreeGSModel", "lod_anchor_ids", "load_octree_gs_dir"]
+
+#: Attribute names only Octree-GS (and Octree-AnyGS) models carry, on top of Scaffold-GS's.
+OCTREE_MARKERS: tuple[str, ...] = ("_level", "_extra_level", "set_anchor_mask")
+
+#: ModelParams defaults of Octree-GS (arguments/__init__.py), used for keys missing from cfg_args.
+CFG_DEFAULTS: dict[str, Any] = {
+    "feat_dim": 32, "n_offsets": 10, "fork": 2, "use_feat_bank": False, "appearance_dim": 32,
+    "add_opacity_dist": False, "add_cov_dist": False, "add_color_dist": False, "add_level": False,
+    "dist2level": "round", "progressive": False,
+}
+
+
+def lod_anchor_ids(anchor_mask: torch.Tensor, frustum_mask: torch.Tensor) -> torch.Tensor:
+    """Anchor ids of the decoder rows of one Octree-GS view, ascending.
+
+    Args:
+        anchor_mask: ``[A]`` bool, the LOD mask (``model._anchor_mask`` after ``set_anchor_mask``).
+        frustum_mask: either ``[A]`` bool (what ``prefilter_voxel`` returns: already LOD ∧ frustum,
+            it is and-ed with ``anchor_mask`` again) or ``[A_lod]`` bool over the LOD anchors only
+            (``radii > 0`` of the visibility filter run on ``anchor[anchor_mask]``).
+
+    Returns:
+        ``[R]`` long: row i of every decoder input is anchor ``ids[i]``.
+    """
+    check_tensor("anchor_mask", anchor_mask, ["A"], dtypes=(torch.bool,))
+    check_tensor("frustum_mask", frustum_mask, ["R"], dtypes=(torch.bool,))
+    a, n_lod = anchor_mask.shape[0], int(anchor_mask.sum())
+    if frustum_mask.shape[0] == a:
+        full = anchor_mask & frustum_mask.to(anchor_mask.device)
+    elif frustum_mask.shape[0] == n_lod:
+        full = anchor_mask.clone()
+        full[anchor_mask] = frustum_mask.to(anchor_mask.device)
+    else:
+        raise ShapeError(
+            f"frustum_mask must have A={a} entries (full-length mask) or {n_lod} (one per LOD-selected anchor), "
+            f"got {frustum_mask.shape[0]}"
+        )
+    return full.nonzero().squeeze(1)
+
+
+class OctreeGSBackend(ScaffoldGSBackend):
+    """Octree-GS / Octree-AnyGS: Scaffold-GS decoders (optionally with the level input) over one
+    flat anchor list selected per view by LOD ∧ frustum (see :func:`lod_anchor_ids`)."""
+
+    name = "octree_gs"
+
+    def matches(self, model: Any) -> bool:
+        return super().matches(model) and has_attrs(model, OCTREE_MARKERS)
+
+    def anchor_ids(self, model: Any, visible_mask: torch.Tensor) -> torch.Tensor:
+        """Decoder-row anchor ids for a view: ``visible_mask`` as :func:`lod_anchor_ids` takes it,
+        and-ed with the model's current ``_anchor_mask`` (call ``set_anchor_mask`` first)."""
+        anchor_mask = getattr(model, "_anchor_mask", None)
+        if anchor_mask is None:
+            raise InputValueError("model has no _anchor_mask: call model.set_anchor_mask(cam_center, iteration, resolution_scale) first")
+        return lod_anchor_ids(anchor_mask, visible_mask)
+
+    def input_layout(self, model: Any, decoder_path: str) -> list[tuple[str, int]]:
+        """The inputs of a decoder's FC1 in order, from the model's configuration attributes."""
+        feat, add_level = int(model.feat_dim), bool(getattr(model, "add_level", False))
+        app = int(getattr(model, "appearance_dim", 0) or 0)
+        dist = {"mlp_opacity": "add_opacity_dist", "mlp_cov": "add_cov_dist", "mlp_color": "add_color_dist"}[decoder_path]
+        layout = [("feat", feat), ("view", 3)]
+        if getattr(model, dist, False):
+            layout.append(("dist", 1))
+        if add_level:
+            layout.append(("level", 1))
+        if decoder_path == "mlp_color" and app > 0:
+            layout.append(("appearance", app))
+        return layout
+
+    def check_decoder(self, model: Any, decoder_path: str) -> nn.Linear | torch.jit.ScriptModule:
+        fc1 = super().check_decoder(model, decoder_path)
+        if decoder_path in ("mlp_opacity", "mlp_cov", "mlp_color") and hasattr(model, "feat_dim"):
+            layout = self.input_layout(model, decoder_path)
+            want = sum(w for _, w in layout)
+            if fc1.weight.shape[1] != want:
+                raise TargetError(f"{self.name}: {decoder_path}[0] takes {fc1.weight.shape[1]} inputs, the model's "
+                                  f"configuration gives {want} ({layout})")
+        return fc1
+
+
+class OctreeGSModel(nn.Module):
+    """A light stand-in for Octree-GS's ``GaussianModel`` (evaluation only) with its attribute names.
+
+    Shapes: ``_anchor [A, 3]``, ``_offset [A, K, 3]``, ``_anchor_feat [A, F]``, ``_scaling [A, 6]``
+    (log), ``_rotation [A, 4]``, ``_opacity [A, 1]``, ``_level [A, 1]`` int, ``_extra_level [A]``.
+    Decoders ``mlp_opacity``, ``mlp_cov``, ``mlp_color`` (eager ``nn.Sequential``), optional
+    ``mlp_feature_bank`` and ``embedding_appearance`` (``nn.Embedding``). ``voxel_centre=False``
+    gives Octree-AnyGS's LOD distance (raw anchor instead of the voxel centre).
+    """
+
+    def __init__(self, *, anchor: torch.Tensor, offset: torch.Tensor, anchor_feat: torch.Tensor, scaling: torch.Tensor,
+                 level: torch.Tensor, extra_level: torch.Tensor, mlp_opacity: nn.Module, mlp_cov: nn.Module,
+                 mlp_color: nn.Module, voxel_size: float, standard_dist: float, fork: int = 2, levels: int | None = None,
+                 dist2level: str = "round", add_level: bool = False, add_opacity_dist: bool = False,
+                 add_cov_dist: bool = False, add_color_dist: bool = False, mlp_feature_bank: nn.Module | None = None,
+                 embedding_appearance: nn.Embedding | None = None, rotation: torch.Tensor | None = None,
+                 opacity: torch.Tensor | None = None, voxel_centre: bool = True) -> None:
+        super().__init__()
+        dims = check_tensor("anchor", anchor, ["A", 3])
+        check_tensor("offset", offset, ["A", "K", 3], dims=dims)
+        dims = check_tensor("anchor_feat", anchor_feat, ["A", "F"], dims=dims)
+        check_tensor("scaling", scaling, ["A", 6], dims=dims)
+        check_tensor("level", level, ["A", 1], dims=dims)
+        check_tensor("extra_level", extra_level, ["A"], dims=dims)
+        if dist2level not in ("round", "floor", "ceil", "progressive"):
+            raise InputValueError(f"dist2level must be 'round', 'floor', 'ceil' or 'progressive', got {dist2level!r}")
+        n = anchor.shape[0]
+        self._anchor, self._offset, self._anchor_feat = as_param(anchor), as_param(offset), as_param(anchor_feat)
+        self._scaling = as_param(scaling)
+        self._rotation = as_param(rotation if rotation is not None else torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1))
+        self._opacity = as_param(opacity if opacity is not None else torch.zeros(n, 1))
+        self.register_buffer("_level", level.to(torch.int32).clone())
+        self.register_buffer("_extra_level", extra_level.to(torch.float32).clone())
+        self.register_buffer("_anchor_mask", torch.ones(n, dtype=torch.bool))
+        self.mlp_opacity, self.mlp_cov, self.mlp_color = mlp_opacity, mlp_cov, mlp_color
+        self.mlp_feature_bank = mlp_feature_bank
+        self.embedding_appearance = embedding_appearance
+        self.feat_dim, self.n_offsets = anchor_feat.shape[1], offset.shape[1]
+        self.appearance_dim = 0 if embedding_appearance is None else embedding_appearance.embedding_dim
+        self.use_feat_bank = mlp_feature_bank is not None
+        self.voxel_size, self.standard_dist, self.fork = float(voxel_size), float(standard_dist), int(fork)
+        self.levels = int(levels) if levels is not None else int(level.max() - level.min() + 1) if n else 1
+        self.dist2level, self.add_level, self.progressive = dist2level, bool(add_level), False
+        self.add_opacity_dist, self.add_cov_dist, self.add_color_dist = bool(add_opacity_dist), bool(add_cov_dist), bool(add_color_dist)
+        self.voxel_centre = bool(voxel_centre)
+        self._prog_ratio: torch.Tensor | None = None
+        self.requires_grad_(False)
+        self.eval()
+
+    @property
+    def get_anchor(self) -> torch.Tensor:
+        return self._anchor
+
+    @property
+    def get_scaling(self) -> torch.Tensor:
+        return torch.exp(self._scaling)
+
+    @property
+    def get_level(self) -> torch.Tensor:
+        return self._level
+
+    def map_to_int_level(self, pred_level: torch.Tensor, cur_level: int) -> torch.Tensor:
+        """Continuous predicted level ``[A]`` -> integer level ``[A]`` (Octree-GS's ``dist2level``)."""
+        if self.dist2level == "progressive":
+            pred = torch.clamp(pred_level + 1.0, min=0.9999, max=cur_level + 0.9999)
+            self._prog_ratio = torch.frac(pred).unsqueeze(1)
+            return torch.floor(pred).int()
+        rnd = {"round": torch.round, "floor": torch.floor, "ceil": torch.ceil}[self.dist2level]
+        return torch.clamp(rnd(pred_level).int(), min=0, max=cur_level)
+
+    def set_anchor_mask(self, cam_center: torch.Tensor, iteration: int = -1, resolution_scale: float = 1.0) -> None:
+        """Evaluation-time LOD selection: ``_anchor_mask = _level <= level(dist)`` where
+        ``level(dist) = log2(standard_dist / dist) / log2(fork) + _extra_level`` (rounded per
+        ``dist2level``, clamped to ``[0, levels - 1]``); ``dist`` is measured from the voxel centre."""
+        check_tensor("cam_center", cam_center, [3])
+        pos = self._anchor
+        if self.voxel_centre:
+            pos = pos + (self.voxel_size / 2) / (float(self.fork) ** self._level)
+        dist = torch.linalg.vector_norm(pos - cam_center.to(pos), dim=1) * resolution_scale
+        pred = torch.log2(self.standard_dist / dist) / math.log2(self.fork) + self._extra_level
+        self._anchor_mask = self._level.squeeze(1) <= self.map_to_int_level(pred, self.levels - 1)
+
+    def decoder_inputs(self, cam_center: torch.Tensor, anchor_ids: torch.Tensor,
+                       appearance_id: int | None = None) -> dict[str, torch.Tensor]:
+        """The input of each decoder for the anchors ``anchor_ids`` (rows in that order), exactly as
+        Octree-GS's ``generate_neural_gaussians`` builds them: ``[feat, view, (dist), (level)]``
+        (+ appearance for colour). ``appearance_id`` picks a training camera's code (``ape_code``)."""
+        anchor = self.get_anchor[anchor_ids]  # [R, 3]
+        feat = self._anchor_feat[anchor_ids]  # [R, F]
+        level = self._level[anchor_ids].to(anchor.dtype)  # [R, 1]
+        view = anchor - cam_center.to(anchor)
+        dist = torch.linalg.vector_norm(view, dim=1, keepdim=True)
+        view = view / dist
+        if self.mlp_feature_bank is not None:
+            bank_in = torch.cat([view, level], dim=1) if self.add_level else view
+            weight = self.mlp_feature_bank(bank_in).unsqueeze(1)  # [R, 1, 3]
+            f = feat.unsqueeze(-1)
+            feat = (f[:, ::4, :1].repeat(1, 4, 1) * weight[:, :, :1] + f[:, ::2, :1].repeat(1, 2, 1) * weight[:, :, 1:2]
+                    + f * weight[:, :, 2:]).squeeze(-1)
+        extra = [level] if self.add_level else []
+        with_dist = torch.cat([feat, view, dist, *extra], dim=1)
+        without = torch.cat([feat, view, *extra], dim=1)
+        out = {"mlp_opacity": with_dist if self.add_opacity_dist else without,
+               "mlp_cov": with_dist if self.add_cov_dist else without,
+               "mlp_color": with_dist if self.add_color_dist else without}
+        if self.embedding_appearance is not None:
+            if appearance_id is None:
+                raise InputValueError("appearance_id is required: the model has an appearance embedding (appearance_dim > 0)")
+            code = self.embedding_appearance(torch.full((len(anchor_ids),), int(appearance_id), dtype=torch.long,
+                                                        device=anchor.device))
+            out["mlp_color"] = torch.cat([out["mlp_color"], code], dim=1)
+        return out
+
+
+def _load_decoders(folder: Path) -> dict[str, nn.Module]:
+    jit = {"mlp_opacity": "opacity_mlp.pt", "mlp_cov": "cov_mlp.pt", "mlp_color": "color_mlp.pt",
+           "mlp_feature_bank": "feature_bank_mlp.pt"}
+    if (folder / "opacity_mlp.pt").is_file():
+        out = {}
+        for attr, fname in jit.items():
+            path = folder / fname
+            if path.is_file():
+                out[attr] = eager_from_script(load_torchscript(path), name=f"{path}")
+            elif attr != "mlp_feature_bank":
+                raise FileFormatError(f"{path}: missing (the decoders were saved as TorchScript, 'split' mode)")
+        app = folder / "embedding_appearance.pt"
+        if app.is_file():
+            weights = [v for k, v in load_torchscript(app).state_dict().items() if k.endswith("weight")]
+            if len(weights) != 1 or weights[0].dim() != 2:
+                raise FileFormatError(f"{app}: expected one [num_cameras, appearance_dim] embedding table")
+            out["embedding_appearance"] = nn.Embedding.from_pretrained(weights[0].float().clone())
+        return out
+    unite = folder / "checkpoints.pth"
+    if not unite.is_file():
+        raise FileFormatError(f"{folder}: no decoders: neither TorchScript 'opacity_mlp.pt, cov_mlp.pt, color_mlp.pt' "
+                              f"nor 'checkpoints.pth'")
+    sd = load_state_dict_file(unite)
+    acts = {"mlp_opacity": {1: nn.ReLU(), 3: nn.Tanh()}, "mlp_cov": {1: nn.ReLU()}, "mlp_color": {1: nn.ReLU(), 3: nn.Sigmoid()},
+            "mlp_feature_bank": {1: nn.ReLU(), 3: nn.Softmax(dim=1)}}
+    out = {}
+    for attr, key in (("mlp_opacity", "opacity_mlp"), ("mlp_cov", "cov_mlp"), ("mlp_color", "color_mlp"),
+                      ("mlp_feature_bank", "feature_bank_mlp")):
+        if key not in sd:
+            if attr == "mlp_feature_bank":
+                continue
+            raise FileFormatError(f"{unite}: missing entry {key!r} (has {sorted(sd)})")
+        out[attr] = mlp_from_state_dict(sd[key], acts[attr], name=key, source=str(unite))
+    if "appearance" in sd:
+        w = [v for k, v in sd["appearance"].items() if k.endswith("weight")]
+        if len(w) != 1:
+            raise FileFormatError(f"{unite}: entry 'appearance' must hold one embedding table")
+        out["embedding_appearance"] = nn.Embedding.from_pretrained(w[0].float().clone())
+    return out
+
+
+def load_octree_gs_dir(path: str | Path, iteration: int | None = None) -> OctreeGSModel:
+    """Load an Octree-GS output directory (``cfg_args``, ``point_cloud/iteration_<it>/``) into an
+    :class:`OctreeGSModel`. ``iteration=None`` takes the highest iteration present.
+
+    Raises:
+        FileFormatError: naming the file and what is missing or inconsistent.
+    """
+    root = Path(path)
+    cfg_path = root / "cfg_args"
+    cfg = {**CFG_DEFAULTS, **read_cfg_args(cfg_path)}
+    folder = iteration_dir(root, iteration, family="Octree-GS")
+    ply = folder / "point_cloud.ply"
+    fields, _ = read_ply(ply)
+    src = str(ply)
+    require_fields(fields, ["x", "y", "z", "level", "extra_level", "info", *(f"scale_{i}" for i in range(6))], source=src)
+    k, f = int(cfg["n_offsets"]), int(cfg["feat_dim"])
+    anchor = np.stack([fields["x"], fields["y"], fields["z"]], axis=1)
+    info = fields["info"]
+    if info.shape[0] < 2:
+        raise FileFormatError(f"{src}: the 'info' column holds voxel_size and standard_dist in rows 0 and 1; the file has {info.shape[0]} anchors")
+    feat = ply_columns(fields, "f_anchor_feat_", source=src)
+    if feat.shape[1] != f:
+        raise FileFormatError(f"{src}: {feat.shape[1]} f_anchor_feat_* fields, {cfg_path} says feat_dim={f}")
+    rot = ply_columns(fields, "rot_", count=4, source=src) if "rot_0" in fields else None
+    opacity = fields["opacity"][:, None] if "opacity" in fields else None
+    decoders = _load_decoders(folder)
+    model = OctreeGSModel(
+        anchor=torch.from_numpy(anchor.astype(np.float32)), offset=torch.from_numpy(ply_offsets(fields, k, source=src)),
+        anchor_feat=torch.from_numpy(feat), scaling=torch.from_numpy(ply_columns(fields, "scale_", count=6, source=src)),
+        level=torch.from_numpy(fields["level"].astype(np.int32)[:, None]),
+        extra_level=torch.from_numpy(fields["extra_level"].astype(np.float32)),
+        voxel_size=float(info[0]), standard_dist=float(info[1]), fork=int(cfg["fork"]), dist2level=str(cfg["dist2level"]),
+        add_level=bool(cfg["add_level"]), add_opacity_dist=bool(cfg["add_opacity_dist"]),
+        add_cov_dist=bool(cfg["add_cov_dist"]), add_color_dist=bool(cfg["add_color_dist"]),
+        rotation=None if rot is None else torch.from_numpy(rot),
+        opacity=None if opacity is None else torch.from_numpy(opacity.astype(np.float32)), **decoders,
+    )
+    backend = OctreeGSBackend()
+    for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
+        layout = backend.input_layout(model, dec)
+        check_first_width(getattr(model, dec), sum(w for _, w in layout), name=dec, source=f"{folder} + {cfg_path}",
+                          layout=", ".join(f"{n} {w}" for n, w in layout))
+    return model

@@ -1,0 +1,167 @@
+"""Octree-GS backend: recognition, LOD ∧ frustum row mapping, loading an output directory written
+in Octree-GS's layout (TorchScript and 'unite' decoders), wrap/identity/injection/save-load, errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from _family_checks import check_wrap_identity_and_rows, outputs, write_cfg_args
+from controlgs_adapter.backends.formats import write_ply
+from controlgs_adapter.backends.hac import HACBackend
+from controlgs_adapter.backends.octree_gs import OctreeGSBackend, OctreeGSModel, load_octree_gs_dir, lod_anchor_ids
+from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
+from controlgs_adapter.errors import FileFormatError, ShapeError, TargetError
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace/load: the format under test
+
+A, K, F, FORK, VOXEL, STD_DIST = 14, 4, 32, 2, 0.1, 3.0
+CFG = dict(feat_dim=F, n_offsets=K, fork=FORK, use_feat_bank=False, appearance_dim=0, add_opacity_dist=True,
+           add_cov_dist=False, add_color_dist=False, add_level=True, dist2level="round", progressive=False,
+           voxel_size=0.0, source_path="/data/scene", model_path="/out/scene")
+
+
+def _decoders(gen: torch.Generator) -> dict[str, nn.Sequential]:
+    torch.manual_seed(int(torch.randint(0, 10_000, (1,), generator=gen)))
+    return {  # Octree-GS widths: [feat, view, (dist), (level)] -> F
+        "mlp_opacity": nn.Sequential(nn.Linear(F + 3 + 1 + 1, F), nn.ReLU(), nn.Linear(F, K), nn.Tanh()),
+        "mlp_cov": nn.Sequential(nn.Linear(F + 3 + 1, F), nn.ReLU(), nn.Linear(F, 7 * K)),
+        "mlp_color": nn.Sequential(nn.Linear(F + 3 + 1, F), nn.ReLU(), nn.Linear(F, 3 * K), nn.Sigmoid()),
+    }
+
+
+def _arrays(seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    level = rng.integers(0, 3, A)
+    return {"anchor": rng.normal(size=(A, 3)).astype(np.float32), "offset": rng.normal(size=(A, K, 3)).astype(np.float32),
+            "feat": rng.normal(size=(A, F)).astype(np.float32), "scale": rng.normal(-2, 0.3, size=(A, 6)).astype(np.float32),
+            "level": level, "extra": rng.uniform(-0.4, 0.4, A).astype(np.float32)}
+
+
+def _model(arr, decoders) -> OctreeGSModel:
+    return OctreeGSModel(anchor=torch.from_numpy(arr["anchor"]), offset=torch.from_numpy(arr["offset"]),
+                         anchor_feat=torch.from_numpy(arr["feat"]), scaling=torch.from_numpy(arr["scale"]),
+                         level=torch.from_numpy(arr["level"][:, None]), extra_level=torch.from_numpy(arr["extra"]),
+                         voxel_size=VOXEL, standard_dist=STD_DIST, fork=FORK, add_level=True, add_opacity_dist=True,
+                         **decoders)
+
+
+def _write_dir(root, arr, decoders, *, mode="split", iteration=30000):
+    """Octree-GS's on-disk layout, written independently of the loader."""
+    root.mkdir(parents=True, exist_ok=True)
+    write_cfg_args(root / "cfg_args", **CFG)
+    it = root / "point_cloud" / f"iteration_{iteration}"
+    it.mkdir(parents=True)
+    info = np.zeros(A, np.float32)
+    info[0], info[1] = VOXEL, STD_DIST
+    fields = {"x": arr["anchor"][:, 0], "y": arr["anchor"][:, 1], "z": arr["anchor"][:, 2],
+              "level": arr["level"].astype(np.float32), "extra_level": arr["extra"], "info": info}
+    flat = arr["offset"].transpose(0, 2, 1).reshape(A, 3 * K)  # f_offset_{c*K + k}
+    fields.update({f"f_offset_{i}": flat[:, i] for i in range(3 * K)})
+    fields.update({f"f_anchor_feat_{i}": arr["feat"][:, i] for i in range(F)})
+    fields["opacity"] = np.zeros(A, np.float32)
+    fields.update({f"scale_{i}": arr["scale"][:, i] for i in range(6)})
+    fields.update({f"rot_{i}": np.full(A, 1.0 if i == 0 else 0.0, np.float32) for i in range(4)})
+    write_ply(it / "point_cloud.ply", fields)
+    if mode == "split":
+        for attr, fname in (("mlp_opacity", "opacity_mlp.pt"), ("mlp_cov", "cov_mlp.pt"), ("mlp_color", "color_mlp.pt")):
+            dec = decoders[attr]
+            torch.jit.trace(dec, torch.randn(5, dec[0].in_features)).save(str(it / fname))
+    else:
+        torch.save({"opacity_mlp": decoders["mlp_opacity"].state_dict(), "cov_mlp": decoders["mlp_cov"].state_dict(),
+                    "color_mlp": decoders["mlp_color"].state_dict()}, it / "checkpoints.pth")
+    return root
+
+
+def test_recognition_and_targets():
+    gen = torch.Generator().manual_seed(0)
+    model = _model(_arrays(), _decoders(gen))
+    b = OctreeGSBackend()
+    assert b.matches(model) and not HACBackend().matches(model)
+    assert ScaffoldGSBackend().matches(model)  # generic; Octree-GS is registered before it
+    assert b.default_targets(model) == ["mlp_opacity", "mlp_cov", "mlp_color"]
+    assert [w for _, w in b.input_layout(model, "mlp_opacity")] == [F, 3, 1, 1]
+    assert [n for n, _ in b.input_layout(model, "mlp_cov")] == ["feat", "view", "level"]
+    assert torch.equal(b.anchor_positions(model), model._anchor)  # raw anchors, not voxel centres
+    for d in b.default_targets(model):
+        assert b.check_decoder(model, d).out_features == F
+    model.add_level = False  # config and widths disagree -> named error
+    with pytest.raises(TargetError, match="mlp_opacity"):
+        b.check_decoder(model, "mlp_opacity")
+
+
+def test_lod_mask_matches_float64_reference():
+    gen = torch.Generator().manual_seed(1)
+    arr = _arrays(1)
+    model = _model(arr, _decoders(gen))
+    cam = torch.tensor([0.3, -0.2, 4.0])
+    model.set_anchor_mask(cam, -1, 1.0)
+    levels = int(arr["level"].max() - arr["level"].min() + 1)
+    want = []
+    for a in range(A):
+        lv = int(arr["level"][a])
+        pos = arr["anchor"][a].astype(np.float64) + (VOXEL / 2) / FORK ** lv
+        d = float(np.linalg.norm(pos - cam.double().numpy()))
+        pred = math.log2(STD_DIST / d) / math.log2(FORK) + float(arr["extra"][a])
+        want.append(lv <= min(max(int(np.round(pred)), 0), levels - 1))
+    assert model._anchor_mask.tolist() == want
+    assert 0 < sum(want) < A  # the view selects a proper subset
+
+
+def test_lod_anchor_ids_both_mask_forms():
+    lod = torch.tensor([True, False, True, True, False, True])
+    frustum_lod_only = torch.tensor([True, False, True, True])  # over anchors 0, 2, 3, 5
+    assert lod_anchor_ids(lod, frustum_lod_only).tolist() == [0, 3, 5]
+    full = torch.tensor([True, True, False, True, False, True])  # prefilter_voxel's full-length mask
+    assert lod_anchor_ids(lod, full).tolist() == [0, 3, 5]
+    with pytest.raises(ShapeError, match="frustum_mask"):
+        lod_anchor_ids(lod, torch.ones(5, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("mode", ["split", "unite"])
+def test_load_dir_and_wrap(tmp_path, mode):
+    gen = torch.Generator().manual_seed(2)
+    arr, decs = _arrays(2), _decoders(gen)
+    root = _write_dir(tmp_path / "scene", arr, decs, mode=mode)
+    (root / "point_cloud" / "iteration_7000").mkdir()  # an older iteration: the highest is taken
+    model = load_octree_gs_dir(root)
+    assert torch.equal(model._anchor, torch.from_numpy(arr["anchor"]))
+    assert torch.equal(model._offset, torch.from_numpy(arr["offset"]))
+    assert model._level.squeeze(1).tolist() == arr["level"].tolist()
+    assert (model.voxel_size, model.standard_dist, model.fork) == (pytest.approx(VOXEL), STD_DIST, FORK)
+    ref = _model(arr, decs)
+    cam = torch.tensor([0.5, 0.1, 3.0])
+    model.set_anchor_mask(cam)
+    ref.set_anchor_mask(cam)
+    assert torch.equal(model._anchor_mask, ref._anchor_mask)
+    frustum = torch.arange(int(model._anchor_mask.sum())) % 3 != 1  # the visibility filter's radii > 0 over LOD anchors
+    ids = OctreeGSBackend().anchor_ids(model, frustum)
+    assert torch.equal(ids, lod_anchor_ids(ref._anchor_mask, frustum)) and len(ids) >= 2
+    inputs = model.decoder_inputs(cam, ids)
+    want = outputs(ref, ref.decoder_inputs(cam, ids))
+    for p, y in outputs(model, inputs).items():
+        assert torch.equal(y, want[p]), p
+    check_wrap_identity_and_rows(model, inputs, ids, "octree_gs", 1, tmp_path, lambda: load_octree_gs_dir(root))
+
+
+def test_loading_errors(tmp_path):
+    gen = torch.Generator().manual_seed(3)
+    arr, decs = _arrays(3), _decoders(gen)
+    root = _write_dir(tmp_path / "s", arr, decs)
+    it = root / "point_cloud" / "iteration_30000"
+    (it / "cov_mlp.pt").unlink()
+    with pytest.raises(FileFormatError, match="cov_mlp.pt"):
+        load_octree_gs_dir(root)
+    with pytest.raises(FileFormatError, match="iteration_5"):
+        load_octree_gs_dir(root, iteration=5)
+    (root / "cfg_args").unlink()
+    with pytest.raises(FileFormatError, match="cfg_args"):
+        load_octree_gs_dir(root)
+    root2 = _write_dir(tmp_path / "s2", arr, decs)
+    write_cfg_args(root2 / "cfg_args", **{**CFG, "add_level": False})  # widths no longer fit the configuration
+    with pytest.raises(FileFormatError, match="mlp_opacity takes 37 inputs"):
+        load_octree_gs_dir(root2)
