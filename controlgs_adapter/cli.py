@@ -9,7 +9,7 @@ import sys
 
 from ._version import __version__
 
-COMMANDS: tuple[str, ...] = ("plugins",)
+COMMANDS: tuple[str, ...] = ("plugins", "optics")
 
 
 def build_parser() -> argparse.ArgumentParser:

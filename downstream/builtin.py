@@ -11,6 +11,7 @@ def controlgs_register_stages() -> list:
     from .foveation import FoveationStage
     from .lens import LensPrewarp
     from .oled import OLEDStage
+    from .optics.stage import OpticsStage
     from .resample import ResampleStage
 
-    return [FoveationStage, LensPrewarp, ResampleStage, DisplayStage, OLEDStage]
+    return [FoveationStage, LensPrewarp, ResampleStage, DisplayStage, OLEDStage, OpticsStage]

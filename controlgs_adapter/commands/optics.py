@@ -1,0 +1,75 @@
+"""``controlgs optics``: build a PSF bank from a lens prescription, print lens figures, benchmark
+the PSF operators (``controlgs optics bench``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_parser(sub: "argparse._SubParsersAction") -> None:
+    p = sub.add_parser("optics", help="PSF banks from lens prescriptions; optics operator benchmark")
+    osub = p.add_subparsers(dest="optics_command", metavar="ACTION", required=True)
+
+    b = osub.add_parser("build-bank", help="trace a PSF bank (built-in ray tracer; Google Cardboard by default)")
+    b.add_argument("--prescription", type=Path, default=None,
+                   help="JSON prescription (same keys as controlgs_adapter.downstream.optics.prescription.CARDBOARD)")
+    b.add_argument("--out", type=Path, default=Path("psf_bank.safetensors"), help="output .safetensors file")
+    b.add_argument("--grid", type=int, nargs=2, default=(30, 30), metavar=("GY", "GX"), help="PSF field grid")
+    b.add_argument("--psf-size", type=int, default=33, help="samples per PSF side (odd)")
+    b.add_argument("--pupil-samples", type=int, default=192, help="pupil grid side (rays per PSF ~ 0.785 n^2)")
+    b.add_argument("--min-pitch-px", type=float, default=0.125,
+                   help="finest PSF sample pitch, in display pixels at 1024 px across")
+    b.set_defaults(func=run_build)
+
+    f = osub.add_parser("figures", help="print paraxial and real-ray figures of a prescription")
+    f.add_argument("--prescription", type=Path, default=None)
+    f.set_defaults(func=run_figures)
+
+    c = osub.add_parser("bench", help="error vs time of the PSF operators (table + plot into docs/)")
+    c.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
+    c.add_argument("--ranks", type=int, nargs="+", default=[2, 4, 8, 16, 32])
+    c.add_argument("--exact-max", type=int, default=256,
+                   help="largest size where the exact operator runs on the full image; above it, on a crop")
+    c.add_argument("--threads", type=int, default=2)
+    c.add_argument("--out", type=Path, default=Path("docs"), help="folder for optics_bench.md / optics_bench.png")
+    c.set_defaults(func=run_bench)
+
+
+def _prescription(path: Path | None):
+    from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
+
+    if path is None:
+        return Prescription(CARDBOARD)
+    return Prescription(json.loads(path.read_text()))
+
+
+def run_build(args: argparse.Namespace) -> int:
+    import time
+
+    from controlgs_adapter.downstream.optics.generate import build_bank
+
+    rx = _prescription(args.prescription)
+    t0 = time.perf_counter()
+    bank = build_bank(rx, grid=tuple(args.grid), psf_size=args.psf_size, pupil_samples=args.pupil_samples,
+                      min_pitch_px=args.min_pitch_px, progress=True)
+    bank.save(args.out)
+    print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def run_figures(args: argparse.Namespace) -> int:
+    from controlgs_adapter.downstream.optics.generate import lens_figures
+
+    print(json.dumps(lens_figures(_prescription(args.prescription)), indent=2))
+    return 0
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    from controlgs_adapter.downstream.optics.bench import run
+
+    run(sizes=args.sizes, ranks=args.ranks, exact_max=args.exact_max, threads=args.threads, out=args.out)
+    return 0
+
+

@@ -1,0 +1,192 @@
+"""PSF banks: per field sample and wavelength, the chief-ray landing point and a local PSF.
+
+Representation (justified with numbers in ``docs/optics.md``): every PSF is a ``K x K`` array
+(K = 33 by default) whose sample pitch is chosen *per field and wavelength* so that all the light
+fits: pitch = max(min_pitch, extent / 15.5). At the Cardboard centre the PSF is sub-pixel (EE80
+0.6 px at 1024 px) and is stored at 1/8 px; in the corners it spans ~130 px and is stored at ~5 px.
+A fixed pitch fine enough for the centre would need K ~ 1300 there. Samples are box cells: sample
+``(i, j)`` holds the light in the cell centred at ``((j - K//2) * pitch, (i - K//2) * pitch)`` mm
+from the chief ray (display-equivalent millimetres: virtual-image-plane distances divided by the
+reference magnification), so resampling to any pixel pitch is an exact, energy-preserving
+box-overlap (:meth:`PSFBank.resample_to`).
+
+Coordinates: display-normalised ``[-1, 1]`` about the display centre (pixel centres at
+``(2 i + 1) / W - 1``). Chief rays are given in the same normalised frame of the *output* (virtual
+image) scaled by the reference magnification, so a distortion-free lens maps every point to itself.
+PSF field samples lie at cell centres of a ``Gy x Gx`` grid (paper: 30 x 30); chief rays on their own
+uniform ``Cy x Cx`` grid that includes the display edges (chief rays are cheap; the warp must hold
+up to the corner).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any
+
+import torch
+
+from controlgs_adapter.errors import FileFormatError, InputValueError
+from controlgs_adapter.io import load_tensors, save_tensors
+
+__all__ = ["PSFBank", "BANK_KIND", "BANK_FORMAT_VERSION", "DEFAULT_BANK_FILE"]
+
+BANK_KIND = "psf_bank"
+BANK_FORMAT_VERSION = 1
+DEFAULT_BANK_FILE = "cardboard_psf_bank.safetensors"
+SUM_TOLERANCE = 5e-3  # stored PSFs are float16: each must sum to 1 within this, then is renormalised
+
+
+@dataclass
+class PSFBank:
+    """A field- and wavelength-dependent PSF bank.
+
+    Attributes:
+        psf: ``[L, Gy, Gx, K, K]`` unit-sum PSFs centred on the chief ray (sample ``K // 2``); row = y.
+        psf_pitch_mm: ``[L, Gy, Gx]`` sample pitch of each PSF (display-equivalent mm).
+        field_x, field_y: ``[Gx]``, ``[Gy]`` normalised display coordinates of the field samples.
+        chief: ``[L, Cy, Cx, 2]`` chief-ray landing ``(x, y)``, normalised output coordinates.
+        chief_x, chief_y: ``[Cx]``, ``[Cy]`` uniform normalised display coordinates, from -1 to 1.
+        wavelengths_nm: one per channel, in the channel order of the primaries (656, 550, 486).
+        display_mm: ``(width, height)`` of the display the bank was made for.
+        meta: provenance (prescription, assumptions, measured figures, generator settings).
+    """
+
+    psf: torch.Tensor
+    psf_pitch_mm: torch.Tensor
+    field_x: torch.Tensor
+    field_y: torch.Tensor
+    chief: torch.Tensor
+    chief_x: torch.Tensor
+    chief_y: torch.Tensor
+    wavelengths_nm: tuple[float, ...]
+    display_mm: tuple[float, float]
+    meta: dict[str, Any] = field(default_factory=dict)
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # ------------------------------------------------------------------ checks
+    def validate(self) -> None:
+        """Raise :class:`InputValueError` naming what is wrong with the bank."""
+        psf, pitch, chief = self.psf, self.psf_pitch_mm, self.chief
+        L = len(self.wavelengths_nm)
+        if psf.dim() != 5 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
+            raise InputValueError(f"PSF bank: psf must be [L, Gy, Gx, K, K] with odd K, got {list(psf.shape)}")
+        Gy, Gx = psf.shape[1:3]
+        if psf.shape[0] != L:
+            raise InputValueError(f"PSF bank: {psf.shape[0]} PSF channels but {L} wavelengths {self.wavelengths_nm}")
+        if tuple(pitch.shape) != (L, Gy, Gx):
+            raise InputValueError(f"PSF bank: psf_pitch_mm must be {[L, Gy, Gx]} to match psf, got {list(pitch.shape)}")
+        if tuple(self.field_x.shape) != (Gx,) or tuple(self.field_y.shape) != (Gy,):
+            raise InputValueError(f"PSF bank: field grid ({list(self.field_y.shape)}, {list(self.field_x.shape)}) "
+                                  f"does not match the psf grid {Gy} x {Gx}")
+        if chief.dim() != 4 or chief.shape[0] != L or chief.shape[-1] != 2:
+            raise InputValueError(f"PSF bank: chief must be [L, Cy, Cx, 2] with L = {L}, got {list(chief.shape)}")
+        if tuple(self.chief_x.shape) != (chief.shape[2],) or tuple(self.chief_y.shape) != (chief.shape[1],):
+            raise InputValueError("PSF bank: chief grid coordinates do not match the chief tensor "
+                                  f"({list(self.chief_y.shape)}, {list(self.chief_x.shape)} vs {list(chief.shape)})")
+        for name, t in (("psf", psf), ("psf_pitch_mm", pitch), ("chief", chief), ("field_x", self.field_x),
+                        ("field_y", self.field_y), ("chief_x", self.chief_x), ("chief_y", self.chief_y)):
+            bad = (~torch.isfinite(t)).sum().item()
+            if bad:
+                raise InputValueError(f"PSF bank: {name} holds {bad} NaN/Inf values")
+        if (pitch <= 0).any():
+            raise InputValueError("PSF bank: psf_pitch_mm must be positive")
+        if psf.min() < -1e-3:
+            raise InputValueError(f"PSF bank: PSFs must be non-negative, min is {psf.min().item():.3g}")
+        sums = psf.double().sum((-1, -2))
+        worst = (sums - 1).abs().max().item()
+        if worst > SUM_TOLERANCE:
+            i = int((sums - 1).abs().argmax())
+            raise InputValueError(f"PSF bank: every PSF must sum to 1 (+-{SUM_TOLERANCE}); PSF #{i} "
+                                  f"(flat index over [L, Gy, Gx]) sums to {sums.flatten()[i].item():.6g}")
+        for name, g in (("field_x", self.field_x), ("field_y", self.field_y)):
+            if len(g) > 1 and not (g[1:] > g[:-1]).all() or g.abs().max() > 1:
+                raise InputValueError(f"PSF bank: {name} must be increasing inside [-1, 1]")
+        for name, g in (("chief_x", self.chief_x), ("chief_y", self.chief_y)):
+            n = len(g)
+            want = torch.linspace(-1, 1, n, dtype=torch.float64)
+            if n < 2 or (g.double() - want).abs().max() > 1e-6:
+                raise InputValueError(f"PSF bank: {name} must be uniform from -1 to 1 (linspace(-1, 1, {n}))")
+        if len(self.display_mm) != 2 or min(self.display_mm) <= 0:
+            raise InputValueError(f"PSF bank: display_mm must be (width, height) > 0, got {self.display_mm}")
+        self.psf = (psf.float() / sums.float()[..., None, None]).contiguous()
+        self.psf_pitch_mm = pitch.float()
+        self.chief = chief.float()
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the bank (PSFs as float16, everything else float32) atomically."""
+        tensors = {"psf": self.psf.half(), "psf_pitch_mm": self.psf_pitch_mm.float(), "field_x": self.field_x.float(),
+                   "field_y": self.field_y.float(), "chief": self.chief.float(), "chief_x": self.chief_x.double(),
+                   "chief_y": self.chief_y.double()}
+        header = {"wavelengths_nm": list(self.wavelengths_nm), "display_mm": list(self.display_mm),
+                  "units": {"chief": "normalised output coordinates [-1, 1] (x right, y down)",
+                            "field_x/field_y/chief_x/chief_y": "normalised display coordinates [-1, 1]",
+                            "psf_pitch_mm": "display-equivalent millimetres (virtual image / reference magnification)",
+                            "psf": "unit-sum box-cell energies, sample K//2 on the chief ray, row = y"},
+                  "shapes": {k: list(v.shape) for k, v in tensors.items()}, "meta": self.meta}
+        save_tensors(path, tensors, header, kind=BANK_KIND, format_version=BANK_FORMAT_VERSION)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, *, display_mm: tuple[float, float] | None = None) -> "PSFBank":
+        """Load a bank; with ``display_mm`` given, refuse a bank made for another display size."""
+        t, h = load_tensors(path, kind=BANK_KIND, max_version=BANK_FORMAT_VERSION)
+        missing = {"psf", "psf_pitch_mm", "field_x", "field_y", "chief", "chief_x", "chief_y"} - set(t)
+        if missing:
+            raise FileFormatError(f"{path}: PSF bank lacks tensors {sorted(missing)}")
+        try:
+            bank = cls(psf=t["psf"].float(), psf_pitch_mm=t["psf_pitch_mm"], field_x=t["field_x"], field_y=t["field_y"],
+                       chief=t["chief"], chief_x=t["chief_x"], chief_y=t["chief_y"],
+                       wavelengths_nm=tuple(float(w) for w in h["wavelengths_nm"]),
+                       display_mm=tuple(float(d) for d in h["display_mm"]), meta=h.get("meta", {}))
+        except InputValueError as e:
+            raise FileFormatError(f"{path}: {e}") from e
+        if display_mm is not None and any(abs(a - b) > 1e-6 * max(a, b) for a, b in zip(bank.display_mm, display_mm)):
+            raise FileFormatError(f"{path}: bank was made for a {bank.display_mm[0]} x {bank.display_mm[1]} mm display, "
+                                  f"expected {display_mm[0]} x {display_mm[1]} mm")
+        return bank
+
+    @classmethod
+    def default(cls) -> "PSFBank":
+        """The shipped Google-Cardboard bank (30 x 30 fields, 656/550/486 nm); loaded once per process."""
+        global _DEFAULT
+        if _DEFAULT is None:
+            path = resources.files("controlgs_adapter.data").joinpath(DEFAULT_BANK_FILE)
+            with resources.as_file(path) as p:
+                _DEFAULT = cls.load(p)
+        return _DEFAULT
+
+    # ------------------------------------------------------------------ resampling
+    @property
+    def num_wavelengths(self) -> int:
+        return len(self.wavelengths_nm)
+
+    def resample_to(self, height: int, width: int, *, device: torch.device | str = "cpu",
+                    dtype: torch.dtype = torch.float32, stretch: bool = False) -> "ResampledBank":
+        """The bank at a simulation resolution (cached per size/device/dtype; no ray tracing).
+
+        The display is mapped onto the ``height x width`` image; if their aspect ratios differ by
+        more than 1 %, this fails unless ``stretch=True`` (anisotropic pixels).
+        """
+        if not (isinstance(height, int) and isinstance(width, int)) or height < 2 or width < 2:
+            raise InputValueError(f"resample_to: height and width must be ints >= 2, got {height!r}, {width!r}")
+        aspect_img, aspect_disp = width / height, self.display_mm[0] / self.display_mm[1]
+        if not stretch and abs(math.log(aspect_img / aspect_disp)) > 0.01:
+            raise InputValueError(
+                f"resample_to: a {width} x {height} image (aspect {aspect_img:.4f}) does not fit the bank's "
+                f"{self.display_mm[0]} x {self.display_mm[1]} mm display (aspect {aspect_disp:.4f}); "
+                "pass stretch=True to map the display onto it anyway")
+        key = (height, width, str(torch.device(device)), dtype)
+        if key not in self._cache:
+            from .resampled import ResampledBank
+
+            self._cache[key] = ResampledBank(self, height, width, device=torch.device(device), dtype=dtype)
+        return self._cache[key]
+
+
+_DEFAULT: PSFBank | None = None

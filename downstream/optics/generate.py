@@ -1,0 +1,181 @@
+"""Build a :class:`PSFBank` from a lens prescription with the built-in ray tracer (numpy only).
+
+PSF model per field point and wavelength (documented in ``docs/optics.md``):
+
+1. the chief ray (through the pupil centre) gives the landing point on the virtual image plane;
+2. a ``N x N`` grid over the pupil (aimed through the local slope -> pupil Jacobian of the chief ray)
+   is traced; rays that miss the 4 mm pupil, a lens aperture or refract totally are dropped; the
+   rest cross the virtual image plane at the geometric spot (eye accommodated to that plane);
+3. the spot, binned into the ``K x K`` box cells, is convolved with the diffraction-limited Airy
+   pattern of the pupil (exact in both limits: Airy at the diffraction-limited centre, geometric
+   spot where aberrations dominate; approximate in between).
+
+The lens is rotationally symmetric, so spots are traced once per distinct field radius in the
+meridional plane and rotated to each field.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from .bank import PSFBank
+from .prescription import CARDBOARD, Prescription
+from .raytrace import chief_ray, paraxial, real_magnification, trace
+
+__all__ = ["build_bank", "lens_figures"]
+
+ASSUMPTIONS = [
+    "eye pupil fixed on the optical axis at the eye-relief distance (no eye rotation, no pupil swim)",
+    "eye accommodated to the virtual image plane at virtual_image_distance_mm (667 mm); PSFs are ray "
+    "crossings of that plane, seen from the pupil centre",
+    "PSF = geometric spot (pupil grid) convolved with the Airy pattern of the pupil (scalar, monochromatic)",
+    "only the primary image branch is modelled: near the lens rim the display corner is also seen a second "
+    "time through a fold of the rim zone; those rays are outside the local pupil grid and are not in the bank",
+    "PSFs are normalised to unit sum; vignetting (transmission) is recorded in meta but not applied",
+    "each display primary is one wavelength (656 / 550 / 486 nm)",
+]
+
+
+def _airy(r_norm: np.ndarray) -> np.ndarray:
+    """Airy intensity ``(2 J1(x) / x)^2`` at ``x = 1.2197 * pi * r_norm`` (``r_norm = 1``: first zero)."""
+    x = torch.as_tensor(1.21967 * math.pi * r_norm, dtype=torch.float64)
+    j = torch.special.bessel_j1(x)
+    out = torch.where(x > 1e-8, (2 * j / x.clamp_min(1e-8)) ** 2, torch.ones_like(x))
+    return out.numpy()
+
+
+def _bin(dx: np.ndarray, dy: np.ndarray, pitch: float, K: int) -> np.ndarray:
+    """Box-cell histogram (bilinear) of unit-weight points, centred on sample K // 2."""
+    c = K // 2
+    fx, fy = dx / pitch + c, dy / pitch + c
+    x0, y0 = np.floor(fx).astype(np.int64), np.floor(fy).astype(np.int64)
+    ax, ay = fx - x0, fy - y0
+    out = np.zeros(K * K)
+    for ox, wx in ((0, 1 - ax), (1, ax)):
+        for oy, wy in ((0, 1 - ay), (1, ay)):
+            xi, yi = np.clip(x0 + ox, 0, K - 1), np.clip(y0 + oy, 0, K - 1)
+            out += np.bincount(yi * K + xi, weights=wx * wy, minlength=K * K)
+    return out.reshape(K, K)
+
+
+def _airy_kernel(pitch: float, r_airy: float, K: int, supersample: int = 5) -> np.ndarray:
+    """Airy pattern integrated over ``K x K`` box cells of ``pitch`` (unit sum)."""
+    c = K // 2
+    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    g = ((np.arange(K) - c)[:, None] + sub[None, :]).ravel() * pitch  # [K * s]
+    r = np.hypot(g[:, None], g[None, :]) / r_airy
+    a = _airy(r).reshape(K, supersample, K, supersample).sum((1, 3))
+    return a / a.sum()
+
+
+def _conv_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    K = a.shape[0]
+    n = 2 * K - 1
+    f = np.fft.irfft2(np.fft.rfft2(a, (n, n)) * np.fft.rfft2(b, (n, n)), (n, n))
+    c = K // 2
+    return np.clip(f[c:c + K, c:c + K], 0, None)
+
+
+def lens_figures(rx: Prescription) -> dict[str, Any]:
+    """Paraxial and real-ray figures of merit (per wavelength) for reports and the bank's meta."""
+    out: dict[str, Any] = {}
+    m_ref = real_magnification(rx, rx.reference_wavelength)
+    half = rx.display_mm[0] / 2
+    corner = math.hypot(*rx.display_mm) / 2
+    for lam in rx.wavelengths:
+        p = paraxial(rx, lam)
+        _, Y, ok = chief_ray(rx, lam, np.array([corner]))
+        out[f"{lam:g}nm"] = {"efl_mm": p.efl, "paraxial_image_distance_mm": p.image_distance,
+                             "paraxial_magnification": p.magnification,
+                             "chief_magnification_on_image_plane": real_magnification(rx, lam),
+                             "corner_landing_px_at_1024": float(Y[0] / m_ref / corner * 512),  # per axis, from the centre (corner: 512)
+                             "corner_distortion_pct": float((Y[0] / m_ref / corner - 1) * 100)}
+    out["reference_magnification"] = m_ref
+    out["px_per_mm_display_at_1024"] = 1024 / rx.display_mm[0]
+    out["mm_on_image_plane_per_px_at_1024"] = m_ref * rx.display_mm[0] / 1024
+    out["half_width_mm"] = half
+    return out
+
+
+def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, grid: tuple[int, int] = (30, 30),
+               psf_size: int = 33, pupil_samples: int = 192, chief_grid: tuple[int, int] = (65, 65),
+               min_pitch_px: float = 0.125, reference_width_px: int = 1024, progress: bool = False) -> PSFBank:
+    """Trace a PSF bank. ``min_pitch_px`` is the finest PSF sample pitch, in display pixels at
+    ``reference_width_px`` across the display (1/8 px at 1024 px by default)."""
+    rx = prescription if isinstance(prescription, Prescription) else Prescription(prescription or CARDBOARD)
+    if psf_size % 2 == 0 or psf_size < 5:
+        raise ValueError(f"psf_size must be odd and >= 5, got {psf_size}")
+    Gy, Gx = grid
+    W_mm, H_mm = rx.display_mm
+    m_ref = real_magnification(rx, rx.reference_wavelength)
+    fx = -1 + (2 * np.arange(Gx) + 1) / Gx          # normalised field centres
+    fy = -1 + (2 * np.arange(Gy) + 1) / Gy
+    X_mm, Y_mm = np.meshgrid(fx * W_mm / 2, fy * H_mm / 2)   # [Gy, Gx]
+    radii, inv = np.unique(np.round(np.hypot(X_mm, Y_mm), 9), return_inverse=True)
+    inv = inv.reshape(Gy, Gx)
+    K = psf_size
+    min_pitch = min_pitch_px * W_mm / reference_width_px
+    L = len(rx.wavelengths)
+    psf = np.zeros((L, Gy, Gx, K, K))
+    pitch = np.zeros((L, Gy, Gx))
+    transmission = np.zeros((L, Gy, Gx))
+    chief = np.zeros((L, chief_grid[0], chief_grid[1], 2))
+    cx, cy = np.linspace(-1, 1, chief_grid[1]), np.linspace(-1, 1, chief_grid[0])
+    CX, CY = np.meshgrid(cx * W_mm / 2, cy * H_mm / 2)
+    CR = np.hypot(CX, CY)
+    n = pupil_samples
+    g = (np.arange(n) + 0.5) / n * 2 - 1                   # pupil grid in [-1, 1]
+    PX, PY = np.meshgrid(g, g)
+    pr = rx.pupil_radius
+    for li, lam in enumerate(rx.wavelengths):
+        # chief rays on the warp grid
+        _, Yc, okc = chief_ray(rx, lam, CR.ravel())
+        if not okc.all():
+            raise RuntimeError(f"chief ray did not converge for {int((~okc).sum())} warp-grid points at {lam} nm")
+        scale = np.where(CR > 0, Yc.reshape(CR.shape) / np.maximum(CR, 1e-12), real_magnification(rx, lam)) / m_ref
+        chief[li, ..., 0] = CX * scale / (W_mm / 2)
+        chief[li, ..., 1] = CY * scale / (H_mm / 2)
+        # spots per distinct radius, in the meridional frame (field on +y)
+        v0, Y0, ok0 = chief_ray(rx, lam, radii)
+        r_airy = 1.21967 * lam * 1e-6 * rx.image_distance / (2 * pr) / m_ref   # display-equivalent mm
+        eps = 1e-6
+        spots = []
+        for ri, r in enumerate(radii):
+            xp_a, yp_a, _, _, _ = trace(rx, lam, 0.0, r, np.array([0.0, eps, 0.0]), v0[ri] + np.array([0.0, 0.0, eps]))
+            jx, jy = (xp_a[1] - xp_a[0]) / eps, (yp_a[2] - yp_a[0]) / eps
+            u = PX * pr * 1.02 / jx
+            v = v0[ri] + PY * pr * 1.02 / jy
+            xp, yp, Xs, Ys, ok = trace(rx, lam, 0.0, r, u, v)
+            inside = PX ** 2 + PY ** 2 <= 1.0 / 1.02 ** 2                  # the nominal pupil disc
+            keep = ok & (xp ** 2 + yp ** 2 <= pr * pr)
+            transmission_r = keep.sum() / max(inside.sum(), 1)
+            spots.append((Xs[keep] / m_ref, (Ys[keep] - Y0[ri]) / m_ref, min(transmission_r, 1.0)))
+        for iy in range(Gy):
+            for ix in range(Gx):
+                sx, sy, tr = spots[inv[iy, ix]]
+                r = math.hypot(X_mm[iy, ix], Y_mm[iy, ix])
+                ex, ey = (X_mm[iy, ix] / r, Y_mm[iy, ix] / r) if r > 0 else (0.0, 1.0)
+                dx, dy = sx * ey + sy * ex, -sx * ex + sy * ey              # rotate (0, 1) -> (ex, ey)
+                extent = max(np.abs(dx).max(initial=0.0), np.abs(dy).max(initial=0.0)) + 3 * r_airy
+                p = max(min_pitch, extent / (K // 2 - 0.5))
+                spot = _bin(dx, dy, p, K)
+                spot /= spot.sum()
+                img = _conv_same(spot, _airy_kernel(p, r_airy, K))
+                psf[li, iy, ix] = img / img.sum()
+                pitch[li, iy, ix] = p
+                transmission[li, iy, ix] = tr
+        if progress:
+            print(f"  traced {lam:g} nm: {len(radii)} field radii x {int(inside.sum())} pupil rays")
+    meta = {"prescription": rx.spec, "assumptions": ASSUMPTIONS,
+            "generator": {"tool": "controlgs_adapter.downstream.optics.generate.build_bank", "grid": list(grid),
+                          "psf_size": K, "pupil_samples": n, "chief_grid": list(chief_grid),
+                          "min_pitch_px": min_pitch_px, "reference_width_px": reference_width_px},
+            "figures": lens_figures(rx), "transmission": transmission.round(4).tolist()}
+    return PSFBank(psf=torch.from_numpy(psf), psf_pitch_mm=torch.from_numpy(pitch), field_x=torch.from_numpy(fx),
+                   field_y=torch.from_numpy(fy), chief=torch.from_numpy(chief), chief_x=torch.from_numpy(cx),
+                   chief_y=torch.from_numpy(cy), wavelengths_nm=tuple(rx.wavelengths), display_mm=(W_mm, H_mm),
+                   meta=meta)

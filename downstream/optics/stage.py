@@ -1,0 +1,91 @@
+"""O_phys as a pipeline stage: linear RGB -> 3 display primaries -> shift-variant PSF -> linear RGB."""
+
+from __future__ import annotations
+
+import os
+from typing import Literal
+
+import torch
+
+from controlgs_adapter.checks import check_image
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.state import RuntimeState
+
+from ..color import primaries_to_rgb, rgb_to_primaries
+from ..stage import Stage, StageContext
+from .bank import PSFBank
+from .operators import psf_distortion, psf_exact, psf_lowrank
+
+__all__ = ["OpticsStage", "optics", "MODES", "DEFAULT_RANK"]
+
+Mode = Literal["distortion", "fast", "exact"]
+MODES: tuple[str, ...] = ("distortion", "fast", "exact")
+#: eigen-PSFs per wavelength of the "fast" mode (see docs/optics.md for error vs time)
+DEFAULT_RANK = 16
+
+
+def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "fast", rank: int = DEFAULT_RANK,
+           stretch: bool = False) -> torch.Tensor:
+    """Functional O_phys. ``image [..., 3, H, W]`` linear RGB on the display -> linear RGB of the
+    virtual image on the same grid (reference magnification). ``bank`` defaults to the shipped
+    Cardboard bank; it is resampled once per (H, W, device, dtype) and cached."""
+    check_image("image", image)
+    if mode not in MODES:
+        raise InputValueError(f"mode must be one of {MODES}, got {mode!r}")
+    bank = bank or PSFBank.default()
+    if bank.num_wavelengths != 3:
+        raise InputValueError(f"the optics stage needs a bank with 3 wavelengths (656/550/486 nm primaries), "
+                              f"got {bank.wavelengths_nm}")
+    H, W = image.shape[-2:]
+    rb = bank.resample_to(H, W, device=image.device, dtype=image.dtype, stretch=stretch)
+    prim = rgb_to_primaries(image)
+    if mode == "distortion":
+        out = psf_distortion(prim, rb)
+    elif mode == "fast":
+        out = psf_lowrank(prim, rb, rank)
+    else:
+        out = psf_exact(prim, rb)
+    return primaries_to_rgb(out)
+
+
+class OpticsStage(Stage):
+    """Shift-variant PSF optics (paper Eq. 5, S1-S4).
+
+    Args:
+        bank: a :class:`PSFBank`, a path to one, or None for the shipped Google-Cardboard bank.
+        mode: ``"distortion"`` (chief-ray warp only; the paper's first 90 % of training), ``"fast"``
+            (low-rank shift-variant blur, ``rank`` eigen-PSFs per wavelength) or ``"exact"``
+            (per-pixel reference; slow). Settable at any time (``stage.mode = "fast"``).
+        rank: accuracy knob of ``"fast"``.
+        stretch: allow an image whose aspect differs from the display's (anisotropic pixels).
+    """
+
+    name = "optics"
+    domain = "linear"
+    resolution = "keep"
+    order = 50.0
+
+    def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "fast", rank: int = DEFAULT_RANK,
+                 stretch: bool = False) -> None:
+        super().__init__()
+        self.bank = PSFBank.load(bank) if isinstance(bank, (str, os.PathLike)) else (bank or PSFBank.default())
+        if not isinstance(rank, int) or rank < 1:
+            raise InputValueError(f"rank must be an int >= 1, got {rank!r}")
+        self.rank, self.stretch = rank, stretch
+        self.mode = mode
+
+    @property
+    def mode(self) -> str:
+        return self._mode
+
+    @mode.setter
+    def mode(self, value: str) -> None:
+        if value not in MODES:
+            raise InputValueError(f"mode must be one of {MODES}, got {value!r}")
+        self._mode = value
+
+    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+        return optics(image, self.bank, self.mode, self.rank, self.stretch)
+
+    def extra_repr(self) -> str:
+        return f"mode={self.mode!r}, rank={self.rank}, wavelengths={self.bank.wavelengths_nm}"
