@@ -33,11 +33,11 @@ def _is_decoder(obj: Any) -> bool:
 
 
 class ScaffoldGSBackend(Backend):
-    """Recognises any object with the three Scaffold-GS attribute decoders and anchors.
+    """Scaffold-GS layout: any object with decoder modules ``mlp_opacity``, ``mlp_cov``,
+    ``mlp_color`` and anchors ``get_anchor`` or ``_anchor``.
 
-    Matching is duck-typed: ``mlp_opacity``, ``mlp_cov``, ``mlp_color`` are modules and the object
-    has ``get_anchor`` or ``_anchor``. It is the most generic backend, so the built-in list tries
-    it last (Octree-GS, HAC, ... share these attribute names).
+    Matching is duck-typed. It is the most generic backend, so the built-in list tries it last
+    (Octree-GS, HAC, ... share these attribute names).
     """
 
     name = "scaffold_gs"

@@ -69,8 +69,9 @@ class _Plan:
 
 
 def _describe(backend: Backend) -> str:
-    doc = (type(backend).__doc__ or "").strip().splitlines()
-    return f"{backend.name} ({doc[0].rstrip('.') if doc else type(backend).__qualname__})"
+    """``name (first paragraph of the backend's docstring)``: what the backend looks for."""
+    para = (type(backend).__doc__ or "").strip().split("\n\n")[0]
+    return f"{backend.name} ({' '.join(para.split()).rstrip('.') or type(backend).__qualname__})"
 
 
 def _select_backend(model: Any, backend: str | Backend | None) -> Backend:
@@ -318,7 +319,8 @@ class ControlGS:
         ids = self.anchor_ids(anchor_ids)
         out = {}
         for m, lam in self._strengths(state, camera, ids, self.modules, skip_zero=False).items():
-            out[m] = lam if isinstance(lam, torch.Tensor) else torch.full(ids.shape, lam, device=ids.device)
+            out[m] = lam if isinstance(lam, torch.Tensor) else torch.full(ids.shape, lam, dtype=self.injector.dtype,
+                                                                          device=ids.device)
         return out
 
     def _strengths(self, state: RuntimeState, camera: Camera | None, ids: torch.Tensor, modules: Sequence[str],
@@ -344,7 +346,7 @@ class ControlGS:
                     )
                 positions = self.backend.anchor_positions(self.model).detach()
                 screen = camera.normalized_screen(positions.index_select(0, ids.to(positions.device)))
-            lam_t = schedule.strength(state, screen, dtype=torch.float32, device=ids.device)
+            lam_t = schedule.strength(state, screen, dtype=self.injector.dtype, device=ids.device)
             if not skip_zero or bool(lam_t.any()):
                 out[m] = lam_t
         return out

@@ -79,6 +79,10 @@ class ConditionInjector(nn.Module):
         self._ctx: InjectionContext | None = None
         self._handles: list[torch.utils.hooks.RemovableHandle] = []
 
+    @property
+    def dtype(self) -> torch.dtype:
+        return next(iter(self.conditions.values())).dtype
+
     # -- attaching -------------------------------------------------------------------------------
     def attach(self, name: str, fc1: nn.Linear) -> None:
         """Register the injection hook on target ``name``'s first Linear."""

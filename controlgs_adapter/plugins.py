@@ -24,7 +24,7 @@ from .errors import PluginLoadError
 
 __all__ = [
     "BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "PluginInfo", "get_plugin_manager", "register_plugin",
-    "unregister_plugin", "backends", "stages", "schedules", "plugin_report", "load_failures",
+    "unregister_plugin", "backends", "stages", "schedules", "plugin_report", "load_failures", "reset_plugin_manager",
 ]
 
 ENTRY_POINT_GROUP = "controlgs_adapter"
@@ -73,6 +73,16 @@ def get_plugin_manager(*, strict: bool | None = None) -> pluggy.PluginManager:
             _load_entry_points(pm, strict)
         _pm = pm
     return _pm
+
+
+def reset_plugin_manager() -> None:
+    """Forget the manager, run-time plug-ins and load failures: the next use rebuilds it (and reads
+    the entry points again). For tests and long-running hosts that install plug-ins."""
+    global _pm
+    _pm = None
+    _sources.clear()
+    _failures.clear()
+    _cache.clear()
 
 
 def _load_entry_points(pm: pluggy.PluginManager, strict: bool) -> None:

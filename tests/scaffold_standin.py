@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import io
+import warnings
 
 import torch
 from torch import nn
@@ -53,13 +54,15 @@ def script_decoders(model: ScaffoldStandIn) -> ScaffoldStandIn:
         mlp = getattr(model, name)
         example = torch.randn(5, mlp[0].in_features, dtype=mlp[0].weight.dtype)
         buf = io.BytesIO()
-        torch.jit.save(torch.jit.trace(mlp, example), buf)
-        buf.seek(0)
-        setattr(model, name, torch.jit.load(buf))
+        with warnings.catch_warnings():  # torch >= 2.10 deprecates TorchScript; checkpoints still use it
+            warnings.simplefilter("ignore", DeprecationWarning)
+            torch.jit.save(torch.jit.trace(mlp, example), buf)
+            buf.seek(0)
+            setattr(model, name, torch.jit.load(buf))
     return model
 
 
-def test_camera(width: int = 64, height: int = 48, distance: float = 3.0, dtype: torch.dtype = torch.float32) -> Camera:
+def make_camera(width: int = 64, height: int = 48, distance: float = 3.0, dtype: torch.dtype = torch.float32) -> Camera:
     """A camera at z = -distance looking down +z at the unit cube (anchors are in [-1, 1]^3)."""
     w2c = torch.eye(4, dtype=dtype)
     w2c[2, 3] = distance
