@@ -178,7 +178,10 @@ class HACModel(MaskedAnchorModel):
 
 def infer_decoded(scales: np.ndarray, masks: np.ndarray, *, extra_mask_column: bool) -> bool:
     """Whether a HAC/ContextGS PLY holds the decoded model: its scales are linear (all > 0, which
-    log-scales of a trained scene are not) and its masks are 0/1 (HAC++: the extra column all 0)."""
+    log-scales of a trained scene are not) and its masks are 0/1 (HAC++: the extra column all 0).
+    All-zero rows (the zero padding of decoded HAC/ContextGS models) are left out of the test."""
+    padding = (masks == 0).all(axis=1) & (scales == 0).all(axis=1)
+    masks, scales = masks[~padding], scales[~padding]
     binary = bool(np.isin(masks, (0.0, 1.0)).all())
     if extra_mask_column:
         binary = binary and bool((masks[:, -1] == 0).all())

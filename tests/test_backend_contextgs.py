@@ -1,0 +1,143 @@
+"""ContextGS backend: recognition, 16-bit anchor quantisation, zero padding, decoded-vs-raw loading of
+an output directory written in ContextGS's layout, wrap/identity/injection/save-load, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from _family_checks import check_wrap_identity_and_rows, outputs, write_cfg_args
+from controlgs_adapter.backends.contextgs import ContextGSBackend, ContextGSModel, load_contextgs_dir, quantize_anchor
+from controlgs_adapter.backends.formats import read_ply, write_ply
+from controlgs_adapter.backends.hac import HACBackend
+from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
+from controlgs_adapter.errors import FileFormatError
+
+A, K, F, PAD = 14, 10, 50, 4
+H = F // 4  # hyper_divisor 4
+LO, HI = torch.tensor([[-2.4, -2.0, -3.0]]), torch.tensor([[2.0, 2.6, 1.5]])
+
+
+def _decoders(seed: int) -> dict[str, nn.Sequential]:
+    torch.manual_seed(seed)
+    return {"mlp_opacity": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, K), nn.Tanh()),
+            "mlp_cov": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, 7 * K)),
+            "mlp_color": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, 3 * K), nn.Sigmoid())}
+
+
+def _arrays(seed: int, *, decoded: bool) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    arr = {"anchor": rng.uniform(-1.8, 1.4, (A, 3)).astype(np.float32), "offset": rng.normal(size=(A, K, 3)).astype(np.float32),
+           "feat": rng.normal(size=(A, F)).astype(np.float32), "hyper": rng.normal(size=(A, H)).astype(np.float32)}
+    if decoded:
+        arr["mask"] = (rng.random((A, K)) < 0.5).astype(np.float32)
+        arr["mask"][:, 1] = 1.0
+        arr["scale"] = rng.uniform(0.01, 0.3, (A, 6)).astype(np.float32)
+        for v in arr.values():  # decoded arrays are zero-padded from the valid count to the full count
+            v[A - PAD:] = 0.0
+    else:
+        arr["mask"] = rng.normal(0, 3, (A, K)).astype(np.float32)
+        arr["scale"] = rng.normal(-3, 0.5, (A, 6)).astype(np.float32)
+    return arr
+
+
+def _model(arr, decs, *, decoded: bool) -> ContextGSModel:
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    return ContextGSModel(anchor=t["anchor"], offset=t["offset"], mask=t["mask"][:, :, None], anchor_feat=t["feat"],
+                          scaling=t["scale"], hyper_latent=t["hyper"], x_bound_min=LO, x_bound_max=HI,
+                          decoded_version=decoded, **decs)
+
+
+def _write_dir(root, arr, decs, *, bound=True):
+    root.mkdir(parents=True)
+    write_cfg_args(root / "cfg_args", feat_dim=F, n_offsets=K, hyper_divisor=4, use_feat_bank=False, voxel_size=0.01)
+    it = root / "point_cloud" / "iteration_30000"
+    it.mkdir(parents=True)
+    fields = {"x": arr["anchor"][:, 0], "y": arr["anchor"][:, 1], "z": arr["anchor"][:, 2]}
+    fields.update({f"n{c}": np.zeros(A, np.float32) for c in "xyz"})
+    flat = arr["offset"].transpose(0, 2, 1).reshape(A, 3 * K)
+    fields.update({f"f_offset_{i}": flat[:, i] for i in range(3 * K)})
+    fields.update({f"f_mask_{i}": arr["mask"][:, i] for i in range(K)})
+    fields.update({f"f_anchor_feat_{i}": arr["feat"][:, i] for i in range(F)})
+    fields.update({f"f_hyper_latent_{i}": arr["hyper"][:, i] for i in range(H)})
+    fields["opacity"] = np.zeros(A, np.float32)
+    fields.update({f"scale_{i}": arr["scale"][:, i] for i in range(6)})
+    fields.update({f"rot_{i}": np.full(A, 1.0 if i == 0 else 0.0, np.float32) for i in range(4)})
+    write_ply(it / "point_cloud.ply", fields)
+    ckpt = {"opacity_mlp": decs["mlp_opacity"].state_dict(), "cov_mlp": decs["mlp_cov"].state_dict(),
+            "color_mlp": decs["mlp_color"].state_dict(), "latent_codec": {"quantiles": torch.zeros(H, 1, 3)},
+            "grid_mlp": {"0.0.weight": torch.zeros(4, 4)}, "level_scale": torch.ones(3)}
+    if bound:
+        ckpt["bound"] = [LO, HI]
+    torch.save(ckpt, it / "checkpoint.pth")
+    return root
+
+
+def test_recognition_and_quantised_positions():
+    arr = _arrays(0, decoded=False)
+    model = _model(arr, _decoders(0), decoded=False)
+    b = ContextGSBackend()
+    assert b.matches(model) and not HACBackend().matches(model)
+    assert ScaffoldGSBackend().matches(model)  # generic; ContextGS is registered before it
+    assert b.input_layout(model, "mlp_color") == [("feat", 50), ("view", 3), ("dist", 1)]
+    got = b.anchor_positions(model).double()
+    # float64 reference of the 16-bit quantisation inside the bound
+    lo, hi = LO.double(), HI.double()
+    step = (hi - lo) / 65535 + 1e-6
+    q = torch.clamp(torch.floor((torch.from_numpy(arr["anchor"]).double() - lo) / step), 0, 65535)
+    want = q * step + lo
+    assert torch.allclose(got, want, atol=float(step.max()) + 1e-6, rtol=0)  # a floor boundary may tip one step
+    assert (torch.isclose(got, want, atol=1e-5, rtol=0).double().mean() > 0.95)
+    err = (got - torch.from_numpy(arr["anchor"]).double()).abs()
+    assert bool((err <= step + 1e-6).all()) and not torch.equal(b.anchor_positions(model), model._anchor)
+    outside = quantize_anchor(torch.tensor([[-9.0, 9.0, 0.0]]), LO, HI)  # clamped to the bound's grid
+    assert torch.allclose(outside[0, :2], torch.tensor([LO[0, 0], LO[0, 1] + 65535 * float(step[0, 1])]).float(), atol=1e-4)
+    model.decoded_version = True
+    assert torch.equal(b.anchor_positions(model), model._anchor)
+
+
+def test_load_decoded_dir_drops_padding_and_wraps(tmp_path):
+    arr, decs = _arrays(1, decoded=True), _decoders(1)
+    root = _write_dir(tmp_path / "scene", arr, decs)
+    model = load_contextgs_dir(root)
+    n = A - PAD
+    assert model.decoded_version and model.source_index.tolist() == list(range(n))
+    assert torch.equal(model.get_anchor, torch.from_numpy(arr["anchor"][:n]))
+    assert torch.equal(model._hyper_latent, torch.from_numpy(arr["hyper"][:n]))
+    assert torch.equal(model.x_bound_min, LO) and model.latent_codec is None
+    assert ContextGSBackend().matches(model) and ContextGSBackend().valid_anchors(model).all()
+    cam = torch.tensor([0.0, 0.5, -6.0])
+    ids = torch.tensor([0, 1, 4, 6, 9])
+    inputs = model.decoder_inputs(cam, ids)
+    ref = _model({k: v[:n] for k, v in arr.items()}, decs, decoded=True)
+    want = outputs(ref, ref.decoder_inputs(cam, ids))
+    for p, y in outputs(model, inputs).items():
+        assert torch.equal(y, want[p]), p
+    check_wrap_identity_and_rows(model, inputs, ids, "contextgs", 1, tmp_path, lambda: load_contextgs_dir(root))
+
+
+def test_raw_dir(tmp_path):
+    arr = _arrays(2, decoded=False)
+    root = _write_dir(tmp_path / "raw", arr, _decoders(2))
+    with pytest.raises(FileFormatError, match="raw .*ContextGS.*allow_unquantized"):
+        load_contextgs_dir(root)
+    model = load_contextgs_dir(root, allow_unquantized=True)
+    keep = model.source_index
+    assert torch.equal(model.get_anchor, quantize_anchor(torch.from_numpy(arr["anchor"])[keep], LO, HI))
+    root2 = _write_dir(tmp_path / "nobound", arr, _decoders(2), bound=False)
+    with pytest.raises(FileFormatError, match="checkpoint.pth.*bound"):
+        load_contextgs_dir(root2, allow_unquantized=True)
+
+
+def test_loading_errors(tmp_path):
+    root = _write_dir(tmp_path / "s", _arrays(3, decoded=True), _decoders(3))
+    ply = root / "point_cloud" / "iteration_30000" / "point_cloud.ply"
+    fields, _ = read_ply(ply)
+    write_ply(ply, {k: v for k, v in fields.items() if not k.startswith("f_hyper_latent_")})
+    with pytest.raises(FileFormatError, match="f_hyper_latent_0"):
+        load_contextgs_dir(root)
+    (root / "cfg_args").unlink()
+    with pytest.raises(FileFormatError, match="cfg_args"):
+        load_contextgs_dir(root)
