@@ -43,7 +43,9 @@ _A = 0.055
 _GAMMA = 2.4
 _SLOPE = 12.92
 _DECODE_THRESHOLD = 0.04045  # encoded value where the power branch starts
-_ENCODE_THRESHOLD = 0.0031308  # linear value where the power branch starts
+# linear value where the power branch starts: IEC writes 0.0031308; 0.04045 / 12.92 = 0.00313080495...
+# (5e-12 away) makes the linear segments map exactly onto each other, so the pair is exactly inverse
+_ENCODE_THRESHOLD = _DECODE_THRESHOLD / _SLOPE
 
 
 def srgb_to_linear(image: torch.Tensor) -> torch.Tensor:

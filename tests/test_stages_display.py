@@ -1,0 +1,150 @@
+"""Display mapping P_disp: power model and uniform dimming to a power target."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from controlgs_adapter.downstream.color import srgb_to_linear
+from controlgs_adapter.downstream.display import (
+    PANEL_COEFFICIENTS, DisplayStage, display_mapping, display_power, display_power_watts,
+)
+from controlgs_adapter.downstream.stage import StageContext
+from controlgs_adapter.errors import InputValueError, StateError
+from controlgs_adapter.state import RuntimeState
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Small tensors: one intra-op thread avoids OpenMP contention on a loaded machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _power_reference(img: torch.Tensor, coeffs=PANEL_COEFFICIENTS) -> float:
+    """Explicit loop over pixels: mean of alpha R + beta G + gamma B (negatives emit nothing)."""
+    a, b, c = coeffs
+    _, h, w = img.shape
+    total = 0.0
+    for i in range(h):
+        for j in range(w):
+            r, g, bl = (max(0.0, float(v)) for v in img[:, i, j])
+            total += a * r + b * g + c * bl
+    return total / (h * w)
+
+
+def test_power_model_values():
+    white = torch.ones(3, 4, 4, dtype=torch.float64)
+    assert float(display_power(white)) == pytest.approx(228.52 + 205.66 + 567.64, rel=1e-12)
+    assert float(display_power_watts(white)) == pytest.approx(3.00546, abs=1e-5)  # PowerGS: full white ~3.006 W
+    img = torch.rand(3, 5, 6, dtype=torch.float64) * 1.2 - 0.1
+    assert float(display_power(img)) == pytest.approx(_power_reference(img), rel=1e-12)
+    srgb = torch.rand(2, 3, 4, 4, dtype=torch.float64)
+    assert torch.allclose(display_power(srgb, encoding="srgb"), display_power(srgb_to_linear(srgb)))
+    custom = (1.0, 0.0, 0.0)
+    assert float(display_power(img, custom)) == pytest.approx(_power_reference(img, custom), rel=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.floats(0.0, 0.99), st.floats(0.05, 1.0), st.floats(0.05, 1.0), st.integers(0, 2**31 - 1),
+    st.sampled_from([torch.float32, torch.float64]),
+)
+def test_power_after_dimming_equals_target(rho, img_level, ref_level, seed, dtype):
+    g = torch.Generator().manual_seed(seed)
+    img = torch.rand(2, 3, 6, 5, generator=g, dtype=dtype) * img_level
+    ref = torch.rand(3, 9, 8, generator=g, dtype=dtype) * ref_level  # at S, image at S/d: mean power compares
+    out, stats = display_mapping(img, rho, ref, return_stats=True)
+    assume(bool((stats["clipped_fraction"] == 0).all()))
+    target = (1 - rho) * display_power(ref)
+    assert torch.allclose(display_power(out), target.expand(2), rtol=1e-5, atol=0)
+    assert torch.allclose(stats["power"], stats["power_target"], rtol=1e-5, atol=0)
+
+
+def test_clipping_is_reported():
+    img = torch.full((3, 4, 4), 0.25, dtype=torch.float64)
+    img[:, 0, 0] = 0.9
+    ref = torch.full((3, 4, 4), 0.8, dtype=torch.float64)
+    out, stats = display_mapping(img, 0.1, ref, return_stats=True)
+    scale = float(stats["scale"])
+    assert scale > 1.0 / 0.9  # brightened so that the 0.9 pixel clips
+    assert float(out.max()) == 1.0
+    assert float(stats["clipped_fraction"]) == pytest.approx(3 / 48)
+    assert float(stats["power"]) < float(stats["power_target"])
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.floats(0.0, 0.999999), st.sampled_from(["black", "no_blue", "negative"]))
+def test_degenerate_images_have_no_nan(rho, kind):
+    img = torch.rand(3, 4, 4, dtype=torch.float64)
+    if kind == "black":
+        img = torch.zeros(3, 4, 4, dtype=torch.float64)
+    elif kind == "no_blue":
+        img[2] = 0
+    else:
+        img = -img
+    img.requires_grad_(True)
+    for ref in (None, torch.zeros(3, 4, 4, dtype=torch.float64), torch.rand(3, 4, 4, dtype=torch.float64)):
+        out = display_mapping(img, rho, ref)
+        (grad,) = torch.autograd.grad(out.sum(), img)
+        assert torch.isfinite(out).all() and torch.isfinite(grad).all()
+        if kind == "black":
+            assert torch.equal(out, img.detach())  # zero power: nothing to scale
+
+
+def test_black_image_scale_is_one_and_no_reference_scales_by_one_minus_rho():
+    _, stats = display_mapping(torch.zeros(3, 2, 2), 0.5, torch.rand(3, 2, 2), return_stats=True)
+    assert float(stats["scale"]) == 1.0
+    img = torch.rand(3, 4, 4, dtype=torch.float64) * 0.5
+    assert torch.allclose(display_mapping(img, 0.3), img * 0.7)
+
+
+def test_brighten_false_never_scales_up():
+    img = torch.rand(3, 4, 4) * 0.1
+    ref = torch.ones(3, 4, 4)
+    out = display_mapping(img, 0.2, ref, brighten=False)
+    assert torch.equal(out, img)
+    assert not torch.equal(display_mapping(img, 0.2, ref), img)
+
+
+@pytest.mark.parametrize("rho", [1.0, 1.5, -0.1, float("nan"), float("inf"), "x"])
+def test_bad_rho_raises(rho):
+    with pytest.raises(StateError, match="rho"):
+        display_mapping(torch.rand(3, 2, 2), rho)
+    if isinstance(rho, float):
+        with pytest.raises(StateError, match="power_saving"):
+            RuntimeState(power_saving=rho)
+
+
+def test_bad_input_names_the_argument():
+    with pytest.raises(InputValueError, match="reference"):
+        display_mapping(torch.rand(3, 2, 2), 0.2, torch.rand(3, 2, 2, dtype=torch.float16))
+    with pytest.raises(InputValueError, match="coefficients"):
+        display_power(torch.rand(3, 2, 2), (1.0, -1.0, 2.0))
+    with pytest.raises(InputValueError, match="encoding"):
+        display_power(torch.rand(3, 2, 2), encoding="gamma")
+
+
+def test_gradcheck_and_gradient_through_the_power():
+    img = (torch.rand(2, 3, 3, 4, dtype=torch.float64) * 0.4 + 0.05).requires_grad_(True)
+    ref = torch.rand(3, 5, 5, dtype=torch.float64) * 0.3
+    assert torch.autograd.gradcheck(lambda x: display_mapping(x, 0.4, ref), (img,))
+    (grad,) = torch.autograd.grad(display_mapping(img, 0.4, ref).sum(), img)
+    _, stats = display_mapping(img.detach(), 0.4, ref, return_stats=True)
+    grad_fixed_scale = stats["scale"][:, None, None, None].expand_as(img)
+    assert not torch.allclose(grad, grad_fixed_scale)  # the scale depends on the image's power
+
+
+def test_display_stage():
+    stage = DisplayStage()
+    assert stage.is_identity(RuntimeState(power_saving=0.0)) and not stage.is_identity(RuntimeState(power_saving=0.2))
+    img = torch.rand(3, 4, 4, dtype=torch.float64) * 0.2
+    gt = torch.rand(3, 8, 8, dtype=torch.float64)
+    record: dict = {}
+    out = stage(img, RuntimeState(2.0, 0.2), StageContext((8, 8), reference=gt, record=record))
+    assert torch.equal(out, display_mapping(img, 0.2, srgb_to_linear(gt)))
+    assert {"display.scale", "display.power_target", "display.power", "display.clipped_fraction"} <= set(record)
