@@ -14,7 +14,8 @@ equals the target (the paper's equal-power comparison; this brightens an image d
 target unless ``brighten=False``), then clipped to the display range [0, 1]. The power after
 dimming equals the target exactly unless clipping happens (the clipped fraction is reported).
 Gradients flow through ``P(image)``; the reference is a constant. Conventions:
-- ``rho == 0`` means power saving is off: the stage is the identity (it is skipped).
+- ``rho == 0`` means power saving is off: the image is returned unchanged (not rescaled to
+  ``P_ref``, not clipped) and the stage is skipped.
 - no reference: ``P_ref = P(image)``, i.e. the image is scaled by ``1 - rho``.
 - ``P(image) == 0`` (a black image): there is nothing to scale; the scale is 1 (no NaN, zero
   gradient through the power).
@@ -112,7 +113,7 @@ def display_mapping(
 
     Args:
         image: ``[..., 3, H, W]`` linear light (the rendered, resampled image).
-        rho: power saving in [0, 1).
+        rho: power saving in [0, 1); 0 returns ``image`` unchanged.
         reference: ``[..., 3, H_r, W_r]`` linear light (the ground truth, any resolution,
             broadcastable leading dims) giving ``P_ref``; None: ``P_ref = P(image)``.
         coefficients: panel coefficients (alpha, beta, gamma).
@@ -126,6 +127,11 @@ def display_mapping(
     rho = _check_rho(rho)
     c = _check_coefficients(coefficients)
     power = _power(image, c)  # [...]
+    if rho == 0.0:  # power saving off
+        if not return_stats:
+            return image
+        p = power.detach()
+        return image, {"scale": torch.ones_like(p), "power_target": p, "power": p, "clipped_fraction": torch.zeros_like(p)}
     if reference is None:
         power_ref = power.detach()
     else:

@@ -51,7 +51,7 @@ def test_power_model_values():
 
 @settings(max_examples=30, deadline=None)
 @given(
-    st.floats(0.0, 0.99), st.floats(0.05, 1.0), st.floats(0.05, 1.0), st.integers(0, 2**31 - 1),
+    st.floats(1e-6, 0.99), st.floats(0.05, 1.0), st.floats(0.05, 1.0), st.integers(0, 2**31 - 1),
     st.sampled_from([torch.float32, torch.float64]),
 )
 def test_power_after_dimming_equals_target(rho, img_level, ref_level, seed, dtype):
@@ -101,6 +101,11 @@ def test_black_image_scale_is_one_and_no_reference_scales_by_one_minus_rho():
     assert float(stats["scale"]) == 1.0
     img = torch.rand(3, 4, 4, dtype=torch.float64) * 0.5
     assert torch.allclose(display_mapping(img, 0.3), img * 0.7)
+
+
+def test_rho_zero_is_off():
+    img = torch.rand(3, 4, 4) * 1.5  # not even clipped
+    assert display_mapping(img, 0.0, torch.rand(3, 4, 4)) is img
 
 
 def test_brighten_false_never_scales_up():

@@ -1,0 +1,242 @@
+"""The end-to-end operator E_s (paper Eq. 8): composition, order, domains, skipping, records."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controlgs_adapter import plugins
+from controlgs_adapter.downstream.color import linear_to_srgb, srgb_to_linear
+from controlgs_adapter.downstream.display import display_mapping
+from controlgs_adapter.downstream.lens import LensPrewarp, RadialMap, lens_prewarp
+from controlgs_adapter.downstream.oled import box_emission
+from controlgs_adapter.downstream.pipeline import Pipeline
+from controlgs_adapter.downstream.resample import area_resample
+from controlgs_adapter.downstream.stage import Stage, StageContext
+from controlgs_adapter.errors import InputValueError, ShapeError
+from controlgs_adapter.hookspecs import hookimpl
+from controlgs_adapter.state import RuntimeState
+
+K = [[0.08], [0.1], [0.12]]
+ALL = {"lens": {"coefficients": K}, "resample": True, "display": True, "foveation": True}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Small tensors: one intra-op thread avoids OpenMP contention on a loaded machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _manual(image, state, gt, k=K):
+    """E_s written out with the functionals (the reference the pipeline must equal)."""
+    x = srgb_to_linear(image)
+    grid, _ = RadialMap(k).double()(tuple(image.shape[-2:]), image.dtype, image.device)
+    x = lens_prewarp(x, grid)
+    x = area_resample(x, state.downsample)
+    x = display_mapping(x, state.power_saving, srgb_to_linear(gt))
+    x = box_emission(x, tuple(gt.shape[-2:]))
+    return linear_to_srgb(x)
+
+
+def test_builtins_are_registered_and_ordered():
+    names = set(plugins.stages())
+    assert {"lens", "resample", "display", "oled", "foveation"} <= names
+    p = Pipeline.from_config(["display", "resample", "lens", "foveation"])
+    assert p.names == ["foveation", "lens", "resample", "display", "oled"]
+    assert Pipeline.from_config({"lens": True, "oled": False}).names == ["lens"]
+
+
+def test_pipeline_equals_the_composed_functionals():
+    g = torch.Generator().manual_seed(3)
+    image = torch.rand(2, 3, 20, 16, dtype=torch.float64, generator=g)
+    gt = torch.rand(2, 3, 20, 16, dtype=torch.float64, generator=g)
+    p = Pipeline.from_config(ALL).double()
+    for state in (RuntimeState(2.5, 0.4), RuntimeState(1.0, 0.6), RuntimeState(4.0, 0.0)):
+        out = p(image, state, reference=gt)
+        ref = _manual(image, state, gt)
+        assert out.shape == image.shape
+        assert torch.allclose(out, ref, atol=1e-12)
+
+
+def test_no_ss_baseline_input_at_display_size():
+    image_low = torch.rand(3, 8, 6, dtype=torch.float64)  # rendered at camera.scaled(2.5) of 20 x 16
+    gt = torch.rand(3, 20, 16, dtype=torch.float64)
+    p = Pipeline.from_config({"resample": True, "display": True})
+    out, inter = p(image_low, RuntimeState(2.5, 0.3), reference=gt, record=True)
+    expected = linear_to_srgb(box_emission(display_mapping(srgb_to_linear(image_low), 0.3, srgb_to_linear(gt)), (20, 16)))
+    assert out.shape == (3, 20, 16) and torch.allclose(out, expected, atol=1e-12)
+    assert inter["post"].shape == (3, 8, 6)
+    with pytest.raises(ShapeError, match="larger"):
+        p(torch.rand(3, 30, 30), RuntimeState(2.0), reference=gt)
+
+
+class _Counter:
+    """Counts stage calls through forward pre-hooks (the real stages run)."""
+
+    def __init__(self, pipeline: Pipeline) -> None:
+        self.calls: Counter[str] = Counter()
+        for s in pipeline.stages:
+            s.register_forward_pre_hook(lambda mod, args: self.calls.update([mod.name]))
+
+
+def test_what_is_off_or_identity_costs_nothing():
+    p = Pipeline.from_config({"lens": {"coefficients": [[0.0]] * 3}, "resample": True, "display": True, "foveation": True})
+    counter = _Counter(p)
+    image = torch.rand(3, 12, 12)
+    assert p(image, RuntimeState(1.0, 0.0), reference=torch.rand(3, 12, 12)) is image  # no stage, no conversion
+    assert sum(counter.calls.values()) == 0
+    p(image, RuntimeState(2.0, 0.0))
+    assert counter.calls == Counter({"resample": 1, "oled": 1})
+    p(image, RuntimeState(1.0, 0.5))
+    assert counter.calls == Counter({"resample": 1, "oled": 1, "display": 1})
+    assert p.active(RuntimeState(3.0, 0.2)) == ["resample", "display", "oled"]
+    off = Pipeline.from_config({"resample": True})  # display not configured: never runs
+    counter_off = _Counter(off)
+    off(image, RuntimeState(2.0, 0.9))
+    assert counter_off.calls == Counter({"resample": 1, "oled": 1})
+
+
+def test_trainable_lens_runs_in_training_even_at_identity():
+    lens = LensPrewarp.learned(hidden=8, layers=1, frequencies=0)
+    p = Pipeline([lens])
+    counter = _Counter(p)
+    image = torch.rand(3, 6, 6)
+    p.eval()(image, RuntimeState())
+    assert counter.calls["lens"] == 0
+    out = p.train()(image, RuntimeState())
+    out.sum().backward()
+    assert counter.calls["lens"] == 1 and lens.map.mlp[-1].bias.grad is not None
+
+
+def test_record_intermediates_and_diagnostics():
+    image = torch.rand(3, 16, 16)
+    gt = torch.rand(3, 16, 16)
+    p = Pipeline.from_config(ALL)
+    out, inter = p(image, RuntimeState(2.0, 0.5), reference=gt, record=True)
+    assert set(inter) >= {"rendered", "post", "displayed", "eye", "stages_run", "diagnostics"}
+    assert inter["rendered"].shape == (3, 16, 16) and inter["post"].shape == (3, 8, 8)
+    assert inter["displayed"].shape == (3, 16, 16) and torch.equal(inter["eye"], out.detach())
+    assert torch.equal(inter["displayed"], out)  # no optics: the eye sees the display
+    assert inter["stages_run"] == ["lens", "resample", "display", "oled"]
+    assert 0.0 <= float(inter["diagnostics"]["display.clipped_fraction"]) <= 1.0
+    assert torch.equal(p(image, RuntimeState(2.0, 0.5), reference=gt), out)
+
+
+class _Sharpen(Stage):
+    """A third-party stage working on encoded sRGB, inserted right after the resampling."""
+
+    name = "sharpen"
+    domain = "srgb"
+    after = "resample"
+    seen: list = []
+
+    def forward(self, image, state, ctx):
+        type(self).seen.append(image.detach().clone())
+        return image * 1.1
+
+
+class _Tint(Stage):
+    name = "tint"
+    domain = "linear"
+    before = "display"
+
+    def forward(self, image, state, ctx):
+        return image * torch.tensor([1.0, 0.9, 0.8], dtype=image.dtype)[:, None, None]
+
+
+class _Plugin:
+    @hookimpl
+    def controlgs_register_stages(self):
+        return [_Sharpen, _Tint]
+
+
+def test_third_party_stages_are_inserted_and_get_their_domain():
+    name = plugins.register_plugin(_Plugin(), name="test-stages")
+    try:
+        p = Pipeline.from_config({**ALL, "sharpen": True, "tint": True}).double()
+        assert p.names == ["foveation", "lens", "resample", "sharpen", "tint", "display", "oled"]
+        image = torch.rand(3, 8, 8, dtype=torch.float64)
+        state = RuntimeState(2.0, 0.0)
+        out = p(image, state)
+        x = area_resample(lens_prewarp(srgb_to_linear(image), RadialMap(K).double()((8, 8), torch.float64, "cpu")[0]), 2.0)
+        assert torch.allclose(_Sharpen.seen[-1], linear_to_srgb(x), atol=1e-12)  # it received sRGB
+        x = srgb_to_linear(linear_to_srgb(x) * 1.1) * torch.tensor([1.0, 0.9, 0.8], dtype=torch.float64)[:, None, None]
+        assert torch.allclose(out, linear_to_srgb(box_emission(x, (8, 8))), atol=1e-12)
+        # anchors absent from the pipeline: placed by the anchor's registered order
+        assert Pipeline.from_config({"sharpen": True, "display": True, "oled": False}).names == ["sharpen", "display"]
+    finally:
+        plugins.unregister_plugin(name)
+
+
+def test_config_errors():
+    with pytest.raises(InputValueError, match="unknown stage 'blur'"):
+        Pipeline.from_config({"blur": True})
+    if "optics" not in plugins.stages():
+        with pytest.raises(InputValueError, match="optics plug-in"):
+            Pipeline.from_config({"optics": True})
+    else:
+        assert "optics" in Pipeline.from_config({"optics": True})
+    with pytest.raises(InputValueError, match="effects\\['lens'\\]"):
+        Pipeline.from_config({"lens": 3})
+    with pytest.raises(InputValueError, match="unique"):
+        Pipeline([LensPrewarp(), LensPrewarp()])
+    with pytest.raises(InputValueError, match="stages\\[0\\]"):
+        Pipeline([torch.nn.Identity()])  # type: ignore[list-item]
+
+
+def test_call_errors_name_the_argument():
+    p = Pipeline.from_config(ALL)
+    with pytest.raises(ShapeError, match="image"):
+        p(torch.rand(4, 8, 8), RuntimeState())
+    with pytest.raises(InputValueError, match="state"):
+        p(torch.rand(3, 8, 8), {"downsample": 2})  # type: ignore[arg-type]
+    with pytest.raises(ShapeError, match="reference"):
+        p(torch.rand(3, 8, 8), RuntimeState(), reference=torch.rand(3, 9, 9), native_size=(8, 8))
+    with pytest.raises(InputValueError, match="non-finite"):
+        p(torch.full((3, 8, 8), float("nan")), RuntimeState(2.0))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a second device")
+def test_device_mismatch_names_the_arguments():
+    p = Pipeline.from_config(ALL)
+    with pytest.raises(InputValueError, match="reference"):
+        p(torch.rand(3, 8, 8), RuntimeState(2.0, 0.3), reference=torch.rand(3, 8, 8, device="cuda"))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_pipeline_on_cuda_matches_cpu():
+    image, gt = torch.rand(3, 32, 32, dtype=torch.float64), torch.rand(3, 32, 32, dtype=torch.float64)
+    p = Pipeline.from_config(ALL).double()
+    cpu = p(image, RuntimeState(2.5, 0.4), reference=gt)
+    gpu = p.cuda()(image.cuda(), RuntimeState(2.5, 0.4), reference=gt.cuda())
+    assert torch.allclose(gpu.cpu(), cpu, atol=1e-10)
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.floats(1.0, 8.0), st.floats(0.0, 0.999), st.sampled_from(["black", "no_blue", "random"]))
+def test_no_nan_in_value_or_gradient(d, rho, kind):
+    image = torch.rand(3, 16, 16, dtype=torch.float64)
+    if kind == "black":
+        image.zero_()
+    elif kind == "no_blue":
+        image[2] = 0
+    image.requires_grad_(True)
+    gt = torch.rand(3, 16, 16, dtype=torch.float64) if kind != "black" else torch.zeros(3, 16, 16, dtype=torch.float64)
+    out = Pipeline.from_config(ALL).double()(image, RuntimeState(d, rho), reference=gt)
+    (grad,) = torch.autograd.grad(out.sum(), image)
+    assert torch.isfinite(out).all() and torch.isfinite(grad).all()
+
+
+def test_gradcheck_pipeline():
+    image = (torch.rand(3, 8, 8, dtype=torch.float64) * 0.6 + 0.2).requires_grad_(True)
+    gt = torch.rand(3, 8, 8, dtype=torch.float64) * 0.5
+    p = Pipeline.from_config(ALL).double()
+    for state in (RuntimeState(2.0, 0.3), RuntimeState(1.5, 0.0)):
+        assert torch.autograd.gradcheck(lambda x: p(x, state, reference=gt), (image,))
