@@ -38,9 +38,13 @@ from torch import nn
 from controlgs_adapter.backend import Backend
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.state import Camera
 
-from .family_common import as_param, has_attrs, iteration_dir, ply_columns
+from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, has_attrs,
+                            iteration_dir, ply_columns, render_gaussians)
 from .formats import load_state_dict_file, read_ply, require_fields
+from .reference_model import NeuralGaussians
+from .splatter import RasterOutput
 
 __all__ = ["CompGSBackend", "CompGSModel", "ResidualMLP", "load_compgs_dir", "COMPGS_DECODERS"]
 
@@ -171,6 +175,38 @@ class CompGSModel(nn.Module):
         with_view = torch.cat([feats, view], dim=1)
         names = dict(zip(("means", "covariance", "opacity", "color"), COMPGS_DECODERS))
         return {names["means"]: feats, names["covariance"]: feats, names["opacity"]: with_view, names["color"]: with_view}
+
+    @torch.no_grad()
+    def visible_anchors(self, camera: Camera) -> torch.Tensor:
+        """``[A]`` bool: CompGS's prefilter (anchors as Gaussians with scales ``exp(scale[:, :3])``)."""
+        p = self.gaussian_params
+        return anchor_visibility(camera, p.means, torch.exp(p.scales_before_exp[:, :3]), p.rotations_before_norm)
+
+    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None) -> NeuralGaussians:
+        """Decode the coupled primitives of the anchors in ``visible_mask`` (``[A]`` bool; None =
+        all) as CompGS's ``PredictionNetwork.forward`` on the stored (unquantised) features:
+        mean = anchor + means_pred * exp(scale[:, :3]); scale = sigmoid(cov[:, :3]) * exp(scale[:, 3:]);
+        rotation = normalize(cov[:, 3:]); kept where opacity > 0."""
+        p, k = self.gaussian_params, self.derive_factor
+        n = p.means.shape[0]
+        if visible_mask is None:
+            visible_mask = torch.ones(n, dtype=torch.bool, device=p.means.device)
+        ids = anchor_ids_from_mask(visible_mask, n)
+        x = self.decoder_inputs(camera.center, ids)
+        net = self.network.prediction_net
+        offsets = net.means_pred_mlp(x[COMPGS_DECODERS[0]])  # [R*K, 3]
+        scale_rot = net.covariance_pred_mlp(x[COMPGS_DECODERS[1]])  # [R*K, 7]
+        opacity = net.opacity_pred_mlp(x[COMPGS_DECODERS[2]]).reshape(-1)  # [R*K]
+        color = net.color_pred_mlp(x[COMPGS_DECODERS[3]])  # [R*K, 3]
+        return assemble_gaussians(ids, k, p.means[ids], offsets, torch.exp(p.scales_before_exp[ids]), opacity, color,
+                                  scale_rot, opacity > 0)
+
+    def render(self, camera: Camera, visible_mask: torch.Tensor | None = None,
+               background: torch.Tensor | None = None) -> RasterOutput:
+        """:meth:`visible_anchors` (if no mask is given), :meth:`decode`, splat."""
+        if visible_mask is None:
+            visible_mask = self.visible_anchors(camera)
+        return render_gaussians(self.decode(camera, visible_mask), camera, background)
 
 
 def _load_weights(model: CompGSModel, state: Mapping[str, torch.Tensor], source: str) -> None:

@@ -139,3 +139,45 @@ def as_param(x: np.ndarray | torch.Tensor, requires_grad: bool = False) -> nn.Pa
 def check_rows(name: str, x: torch.Tensor, rows: int) -> None:
     if x.shape[0] != rows:
         raise ShapeError(f"{name} must have {rows} rows (one per anchor), got {list(x.shape)}")
+
+
+def anchor_visibility(camera: "Camera", means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
+    """``[A]`` bool: anchors (as Gaussians with ``means [A, 3]``, linear ``scales [A, 3+]``,
+    ``rotations [A, 4]``) whose footprint can touch the image: the prefilter of the Scaffold
+    family, with the reference model's rule (:meth:`NeuralGaussianModel.visible_anchors`)."""
+    from types import SimpleNamespace
+
+    from .reference_model import NeuralGaussianModel
+
+    view = SimpleNamespace(get_anchor=means, get_scaling=scales, _rotation=rotations)
+    return NeuralGaussianModel.visible_anchors(view, camera)
+
+
+def assemble_gaussians(ids: torch.Tensor, k: int, anchor: torch.Tensor, offsets: torch.Tensor, scaling: torch.Tensor,
+                       neural_opacity: torch.Tensor, color: torch.Tensor, scale_rot: torch.Tensor,
+                       keep: torch.Tensor) -> "NeuralGaussians":
+    """Scaffold-family Gaussians from decoder outputs (R anchors, K per anchor, anchor-major rows).
+
+    Args:
+        ids: ``[R]`` anchor ids; anchor ``[R, 3]``; scaling ``[R, 6]`` linear (offset scale, base scale).
+        offsets: ``[R*K, 3]`` offsets in units of ``scaling[:, :3]`` (CompGS: the means decoder's output).
+        neural_opacity ``[R*K]``, color ``[R*K, 3]``, scale_rot ``[R*K, 7]``, keep ``[R*K]`` bool.
+    Mean = anchor + offset * scaling[:, :3]; scale = scaling[:, 3:] * sigmoid(scale_rot[:, :3]);
+    rotation = normalize(scale_rot[:, 3:7]).
+    """
+    from .reference_model import NeuralGaussians
+
+    flat = keep.nonzero().squeeze(1)  # [G]
+    row = flat // k
+    s = scaling[row]
+    return NeuralGaussians(
+        means=anchor[row] + offsets[flat] * s[:, :3], scales=s[:, 3:] * torch.sigmoid(scale_rot[flat, :3]),
+        rotations=torch.nn.functional.normalize(scale_rot[flat, 3:7], dim=-1), opacities=neural_opacity[flat],
+        colors=color[flat], anchor_of=ids[row], offset_of=flat % k, visible_ids=ids, neural_opacity=neural_opacity)
+
+
+def render_gaussians(g: "NeuralGaussians", camera: "Camera", background: torch.Tensor | None = None):
+    """Splat decoded Gaussians with the library's splatter (``RasterOutput``)."""
+    from .splatter import rasterize
+
+    return rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, camera, background)

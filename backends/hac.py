@@ -36,11 +36,15 @@ from torch import nn
 
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError, TargetError
+from controlgs_adapter.state import Camera
 
-from .family_common import (as_param, check_first_width, has_attrs, iteration_dir, mlp_from_state_dict, ply_columns,
-                            ply_offsets, voxel_snap)
+from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, check_first_width,
+                            has_attrs, iteration_dir, mlp_from_state_dict, ply_columns, ply_offsets, render_gaussians,
+                            voxel_snap)
 from .formats import load_state_dict_file, read_cfg_args, read_ply, require_fields
+from .reference_model import NeuralGaussians
 from .scaffold_gs import ScaffoldGSBackend
+from .splatter import RasterOutput
 
 __all__ = ["HACBackend", "HACModel", "MaskedAnchorModel", "load_hac_dir", "infer_decoded", "DECODER_ACTIVATIONS"]
 
@@ -152,6 +156,33 @@ class MaskedAnchorModel(nn.Module):
                     + f * weight[:, :, 2:]).squeeze(-1)
         x = torch.cat([feat, view, dist], dim=1)
         return {"mlp_opacity": x, "mlp_cov": x, "mlp_color": x}
+
+    @torch.no_grad()
+    def visible_anchors(self, camera: Camera) -> torch.Tensor:
+        """``[A]`` bool: the family's ``prefilter_voxel`` (anchors as Gaussians; no mask filtering)."""
+        return anchor_visibility(camera, self.get_anchor, self.get_scaling[:, :3], self._rotation)
+
+    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None) -> NeuralGaussians:
+        """Decode the anchors in ``visible_mask`` (``[A]`` bool; None = all) as the family's renderer at
+        evaluation: Gaussians with neural opacity > 0 **and** their offset mask on are kept."""
+        n = self._anchor.shape[0]
+        if visible_mask is None:
+            visible_mask = torch.ones(n, dtype=torch.bool, device=self._anchor.device)
+        ids = anchor_ids_from_mask(visible_mask, n)
+        x = self.decoder_inputs(camera.center, ids)
+        opacity = self.mlp_opacity(x["mlp_opacity"]).reshape(-1)  # [R*K]
+        color = self.mlp_color(x["mlp_color"]).reshape(-1, 3)
+        scale_rot = self.mlp_cov(x["mlp_cov"]).reshape(-1, 7)
+        keep = (opacity > 0) & (self.get_mask[ids].reshape(-1) > 0)
+        return assemble_gaussians(ids, self.n_offsets, self.get_anchor[ids], self._offset[ids].reshape(-1, 3),
+                                  self.get_scaling[ids], opacity, color, scale_rot, keep)
+
+    def render(self, camera: Camera, visible_mask: torch.Tensor | None = None,
+               background: torch.Tensor | None = None) -> RasterOutput:
+        """:meth:`visible_anchors` (if no mask is given), :meth:`decode`, splat."""
+        if visible_mask is None:
+            visible_mask = self.visible_anchors(camera)
+        return render_gaussians(self.decode(camera, visible_mask), camera, background)
 
 
 class HACModel(MaskedAnchorModel):

@@ -29,12 +29,15 @@ from torch import nn
 
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError, TargetError
+from controlgs_adapter.state import Camera
 from controlgs_adapter.torchscript import eager_from_script
 
-from .family_common import (as_param, check_first_width, has_attrs, iteration_dir, mlp_from_state_dict, ply_columns,
-                            ply_offsets)
+from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, check_first_width,
+                            has_attrs, iteration_dir, mlp_from_state_dict, ply_columns, ply_offsets, render_gaussians)
 from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields
+from .reference_model import NeuralGaussians
 from .scaffold_gs import ScaffoldGSBackend
+from .splatter import RasterOutput
 
 __all__ = ["OctreeGSBackend", "OctreeGSModel", "lod_anchor_ids", "load_octree_gs_dir"]
 
@@ -165,6 +168,7 @@ class OctreeGSModel(nn.Module):
         self.add_opacity_dist, self.add_cov_dist, self.add_color_dist = bool(add_opacity_dist), bool(add_cov_dist), bool(add_color_dist)
         self.voxel_centre = bool(voxel_centre)
         self._prog_ratio: torch.Tensor | None = None
+        self.transition_mask: torch.Tensor | None = None
         self.requires_grad_(False)
         self.eval()
 
@@ -185,7 +189,9 @@ class OctreeGSModel(nn.Module):
         if self.dist2level == "progressive":
             pred = torch.clamp(pred_level + 1.0, min=0.9999, max=cur_level + 0.9999)
             self._prog_ratio = torch.frac(pred).unsqueeze(1)
-            return torch.floor(pred).int()
+            level = torch.floor(pred).int()
+            self.transition_mask = self._level.squeeze(1) == level
+            return level
         rnd = {"round": torch.round, "floor": torch.floor, "ceil": torch.ceil}[self.dist2level]
         return torch.clamp(rnd(pred_level).int(), min=0, max=cur_level)
 
@@ -231,6 +237,47 @@ class OctreeGSModel(nn.Module):
                                                         device=anchor.device))
             out["mlp_color"] = torch.cat([out["mlp_color"], code], dim=1)
         return out
+
+
+    @torch.no_grad()
+    def visible_anchors(self, camera: Camera, resolution_scale: float = 1.0) -> torch.Tensor:
+        """``[A]`` bool: LOD ∧ frustum for ``camera`` (``set_anchor_mask`` then the prefilter on
+        the LOD anchors, as Octree-GS's ``prefilter_voxel``)."""
+        self.set_anchor_mask(camera.center, -1, resolution_scale)
+        lod = self._anchor_mask
+        frustum = anchor_visibility(camera, self._anchor[lod], self.get_scaling[lod, :3], self._rotation[lod])
+        full = lod.clone()
+        full[lod] = frustum
+        return full  # the same set as lod_anchor_ids(lod, frustum)
+
+    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None,
+               appearance_id: int | None = None) -> NeuralGaussians:
+        """Decode the Gaussians of the anchors in ``visible_mask`` (``[A]`` bool; None = all) as
+        Octree-GS's ``generate_neural_gaussians`` at evaluation (progressive opacity ratio included).
+        ``appearance_id`` defaults to ``camera.extra["uid"]`` (0 if absent)."""
+        n = self._anchor.shape[0]
+        if visible_mask is None:
+            visible_mask = torch.ones(n, dtype=torch.bool, device=self._anchor.device)
+        ids = anchor_ids_from_mask(visible_mask, n)
+        if appearance_id is None and self.embedding_appearance is not None:
+            appearance_id = int(camera.extra.get("uid", 0))
+        x = self.decoder_inputs(camera.center, ids, appearance_id)
+        opacity = self.mlp_opacity(x["mlp_opacity"])  # [R, K]
+        if self.dist2level == "progressive" and self._prog_ratio is not None:
+            prog = torch.where(self.transition_mask[ids].unsqueeze(1), self._prog_ratio[ids], torch.ones_like(self._prog_ratio[ids]))
+            opacity = opacity * prog
+        opacity = opacity.reshape(-1)  # [R*K]
+        color = self.mlp_color(x["mlp_color"]).reshape(-1, 3)
+        scale_rot = self.mlp_cov(x["mlp_cov"]).reshape(-1, 7)
+        return assemble_gaussians(ids, self.n_offsets, self.get_anchor[ids], self._offset[ids].reshape(-1, 3),
+                                  self.get_scaling[ids], opacity, color, scale_rot, opacity > 0)
+
+    def render(self, camera: Camera, visible_mask: torch.Tensor | None = None, background: torch.Tensor | None = None,
+               appearance_id: int | None = None) -> RasterOutput:
+        """:meth:`visible_anchors` (if no mask is given), :meth:`decode`, splat."""
+        if visible_mask is None:
+            visible_mask = self.visible_anchors(camera)
+        return render_gaussians(self.decode(camera, visible_mask, appearance_id), camera, background)
 
 
 def _load_decoders(folder: Path) -> dict[str, nn.Module]:

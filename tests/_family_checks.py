@@ -64,3 +64,39 @@ def check_wrap_identity_and_rows(model, inputs: dict[str, torch.Tensor], ids: to
     cgs.unwrap()
     for p, y in outputs(model, inputs).items():
         assert torch.equal(y, before[p])
+
+
+def make_camera(width: int = 64, height: int = 48):
+    """A camera at (0, 0, -5) looking along +z at the origin (OpenCV axes)."""
+    from controlgs_adapter import Camera
+
+    w2c = torch.eye(4)
+    w2c[2, 3] = 5.0
+    k = torch.tensor([[40.0, 0.0, width / 2], [0.0, 40.0, height / 2], [0.0, 0.0, 1.0]])
+    return Camera(w2c, k, width, height)
+
+
+def reference_scaffold(anchor, offset, feat, log_scaling, decoders, *, dist: bool):
+    """The reference Scaffold-GS model (backends/reference_model.py) holding the given tensors."""
+    import copy
+
+    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+
+    a, k, _ = offset.shape
+    ref = NeuralGaussianModel(a, feat_dim=feat.shape[1], n_offsets=k, add_opacity_dist=dist, add_cov_dist=dist,
+                              add_color_dist=dist)
+    with torch.no_grad():
+        ref._anchor.copy_(anchor)
+        ref._offset.copy_(offset)
+        ref._anchor_feat.copy_(feat)
+        ref._scaling.copy_(log_scaling)
+    for name, dec in decoders.items():
+        setattr(ref, name, copy.deepcopy(dec))
+    return ref
+
+
+def assert_same_gaussians(got, want, *, atol: float = 1e-6) -> None:
+    for f in ("anchor_of", "offset_of", "visible_ids"):
+        assert torch.equal(getattr(got, f), getattr(want, f)), f
+    for f in ("means", "scales", "rotations", "opacities", "colors"):
+        assert torch.allclose(getattr(got, f), getattr(want, f), atol=atol, rtol=1e-5), f

@@ -148,3 +148,32 @@ def test_loading_errors(tmp_path):
     w.unlink()
     with pytest.raises(FileFormatError, match="weights.pth"):
         load_compgs_dir(root, allow_unquantized=True)
+
+
+def test_decode_matches_per_primitive_float64_loop():
+    from _family_checks import make_camera
+
+    arr = _arrays(6)
+    model = _model(arr, 6)
+    cam = make_camera()
+    with torch.no_grad():
+        g = model.decode(cam)
+        net = model.double().network.prediction_net
+        t = {k: torch.from_numpy(v).double() for k, v in arr.items()}
+        c = cam.center.double()
+        want = {}
+        for a in range(A):
+            d = t["means"][a] - c
+            for s in range(K):
+                x = torch.cat([t["ref"][a], t["res"][a, s]])[None]
+                xv = torch.cat([x[0], d / d.norm(), d.norm()[None]])[None]
+                op = net.opacity_pred_mlp(xv)[0, 0]
+                if op > 0:
+                    cov = net.covariance_pred_mlp(x)[0]
+                    want[(a, s)] = (t["means"][a] + net.means_pred_mlp(x)[0] * torch.exp(t["scales"][a, :3]),
+                                    torch.sigmoid(cov[:3]) * torch.exp(t["scales"][a, 3:]), op)
+    assert [(int(a), int(s)) for a, s in zip(g.anchor_of, g.offset_of)] == sorted(want)
+    for i, key in enumerate(sorted(want)):
+        assert torch.allclose(g.means[i].double(), want[key][0], atol=1e-5)
+        assert torch.allclose(g.scales[i].double(), want[key][1], atol=1e-6)
+        assert abs(float(g.opacities[i]) - float(want[key][2])) < 1e-5

@@ -141,3 +141,19 @@ def test_loading_errors(tmp_path):
     (root / "cfg_args").unlink()
     with pytest.raises(FileFormatError, match="cfg_args"):
         load_contextgs_dir(root)
+
+
+def test_decode_keeps_masked_offsets_out():
+    from _family_checks import make_camera
+
+    arr = _arrays(5, decoded=True)
+    model = _model(arr, _decoders(5), decoded=True)
+    cam = make_camera()
+    with torch.no_grad():
+        g = model.decode(cam, torch.arange(A) < A - PAD)
+    mask = torch.from_numpy(arr["mask"])
+    assert len(g.means) > 0 and bool((mask[g.anchor_of, g.offset_of] == 1).all())
+    # every kept Gaussian: mean = anchor + offset * scale[:, :3] (linear scales of the decoded model)
+    want = torch.from_numpy(arr["anchor"])[g.anchor_of] + torch.from_numpy(arr["offset"])[g.anchor_of, g.offset_of] * \
+        torch.from_numpy(arr["scale"])[g.anchor_of, :3]
+    assert torch.allclose(g.means, want, atol=1e-6)

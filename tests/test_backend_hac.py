@@ -168,3 +168,24 @@ def test_loading_errors(tmp_path):
     root2 = _write_dir(tmp_path / "s2", {**arr, "mask": arr["mask"][:, :4]}, _decoders(4))
     with pytest.raises(FileFormatError, match="f_mask_"):
         load_hac_dir(root2)
+
+
+def test_decode_keeps_masked_offsets_out():
+    """HAC++ decodes as Scaffold-GS with distance inputs, minus the Gaussians whose offset mask is off."""
+    from _family_checks import assert_same_gaussians, make_camera, reference_scaffold
+
+    arr = _arrays(5, decoded=True, mask_cols=K + 1)
+    decs = _decoders(5)
+    model = _model(arr, decs, decoded=True)
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    ref = reference_scaffold(t["anchor"], t["offset"], t["feat"], torch.log(t["scale"]), decs, dist=True)
+    cam = make_camera()
+    visible = model.visible_anchors(cam)
+    assert torch.equal(visible, ref.visible_anchors(cam)) and bool(visible.any())
+    with torch.no_grad():
+        got, full = model.decode(cam, visible), ref.decode(cam, visible)
+    on = t["mask"][full.anchor_of, full.offset_of] > 0
+    assert bool((~on).any())  # some decoded Gaussians are masked off
+    for f in ("means", "scales", "rotations", "opacities", "colors", "anchor_of", "offset_of"):
+        setattr(full, f, getattr(full, f)[on])
+    assert_same_gaussians(got, full, atol=1e-5)

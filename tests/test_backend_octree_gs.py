@@ -165,3 +165,26 @@ def test_loading_errors(tmp_path):
     write_cfg_args(root2 / "cfg_args", **{**CFG, "add_level": False})  # widths no longer fit the configuration
     with pytest.raises(FileFormatError, match="mlp_opacity takes 37 inputs"):
         load_octree_gs_dir(root2)
+
+
+def test_decode_matches_reference_scaffold_and_renders():
+    """Without the level input, Octree-GS decodes as Scaffold-GS: compare with the reference model."""
+    from _family_checks import assert_same_gaussians, make_camera, reference_scaffold
+
+    arr = _arrays(5)
+    torch.manual_seed(5)
+    decs = {"mlp_opacity": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, K), nn.Tanh()),
+            "mlp_cov": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, 7 * K)),
+            "mlp_color": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, 3 * K), nn.Sigmoid())}
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    model = OctreeGSModel(anchor=t["anchor"], offset=t["offset"], anchor_feat=t["feat"], scaling=t["scale"],
+                          level=t["level"][:, None], extra_level=t["extra"], voxel_size=VOXEL, standard_dist=STD_DIST,
+                          add_opacity_dist=True, add_cov_dist=True, add_color_dist=True, **decs)
+    ref = reference_scaffold(t["anchor"], t["offset"], t["feat"], t["scale"], decs, dist=True)
+    cam = make_camera()
+    visible = model.visible_anchors(cam)
+    assert torch.equal(visible, model._anchor_mask & ref.visible_anchors(cam))  # LOD ∧ frustum
+    with torch.no_grad():
+        assert_same_gaussians(model.decode(cam, visible), ref.decode(cam, visible))
+        out = model.render(cam)
+    assert out.color.shape == (3, cam.height, cam.width) and bool(out.alpha.max() > 0)
