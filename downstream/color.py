@@ -56,7 +56,7 @@ def srgb_to_linear(image: torch.Tensor) -> torch.Tensor:
     Returns:
         ``[..., 3, H, W]`` linear values, same dtype.
     """
-    check_image("image", image)
+    check_image("image", image, finite=False)
     return _srgb_to_linear(image)
 
 
@@ -74,7 +74,7 @@ def linear_to_srgb(image: torch.Tensor) -> torch.Tensor:
     Returns:
         ``[..., 3, H, W]`` encoded values, same dtype.
     """
-    check_image("image", image)
+    check_image("image", image, finite=False)
     return _linear_to_srgb(image)
 
 
@@ -141,13 +141,13 @@ def rgb_to_primaries(image: torch.Tensor) -> torch.Tensor:
 
     Linear, so negative intensities appear for colours outside the primaries' gamut.
     """
-    check_image("image", image)
+    check_image("image", image, finite=False)
     return _apply_channel_matrix(image, _matrix(0, image.dtype, image.device))
 
 
 def primaries_to_rgb(primaries: torch.Tensor) -> torch.Tensor:
     """Primary intensities ``[..., 3, H, W]`` (656, 550, 486 nm) -> linear RGB ``[..., 3, H, W]``."""
-    check_image("primaries", primaries)
+    check_image("primaries", primaries, finite=False)
     return _apply_channel_matrix(primaries, _matrix(1, primaries.dtype, primaries.device))
 
 

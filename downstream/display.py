@@ -76,7 +76,7 @@ def display_power(
     Returns:
         ``[...]`` power in panel units (full white = alpha + beta + gamma).
     """
-    check_image("image", image)
+    check_image("image", image, finite=False)
     if encoding not in ("linear", "srgb"):
         raise InputValueError(f"encoding must be 'linear' or 'srgb', got {encoding!r}")
     linear = srgb_to_linear(image) if encoding == "srgb" else image
@@ -123,7 +123,7 @@ def display_mapping(
     Returns:
         ``[..., 3, H, W]`` dimmed and clipped image (and the stats if asked).
     """
-    check_image("image", image)
+    check_image("image", image, finite=False)
     rho = _check_rho(rho)
     c = _check_coefficients(coefficients)
     power = _power(image, c)  # [...]
@@ -135,7 +135,7 @@ def display_mapping(
     if reference is None:
         power_ref = power.detach()
     else:
-        check_image("reference", reference)
+        check_image("reference", reference, finite=False)
         check_same_device(image=image, reference=reference)
         power_ref = _power(reference.detach().to(image.dtype), c)
     target = (1.0 - rho) * power_ref

@@ -70,11 +70,11 @@ def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | N
     Returns:
         ``[..., 3, Ho, Wo]``, ``out_c = gain_c * image_c(grid_c)``.
     """
-    check_image("image", image)
-    b = check_tensor("grid", grid, [3, "Ho", "Wo", 2], dtypes=(image.dtype,), finite=True)
+    check_image("image", image, finite=False)
+    b = check_tensor("grid", grid, [3, "Ho", "Wo", 2], dtypes=(image.dtype,))
     check_same_device(image=image, grid=grid)
     if gain is not None:
-        check_tensor("gain", gain, [3, "Ho", "Wo"], dtypes=(image.dtype,), dims=b, finite=True)
+        check_tensor("gain", gain, [3, "Ho", "Wo"], dtypes=(image.dtype,), dims=b)
         check_same_device(image=image, gain=gain)
     h, w = image.shape[-2:]
     lead = image.shape[:-3]
@@ -172,18 +172,31 @@ class RadialMap(PrewarpMap):
         else:
             self.register_buffer("coefficients", k)
 
+        self._cache: dict[tuple, torch.Tensor] = {}  # fixed coefficients: grid per (size, dtype, device, version)
+
     def is_identity(self) -> bool:  # noqa: D102
         return not bool(self.coefficients.detach().any())
 
     def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, None]:  # noqa: D102
+        if self.coefficients.requires_grad and torch.is_grad_enabled():
+            return self._grid(size, dtype, device), None
+        k = self.coefficients
+        key = (tuple(size), dtype, torch.device(device), k.device, k.data_ptr(), k._version)
+        if key not in self._cache:
+            self._cache.clear()
+            with torch.no_grad():
+                self._cache[key] = self._grid(size, dtype, device)
+        return self._cache[key], None
+
+    def _grid(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         p = pixel_grid(size, dtype, device)  # [H, W, 2]
         h, w = size
         aspect = torch.tensor([w, h], dtype=dtype, device=device) / max(h, w)
         r2 = ((p * aspect) ** 2).sum(-1)  # [H, W]
-        k = self.coefficients.to(dtype)  # [3, K]
+        k = self.coefficients.to(device=device, dtype=dtype)  # [3, K]
         powers = r2[None] ** torch.arange(1, k.shape[1] + 1, device=device, dtype=dtype)[:, None, None]  # [K, H, W]
         factor = 1.0 + torch.einsum("ck,khw->chw", k, powers)  # [3, H, W]
-        return p[None] * factor[..., None], None
+        return p[None] * factor[..., None]
 
 
 class LUTMap(PrewarpMap):

@@ -35,7 +35,7 @@ def box_emission(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     Returns:
         ``[..., 3, H, W]``; ``image`` itself when the sizes match.
     """
-    check_image("image", image)
+    check_image("image", image, finite=False)
     h, w = image.shape[-2:]
     size = (int(size[0]), int(size[1]))
     if (h, w) == size:

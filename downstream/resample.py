@@ -101,7 +101,7 @@ def area_resample(image: torch.Tensor, d: float) -> torch.Tensor:
     Returns:
         ``[..., 3, round(H/d), round(W/d)]`` (each at least 1); ``image`` itself when d == 1.
     """
-    check_image("image", image)
+    check_image("image", image, finite=False)
     return _area_resample_to(image, resampled_size(tuple(image.shape[-2:]), d))
 
 
