@@ -21,7 +21,7 @@ from controlgs_adapter.errors import FileFormatError, ShapeError
 
 __all__ = [
     "anchor_ids_from_mask", "iteration_dir", "ply_columns", "ply_offsets", "mlp_from_state_dict",
-    "has_attrs", "voxel_snap",
+    "has_attrs", "voxel_snap", "read_yaml_scalars", "anchor_visibility", "assemble_gaussians", "render_gaussians",
 ]
 
 
@@ -56,11 +56,46 @@ def iteration_dir(root: str | Path, iteration: int | None, *, family: str) -> Pa
     found = {int(m.group(1)): p for p in pc.iterdir() if p.is_dir() and (m := re.fullmatch(r"iteration_(\d+)", p.name))}
     if iteration is None:
         if not found:
-            raise FileFormatError(f"{pc}: no 'iteration_<N>' folder")
+            raise FileFormatError(f"{pc}: no 'iteration_<N>' folder (not a {family} output directory)")
         return found[max(found)]
     if iteration not in found:
         raise FileFormatError(f"{pc}: no 'iteration_{iteration}' folder (present: {sorted(found)})")
     return found[iteration]
+
+
+_YAML_SCALAR = re.compile(r"^\s*([A-Za-z_]\w*)\s*:\s*([^{}\[\]]*?)\s*,?\s*$")
+
+
+def _yaml_value(text: str) -> object:
+    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
+        return text[1:-1]
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low in ("null", "none", "~"):
+        return None
+    for cast in (int, float):
+        try:
+            return cast(text)  # int("40_000") works as in YAML 1.1
+        except ValueError:
+            pass
+    return text
+
+
+def read_yaml_scalars(path: str | Path) -> dict[str, list[object]]:
+    """The ``key: scalar`` entries of a YAML file, block or flow style (Octree-AnyGS's
+    ``config.yaml``), without a YAML dependency: ``{key: [value, ...]}`` in file order (a key may
+    occur in several sections). Nested structure, lists and multi-line scalars are not read."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"{path}: no such file")
+    out: dict[str, list[object]] = {}
+    for line in path.read_text(errors="replace").splitlines():
+        line = line.split(" #", 1)[0] if not line.lstrip().startswith("#") else ""
+        m = _YAML_SCALAR.match(line)
+        if m and m.group(2):
+            out.setdefault(m.group(1), []).append(_yaml_value(m.group(2)))
+    return out
 
 
 def ply_columns(fields: Mapping[str, np.ndarray], prefix: str, *, source: str, count: int | None = None) -> np.ndarray:

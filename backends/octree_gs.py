@@ -33,7 +33,8 @@ from controlgs_adapter.state import Camera
 from controlgs_adapter.torchscript import eager_from_script
 
 from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, check_first_width,
-                            has_attrs, iteration_dir, mlp_from_state_dict, ply_columns, ply_offsets, render_gaussians)
+                            has_attrs, iteration_dir, mlp_from_state_dict, ply_columns, ply_offsets, read_yaml_scalars,
+                            render_gaussians)
 from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields
 from .reference_model import NeuralGaussians
 from .scaffold_gs import ScaffoldGSBackend
@@ -322,45 +323,93 @@ def _load_decoders(folder: Path) -> dict[str, nn.Module]:
 
 
 def load_octree_gs_dir(path: str | Path, iteration: int | None = None) -> OctreeGSModel:
-    """Load an Octree-GS output directory (``cfg_args``, ``point_cloud/iteration_<it>/``) into an
-    :class:`OctreeGSModel`. ``iteration=None`` takes the highest iteration present.
+    """Load an Octree-GS output directory (``cfg_args``) or an Octree-AnyGS one with the Scaffold-GS
+    base model (``config.yaml``; LOD metadata in the PLY's ``obj_info`` lines, LOD distance from the
+    raw anchor) into an :class:`OctreeGSModel`. ``iteration=None`` takes the highest iteration.
 
     Raises:
         FileFormatError: naming the file and what is missing or inconsistent.
     """
     root = Path(path)
+    if (root / "cfg_args").is_file():
+        return _load_octree_gs(root, iteration)
+    if (root / "config.yaml").is_file():
+        return _load_octree_anygs(root, iteration)
+    raise FileFormatError(f"{root}: neither 'cfg_args' (Octree-GS) nor 'config.yaml' (Octree-AnyGS): not an Octree-GS output directory")
+
+
+def _read_anchor_ply(ply: Path, feat_dim: int, n_offsets: int, config: str) -> tuple[dict[str, Any], list[str]]:
+    fields, comments = read_ply(ply)
+    src = str(ply)
+    require_fields(fields, ["x", "y", "z", "level", "extra_level", *(f"scale_{i}" for i in range(6))], source=src)
+    feat = ply_columns(fields, "f_anchor_feat_", source=src)
+    if feat.shape[1] != feat_dim:
+        raise FileFormatError(f"{src}: {feat.shape[1]} f_anchor_feat_* fields, {config} says feat_dim={feat_dim}")
+    t = {
+        "anchor": torch.from_numpy(np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32)),
+        "offset": torch.from_numpy(ply_offsets(fields, n_offsets, source=src)), "anchor_feat": torch.from_numpy(feat),
+        "scaling": torch.from_numpy(ply_columns(fields, "scale_", count=6, source=src)),
+        "level": torch.from_numpy(fields["level"].astype(np.int32)[:, None]),
+        "extra_level": torch.from_numpy(fields["extra_level"].astype(np.float32)),
+    }
+    if "rot_0" in fields:
+        t["rotation"] = torch.from_numpy(ply_columns(fields, "rot_", count=4, source=src))
+    if "opacity" in fields:
+        t["opacity"] = torch.from_numpy(fields["opacity"].astype(np.float32)[:, None])
+    return {**t, "_fields": fields}, comments
+
+
+def _checked(model: OctreeGSModel, source: str) -> OctreeGSModel:
+    backend = OctreeGSBackend()
+    for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
+        layout = backend.input_layout(model, dec)
+        check_first_width(getattr(model, dec), sum(w for _, w in layout), name=dec, source=source,
+                          layout=", ".join(f"{n} {w}" for n, w in layout))
+    return model
+
+
+def _load_octree_gs(root: Path, iteration: int | None) -> OctreeGSModel:
     cfg_path = root / "cfg_args"
     cfg = {**CFG_DEFAULTS, **read_cfg_args(cfg_path)}
     folder = iteration_dir(root, iteration, family="Octree-GS")
     ply = folder / "point_cloud.ply"
-    fields, _ = read_ply(ply)
-    src = str(ply)
-    require_fields(fields, ["x", "y", "z", "level", "extra_level", "info", *(f"scale_{i}" for i in range(6))], source=src)
-    k, f = int(cfg["n_offsets"]), int(cfg["feat_dim"])
-    anchor = np.stack([fields["x"], fields["y"], fields["z"]], axis=1)
+    t, _ = _read_anchor_ply(ply, int(cfg["feat_dim"]), int(cfg["n_offsets"]), str(cfg_path))
+    fields = t.pop("_fields")
+    require_fields(fields, ["info"], source=str(ply))
     info = fields["info"]
     if info.shape[0] < 2:
-        raise FileFormatError(f"{src}: the 'info' column holds voxel_size and standard_dist in rows 0 and 1; the file has {info.shape[0]} anchors")
-    feat = ply_columns(fields, "f_anchor_feat_", source=src)
-    if feat.shape[1] != f:
-        raise FileFormatError(f"{src}: {feat.shape[1]} f_anchor_feat_* fields, {cfg_path} says feat_dim={f}")
-    rot = ply_columns(fields, "rot_", count=4, source=src) if "rot_0" in fields else None
-    opacity = fields["opacity"][:, None] if "opacity" in fields else None
-    decoders = _load_decoders(folder)
-    model = OctreeGSModel(
-        anchor=torch.from_numpy(anchor.astype(np.float32)), offset=torch.from_numpy(ply_offsets(fields, k, source=src)),
-        anchor_feat=torch.from_numpy(feat), scaling=torch.from_numpy(ply_columns(fields, "scale_", count=6, source=src)),
-        level=torch.from_numpy(fields["level"].astype(np.int32)[:, None]),
-        extra_level=torch.from_numpy(fields["extra_level"].astype(np.float32)),
-        voxel_size=float(info[0]), standard_dist=float(info[1]), fork=int(cfg["fork"]), dist2level=str(cfg["dist2level"]),
-        add_level=bool(cfg["add_level"]), add_opacity_dist=bool(cfg["add_opacity_dist"]),
-        add_cov_dist=bool(cfg["add_cov_dist"]), add_color_dist=bool(cfg["add_color_dist"]),
-        rotation=None if rot is None else torch.from_numpy(rot),
-        opacity=None if opacity is None else torch.from_numpy(opacity.astype(np.float32)), **decoders,
-    )
-    backend = OctreeGSBackend()
-    for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
-        layout = backend.input_layout(model, dec)
-        check_first_width(getattr(model, dec), sum(w for _, w in layout), name=dec, source=f"{folder} + {cfg_path}",
-                          layout=", ".join(f"{n} {w}" for n, w in layout))
-    return model
+        raise FileFormatError(f"{ply}: the 'info' column holds voxel_size and standard_dist in rows 0 and 1; the file has {info.shape[0]} anchors")
+    model = OctreeGSModel(voxel_size=float(info[0]), standard_dist=float(info[1]), fork=int(cfg["fork"]),
+                          dist2level=str(cfg["dist2level"]), add_level=bool(cfg["add_level"]),
+                          add_opacity_dist=bool(cfg["add_opacity_dist"]), add_cov_dist=bool(cfg["add_cov_dist"]),
+                          add_color_dist=bool(cfg["add_color_dist"]), **t, **_load_decoders(folder))
+    return _checked(model, f"{folder} + {cfg_path}")
+
+
+def _load_octree_anygs(root: Path, iteration: int | None) -> OctreeGSModel:
+    yaml_path = root / "config.yaml"
+    raw = read_yaml_scalars(yaml_path)
+
+    def get(key: str, default: Any) -> Any:
+        values = raw.get(key) or [default]
+        if len({repr(v) for v in values}) > 1:
+            raise FileFormatError(f"{yaml_path}: key {key!r} has several values {values}; cannot tell which is the model's")
+        return values[0]
+
+    base = get("base_model", "scaffoldgs")
+    if base != "scaffoldgs":
+        raise FileFormatError(f"{yaml_path}: base_model {base!r}: only Octree-AnyGS's Scaffold-GS base model ('scaffoldgs') "
+                              f"has neural decoders for ControlGS to condition")
+    folder = iteration_dir(root, iteration, family="Octree-AnyGS")
+    ply = folder / "point_cloud.ply"
+    t, comments = _read_anchor_ply(ply, int(get("feat_dim", 32)), int(get("n_offsets", 10)), str(yaml_path))
+    t.pop("_fields")
+    meta = dict(c.split(None, 1) for c in comments if len(c.split()) == 2)
+    try:
+        standard_dist, levels = float(meta["standard_dist"]), int(float(meta["levels"]))
+    except (KeyError, ValueError) as e:
+        raise FileFormatError(f"{ply}: the header must carry 'obj_info standard_dist <v>' and 'obj_info levels <v>' "
+                              f"(Octree-AnyGS's LOD metadata); got {comments}") from e
+    model = OctreeGSModel(voxel_size=0.0, standard_dist=standard_dist, levels=levels, fork=int(get("fork", 2)),
+                          dist2level=str(get("dist2level", "round")), voxel_centre=False, **t, **_load_decoders(folder))
+    return _checked(model, f"{folder} + {yaml_path}")

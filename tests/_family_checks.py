@@ -42,7 +42,7 @@ def check_wrap_identity_and_rows(model, inputs: dict[str, torch.Tensor], ids: to
     pos = len(ids) // 2
     anchor = int(ids[pos])
     with torch.no_grad():
-        cgs.injector.conditions["display"][anchor] = torch.linspace(-2.0, 2.0, 4)
+        cgs.injector.condition("display")[anchor] = torch.linspace(-2.0, 2.0, 4)
     with cgs.conditioned(STATE, anchor_ids=ids):
         after = outputs(model, inputs)
     for p in inputs:
@@ -56,7 +56,7 @@ def check_wrap_identity_and_rows(model, inputs: dict[str, torch.Tensor], ids: to
     path = cgs.save(tmp_path / "adapter.safetensors")
     other = reload()
     cgs2 = ControlGS.load(path, other)
-    assert torch.equal(cgs2.injector.conditions["display"], cgs.injector.conditions["display"])
+    assert torch.equal(cgs2.injector.conditions, cgs.injector.conditions)
     with cgs2.conditioned(STATE, anchor_ids=ids):
         again = outputs(other, inputs)
     for p in inputs:

@@ -100,7 +100,7 @@ def test_injection_skips_skip_path_and_moves_means(tmp_path):
         skip_before, off_before = means_mlp.skip(inputs[COMPGS_DECODERS[0]]), means_mlp(inputs[COMPGS_DECODERS[0]])
     cgs = ControlGS.wrap(model, modules=("display",), cond_dim=4)
     with torch.no_grad():
-        cgs.injector.conditions["display"][3] = 1.0
+        cgs.injector.condition("display")[3] = 1.0
     with cgs.conditioned(STATE, anchor_ids=ids), torch.no_grad():
         skip_after, off_after = means_mlp.skip(inputs[COMPGS_DECODERS[0]]), means_mlp(inputs[COMPGS_DECODERS[0]])
     assert torch.equal(skip_after, skip_before)  # the parallel skip Linear is never conditioned

@@ -188,3 +188,70 @@ def test_decode_matches_reference_scaffold_and_renders():
         assert_same_gaussians(model.decode(cam, visible), ref.decode(cam, visible))
         out = model.render(cam)
     assert out.color.shape == (3, cam.height, cam.width) and bool(out.alpha.max() > 0)
+
+
+ANYGS_YAML = """# Model Parameters
+model_params: {
+    model_config: {
+        name: "GaussianLoDModel",
+        kwargs: {
+            feat_dim: %d,
+            view_dim: 3,
+            appearance_dim: 0,
+            n_offsets: %d,
+            fork: 2,
+            visible_threshold: 0.9,
+            dist2level: 'round',
+            progressive: True,
+            use_feat_bank: False,
+            levels: -1,
+        }
+    },
+    base_model: "%s",
+    resolution_scales: [1.0],
+}
+optim_params: {
+    iterations: 40_000,
+}
+"""
+
+
+def test_load_octree_anygs_dir(tmp_path):
+    """Octree-AnyGS (Scaffold-GS base): config.yaml, PLY without info/opacity, LOD metadata in obj_info."""
+    arr = _arrays(6)
+    torch.manual_seed(6)
+    decs = {"mlp_opacity": nn.Sequential(nn.Linear(F + 3, F), nn.ReLU(), nn.Linear(F, K), nn.Tanh()),
+            "mlp_cov": nn.Sequential(nn.Linear(F + 3, F), nn.ReLU(), nn.Linear(F, 7 * K)),
+            "mlp_color": nn.Sequential(nn.Linear(F + 3, F), nn.ReLU(), nn.Linear(F, 3 * K), nn.Sigmoid())}
+    root = tmp_path / "anygs"
+    it = root / "point_cloud" / "iteration_40000"
+    it.mkdir(parents=True)
+    (root / "config.yaml").write_text(ANYGS_YAML % (F, K, "scaffoldgs"))
+    fields = {"x": arr["anchor"][:, 0], "y": arr["anchor"][:, 1], "z": arr["anchor"][:, 2],
+              "level": arr["level"].astype(np.float32), "extra_level": arr["extra"]}
+    flat = arr["offset"].transpose(0, 2, 1).reshape(A, 3 * K)
+    fields.update({f"f_offset_{i}": flat[:, i] for i in range(3 * K)})
+    fields.update({f"f_anchor_feat_{i}": arr["feat"][:, i] for i in range(F)})
+    fields.update({f"scale_{i}": arr["scale"][:, i] for i in range(6)})
+    fields.update({f"rot_{i}": np.full(A, 1.0 if i == 0 else 0.0, np.float32) for i in range(4)})
+    write_ply(it / "point_cloud.ply", fields, comments=[f"standard_dist {STD_DIST}", "levels 3"], comment_keyword="obj_info")
+    for attr, fname in (("mlp_opacity", "opacity_mlp.pt"), ("mlp_cov", "cov_mlp.pt"), ("mlp_color", "color_mlp.pt")):
+        torch.jit.trace(decs[attr], torch.randn(5, F + 3)).save(str(it / fname))
+    model = load_octree_gs_dir(root)
+    assert OctreeGSBackend().matches(model) and not model.voxel_centre and model.levels == 3
+    assert [n for n, _ in OctreeGSBackend().input_layout(model, "mlp_color")] == ["feat", "view"]
+    cam = torch.tensor([0.2, 0.4, 3.5])
+    model.set_anchor_mask(cam)
+    d = np.linalg.norm(arr["anchor"].astype(np.float64) - cam.double().numpy(), axis=1)  # raw anchor, no voxel centre
+    pred = np.log2(STD_DIST / d) / math.log2(FORK) + arr["extra"]
+    assert model._anchor_mask.tolist() == (arr["level"] <= np.clip(np.round(pred), 0, 2)).tolist()
+    ids = model._anchor_mask.nonzero().squeeze(1)
+    check_wrap_identity_and_rows(model, model.decoder_inputs(cam, ids), ids, "octree_gs", 1, tmp_path,
+                                 lambda: load_octree_gs_dir(root))
+    (root / "config.yaml").write_text(ANYGS_YAML % (F, K, "3dgs"))
+    with pytest.raises(FileFormatError, match="config.yaml.*base_model '3dgs'"):
+        load_octree_gs_dir(root)
+    (root / "config.yaml").write_text(ANYGS_YAML % (F, K, "scaffoldgs"))
+    write_ply(it / "point_cloud.ply", fields)  # LOD metadata lost
+    with pytest.raises(FileFormatError, match="obj_info standard_dist"):
+        load_octree_gs_dir(root)
