@@ -255,7 +255,7 @@ def _expand_pairs(
     # per record: offsets of its first pixel centre from the mean, its conic, opacity, first pixel id
     ox = tiling.x0[r0:r1].to(dtype) + 0.5 - means2d[:, 0].index_select(0, g_rec)
     oy = tiling.y0[r0:r1].to(dtype) + 0.5 - means2d[:, 1].index_select(0, g_rec)
-    rec_vals = torch.stack([ox, oy, *conic.index_select(0, g_rec).unbind(-1), opacity.index_select(0, g_rec)])
+    rec_vals = (ox, oy, *conic.t().index_select(1, g_rec), opacity.index_select(0, g_rec))
     pix0 = (tiling.y0[r0:r1] * width + tiling.x0[r0:r1]).int()
     # expand to pairs (gathers by the record index are monotone, hence cache-friendly)
     rec = torch.repeat_interleave(torch.arange(r1 - r0, device=dev), count)  # [n]
@@ -263,7 +263,7 @@ def _expand_pairs(
     wx = tiling.wx[r0:r1].index_select(0, rec)
     ly = local // wx
     lx = local - ly * wx
-    ox, oy, ca, cb, cc, o = rec_vals.index_select(1, rec).unbind(0)
+    ox, oy, ca, cb, cc, o = (t.index_select(0, rec) for t in rec_vals)  # 1D gathers: fast
     dx = ox + lx.to(dtype)
     dy = oy + ly.to(dtype)
     raw = o * torch.exp(-0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy)
@@ -277,14 +277,14 @@ def _expand_pairs(
     clamped = raw > ALPHA_MAX
     alpha = torch.where(clamped, torch.full_like(raw, ALPHA_MAX), raw)
     # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
-    log_t = torch.log1p(-alpha.double())
+    log_t = torch.log1p(-alpha).double()  # transcendentals in the working dtype (float64 ones are slow)
     first = torch.ones_like(pix, dtype=torch.bool)
     first[1:] = pix[1:] != pix[:-1]
     starts = first.nonzero().squeeze(1)
     seg = torch.cumsum(first, 0) - 1
     excl = torch.cumsum(log_t, 0) - log_t
     log_before = excl - excl.index_select(0, starts).index_select(0, seg)
-    t_before = torch.exp(log_before).to(dtype)
+    t_before = torch.exp(log_before.to(dtype))
     drawn = (log_before + log_t) >= torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=torch.float64))
     seg_end = torch.cat([starts[1:] - 1, starts.new_tensor([pix.numel() - 1])]).index_select(0, seg)
     return _Pairs(gauss, pix, dx, dy, alpha, clamped, t_before, drawn, seg_end)

@@ -1,0 +1,260 @@
+"""Speed and memory of the CPU splatter (``controlgs_adapter.backends.splatter.rasterize``).
+
+Measures, on a synthetic scene whose Gaussians fill the view (projected standard deviations
+log-normal around ``sqrt(50k / N)`` px at 256^2, opacities U(0.05, 0.95), random rotations):
+
+1. forward and forward+backward time and peak memory for N in {1k, 10k, 50k} at 128^2, 256^2, 512^2
+   (each case in a fresh subprocess; peak = max RSS during the render minus RSS before it);
+2. the brute-force reference (``rasterize_reference``) on a small case, as the speed-up baseline;
+3. the cost of supersampling as in the paper's Tbl. S2: render at S then area-pool to S/d versus
+   render directly at S/d (``camera.scaled(d)``), d in {2, 4, 8};
+4. where the time goes (top operators of one 50k @ 256^2 forward+backward, torch profiler).
+
+Usage: ``python benchmarks/bench_splatter.py [--quick] [--threads 2] [--out docs/benchmarks-splatter.md]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from controlgs_adapter.backends.splatter import rasterize
+from controlgs_adapter.state import Camera
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def make_scene(n: int, size: int, seed: int = 0):
+    """``n`` Gaussians in the view frustum of a ``size`` x ``size`` camera (f = size px, 53 deg FoV).
+    The world-space scene does not depend on ``size``."""
+    g = torch.Generator().manual_seed(seed)
+    z = 2.0 + 4.0 * torch.rand(n, generator=g)
+    xy = (torch.rand(n, 2, generator=g) * 2 - 1) * 0.5 * z[:, None]
+    means = torch.cat([xy, z[:, None]], -1)
+    sigma_px_at_256 = torch.exp(0.4 * torch.randn(n, 3, generator=g)) * math.sqrt(50_000 / n)
+    scales = sigma_px_at_256 * z[:, None] / 256.0
+    rotations = torch.randn(n, 4, generator=g)
+    opacities = 0.05 + 0.9 * torch.rand(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    return [means, scales, rotations, opacities, colors], camera(size)
+
+
+def camera(size: int) -> Camera:
+    k = torch.tensor([[float(size), 0.0, size / 2], [0.0, float(size), size / 2], [0.0, 0.0, 1.0]])
+    return Camera(torch.eye(4), k, size, size)
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _time(fn, reps: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def measure_case(n: int, size: int, reps: int) -> dict:
+    """Run in a subprocess: times (s) and peak memory (MiB) of forward and forward+backward."""
+    params, cam = make_scene(n, size)
+    leaves = [p.clone().requires_grad_() for p in params]
+
+    def forward():
+        with torch.no_grad():
+            return rasterize(*params, cam)
+
+    def forward_backward():
+        out = rasterize(*leaves, cam)
+        (out.color.sum() + out.depth.sum()).backward()
+        return out
+
+    base = _rss_bytes()
+    t_fwd = _time(forward, reps)
+    peak_fwd = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
+    t_fb = _time(forward_backward, reps)
+    peak_fb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
+    out = forward()
+    return {
+        "n": n, "size": size, "fwd_s": t_fwd, "fwd_bwd_s": t_fb,
+        "peak_fwd_mib": max(peak_fwd, 0) / 2**20, "peak_fwd_bwd_mib": max(peak_fb, 0) / 2**20,
+        "visible": int(out.visible.sum()), "mean_alpha": float(out.alpha.mean()),
+    }
+
+
+def run_case_subprocess(n: int, size: int, reps: int, threads: int) -> dict:
+    cmd = [sys.executable, __file__, "--case", str(n), str(size), "--reps", str(reps), "--threads", str(threads)]
+    res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def measure_reference(n: int, size: int) -> tuple[float, float]:
+    """(fast, brute-force reference) forward+backward seconds on a small case."""
+    from controlgs_adapter.backends.splatter_reference import rasterize_reference
+
+    params, cam = make_scene(n, size)
+    times = []
+    for fn in (rasterize, rasterize_reference):
+        leaves = [p.clone().requires_grad_() for p in params]
+
+        def step():
+            out = fn(*leaves, cam)
+            (out.color.sum() + out.depth.sum()).backward()
+
+        times.append(_time(step, 1))
+    return times[0], times[1]
+
+
+def measure_supersampling(n: int, size: int, reps: int) -> list[dict]:
+    """Render at S and area-pool to S/d vs render directly at S/d (forward, and forward+backward)."""
+    from controlgs_adapter.downstream.resample import area_resample
+
+    params, cam = make_scene(n, size)
+    rows = []
+    for d in (2, 4, 8):
+        small = cam.scaled(d)
+
+        def ss(grad: bool):
+            leaves = [p.clone().requires_grad_(grad) for p in params]
+            img = area_resample(rasterize(*leaves, cam).color, d)
+            if grad:
+                img.sum().backward()
+
+        def direct(grad: bool):
+            leaves = [p.clone().requires_grad_(grad) for p in params]
+            img = rasterize(*leaves, small).color
+            if grad:
+                img.sum().backward()
+
+        row = {"d": d, "size": size, "small": small.width}
+        for grad in (False, True):
+            key = "fwd_bwd" if grad else "fwd"
+            row[f"ss_{key}_s"] = _time(lambda: ss(grad), reps)
+            row[f"direct_{key}_s"] = _time(lambda: direct(grad), reps)
+        rows.append(row)
+    return rows
+
+
+def profile_top_ops(n: int, size: int, top: int = 10) -> list[tuple[str, float, int]]:
+    from torch.profiler import profile
+
+    params, cam = make_scene(n, size)
+    leaves = [p.clone().requires_grad_() for p in params]
+    out = rasterize(*leaves, cam)  # warm-up
+    (out.color.sum()).backward()
+    with profile() as prof:
+        out = rasterize(*leaves, cam)
+        (out.color.sum() + out.depth.sum()).backward()
+    events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in events)
+    return [(e.key, 100.0 * e.self_cpu_time_total / total, e.count) for e in events[:top]]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small run: 1k/10k at 128^2/256^2, one repetition")
+    ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
+    ap.add_argument("--reps", type=int, default=3, help="timed repetitions per case (median)")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks-splatter.md")
+    ap.add_argument("--case", nargs=2, type=int, metavar=("N", "SIZE"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    if args.case:
+        print(json.dumps(measure_case(args.case[0], args.case[1], args.reps)))
+        return
+
+    counts = (1_000, 10_000) if args.quick else (1_000, 10_000, 50_000)
+    sizes = (128, 256) if args.quick else (128, 256, 512)
+    reps = 1 if args.quick else args.reps
+    lines = [
+        "# CPU splatter benchmark",
+        "",
+        f"`python benchmarks/bench_splatter.py{' --quick' if args.quick else ''} --threads {args.threads}` on "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, torch {torch.__version__}, "
+        f"{args.threads} threads, float32, median of {reps} run(s) after a warm-up. "
+        "The machine may have been shared with other jobs: treat the figures as upper bounds.",
+        "",
+        "Scene: N Gaussians filling the view, projected sigma log-normal around sqrt(50k/N) px at 256^2 "
+        "(same world-space scene at every resolution), opacities U(0.05, 0.95). Peak memory: max RSS during "
+        "the render minus RSS before it (fresh process per case).",
+        "",
+        "## Forward and forward+backward",
+        "",
+        "| N | size | visible | mean alpha | forward (ms) | fwd+bwd (ms) | bwd / fwd | peak fwd (MiB) | peak fwd+bwd (MiB) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for n in counts:
+        for size in sizes:
+            r = run_case_subprocess(n, size, reps, args.threads)
+            bwd = r["fwd_bwd_s"] - r["fwd_s"]
+            line = (
+                f"| {n} | {size}^2 | {r['visible']} | {r['mean_alpha']:.2f} | {1e3 * r['fwd_s']:.0f} | "
+                f"{1e3 * r['fwd_bwd_s']:.0f} | {bwd / r['fwd_s']:.2f} | {r['peak_fwd_mib']:.0f} | {r['peak_fwd_bwd_mib']:.0f} |"
+            )
+            print(line, flush=True)
+            lines.append(line)
+
+    ref_n, ref_size = (200, 48) if args.quick else (1_000, 64)
+    t_fast, t_ref = measure_reference(ref_n, ref_size)
+    lines += [
+        "",
+        "## Against the brute-force reference",
+        "",
+        f"{ref_n} Gaussians at {ref_size}^2, forward+backward: tiled {1e3 * t_fast:.1f} ms, brute-force float64 "
+        f"reference {1e3 * t_ref:.0f} ms ({t_ref / t_fast:.0f}x).",
+    ]
+    print(lines[-1], flush=True)
+
+    ss_n, ss_size = (10_000, 256) if args.quick else (50_000, 512)
+    lines += [
+        "",
+        f"## Supersampling cost (paper Tbl. S2): {ss_n} Gaussians, S = {ss_size}^2",
+        "",
+        "SS: render at S, area-pool to S/d (`downstream.resample.area_resample`); direct: render at "
+        "`camera.scaled(d)`. Ratio > 1: supersampling is slower.",
+        "",
+        "| d | S/d | SS fwd (ms) | direct fwd (ms) | ratio | SS fwd+bwd (ms) | direct fwd+bwd (ms) | ratio |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in measure_supersampling(ss_n, ss_size, reps):
+        line = (
+            f"| {r['d']} | {r['small']}^2 | {1e3 * r['ss_fwd_s']:.0f} | {1e3 * r['direct_fwd_s']:.0f} | "
+            f"{r['ss_fwd_s'] / r['direct_fwd_s']:.2f} | {1e3 * r['ss_fwd_bwd_s']:.0f} | "
+            f"{1e3 * r['direct_fwd_bwd_s']:.0f} | {r['ss_fwd_bwd_s'] / r['direct_fwd_bwd_s']:.2f} |"
+        )
+        print(line, flush=True)
+        lines.append(line)
+
+    prof_n = 10_000 if args.quick else 50_000
+    lines += [
+        "",
+        f"## Where the time goes ({prof_n} Gaussians, 256^2, forward+backward, torch profiler self time)",
+        "",
+        "| operator | share | calls |",
+        "|---|---:|---:|",
+    ]
+    for key, share, count in profile_top_ops(prof_n, 256):
+        lines.append(f"| `{key}` | {share:.1f} % | {count} |")
+    print("\n".join(lines[-12:]))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
