@@ -35,7 +35,7 @@ from controlgs_adapter.errors import FileFormatError
 from .family_common import as_param, check_first_width, has_attrs, iteration_dir
 from .formats import load_state_dict_file, read_cfg_args
 from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, _tensors, decided_variant, drop_invalid,
-                  load_decoders_from_checkpoint, read_masked_anchor_ply)
+                  decoders_from_checkpoint, read_masked_anchor_ply)
 from .scaffold_gs import ScaffoldGSBackend
 
 __all__ = ["ContextGSBackend", "ContextGSModel", "load_contextgs_dir", "quantize_anchor"]
@@ -110,8 +110,9 @@ def load_contextgs_dir(path: str | Path, iteration: int | None = None, *, decode
                                  source=str(ply), family="ContextGS",
                                  why="with its anchor-level context model (latent_codec entropy bottleneck + mlp_grid)")
     ckpt = folder / "checkpoint.pth"
-    decoders = load_decoders_from_checkpoint(ckpt, feature_bank=bool(cfg.get("use_feat_bank", False)))
-    bound = load_state_dict_file(ckpt).get("bound")
+    sd = load_state_dict_file(ckpt)
+    decoders = decoders_from_checkpoint(sd, ckpt, feature_bank=bool(cfg.get("use_feat_bank", False)))
+    bound = sd.get("bound")
     lo = hi = None
     if bound is not None:
         if not (isinstance(bound, (list, tuple)) and len(bound) == 2 and all(torch.is_tensor(b) and b.numel() == 3 for b in bound)):

@@ -219,10 +219,10 @@ def infer_decoded(scales: np.ndarray, masks: np.ndarray, *, extra_mask_column: b
     return bool((scales > 0).all()) and binary
 
 
-def load_decoders_from_checkpoint(path: Path, *, feature_bank: bool) -> dict[str, nn.Module]:
+def decoders_from_checkpoint(sd: dict[str, Any], path: Path, *, feature_bank: bool) -> dict[str, nn.Module]:
     """Rebuild ``mlp_opacity``, ``mlp_cov``, ``mlp_color`` (and the feature bank) from a HAC-family
-    ``checkpoint.pth`` of state dicts (keys ``opacity_mlp, cov_mlp, color_mlp, [mlp_feature_bank]``)."""
-    sd = load_state_dict_file(path)
+    ``checkpoint.pth`` of state dicts ``sd`` (keys ``opacity_mlp, cov_mlp, color_mlp, [mlp_feature_bank]``)
+    read from ``path``."""
     out = {}
     for attr, key in (("mlp_opacity", "opacity_mlp"), ("mlp_cov", "cov_mlp"), ("mlp_color", "color_mlp")):
         if key not in sd:
@@ -308,7 +308,8 @@ def load_hac_dir(path: str | Path, iteration: int | None = None, *, decoded: boo
     if not is_decoded and voxel_size <= 0:
         raise FileFormatError(f"{cfg_path}: voxel_size={voxel_size}: the raw model's anchors are snapped to a voxel grid "
                               f"whose size was estimated at training time and not saved; cannot reproduce get_anchor")
-    decoders = load_decoders_from_checkpoint(folder / "checkpoint.pth", feature_bank=bool(cfg.get("use_feat_bank", False)))
+    ckpt = folder / "checkpoint.pth"
+    decoders = decoders_from_checkpoint(load_state_dict_file(ckpt), ckpt, feature_bank=bool(cfg.get("use_feat_bank", False)))
     model = HACModel(voxel_size=voxel_size, variant=variant, decoded_version=is_decoded, **_tensors(arrays), **decoders)
     for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
         check_first_width(getattr(model, dec), f + 4, name=dec, source=str(folder / "checkpoint.pth"), layout="feat, view 3, dist 1")

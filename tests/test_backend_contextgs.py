@@ -157,3 +157,31 @@ def test_decode_keeps_masked_offsets_out():
     want = torch.from_numpy(arr["anchor"])[g.anchor_of] + torch.from_numpy(arr["offset"])[g.anchor_of, g.offset_of] * \
         torch.from_numpy(arr["scale"])[g.anchor_of, :3]
     assert torch.allclose(g.means, want, atol=1e-6)
+
+
+def test_lens_strength_uses_quantised_positions():
+    """The lens strength is computed at the anchor position the decoder sees (quantised, not raw)."""
+    from _family_checks import make_camera
+    from controlgs_adapter import RuntimeState
+    from controlgs_adapter.controlgs import ControlGS
+
+    arr = _arrays(6, decoded=False)
+    arr["anchor"][:, :2] *= 3.0  # spread over the image so the radii differ
+    lo, hi = torch.full((1, 3), -900.0), torch.full((1, 3), 1100.0)  # a wide bound: 0.03-unit quantisation steps
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    model = ContextGSModel(anchor=t["anchor"], offset=t["offset"], mask=t["mask"][:, :, None], anchor_feat=t["feat"],
+                           scaling=t["scale"], hyper_latent=t["hyper"], x_bound_min=lo, x_bound_max=hi,
+                           decoded_version=False, **_decoders(6))
+    cam = make_camera()
+    cgs = ControlGS.wrap(model, modules=("lens",), cond_dim=4)
+    lam = cgs.strengths(RuntimeState(), cam, torch.arange(A))["lens"].double()
+
+    def radius(pos: torch.Tensor) -> torch.Tensor:  # float64 pinhole projection of make_camera()
+        uv = pos[:, :2] / (pos[:, 2:] + 5.0) * 40.0 + torch.tensor([32.0, 24.0], dtype=torch.float64)
+        p = 2 * uv / torch.tensor([64.0, 48.0], dtype=torch.float64) - 1
+        return (p.norm(dim=1) / 2 ** 0.5).clamp(0, 1)
+
+    q = quantize_anchor(t["anchor"].double(), lo.double(), hi.double())
+    assert torch.allclose(lam, radius(q), atol=1e-5)
+    assert (lam - radius(t["anchor"].double())).abs().max() > 1e-3  # the raw positions would give other strengths
+    cgs.unwrap()
