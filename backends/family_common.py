@@ -1,6 +1,7 @@
 """Pieces shared by the Octree-GS, HAC/HAC++, ContextGS and CompGS backends: reading their output
-directories (iteration folders, PLY column groups, state-dict MLPs) and turning masks into the
-anchor ids that :meth:`ControlGS.conditioned` takes.
+directories (iteration folders, PLY column groups, state-dict MLPs, ``config.yaml`` scalars),
+turning masks into the anchor ids that :meth:`ControlGS.conditioned` takes, and the stand-ins'
+prefilter/decode/splat steps (shared with the reference Scaffold-GS model).
 
 Every reader raises :class:`~controlgs_adapter.errors.FileFormatError` naming the file and what is
 missing; nothing here unpickles arbitrary objects.
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -17,11 +19,16 @@ import torch
 from torch import nn
 
 from controlgs_adapter.checks import check_tensor
-from controlgs_adapter.errors import FileFormatError, ShapeError
+from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.state import Camera
+
+from .reference_model import NeuralGaussianModel, NeuralGaussians
+from .splatter import RasterOutput, rasterize
 
 __all__ = [
-    "anchor_ids_from_mask", "iteration_dir", "ply_columns", "ply_offsets", "mlp_from_state_dict",
-    "has_attrs", "voxel_snap", "read_yaml_scalars", "anchor_visibility", "assemble_gaussians", "render_gaussians",
+    "anchor_ids_from_mask", "iteration_dir", "ply_columns", "ply_offsets", "mlp_from_state_dict", "check_first_width",
+    "as_param", "has_attrs", "voxel_snap", "read_yaml_scalars", "anchor_visibility", "assemble_gaussians",
+    "render_gaussians",
 ]
 
 
@@ -171,26 +178,17 @@ def as_param(x: np.ndarray | torch.Tensor, requires_grad: bool = False) -> nn.Pa
     return nn.Parameter(t.clone(), requires_grad=requires_grad)
 
 
-def check_rows(name: str, x: torch.Tensor, rows: int) -> None:
-    if x.shape[0] != rows:
-        raise ShapeError(f"{name} must have {rows} rows (one per anchor), got {list(x.shape)}")
-
-
-def anchor_visibility(camera: "Camera", means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
+def anchor_visibility(camera: Camera, means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
     """``[A]`` bool: anchors (as Gaussians with ``means [A, 3]``, linear ``scales [A, 3+]``,
     ``rotations [A, 4]``) whose footprint can touch the image: the prefilter of the Scaffold
     family, with the reference model's rule (:meth:`NeuralGaussianModel.visible_anchors`)."""
-    from types import SimpleNamespace
-
-    from .reference_model import NeuralGaussianModel
-
     view = SimpleNamespace(get_anchor=means, get_scaling=scales, _rotation=rotations)
     return NeuralGaussianModel.visible_anchors(view, camera)
 
 
 def assemble_gaussians(ids: torch.Tensor, k: int, anchor: torch.Tensor, offsets: torch.Tensor, scaling: torch.Tensor,
                        neural_opacity: torch.Tensor, color: torch.Tensor, scale_rot: torch.Tensor,
-                       keep: torch.Tensor) -> "NeuralGaussians":
+                       keep: torch.Tensor) -> NeuralGaussians:
     """Scaffold-family Gaussians from decoder outputs (R anchors, K per anchor, anchor-major rows).
 
     Args:
@@ -200,8 +198,6 @@ def assemble_gaussians(ids: torch.Tensor, k: int, anchor: torch.Tensor, offsets:
     Mean = anchor + offset * scaling[:, :3]; scale = scaling[:, 3:] * sigmoid(scale_rot[:, :3]);
     rotation = normalize(scale_rot[:, 3:7]).
     """
-    from .reference_model import NeuralGaussians
-
     flat = keep.nonzero().squeeze(1)  # [G]
     row = flat // k
     s = scaling[row]
@@ -211,8 +207,6 @@ def assemble_gaussians(ids: torch.Tensor, k: int, anchor: torch.Tensor, offsets:
         colors=color[flat], anchor_of=ids[row], offset_of=flat % k, visible_ids=ids, neural_opacity=neural_opacity)
 
 
-def render_gaussians(g: "NeuralGaussians", camera: "Camera", background: torch.Tensor | None = None):
+def render_gaussians(g: NeuralGaussians, camera: Camera, background: torch.Tensor | None = None) -> RasterOutput:
     """Splat decoded Gaussians with the library's splatter (``RasterOutput``)."""
-    from .splatter import rasterize
-
     return rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, camera, background)
