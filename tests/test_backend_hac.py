@@ -189,3 +189,24 @@ def test_decode_keeps_masked_offsets_out():
     for f in ("means", "scales", "rotations", "opacities", "colors", "anchor_of", "offset_of"):
         setattr(full, f, getattr(full, f)[on])
     assert_same_gaussians(got, full, atol=1e-5)
+
+
+def test_invalid_anchor_condition_rows_get_no_gradient():
+    """An anchor with every offset masked off reaches the decoders but emits no Gaussian, so its
+    condition row receives no gradient (it stays inert at zero), while valid anchors' rows do."""
+    from _family_checks import STATE, make_camera
+    from controlgs_adapter.controlgs import ControlGS
+
+    arr = _arrays(6, decoded=False, mask_cols=K + 1, invalid=(2,))
+    model = _model(arr, _decoders(6), decoded=False)
+    cam = make_camera()
+    cgs = ControlGS.wrap(model, modules=("display",), cond_dim=4)
+    ids = torch.tensor([0, 1, 2, 3])
+    with cgs.conditioned(STATE, anchor_ids=ids):
+        g = model.decode(cam, torch.isin(torch.arange(A), ids))
+    (g.colors.sum() + g.opacities.sum() + g.scales.sum()).backward()
+    grad = cgs.injector.conditions.grad[:, 0]  # [A, N] of the display module
+    assert bool((grad[2] == 0).all()) and 2 not in g.anchor_of.tolist()
+    assert all(bool(grad[a].abs().sum() > 0) for a in (0, 1, 3))
+    assert bool((grad[4:] == 0).all())  # anchors not in the view
+    cgs.unwrap()
