@@ -410,9 +410,8 @@ class ControlGS:
             raise InputValueError(f"dtype must be None, torch.float16 or torch.float32, got {dtype!r}")
         tensors = dict(self.injector.state_dict())
         if dtype is not None:
-            for m in self.modules:
-                tensors[f"conditions.{m}"] = tensors[f"conditions.{m}"].to(dtype)
-        header = {**self.header(), "condition_dtype": str(tensors[f"conditions.{self.modules[0]}"].dtype).removeprefix("torch.")}
+            tensors["conditions"] = tensors["conditions"].to(dtype)
+        header = {**self.header(), "condition_dtype": str(tensors["conditions"].dtype).removeprefix("torch.")}
         return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
 
     @classmethod
@@ -458,7 +457,7 @@ class ControlGS:
     # ------------------------------------------------------------------ reporting
     def summary(self) -> str:
         """What is attached where, the schedules and the parameter counts."""
-        n_cond = sum(p.numel() for p in self.injector.conditions.parameters())
+        n_cond = self.injector.conditions.numel()
         n_proj = sum(p.numel() for p in self.injector.projections.parameters())
         lines = [
             f"ControlGS on {type(self.model).__name__} via backend {self.backend.name!r}"
@@ -532,9 +531,8 @@ def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any]) -> lis
 def _tensor_mismatches(tensors: dict[str, torch.Tensor], spec: dict[str, Any]) -> list[str]:
     n, a = spec["cond_dim"], spec["num_anchors"]
     widths = sorted({t["out_features"] for t in spec["targets"]})
-    expected: dict[str, tuple[int, ...]] = {}
+    expected: dict[str, tuple[int, ...]] = {"conditions": (a, len(spec["modules"]), n)}
     for m in spec["modules"]:
-        expected[f"conditions.{m}"] = (a, n)
         for d1 in widths:
             expected[f"projections.{m}.d{d1}.weight"] = (d1, n)
     problems = []

@@ -4,11 +4,12 @@ For every target decoder with first linear layer ``FC1`` (output width ``D1``)::
 
     h = FC1(x) + sum_m lambda[v, m] * A_m(C[v, m])
 
-``C[:, m]`` is ``[A, N]`` (zero-initialised, so the wrapped model starts as the backbone) and
+``C`` is ``[A, M, N]`` (zero-initialised, so the wrapped model starts as the backbone) and
 ``A_m: R^N -> R^D1`` is a bias-free Linear shared by all anchors, one per module and distinct
-``D1``. The sum is computed once per :meth:`ConditionInjector.activate` context and width and
-reused by every decoder of that width; modules whose strength is zero for every row are left out,
-and outside a context the hooks return at once (outputs bit-identical to the backbone).
+``D1``. The sum is one gather and one matmul per :meth:`ConditionInjector.activate` context and
+width, reused by every decoder of that width and added in place to FC1's output; modules whose
+strength is zero for every row are left out, and outside a context the hooks return at once
+(outputs bit-identical to the backbone).
 """
 
 from __future__ import annotations
@@ -50,12 +51,12 @@ class ConditionInjector(nn.Module):
     """Conditions and projections of one wrapped model, and the hooks that inject them.
 
     Args:
-        num_anchors: A, rows of every condition table.
-        modules: condition module names (``"lens"``, ``"resample"``, ...).
+        num_anchors: A, rows of the condition table.
+        modules: condition module names (``"lens"``, ``"resample"``, ...), M of them.
         cond_dim: N, size of one condition vector.
         widths: FC1 output width ``D1`` of each target (target name -> ``D1``).
 
-    Parameters (state-dict keys): ``conditions.<module>`` ``[A, N]``;
+    Parameters (state-dict keys): ``conditions`` ``[A, M, N]`` (module order = ``modules``);
     ``projections.<module>.d<D1>.weight`` ``[D1, N]``.
     """
 
@@ -65,9 +66,7 @@ class ConditionInjector(nn.Module):
         self.num_anchors, self.cond_dim = int(num_anchors), int(cond_dim)
         self.module_names = tuple(modules)
         self.widths = dict(widths)
-        self.conditions = nn.ParameterDict(
-            {m: nn.Parameter(torch.zeros(num_anchors, cond_dim, device=device, dtype=dtype)) for m in modules}
-        )
+        self.conditions = nn.Parameter(torch.zeros(num_anchors, len(modules), cond_dim, device=device, dtype=dtype))
         self.projections = nn.ModuleDict()
         for m in modules:
             per_width = nn.ModuleDict()
@@ -81,7 +80,11 @@ class ConditionInjector(nn.Module):
 
     @property
     def dtype(self) -> torch.dtype:
-        return next(iter(self.conditions.values())).dtype
+        return self.conditions.dtype
+
+    def condition(self, module: str) -> torch.Tensor:
+        """``[A, N]`` view of one module's conditions."""
+        return self.conditions[:, self.module_names.index(module)]
 
     # -- attaching -------------------------------------------------------------------------------
     def attach(self, name: str, fc1: nn.Linear) -> None:
@@ -121,34 +124,32 @@ class ConditionInjector(nn.Module):
         if not ctx.strengths:
             return None
         key = (width, torch.is_grad_enabled())
-        versions = tuple(self.conditions[m]._version for m in ctx.strengths) + tuple(
-            self.projections[m][f"d{width}"].weight._version for m in ctx.strengths
-        )
+        projections = [self.projections[m][f"d{width}"].weight for m in ctx.strengths]  # [D1, N] each
+        versions = (self.conditions._version, *(w._version for w in projections))
         hit = ctx.cache.get(key)
         if hit is not None and hit[0] == versions:
             return hit[1]
-        ids = ctx.anchor_ids
-        zs, ws = [], []
-        for m, lam in ctx.strengths.items():
-            c = self.conditions[m].index_select(0, ids)  # [R_a, N]
-            w = self.projections[m][f"d{width}"].weight  # [D1, N]
-            if isinstance(lam, torch.Tensor):
-                c = c * lam.to(c.dtype).unsqueeze(-1)
-            elif lam != 1.0:
+        cols = [self.module_names.index(m) for m in ctx.strengths]
+        z = self.conditions.index_select(0, ctx.anchor_ids)  # [R_a, M, N]
+        if cols != list(range(len(self.module_names))):
+            z = z[:, cols]
+        ws = []
+        for j, (lam, w) in enumerate(zip(ctx.strengths.values(), projections)):
+            if isinstance(lam, torch.Tensor):  # per-anchor strength scales the (few) condition columns
+                z[:, j] *= lam.to(z.dtype).unsqueeze(-1)
+            elif lam != 1.0:  # a strength shared by all rows folds into the (tiny) projection
                 w = w * lam
-            zs.append(c)
             ws.append(w)
-        z = zs[0] if len(zs) == 1 else torch.cat(zs, dim=-1)  # [R_a, M*N]
-        w = ws[0] if len(ws) == 1 else torch.cat(ws, dim=-1)  # [D1, M*N]
-        inj = z @ w.transpose(0, 1)  # [R_a, D1]
+        w = ws[0] if len(ws) == 1 else torch.cat(ws, dim=1)  # [D1, M'*N]
+        inj = z.flatten(1) @ w.transpose(0, 1)  # [R_a, D1]
         ctx.cache[key] = (versions, inj)
         return inj
 
     def _make_hook(self, name: str, width: int):
-        def hook(module: nn.Module, inputs: tuple, out: torch.Tensor) -> torch.Tensor | None:
+        def hook(module: nn.Module, inputs: tuple, out: torch.Tensor) -> None:
             ctx = self._ctx
             if ctx is None:
-                return None
+                return
             if out.dim() != 2 or out.shape[0] != ctx.rows:
                 raise ShapeError(
                     f"decoder {name!r} was called with {out.shape[0] if out.dim() else 0} rows "
@@ -158,12 +159,14 @@ class ConditionInjector(nn.Module):
                 )
             inj = self.injection(ctx, width)
             if inj is None:
-                return None
-            inj = inj.to(out.dtype)
+                return
+            # in place: FC1's output is a fresh tensor that autograd does not save (Linear saves its
+            # input and weight), so this avoids one [rows, D1] allocation per decoder
             k = ctx.rows_per_anchor
             if k == 1:
-                return out + inj
-            return (out.unflatten(0, (-1, k)) + inj.unsqueeze(1)).flatten(0, 1)
+                out.add_(inj.to(out.dtype))
+            else:
+                out.view(-1, k, out.shape[1]).add_(inj.to(out.dtype).unsqueeze(1))
 
         return hook
 

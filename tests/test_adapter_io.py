@@ -69,20 +69,19 @@ def test_fp16_storage_halves_conditions_and_stays_close(tmp_path):
     x = model.decoder_input(cam.center)
     cgs = trained(model)
     with torch.no_grad():  # trained conditions are small: keep them in a realistic range
-        for c in cgs.injector.conditions.values():
-            c.mul_(0.1)
+        cgs.injector.conditions.mul_(0.1)
     want = conditioned_outputs(cgs, model, cam, x)
     full = cgs.save(tmp_path / "f32.safetensors")
     half = cgs.save(tmp_path / "f16.safetensors", dtype=torch.float16)
     tensors, header = load_tensors(half, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
-    assert header["condition_dtype"] == "float16" and tensors["conditions.lens"].dtype == torch.float16
+    assert header["condition_dtype"] == "float16" and tensors["conditions"].dtype == torch.float16
     assert tensors["projections.lens.d32.weight"].dtype == torch.float32
     saved_bytes = 3 * 200 * 8 * 2
     assert abs(full.stat().st_size - half.stat().st_size - saved_bytes) <= 16  # header padding
-    expected_conditions = {m: c.detach().half().float() for m, c in cgs.injector.conditions.items()}
+    expected_conditions = cgs.injector.conditions.detach().half().float()
     cgs.unwrap()
     loaded = ControlGS.load(half, model)
-    assert all(torch.equal(loaded.injector.conditions[m].detach(), c) for m, c in expected_conditions.items())
+    assert torch.equal(loaded.injector.conditions.detach(), expected_conditions)
     assert loaded.injector.dtype == torch.float32
     got = conditioned_outputs(loaded, model, cam, x)
     err = max(float((want[k] - got[k]).abs().max()) for k in want)
@@ -140,19 +139,19 @@ def test_other_backend_is_named(saved):
 
 
 def test_missing_unexpected_and_misshapen_tensors_are_listed_together(saved):
-    _rewrite(saved, tensor_changes={"extra.bias": torch.zeros(3), "conditions.lens": torch.zeros(30, 7)},
+    _rewrite(saved, tensor_changes={"extra.bias": torch.zeros(3), "conditions": torch.zeros(30, 3, 7)},
              drop=("projections.display.d32.weight",))
     msg = _load_error(saved, ScaffoldStandIn(30, seed=0))
     assert "missing from the file: ['projections.display.d32.weight']" in msg
     assert "unexpected tensors in the file: ['extra.bias']" in msg
-    assert "tensor 'conditions.lens': shape [30, 7], expected [30, 8]" in msg
+    assert "tensor 'conditions': shape [30, 3, 7], expected [30, 3, 8]" in msg
 
 
 def test_non_finite_tensor_is_refused(saved):
-    bad = torch.zeros(30, 8)
-    bad[3, 1] = float("nan")
-    _rewrite(saved, tensor_changes={"conditions.resample": bad})
-    assert "conditions.resample': contains NaN/Inf" in _load_error(saved, ScaffoldStandIn(30, seed=0))
+    bad = torch.zeros(30, 3, 8)
+    bad[3, 1, 2] = float("nan")
+    _rewrite(saved, tensor_changes={"conditions": bad})
+    assert "'conditions': contains NaN/Inf" in _load_error(saved, ScaffoldStandIn(30, seed=0))
 
 
 def test_truncated_foreign_and_other_kind_files(saved, tmp_path):

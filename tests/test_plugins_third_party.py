@@ -50,7 +50,7 @@ def test_example_plugin_registers_lists_and_works(fresh_plugins, example, capsys
     cgs = ControlGS.wrap(model, modules=("resample",))
     assert cgs.backend.name == "tiny_ng" and [t.fc1 for t in cgs.targets] == ["head.0"]
     with torch.no_grad():
-        cgs.injector.conditions["resample"].normal_()
+        cgs.injector.condition("resample").normal_()
         with cgs.conditioned(RuntimeState(downsample=8.0)):
             conditioned = model.head(x)
     assert not torch.equal(conditioned, bare)
