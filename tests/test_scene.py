@@ -131,3 +131,14 @@ def test_bad_arguments_raise_clear_errors():
         load_builtin_scene("ar", 8)
     with pytest.raises(InputValueError, match="samples"):
         render_planes([], _camera(), samples=0)
+
+
+def test_ground_truth_cache_round_trip(tmp_path):
+    a = load_builtin_scene("ar", 16, views=4, test_every=2, samples=1, cache=tmp_path)
+    files = list(tmp_path.iterdir())
+    assert len(files) == 1
+    b = load_builtin_scene("ar", 16, views=4, test_every=2, samples=1, cache=tmp_path)
+    assert torch.equal(a.train_images, b.train_images) and torch.equal(a.test_images, b.test_images)
+    files[0].write_bytes(b"garbage")  # a corrupt cache is rendered again, not trusted
+    c = load_builtin_scene("ar", 16, views=4, test_every=2, samples=1, cache=tmp_path)
+    assert torch.equal(a.train_images, c.train_images)

@@ -9,18 +9,24 @@ Everything is deterministic: the same arguments give bit-identical images.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
-from ..errors import InputValueError
+from ..errors import FileFormatError, InputValueError
+from ..io import load_tensors, save_tensors
 from ..state import Camera
 from .cameras import arc_cameras
 from .planes import TexturedPlane, plane_points, render_planes
 
-__all__ = ["VARIANTS", "BuiltinScene", "diorama_planes", "load_builtin_scene"]
+__all__ = ["VARIANTS", "SCENE_VERSION", "BuiltinScene", "diorama_planes", "load_builtin_scene", "default_cache_dir"]
 
 VARIANTS = ("ar", "vr")
+#: bump when the geometry, cameras or ground-truth rendering change (invalidates caches)
+SCENE_VERSION = 1
+_CACHE_KIND = "controlgs_builtin_scene_images"
 
 
 def diorama_planes(variant: str) -> list[TexturedPlane]:
@@ -78,10 +84,19 @@ class BuiltinScene:
         return torch.cat(xyz).float(), torch.cat(rgb).float()
 
 
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/controlgs-adapter/scene`` (``~/.cache/...`` by default)."""
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "controlgs-adapter" / "scene"
+
+
 def load_builtin_scene(variant: str = "ar", resolution: int = 128, *, views: int = 32, test_every: int = 8,
-                       samples: int = 4, fov_deg: float = 50.0) -> BuiltinScene:
+                       samples: int = 4, fov_deg: float = 50.0, cache: str | os.PathLike | bool | None = None) -> BuiltinScene:
     """Build the scene and render its ground truth at ``resolution`` with ``samples x samples``
-    anti-aliasing. Views ``i`` with ``i % test_every == 0`` are the test split (3DGS's convention)."""
+    anti-aliasing. Views ``i`` with ``i % test_every == 0`` are the test split (3DGS's convention).
+
+    ``cache``: a folder (or True for :func:`default_cache_dir`) where the rendered ground truth is
+    kept as a safetensors file keyed by every argument and the library version, so that the next
+    call reads it instead of ray casting again; None/False renders every time."""
     if int(resolution) < 16:
         raise InputValueError(f"resolution must be >= 16 pixels, got {resolution!r}")
     if int(test_every) < 2 or int(views) < int(test_every):
@@ -89,7 +104,24 @@ def load_builtin_scene(variant: str = "ar", resolution: int = 128, *, views: int
     planes = diorama_planes(variant)
     background = (0.0, 0.0, 0.0)
     cams = arc_cameras(int(views), size=int(resolution), fov_deg=fov_deg)
-    images = torch.stack([render_planes(planes, c, samples=samples, background=background)[0] for c in cams]).float()
+    key = {"variant": variant, "resolution": int(resolution), "views": int(views), "samples": int(samples),
+           "fov_deg": float(fov_deg), "scene_version": SCENE_VERSION}
+    path = None
+    if cache:
+        folder = default_cache_dir() if cache is True else Path(cache)
+        path = folder / ("builtin-" + "-".join(f"{k}{v}" for k, v in key.items()) + ".safetensors")
+    images = None
+    if path is not None and path.is_file():
+        try:
+            tensors, header = load_tensors(path, kind=_CACHE_KIND, max_version=1)
+            if header.get("key") == key and tuple(tensors["images"].shape) == (len(cams), 3, int(resolution), int(resolution)):
+                images = tensors["images"]
+        except FileFormatError:
+            images = None
+    if images is None:
+        images = torch.stack([render_planes(planes, c, samples=samples, background=background)[0] for c in cams]).float()
+        if path is not None:
+            save_tensors(path, {"images": images}, {"key": key}, kind=_CACHE_KIND, format_version=1)
     test = [i for i in range(len(cams)) if i % test_every == 0]
     train = [i for i in range(len(cams)) if i % test_every != 0]
     return BuiltinScene(

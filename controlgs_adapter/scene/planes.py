@@ -123,6 +123,24 @@ def _sample_rays(camera: Camera, samples: int) -> tuple[torch.Tensor, torch.Tens
     return camera.center.to(torch.float64), d, du, dv
 
 
+def _window(plane: TexturedPlane, camera: Camera, n: int) -> torch.Tensor | None:
+    """Flat indices of the sub-samples inside the bounding box of the plane's projection (a margin
+    of one sub-sample), or None (all) when a corner is not in front of the camera."""
+    corners = torch.stack([plane.center + sa * plane.right + sb * plane.down for sa in (-1, 1) for sb in (-1, 1)])
+    pc = corners @ camera.world_to_camera[:3, :3].double().T + camera.world_to_camera[:3, 3].double()
+    if bool((pc[:, 2] <= 1e-6).any()):
+        return None
+    k = camera.intrinsics.double()
+    u = (k[0, 0] * pc[:, 0] / pc[:, 2] + k[0, 2]) * n
+    v = (k[1, 1] * pc[:, 1] / pc[:, 2] + k[1, 2]) * n
+    wn, hn = camera.width * n, camera.height * n
+    c0, c1 = max(0, int(math.floor(float(u.min()))) - 1), min(wn, int(math.ceil(float(u.max()))) + 1)
+    r0, r1 = max(0, int(math.floor(float(v.min()))) - 1), min(hn, int(math.ceil(float(v.max()))) + 1)
+    if c0 >= c1 or r0 >= r1:
+        return torch.zeros(0, dtype=torch.long)
+    return (torch.arange(r0, r1)[:, None] * wn + torch.arange(c0, c1)).reshape(-1)
+
+
 def render_planes(planes: list[TexturedPlane], camera: Camera, *, samples: int = 4,
                   background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render ``planes`` seen by ``camera``, anti-aliased with ``samples x samples`` sub-samples per pixel.
@@ -140,18 +158,23 @@ def render_planes(planes: list[TexturedPlane], camera: Camera, *, samples: int =
     best_t = torch.full((m,), math.inf, dtype=torch.float64)
     color = torch.tensor(background, dtype=torch.float64).expand(m, 3).clone()
     for plane in planes:
+        flat = _window(plane, camera, n)  # [Mw] sub-samples the plane can cover
+        if flat is not None and flat.numel() == 0:
+            continue
+        dw = d if flat is None else d[flat]
         nrm = plane.normal
-        denom = _matmul(d, nrm[:, None])[:, 0]  # [M]
+        denom = _matmul(dw, nrm[:, None])[:, 0]  # [Mw]
         t = ((plane.center - origin) @ nrm) / torch.where(denom.abs() < 1e-15, torch.full_like(denom, 1e-15), denom)
-        rel = origin + t[:, None] * d - plane.center  # [M, 3]
+        rel = origin + t[:, None] * dw - plane.center  # [Mw, 3]
         ab = _matmul(rel, torch.stack([plane.right / plane.right.dot(plane.right),
-                                       plane.down / plane.down.dot(plane.down)], dim=-1))  # [M, 2]
+                                       plane.down / plane.down.dot(plane.down)], dim=-1))  # [Mw, 2]
         a, b = ab[:, 0], ab[:, 1]
-        hit = (t > 1e-9) & (a.abs() <= 1.0) & (b.abs() <= 1.0) & (t < best_t)
+        hit = (t > 1e-9) & (a.abs() <= 1.0) & (b.abs() <= 1.0) & (t < (best_t if flat is None else best_t[flat]))
         if not bool(hit.any()):
             continue
-        idx = hit.nonzero().squeeze(-1)
-        th, dh, dnh = t[idx], d[idx], denom[idx]
+        local = hit.nonzero().squeeze(-1)
+        th, dh, dnh, a, b = t[local], dw[local], denom[local], a[local], b[local]
+        idx = local if flat is None else flat[local]
         # footprint: dp = t (dd - (n.dd / n.d) d) for a step dd of the ray direction
         h, w = plane.texture.shape[-2:]
         scale = torch.tensor([w * plane.repeat[0] / 2.0, h * plane.repeat[1] / 2.0], dtype=torch.float64)
@@ -161,7 +184,7 @@ def render_planes(planes: list[TexturedPlane], camera: Camera, *, samples: int =
             dp = th[:, None] * (dd - (dd @ nrm / dnh)[:, None] * dh)  # [Mh, 3]
             feet.append((_matmul(dp, axes) * scale).norm(dim=-1))
         lod = torch.log2(torch.maximum(torch.maximum(feet[0], feet[1]), torch.ones_like(th)))
-        color[idx] = plane.sample(a[idx], b[idx], lod)
+        color[idx] = plane.sample(a, b, lod)
         best_t[idx] = th
     hw = (camera.height, n, camera.width, n)
     covered = torch.isfinite(best_t)

@@ -8,6 +8,7 @@ diorama has colour everywhere.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import torch
@@ -49,6 +50,11 @@ def load_texture(name: str) -> torch.Tensor:
     """The texture ``name`` as sRGB float64 ``[3, H, W]`` in [0, 1] (row 0 = top of the photograph)."""
     if name not in TEXTURES:
         raise InputValueError(f"texture must be one of {sorted(TEXTURES)}, got {name!r}")
+    return _decoded(name).clone()
+
+
+@lru_cache(maxsize=None)
+def _decoded(name: str) -> torch.Tensor:
     try:
         import skimage.data
     except ImportError as e:  # pragma: no cover - depends on the environment
