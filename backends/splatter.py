@@ -21,8 +21,8 @@ How it is fast (2 CPU cores, no compiled extension):
    with alpha < 1/255, sort them by pixel (stable, so each pixel's run stays in depth order) and
    composite all pixels at once with a segmented scan of ``log(1 - alpha)``;
 4. the compositing is a ``torch.autograd.Function`` with a hand-written backward (the 3DGS
-   back-to-front suffix sums as a reverse segmented scan); the pairs are kept for the backward pass
-   while they fit in ``_CACHE_PAIRS``, otherwise recomputed chunk by chunk (as the CUDA kernel does).
+   back-to-front suffix sums as a reverse segmented scan); the pairs of a chunk are kept for the
+   backward pass while they fit in ``_CACHE_BYTES``, the others are recomputed (as the CUDA kernel does).
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ ALPHA_MIN = 1.0 / 255.0  # splats with alpha below this are skipped
 TRANSMITTANCE_MIN = 1e-4  # a splat that would take T below this is not drawn, nor is any behind it
 
 _PAIR_BUDGET = 1 << 21  # (pixel, Gaussian) pairs expanded at once (~100 MB of temporaries)
-_CACHE_PAIRS = 1 << 23  # pairs kept from forward for backward; beyond this backward recomputes
+_CACHE_BYTES = 512 << 20  # pair data kept from forward for backward; chunks beyond it are recomputed
 
 
 @dataclass
@@ -233,15 +233,18 @@ class _Pairs:
     """The candidate (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by
     (pixel, depth)."""
 
-    gauss: torch.Tensor  # [P] int64
-    pix: torch.Tensor  # [P] int64 flat pixel index y * W + x
+    gauss: torch.Tensor  # [P] int32 (int64 beyond 2^31)
+    pix: torch.Tensor  # [P] int32 flat pixel index y * W + x
     dx: torch.Tensor  # [P] pixel centre - mean, x
     dy: torch.Tensor  # [P]
     alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G), all >= ALPHA_MIN
     clamped: torch.Tensor  # [P] bool, alpha hit ALPHA_MAX
     t_before: torch.Tensor  # [P] transmittance in front of the splat
     drawn: torch.Tensor  # [P] bool, T after the splat stays >= TRANSMITTANCE_MIN
-    seg_end: torch.Tensor  # [P] int64 index of the last pair of the same pixel
+    seg_end: torch.Tensor  # [P] int32 index of the last pair of the same pixel
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in vars(self).values())
 
 
 def _expand_pairs(
@@ -271,8 +274,8 @@ def _expand_pairs(
     pix = (pix0.index_select(0, rec) + (ly * width + lx).int()).index_select(0, keep)
     pix, order = torch.sort(pix, stable=True)  # runs per pixel, depth order kept inside each run
     sel = keep.index_select(0, order)
-    pix = pix.long()
-    gauss = g_rec.index_select(0, rec.index_select(0, sel))
+    index_dtype = torch.int32 if max(n, means2d.shape[0], pix.numel()) < 2**31 else torch.int64
+    gauss = g_rec.index_select(0, rec.index_select(0, sel)).to(index_dtype)
     dx, dy, raw = dx.index_select(0, sel), dy.index_select(0, sel), raw.index_select(0, sel)
     clamped = raw > ALPHA_MAX
     alpha = torch.where(clamped, torch.full_like(raw, ALPHA_MAX), raw)
@@ -286,7 +289,7 @@ def _expand_pairs(
     log_before = excl - excl.index_select(0, starts).index_select(0, seg)
     t_before = torch.exp(log_before.to(dtype))
     drawn = (log_before + log_t) >= torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=torch.float64))
-    seg_end = torch.cat([starts[1:] - 1, starts.new_tensor([pix.numel() - 1])]).index_select(0, seg)
+    seg_end = torch.cat([starts[1:] - 1, starts.new_tensor([pix.numel() - 1])]).index_select(0, seg).to(index_dtype)
     return _Pairs(gauss, pix, dx, dy, alpha, clamped, t_before, drawn, seg_end)
 
 
@@ -297,17 +300,18 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conic, opacity, feats, tiling, width, height):  # type: ignore[override]
         hw, nf = width * height, feats.shape[1]
         out = feats.new_zeros(nf, hw)
-        cached: list[_Pairs] = []
-        total = sum(c[2] for c in tiling.chunks)
+        cached: list[_Pairs | None] = []
+        cache_left = _CACHE_BYTES
         feats_t = feats.t().contiguous()  # [F, M]
         for chunk in tiling.chunks:
             p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
             w = p.alpha * p.t_before * p.drawn
             for k in range(nf):
                 out[k].index_add_(0, p.pix, w * feats_t[k].index_select(0, p.gauss))
-            if total <= _CACHE_PAIRS:
-                cached.append(p)
-        ctx.tiling, ctx.width, ctx.cached = tiling, width, (cached if total <= _CACHE_PAIRS else None)
+            keep = p.nbytes() <= cache_left
+            cache_left -= p.nbytes() if keep else 0
+            cached.append(p if keep else None)
+        ctx.tiling, ctx.width, ctx.cached = tiling, width, cached
         ctx.save_for_backward(means2d, conic, opacity, feats)
         return out
 
@@ -321,8 +325,9 @@ class _Composite(torch.autograd.Function):
         g_feats = torch.zeros_like(feats_t)  # [F, M]
         g_geo = means2d.new_zeros(6, means2d.shape[0])  # u, v, conic a, b, c, opacity
         for i, chunk in enumerate(tiling.chunks):
-            p = ctx.cached[i] if ctx.cached is not None else _expand_pairs(
-                tiling, chunk, means2d, conic, opacity, width)
+            p = ctx.cached[i]
+            if p is None:
+                p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
             w = p.alpha * p.t_before * p.drawn
             f = torch.zeros_like(w)  # dL/dw per pair: feats . grad_out at the pixel
             for k in range(nf):

@@ -153,7 +153,7 @@ def test_chunked_and_recomputed_backward_agree(monkeypatch: pytest.MonkeyPatch) 
 
     out_a, grads_a = run()
     monkeypatch.setattr(splatter, "_PAIR_BUDGET", 64)
-    monkeypatch.setattr(splatter, "_CACHE_PAIRS", 0)
+    monkeypatch.setattr(splatter, "_CACHE_BYTES", 0)
     out_b, grads_b = run()
     torch.testing.assert_close(out_b, out_a, rtol=1e-12, atol=1e-12)
     for g_a, g_b in zip(grads_a, grads_b):
