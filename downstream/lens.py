@@ -24,7 +24,7 @@ sRGB texture).
 
 from __future__ import annotations
 
-from typing import Literal, Sequence
+from typing import TYPE_CHECKING, Literal, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -35,6 +35,9 @@ from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import RuntimeState
 
 from .stage import Stage, StageContext
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .optics.bank import PSFBank
 
 __all__ = [
     "CARDBOARD_RADIAL", "pixel_grid", "lens_prewarp", "invert_map", "PrewarpMap", "RadialMap", "LUTMap",
@@ -85,14 +88,36 @@ def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | N
     return warped.transpose(0, 1).reshape(*lead, 3, b["Ho"], b["Wo"])
 
 
-def _interp_regular(values: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+Span = tuple[float, float]
+
+
+def _cell_centres(n: int) -> Span:
+    return -1.0 + 1.0 / n, 1.0 - 1.0 / n
+
+
+def _sample_span(name: str, coords: torch.Tensor | None, n: int) -> Span:
+    """(first, last) normalised coordinate of ``n`` uniform samples; None: cell centres of [-1, 1]."""
+    if coords is None:
+        return _cell_centres(n)
+    check_tensor(name, coords, [n], dtypes=_FLOATS, finite=True)
+    c = coords.detach().double().cpu()
+    step = c[1:] - c[:-1]
+    if not bool((step > 0).all()) or float((step - step.mean()).abs().max()) > 1e-6 * float(step.mean()) + 1e-12:
+        raise InputValueError(f"{name} must be uniformly spaced and increasing, got {c.tolist()[:4]}...")
+    return float(c[0]), float(c[-1])
+
+
+def _interp_regular(values: torch.Tensor, points: torch.Tensor, xs: Span | None = None, ys: Span | None = None) -> torch.Tensor:
     """Bilinear interpolation, linear extrapolation outside, of ``values`` ``[C, Gh, Gw, D]`` sampled
-    at the cell centres of a regular ``Gh x Gw`` grid over [-1, 1]^2 (pixel-centre convention),
-    at normalised (x, y) ``points`` ``[C, ..., 2]`` -> ``[C, ..., D]``. Needs Gh, Gw >= 2."""
+    on a regular grid whose x samples run uniformly from ``xs[0]`` to ``xs[1]`` (likewise y; default:
+    the cell centres of [-1, 1], pixel-centre convention), at normalised (x, y) ``points``
+    ``[C, ..., 2]`` -> ``[C, ..., D]``. Needs Gh, Gw >= 2."""
     c, gh, gw, d = values.shape
+    xs = xs or _cell_centres(gw)
+    ys = ys or _cell_centres(gh)
     pts = points.reshape(c, -1, 2)
-    fx = (pts[..., 0] + 1.0) * (0.5 * gw) - 0.5  # continuous cell index
-    fy = (pts[..., 1] + 1.0) * (0.5 * gh) - 0.5
+    fx = (pts[..., 0] - xs[0]) * ((gw - 1) / (xs[1] - xs[0]))  # continuous sample index
+    fy = (pts[..., 1] - ys[0]) * ((gh - 1) / (ys[1] - ys[0]))
     x0 = fx.detach().floor().clamp(0, gw - 2).long()
     y0 = fy.detach().floor().clamp(0, gh - 2).long()
     tx, ty = (fx - x0)[..., None], (fy - y0)[..., None]
@@ -106,14 +131,24 @@ def _interp_regular(values: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return out.reshape(*points.shape[:-1], d)
 
 
-def invert_map(forward_map: torch.Tensor, size: tuple[int, int], *, iterations: int = 30, tol: float = 1e-9) -> torch.Tensor:
+def invert_map(
+    forward_map: torch.Tensor,
+    size: tuple[int, int],
+    *,
+    sample_x: torch.Tensor | None = None,
+    sample_y: torch.Tensor | None = None,
+    iterations: int = 30,
+    tol: float = 1e-9,
+) -> torch.Tensor:
     """Numerically invert per-channel 2-D maps given on a regular grid.
 
     Args:
-        forward_map: ``[3, Gh, Gw, 2]``: ``F_c`` sampled at the cell centres of a regular grid over
-            [-1, 1]^2 (normalised (x, y), pixel-centre convention), bilinearly interpolated and
-            linearly extrapolated in between; must be locally invertible.
+        forward_map: ``[3, Gh, Gw, 2]``: ``F_c`` sampled on a regular grid of normalised (x, y)
+            positions, bilinearly interpolated and linearly extrapolated in between; must be
+            locally invertible.
         size: ``(H, W)`` of the output grid.
+        sample_x, sample_y: ``[Gw]``, ``[Gh]`` uniform sample coordinates; default: the cell
+            centres of [-1, 1] (pixel-centre convention).
     Returns:
         ``[3, H, W, 2]`` grid ``G_c`` with ``F_c(G_c(q)) = q`` at the pixel centres q (Newton's method
         in float64, no gradient through it).
@@ -121,19 +156,21 @@ def invert_map(forward_map: torch.Tensor, size: tuple[int, int], *, iterations: 
     check_tensor("forward_map", forward_map, [3, "Gh", "Gw", 2], dtypes=_FLOATS, finite=True)
     if min(forward_map.shape[1:3]) < 2:
         raise ShapeError(f"forward_map needs at least 2x2 samples, got {list(forward_map.shape)}")
+    xs = _sample_span("sample_x", sample_x, forward_map.shape[2])
+    ys = _sample_span("sample_y", sample_y, forward_map.shape[1])
     with torch.no_grad():
         fmap = forward_map.detach().double()
         target = pixel_grid(size, torch.float64, fmap.device).expand(3, -1, -1, -1)
-        g = 2.0 * target - _interp_regular(fmap, target)  # first-order inverse as the start
+        g = 2.0 * target - _interp_regular(fmap, target, xs, ys)  # first-order inverse as the start
         eps = 1e-6
         ex = torch.tensor([eps, 0.0], dtype=torch.float64, device=fmap.device)
         ey = torch.tensor([0.0, eps], dtype=torch.float64, device=fmap.device)
         for _ in range(iterations):
-            r = _interp_regular(fmap, g) - target  # [3, H, W, 2]
+            r = _interp_regular(fmap, g, xs, ys) - target  # [3, H, W, 2]
             if float(r.abs().max()) < tol:
                 break
-            jx = (_interp_regular(fmap, g + ex) - _interp_regular(fmap, g - ex)) / (2 * eps)  # dF/dx
-            jy = (_interp_regular(fmap, g + ey) - _interp_regular(fmap, g - ey)) / (2 * eps)  # dF/dy
+            jx = (_interp_regular(fmap, g + ex, xs, ys) - _interp_regular(fmap, g - ex, xs, ys)) / (2 * eps)  # dF/dx
+            jy = (_interp_regular(fmap, g + ey, xs, ys) - _interp_regular(fmap, g - ey, xs, ys)) / (2 * eps)  # dF/dy
             det = jx[..., 0] * jy[..., 1] - jy[..., 0] * jx[..., 1]
             if bool((det.abs() < 1e-12).any()):
                 raise InputValueError("forward_map is not invertible (its Jacobian vanishes somewhere)")
@@ -141,6 +178,15 @@ def invert_map(forward_map: torch.Tensor, size: tuple[int, int], *, iterations: 
             dy = (jx[..., 0] * r[..., 1] - jx[..., 1] * r[..., 0]) / det
             g = g - torch.stack([dx, dy], dim=-1)
     return g.to(forward_map.dtype)
+
+
+def _area_magnification(grid: torch.Tensor) -> torch.Tensor:
+    """``|det d grid / dp|`` of a sampling grid ``[3, H, W, 2]`` over normalised pixel centres
+    (central differences, one-sided at the border) -> ``[3, H, W]``."""
+    h, w = grid.shape[1:3]
+    dgx_dy, dgx_dx = torch.gradient(grid[..., 0], spacing=(2.0 / h, 2.0 / w), dim=(1, 2))
+    dgy_dy, dgy_dx = torch.gradient(grid[..., 1], spacing=(2.0 / h, 2.0 / w), dim=(1, 2))
+    return (dgx_dx * dgy_dy - dgx_dy * dgy_dx).abs()
 
 
 class PrewarpMap(nn.Module):
@@ -316,13 +362,15 @@ class LensPrewarp(Stage):
         size: tuple[int, int],
         *,
         direction: Literal["display_to_eye", "eye_to_display"] = "display_to_eye",
-        gain: torch.Tensor | None = None,
+        sample_x: torch.Tensor | None = None,
+        sample_y: torch.Tensor | None = None,
+        gain: torch.Tensor | Literal["jacobian"] | None = None,
     ) -> "LensPrewarp":
         """Build the LUT that compensates the lens's chief-ray mapping.
 
         Args:
-            chief_ray_map: ``[3, Gh, Gw, 2]`` per channel (R, G, B primaries), sampled at the cell
-                centres of a regular ``Gh x Gw`` grid over [-1, 1]^2 (normalised (x, y)):
+            chief_ray_map: ``[3, Gh, Gw, 2]`` per channel (R, G, B primaries), sampled on a regular
+                ``Gh x Gw`` grid of normalised (x, y) positions (``sample_x``, ``sample_y``):
                 - ``"display_to_eye"`` (what a PSF bank stores: a chief ray per display field
                   point): the virtual-image position, in the normalised frame of the rendered
                   image, where the display point is seen. The grid is this map at the display
@@ -330,19 +378,42 @@ class LensPrewarp(Stage):
                 - ``"eye_to_display"`` (rays traced from the eye): the display position that shows
                   the virtual-image point; it is inverted numerically (:func:`invert_map`).
             size: ``(H, W)`` of the LUT (the display/native resolution).
-            gain: optional ``[3, H, W]`` per-channel gain.
+            sample_x, sample_y: ``[Gw]``, ``[Gh]`` uniform coordinates of the samples; default:
+                the cell centres of [-1, 1] (pixel-centre convention).
+            gain: ``[3, H, W]`` per-channel gain; ``"jacobian"``: the area magnification
+                ``|det dD_c/dp|`` of the map at each display pixel, which undoes the brightness
+                fall-off of an energy-conserving lens (a display pixel's light spreads over that
+                area); it exceeds 1 off axis, so the display clips there unless the image is dimmer;
+                None: 1.
         """
         check_tensor("chief_ray_map", chief_ray_map, [3, "Gh", "Gw", 2], dtypes=_FLOATS, finite=True)
         if min(chief_ray_map.shape[1:3]) < 2:
             raise ShapeError(f"chief_ray_map needs at least 2x2 samples, got {list(chief_ray_map.shape)}")
+        xs = _sample_span("sample_x", sample_x, chief_ray_map.shape[2])
+        ys = _sample_span("sample_y", sample_y, chief_ray_map.shape[1])
         if direction == "display_to_eye":
             p = pixel_grid(size, chief_ray_map.dtype, chief_ray_map.device).expand(3, -1, -1, -1)
-            grid = _interp_regular(chief_ray_map.detach(), p)
+            grid = _interp_regular(chief_ray_map.detach(), p, xs, ys)
         elif direction == "eye_to_display":
-            grid = invert_map(chief_ray_map, size)
+            grid = invert_map(chief_ray_map, size, sample_x=sample_x, sample_y=sample_y)
         else:
             raise InputValueError(f"direction must be 'display_to_eye' or 'eye_to_display', got {direction!r}")
+        if isinstance(gain, str):
+            if gain != "jacobian":
+                raise InputValueError(f"gain must be a tensor, 'jacobian' or None, got {gain!r}")
+            gain = _area_magnification(grid)
         return cls(LUTMap(grid, gain))
+
+    @classmethod
+    def from_psf_bank(cls, bank: "PSFBank | None", size: tuple[int, int]) -> "LensPrewarp":
+        """Compensate the distortion and lateral colour of a PSF bank's lens (None: the shipped
+        Google-Cardboard bank): its chief rays (display -> eye, one map per primary) as a LUT."""
+        from .optics.bank import PSFBank
+
+        bank = bank if bank is not None else PSFBank.default()
+        if bank.chief.shape[0] != 3:
+            raise InputValueError(f"bank must have 3 wavelengths (R, G, B primaries), got {bank.wavelengths_nm}")
+        return cls.from_chief_ray_map(bank.chief, size, sample_x=bank.chief_x, sample_y=bank.chief_y)
 
     def bake(self, size: tuple[int, int]) -> "LensPrewarp":
         """A LUT copy of this stage's map at ``(H, W)`` (fixed, cheap at inference)."""

@@ -27,7 +27,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import torch
 from torch import nn
 
-from controlgs_adapter.checks import check_image, check_same_device
+from controlgs_adapter.checks import check_finite, check_image, check_same_device
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import RuntimeState
 
@@ -207,8 +207,9 @@ class Pipeline(nn.Module):
         if not isinstance(state, RuntimeState):
             raise InputValueError(f"state must be a RuntimeState, got {type(state).__name__}")
         if reference is not None:
-            check_image("reference", reference)
+            check_image("reference", reference, finite=False)
             check_same_device(image=image, reference=reference)
+            check_finite("reference", reference)
         if native_size is None:
             native = tuple(reference.shape[-2:]) if reference is not None else tuple(image.shape[-2:])
         else:

@@ -203,11 +203,15 @@ def test_call_errors_name_the_argument():
         p(torch.full((3, 8, 8), float("nan")), RuntimeState(2.0))
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a second device")
 def test_device_mismatch_names_the_arguments():
+    other = "cuda" if torch.cuda.is_available() else "meta"  # meta: a second device without a GPU
     p = Pipeline.from_config(ALL)
-    with pytest.raises(InputValueError, match="reference"):
-        p(torch.rand(3, 8, 8), RuntimeState(2.0, 0.3), reference=torch.rand(3, 8, 8, device="cuda"))
+    with pytest.raises(InputValueError, match="reference="):
+        p(torch.rand(3, 8, 8), RuntimeState(2.0, 0.3), reference=torch.rand(3, 8, 8, device=other))
+    with pytest.raises(InputValueError, match="grid="):
+        lens_prewarp(torch.rand(3, 8, 8), torch.zeros(3, 8, 8, 2, device=other))
+    with pytest.raises(InputValueError, match="reference="):
+        display_mapping(torch.rand(3, 8, 8), 0.3, torch.rand(3, 8, 8, device=other))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

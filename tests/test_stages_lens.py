@@ -220,3 +220,47 @@ def test_bad_input_names_the_argument():
         LensPrewarp.from_chief_ray_map(torch.zeros(3, 4, 4, 2), (4, 4), direction="sideways")  # type: ignore[arg-type]
     with pytest.raises(InputValueError, match="hidden"):
         MLPMap(hidden=0)
+
+
+def test_bank_prewarp_undoes_the_optics_distortion():
+    """Pre-warp from the shipped bank's chief rays, with the area-magnification gain, then the
+    optics stage's chief-ray warp: the eye sees the intended primaries (away from the border)."""
+    optics_stage = pytest.importorskip("controlgs_adapter.downstream.optics.stage")
+    from controlgs_adapter.downstream.color import primaries_to_rgb, rgb_to_primaries
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+
+    n = 64
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, n), torch.linspace(-1, 1, n), indexing="ij")
+    img = torch.stack([torch.cos(3 * xx + yy) * 0.2 + 0.3, torch.sin(2 * yy) * 0.2 + 0.3, xx * yy * 0.2 + 0.3])
+    bank = PSFBank.default()
+    prewarp = LensPrewarp.from_chief_ray_map(bank.chief, (n, n), sample_x=bank.chief_x, sample_y=bank.chief_y, gain="jacobian")
+    assert torch.allclose(LensPrewarp.from_psf_bank(bank, (n, n)).map.displacement, prewarp.map.displacement)
+    target = rgb_to_primaries(img)  # the optics is separable per primary: warp in that domain
+    shown = primaries_to_rgb(prewarp(target, STATE, StageContext((n, n))))
+    eye = rgb_to_primaries(optics_stage.optics(shown, bank, mode="distortion"))
+    plain = rgb_to_primaries(optics_stage.optics(img, bank, mode="distortion"))
+    centre = (slice(None), slice(8, -8), slice(8, -8))
+    assert float((eye - target)[centre].abs().max()) < 0.01
+    assert float((plain - target)[centre].abs().max()) > 0.1
+
+
+def test_jacobian_gain_of_a_radial_map_and_sample_coordinates():
+    k1 = 0.1
+    bank = RadialMap([[k1]] * 3)((33, 33), torch.float64, torch.device("cpu"))[0]  # samples at cell centres
+    stage = LensPrewarp.from_chief_ray_map(bank, (40, 40), gain="jacobian")
+    r2 = (pixel_grid((40, 40), torch.float64) ** 2).sum(-1)
+    f = 1 + k1 * r2
+    analytic = f * (f + 2 * k1 * r2)  # det d[p f(r)]/dp = f (f + r f'(r))
+    inner = (slice(None), slice(1, -1), slice(1, -1))
+    assert torch.allclose(stage.map.gain.double()[inner], analytic.expand(3, -1, -1)[inner], rtol=5e-3, atol=2e-3)
+    # the same map given on a grid that includes the edges (-1 .. 1), as PSF banks store chief rays
+    edges = torch.linspace(-1, 1, 33, dtype=torch.float64)
+    yy, xx = torch.meshgrid(edges, edges, indexing="ij")
+    p = torch.stack([xx, yy], -1)
+    bank_edges = (p * (1 + k1 * (p**2).sum(-1, keepdim=True))).expand(3, -1, -1, -1)
+    other = LensPrewarp.from_chief_ray_map(bank_edges, (40, 40), sample_x=edges, sample_y=edges)
+    assert torch.allclose(other.map.displacement, stage.map.displacement, atol=2e-3)
+    with pytest.raises(InputValueError, match="sample_x"):
+        LensPrewarp.from_chief_ray_map(bank_edges, (8, 8), sample_x=edges.flip(0), sample_y=edges)
+    with pytest.raises(InputValueError, match="gain"):
+        LensPrewarp.from_chief_ray_map(bank_edges, (8, 8), sample_x=edges, sample_y=edges, gain="area")  # type: ignore[arg-type]
