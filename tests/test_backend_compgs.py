@@ -177,3 +177,17 @@ def test_decode_matches_per_primitive_float64_loop():
         assert torch.allclose(g.means[i].double(), want[key][0], atol=1e-5)
         assert torch.allclose(g.scales[i].double(), want[key][1], atol=1e-6)
         assert abs(float(g.opacities[i]) - float(want[key][2])) < 1e-5
+
+
+def test_visible_anchors_and_render():
+    from _family_checks import make_camera
+
+    arr = _arrays(7)
+    arr["means"][0] = (0.0, 0.0, -9.0)  # behind the camera at z = -5
+    model = _model(arr, 7)
+    cam = make_camera()
+    visible = model.visible_anchors(cam)
+    assert not bool(visible[0]) and bool(visible[1:].any())
+    with torch.no_grad():
+        out = model.render(cam)
+    assert out.color.shape == (3, cam.height, cam.width) and torch.isfinite(out.color).all()

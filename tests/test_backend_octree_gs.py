@@ -255,3 +255,49 @@ def test_load_octree_anygs_dir(tmp_path):
     write_ply(it / "point_cloud.ply", fields)  # LOD metadata lost
     with pytest.raises(FileFormatError, match="obj_info standard_dist"):
         load_octree_gs_dir(root)
+
+
+class _Embedding(nn.Module):
+    """Scaffold/Octree-GS's appearance embedding wrapper (``embedding = nn.Embedding``)."""
+
+    def __init__(self, n: int, dim: int) -> None:
+        super().__init__()
+        self.embedding = nn.Embedding(n, dim)
+
+    def forward(self, ids: torch.Tensor) -> torch.Tensor:
+        return self.embedding(ids)
+
+
+def test_load_feature_bank_and_appearance(tmp_path):
+    """use_feat_bank (input [view, level]) and appearance_dim > 0 (code appended last to colour)."""
+    app_dim, n_cams = 4, 3
+    arr = _arrays(7)
+    torch.manual_seed(7)
+    decs = {"mlp_opacity": nn.Sequential(nn.Linear(F + 5, F), nn.ReLU(), nn.Linear(F, K), nn.Tanh()),
+            "mlp_cov": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, 7 * K)),
+            "mlp_color": nn.Sequential(nn.Linear(F + 4 + app_dim, F), nn.ReLU(), nn.Linear(F, 3 * K), nn.Sigmoid())}
+    bank = nn.Sequential(nn.Linear(3 + 1, F), nn.ReLU(), nn.Linear(F, 3), nn.Softmax(dim=1))
+    emb = _Embedding(n_cams, app_dim)
+    root = _write_dir(tmp_path / "s", arr, decs)
+    write_cfg_args(root / "cfg_args", **{**CFG, "use_feat_bank": True, "appearance_dim": app_dim})
+    it = root / "point_cloud" / "iteration_30000"
+    torch.jit.trace(bank, torch.randn(5, 4)).save(str(it / "feature_bank_mlp.pt"))
+    torch.jit.trace(emb, torch.zeros(5, dtype=torch.long)).save(str(it / "embedding_appearance.pt"))
+    model = load_octree_gs_dir(root)
+    assert model.use_feat_bank and model.appearance_dim == app_dim
+    cam = torch.tensor([0.0, 0.3, 3.0])
+    ids = torch.tensor([1, 4, 5, 9])
+    x = model.decoder_inputs(cam, ids, appearance_id=2)
+    # float64 reference of the view-adaptive feature and the colour input
+    a = torch.from_numpy(arr["anchor"]).double()[ids]
+    d = a - cam.double()
+    dist = d.norm(dim=1, keepdim=True)
+    lvl = torch.from_numpy(arr["level"]).double()[ids, None]
+    w = bank.double()(torch.cat([d / dist, lvl], dim=1))
+    f = torch.from_numpy(arr["feat"]).double()[ids]
+    feat = f[:, ::4].repeat(1, 4) * w[:, :1] + f[:, ::2].repeat(1, 2) * w[:, 1:2] + f * w[:, 2:]
+    want_color = torch.cat([feat, d / dist, lvl, emb.embedding.weight.double()[2].expand(4, -1)], dim=1)
+    assert torch.allclose(x["mlp_color"].double(), want_color, atol=1e-5)
+    assert torch.allclose(x["mlp_opacity"].double(), torch.cat([feat, d / dist, dist, lvl], dim=1), atol=1e-5)
+    assert OctreeGSBackend().default_targets(model) == ["mlp_opacity", "mlp_cov", "mlp_color"]
+    assert "mlp_feature_bank" in OctreeGSBackend().decoder_paths(model)
