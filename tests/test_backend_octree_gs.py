@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from _family_checks import check_wrap_identity_and_rows, outputs, write_cfg_args
+from controlgs_adapter import Camera
 from controlgs_adapter.backends.formats import write_ply
 from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend, OctreeGSModel, load_octree_gs_dir, lod_anchor_ids
@@ -301,3 +302,29 @@ def test_load_feature_bank_and_appearance(tmp_path):
     assert torch.allclose(x["mlp_opacity"].double(), torch.cat([feat, d / dist, dist, lvl], dim=1), atol=1e-5)
     assert OctreeGSBackend().default_targets(model) == ["mlp_opacity", "mlp_cov", "mlp_color"]
     assert "mlp_feature_bank" in OctreeGSBackend().decoder_paths(model)
+
+
+def test_progressive_opacity_ratio():
+    """dist2level='progressive': anchors at their transition level have their neural opacity scaled
+    by the fractional level (float64 reference); the decoders' inputs are unchanged."""
+    arr = _arrays(8)
+    model = _model(arr, _decoders(torch.Generator().manual_seed(8)))
+    model.dist2level = "progressive"
+    cam = torch.tensor([0.1, 0.0, 2.5])
+    model.set_anchor_mask(cam)
+    levels = int(arr["level"].max() - arr["level"].min() + 1)
+    pos = arr["anchor"].astype(np.float64) + (VOXEL / 2) / FORK ** arr["level"][:, None]
+    pred = np.log2(STD_DIST / np.linalg.norm(pos - cam.double().numpy(), axis=1)) / math.log2(FORK) + arr["extra"]
+    p = np.clip(pred + 1.0, 0.9999, levels - 1 + 0.9999)
+    level = np.floor(p)
+    assert model._anchor_mask.tolist() == (arr["level"] <= level).tolist()
+    ratio = np.where(arr["level"] == level, p - level, 1.0)
+    ids = model._anchor_mask.nonzero().squeeze(1)
+    w2c = torch.eye(4)
+    w2c[:3, 3] = -cam
+    with torch.no_grad():
+        g = model.decode(Camera(w2c, torch.tensor([[30.0, 0, 16], [0, 30.0, 16], [0, 0, 1]]), 32, 32), model._anchor_mask)
+        raw = model.mlp_opacity(model.decoder_inputs(cam, ids)["mlp_opacity"])  # [R, K]
+    want = raw.double() * torch.from_numpy(ratio[ids.numpy()])[:, None]
+    assert torch.allclose(g.neural_opacity.double(), want.reshape(-1), atol=1e-6)
+    assert bool((torch.from_numpy(ratio[ids.numpy()]) < 1).any())
