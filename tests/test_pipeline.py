@@ -244,3 +244,18 @@ def test_gradcheck_pipeline():
     p = Pipeline.from_config(ALL).double()
     for state in (RuntimeState(2.0, 0.3), RuntimeState(1.5, 0.0)):
         assert torch.autograd.gradcheck(lambda x: p(x, state, reference=gt), (image,))
+
+
+def test_pipeline_with_the_optics_stage():
+    if "optics" not in plugins.stages():
+        pytest.skip("optics stage not registered")
+    from controlgs_adapter.downstream.optics.stage import optics
+
+    p = Pipeline.from_config({**ALL, "optics": {"mode": "distortion"}})
+    assert p.names[-2:] == ["oled", "optics"]
+    image, gt = torch.rand(3, 32, 32), torch.rand(3, 32, 32)
+    eye, inter = p(image, RuntimeState(2.0, 0.3), reference=gt, record=True)
+    displayed = srgb_to_linear(inter["displayed"])
+    assert torch.allclose(eye, linear_to_srgb(optics(displayed, p["optics"].bank, mode="distortion")), atol=1e-5)
+    assert inter["stages_run"] == ["lens", "resample", "display", "oled", "optics"]
+    assert not torch.allclose(inter["displayed"], eye, atol=1e-3)
