@@ -16,7 +16,7 @@ from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.controlgs import ControlGS
-from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.errors import FileFormatError, TargetError
 
 A, K, C, G = 9, 10, 32, 8  # CompGS MipNeRF360 config: derive_factor 10, ref_feats_dim 32, res_feats_dim 8
 
@@ -69,6 +69,11 @@ def test_recognition_targets_and_rows():
     assert widths == {"means_pred_mlp": (C + G, C), "covariance_pred_mlp": (C + G, C),
                       "opacity_pred_mlp": (C + G + 4, C), "color_pred_mlp": (C + G + 4, C)}
     assert b.rows_per_anchor(model) == K
+    assert b.input_layout(model, COMPGS_DECODERS[3]) == [("ref_feat", C), ("res_feat", G), ("view", 3), ("dist", 1)]
+    with torch.no_grad():  # features that do not fit the decoders: a named error
+        model.gaussian_params.res_feats = torch.nn.Parameter(torch.zeros(A, K, G + 1), requires_grad=False)
+    with pytest.raises(TargetError, match="means_pred_mlp.net.0. takes 40 inputs"):
+        b.check_decoder(model, COMPGS_DECODERS[0])
     assert b.row_anchor_ids(torch.tensor([4, 1]), K).tolist() == [4] * K + [1] * K
     for name, n_res in (("means", 1), ("covariance", 1), ("opacity", 1), ("color", 2)):
         assert set(get_attr_path(model, f"network.prediction_net.{name}_pred_mlp").state_dict()) == _keys(n_res)
