@@ -12,6 +12,7 @@ from _family_checks import STATE, check_wrap_identity_and_rows, outputs
 from controlgs_adapter.backend import get_attr_path
 from controlgs_adapter.backends.compgs import COMPGS_DECODERS, CompGSBackend, CompGSModel, load_compgs_dir
 from controlgs_adapter.backends.formats import write_ply
+from controlgs_adapter.backends.contextgs import ContextGSBackend
 from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
@@ -62,7 +63,7 @@ def test_recognition_targets_and_rows():
     model = _model(_arrays(0), 0)
     b = CompGSBackend()
     assert b.matches(model)
-    assert not any(o.matches(model) for o in (ScaffoldGSBackend(), HACBackend(), OctreeGSBackend()))
+    assert not any(o.matches(model) for o in (ScaffoldGSBackend(), HACBackend(), OctreeGSBackend(), ContextGSBackend()))
     assert b.default_targets(model) == list(COMPGS_DECODERS)
     widths = {p.split(".")[-1]: (b.check_decoder(model, p).in_features, b.check_decoder(model, p).out_features)
               for p in b.decoder_paths(model)}

@@ -11,7 +11,9 @@ from torch import nn
 from _family_checks import check_wrap_identity_and_rows, outputs, write_cfg_args
 from controlgs_adapter.backends.contextgs import ContextGSBackend, ContextGSModel, load_contextgs_dir, quantize_anchor
 from controlgs_adapter.backends.formats import read_ply, write_ply
+from controlgs_adapter.backends.compgs import CompGSBackend
 from controlgs_adapter.backends.hac import HACBackend
+from controlgs_adapter.backends.octree_gs import OctreeGSBackend
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.errors import FileFormatError
 
@@ -79,7 +81,7 @@ def test_recognition_and_quantised_positions():
     arr = _arrays(0, decoded=False)
     model = _model(arr, _decoders(0), decoded=False)
     b = ContextGSBackend()
-    assert b.matches(model) and not HACBackend().matches(model)
+    assert b.matches(model) and not any(o.matches(model) for o in (HACBackend(), OctreeGSBackend(), CompGSBackend()))
     assert ScaffoldGSBackend().matches(model)  # generic; ContextGS is registered before it
     assert b.input_layout(model, "mlp_color") == [("feat", 50), ("view", 3), ("dist", 1)]
     got = b.anchor_positions(model).double()

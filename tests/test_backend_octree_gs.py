@@ -13,6 +13,8 @@ from torch import nn
 from _family_checks import check_wrap_identity_and_rows, outputs, write_cfg_args
 from controlgs_adapter import Camera
 from controlgs_adapter.backends.formats import write_ply
+from controlgs_adapter.backends.compgs import CompGSBackend
+from controlgs_adapter.backends.contextgs import ContextGSBackend
 from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend, OctreeGSModel, load_octree_gs_dir, lod_anchor_ids
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
@@ -82,7 +84,7 @@ def test_recognition_and_targets():
     gen = torch.Generator().manual_seed(0)
     model = _model(_arrays(), _decoders(gen))
     b = OctreeGSBackend()
-    assert b.matches(model) and not HACBackend().matches(model)
+    assert b.matches(model) and not any(o.matches(model) for o in (HACBackend(), ContextGSBackend(), CompGSBackend()))
     assert ScaffoldGSBackend().matches(model)  # generic; Octree-GS is registered before it
     assert b.default_targets(model) == ["mlp_opacity", "mlp_cov", "mlp_color"]
     assert [w for _, w in b.input_layout(model, "mlp_opacity")] == [F, 3, 1, 1]
