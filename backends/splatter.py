@@ -27,6 +27,7 @@ How it is fast (2 CPU cores, no compiled extension):
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -302,12 +303,16 @@ class _Composite(torch.autograd.Function):
         out = feats.new_zeros(nf, hw)
         cached: list[_Pairs | None] = []
         cache_left = _CACHE_BYTES
-        feats_t = feats.t().contiguous()  # [F, M]
         for chunk in tiling.chunks:
             p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
             w = p.alpha * p.t_before * p.drawn
-            for k in range(nf):
-                out[k].index_add_(0, p.pix, w * feats_t[k].index_select(0, p.gauss))
+            # out[pix] += w feats[gauss]: the pairs are sorted by pixel, i.e. a CSR matrix [HW, M]
+            crow = torch.zeros(hw + 1, dtype=p.pix.dtype, device=w.device)
+            crow[1:] = torch.cumsum(torch.bincount(p.pix, minlength=hw), 0)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+                weights = torch.sparse_csr_tensor(crow, p.gauss, w, (hw, feats.shape[0]), check_invariants=False)
+                out += (weights @ feats).t()
             keep = p.nbytes() <= cache_left
             cache_left -= p.nbytes() if keep else 0
             cached.append(p if keep else None)
@@ -324,6 +329,7 @@ class _Composite(torch.autograd.Function):
         feats_t = feats.t().contiguous()
         g_feats = torch.zeros_like(feats_t)  # [F, M]
         g_geo = means2d.new_zeros(6, means2d.shape[0])  # u, v, conic a, b, c, opacity
+        conic_t = conic.t().contiguous()  # [3, M]
         for i, chunk in enumerate(tiling.chunks):
             p = ctx.cached[i]
             if p is None:
@@ -340,7 +346,8 @@ class _Composite(torch.autograd.Function):
             behind = (csum.index_select(0, p.seg_end) - csum).to(w.dtype)
             g_alpha = (p.t_before * f - behind / (1 - p.alpha)) * p.drawn
             g_pow = torch.where(p.clamped, torch.zeros_like(g_alpha), g_alpha * p.alpha)  # dalpha/dpower = alpha
-            ca, cb, cc, o = torch.cat([conic, opacity.unsqueeze(-1)], -1).t().contiguous().index_select(1, p.gauss)
+            ca, cb, cc = (row.index_select(0, p.gauss) for row in conic_t)
+            o = opacity.index_select(0, p.gauss)
             dx, dy = p.dx, p.dy
             per_pair = (
                 g_pow * (ca * dx + cb * dy),  # d power / d u = -d power / d dx
