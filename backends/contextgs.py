@@ -34,8 +34,8 @@ from controlgs_adapter.errors import FileFormatError
 
 from .family_common import as_param, check_first_width, has_attrs, iteration_dir
 from .formats import load_state_dict_file, read_cfg_args
-from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, _tensors, decided_variant, drop_invalid,
-                  decoders_from_checkpoint, read_masked_anchor_ply)
+from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, _tensors, decoders_from_checkpoint, drop_invalid,
+                  read_masked_anchor_ply, resolve_decoded)
 from .scaffold_gs import ScaffoldGSBackend
 
 __all__ = ["ContextGSBackend", "ContextGSModel", "load_contextgs_dir", "quantize_anchor"]
@@ -103,10 +103,10 @@ def load_contextgs_dir(path: str | Path, iteration: int | None = None, *, decode
     k, f = int(cfg.get("n_offsets", 10)), int(cfg.get("feat_dim", 50))
     folder = iteration_dir(root, iteration, family="ContextGS")
     ply = folder / "point_cloud.ply"
-    arrays = read_masked_anchor_ply(ply, n_offsets=k, feat_dim=f, mask_columns=k)
+    arrays = read_masked_anchor_ply(ply, n_offsets=k, feat_dim=f, mask_columns=(k,))
     if "hyper_latent" not in arrays:
         raise FileFormatError(f"{ply}: missing PLY field(s) ['f_hyper_latent_0'] (not a ContextGS point cloud?)")
-    is_decoded = decided_variant(decoded, arrays, extra_mask_column=False, allow_unquantized=allow_unquantized,
+    is_decoded = resolve_decoded(decoded, arrays, extra_mask_column=False, allow_unquantized=allow_unquantized,
                                  source=str(ply), family="ContextGS",
                                  why="with its anchor-level context model (latent_codec entropy bottleneck + mlp_grid)")
     ckpt = folder / "checkpoint.pth"

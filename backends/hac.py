@@ -237,8 +237,10 @@ def decoders_from_checkpoint(sd: dict[str, Any], path: Path, *, feature_bank: bo
     return out
 
 
-def read_masked_anchor_ply(ply: Path, *, n_offsets: int, feat_dim: int, mask_columns: int) -> dict[str, np.ndarray]:
-    """Read the common PLY columns of HAC/HAC++/ContextGS into arrays (see module docstring)."""
+def read_masked_anchor_ply(ply: Path, *, n_offsets: int, feat_dim: int,
+                           mask_columns: tuple[int, ...]) -> dict[str, np.ndarray]:
+    """Read the common PLY columns of HAC/HAC++/ContextGS into arrays (see module docstring);
+    ``mask_columns`` lists the allowed numbers of ``f_mask_*`` columns."""
     fields, _ = read_ply(ply)
     src = str(ply)
     require_fields(fields, ["x", "y", "z", *(f"scale_{i}" for i in range(6))], source=src)
@@ -246,25 +248,22 @@ def read_masked_anchor_ply(ply: Path, *, n_offsets: int, feat_dim: int, mask_col
     if feat.shape[1] != feat_dim:
         raise FileFormatError(f"{src}: {feat.shape[1]} f_anchor_feat_* fields, the configuration says feat_dim={feat_dim}")
     mask = ply_columns(fields, "f_mask_", source=src)
-    if mask.shape[1] != mask_columns:
-        raise FileFormatError(f"{src}: {mask.shape[1]} f_mask_* fields, expected {mask_columns} for n_offsets={n_offsets}")
-    n = fields["x"].shape[0]
+    if mask.shape[1] not in mask_columns:
+        raise FileFormatError(f"{src}: {mask.shape[1]} f_mask_* fields, expected {' or '.join(map(str, mask_columns))} "
+                              f"for n_offsets={n_offsets}")
     out = {
         "anchor": np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32),
         "offset": ply_offsets(fields, n_offsets, source=src), "mask": mask[:, :, None], "anchor_feat": feat,
         "scaling": ply_columns(fields, "scale_", count=6, source=src),
     }
-    # decoded PLYs truncate 'opacity' and 'rot_*' to the valid anchors (they are not decoder inputs)
-    if "rot_0" in fields and fields["rot_0"].shape[0] == n:
+    if "rot_0" in fields:
         out["rotation"] = ply_columns(fields, "rot_", count=4, source=src)
-    for k, v in fields.items():
-        if k.startswith("f_hyper_latent_"):
-            out["hyper_latent"] = ply_columns(fields, "f_hyper_latent_", source=src)
-            break
+    if "f_hyper_latent_0" in fields:
+        out["hyper_latent"] = ply_columns(fields, "f_hyper_latent_", source=src)
     return out
 
 
-def decided_variant(decoded: bool | None, arrays: dict[str, np.ndarray], *, extra_mask_column: bool, allow_unquantized: bool,
+def resolve_decoded(decoded: bool | None, arrays: dict[str, np.ndarray], *, extra_mask_column: bool, allow_unquantized: bool,
                     source: str, family: str, why: str) -> bool:
     """Resolve decoded-vs-raw (explicit, else inferred) and refuse a raw model unless allowed."""
     if decoded is None:
@@ -295,13 +294,9 @@ def load_hac_dir(path: str | Path, iteration: int | None = None, *, decoded: boo
     k, f = int(cfg.get("n_offsets", 10)), int(cfg.get("feat_dim", 50))
     folder = iteration_dir(root, iteration, family="HAC/HAC++")
     ply = folder / "point_cloud.ply"
-    head, _ = read_ply(ply)
-    n_mask = sum(1 for name in head if name.startswith("f_mask_"))
-    if n_mask not in (k, k + 1):
-        raise FileFormatError(f"{ply}: {n_mask} f_mask_* fields: neither HAC (n_offsets={k}) nor HAC++ (n_offsets + 1)")
-    variant = "hac++" if n_mask == k + 1 else "hac"
-    arrays = read_masked_anchor_ply(ply, n_offsets=k, feat_dim=f, mask_columns=n_mask)
-    is_decoded = decided_variant(decoded, arrays, extra_mask_column=variant == "hac++", allow_unquantized=allow_unquantized,
+    arrays = read_masked_anchor_ply(ply, n_offsets=k, feat_dim=f, mask_columns=(k, k + 1))  # HAC: K, HAC++: K + 1
+    variant = "hac++" if arrays["mask"].shape[1] == k + 1 else "hac"
+    is_decoded = resolve_decoded(decoded, arrays, extra_mask_column=variant == "hac++", allow_unquantized=allow_unquantized,
                                  source=str(ply), family=variant.upper(), why="with the hash grid + mlp_grid "
                                  "(x_bound only in the pickled bitstreams/x_bound_*.pkl, which are not unpickled)")
     voxel_size = float(cfg.get("voxel_size", 0.0))
