@@ -104,7 +104,8 @@ def to_markdown(rows: list[dict], device: torch.device) -> str:
         "",
         f"`python benchmarks/bench_stages.py` on {where}, torch {torch.__version__}, float32, image `[1, 3, S, S]`;"
         f" load average at the end {load:.1f}.",
-        "Median times; `x` = ratio to an elementwise copy of the same image in the same run (memory-bound unit).",
+        "Median times; `x` = ratio to an elementwise copy of the same image in the same run (memory-bound unit)."
+        " On a shared machine absolute times vary with the load; compare ratios within one run.",
         "Display and OLED rows run at the display size of d = 2.5. The pipeline is lens + resample + display +"
         " OLED with the sRGB decode/encode (the optics/PSF stage is not included).",
         "",

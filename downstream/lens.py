@@ -261,9 +261,13 @@ class LUTMap(PrewarpMap):
         ident = pixel_grid((b["H"], b["W"]), grid.dtype, grid.device)
         self.register_buffer("displacement", (grid.detach() - ident).float())  # [3, Hl, Wl, 2]
         self.register_buffer("gain", gain.detach().float())  # [3, Hl, Wl]
+        self._identity: tuple[tuple, bool] | None = None  # (buffer versions, answer)
 
     def is_identity(self) -> bool:  # noqa: D102
-        return not bool(self.displacement.any()) and bool((self.gain == 1).all())
+        key = tuple((t.data_ptr(), t._version) for t in (self.displacement, self.gain))
+        if self._identity is None or self._identity[0] != key:  # O(N) scan only after a change
+            self._identity = (key, not bool(self.displacement.any()) and bool((self.gain == 1).all()))
+        return self._identity[1]
 
     def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: D102
         disp, gain = self.displacement.to(dtype), self.gain.to(dtype)

@@ -220,12 +220,12 @@ class Pipeline(nn.Module):
             raise ShapeError(f"image {list(image.shape)} is larger than the native size {native}")
         ctx = StageContext(native_size=native, reference=reference, record={} if record else None)
         x, domain = image, "srgb"
-        rendered_post: torch.Tensor | None = None
+        post_image: torch.Tensor | None = None
         displayed: torch.Tensor | None = None
         ran: list[str] = []
         for stage in self.stages:
-            if record and rendered_post is None and stage.name in PHYSICAL_STAGES:
-                rendered_post = convert_domain(x, domain, "srgb").detach()
+            if record and post_image is None and stage.name in PHYSICAL_STAGES:
+                post_image = convert_domain(x, domain, "srgb").detach()
             if stage.is_identity(state):
                 continue
             x = stage(convert_domain(x, domain, stage.domain), state, ctx)
@@ -236,7 +236,7 @@ class Pipeline(nn.Module):
         eye = convert_domain(x, domain, "srgb")
         if not record:
             return eye
-        post = eye.detach() if rendered_post is None else rendered_post
+        post = eye.detach() if post_image is None else post_image
         intermediates = {
             "rendered": image.detach(), "post": post, "displayed": post if displayed is None else displayed,
             "eye": eye.detach(), "stages_run": ran, "diagnostics": ctx.record,

@@ -6,7 +6,7 @@ average of the input pixels it covers: along an axis of ``S`` pixels resampled t
 ``n = max(1, round(S / d))`` pixels (the same rounding as :meth:`Camera.scaled`), output pixel
 ``j`` covers ``[j S/n, (j+1) S/n)`` and input pixel ``i`` contributes its overlap with that
 interval divided by ``S/n``. For an integer ``d`` that divides S this is exactly average pooling
-(and uses ``avg_pool2d``). The filter is separable and applied as two banded gathers
+(and uses ``avg_pool2d``). The filter is separable and applied as two banded row gathers
 (``ceil(S/n) + 1`` taps per output pixel), so its cost is O(S^2) whatever d is.
 
 Domain: linear light (filtering averages emitted light; decode sRGB before, as the pipeline does).
@@ -67,18 +67,16 @@ def _area_taps(n_in: int, n_out: int, dtype: torch.dtype, device: torch.device) 
     return idx.clamp(max=n_in - 1).to(device), w.to(dtype=dtype, device=device)
 
 
-def _resample_axis(x: torch.Tensor, dim: int, n_out: int) -> torch.Tensor:
-    n_in = x.shape[dim]
+def _resample_rows(x: torch.Tensor, n_out: int) -> torch.Tensor:
+    """Area filter along dim -2 (whole rows are gathered: contiguous copies), ``K`` taps."""
+    n_in = x.shape[-2]
     if n_in == n_out:
         return x
     idx, w = _area_taps(n_in, n_out, x.dtype, x.device)
-    gathered = x.index_select(dim, idx.reshape(-1))  # [..., n_out*K, ...]
-    shape = list(x.shape)
-    shape[dim:dim + 1] = list(idx.shape)
-    gathered = gathered.reshape(shape)
-    if dim == x.dim() - 1:
-        return (gathered * w).sum(-1)
-    return (gathered * w[:, :, None]).sum(dim + 1)
+    out = x.index_select(-2, idx[:, 0]) * w[:, 0, None]
+    for k in range(1, idx.shape[1]):
+        out = out + x.index_select(-2, idx[:, k]) * w[:, k, None]
+    return out
 
 
 def _area_resample_to(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -89,7 +87,8 @@ def _area_resample_to(image: torch.Tensor, size: tuple[int, int]) -> torch.Tenso
         k = h // size[0]
         flat = image.reshape(-1, 3, h, w)
         return F.avg_pool2d(flat, k).reshape(*image.shape[:-2], *size)
-    return _resample_axis(_resample_axis(image, image.dim() - 1, size[1]), image.dim() - 2, size[0])
+    rows = _resample_rows(image, size[0])  # [..., h', W]
+    return _resample_rows(rows.transpose(-1, -2), size[1]).transpose(-1, -2).contiguous()
 
 
 def area_resample(image: torch.Tensor, d: float) -> torch.Tensor:
