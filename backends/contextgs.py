@@ -34,8 +34,8 @@ from controlgs_adapter.errors import FileFormatError
 
 from .family_common import as_param, check_first_width, has_attrs, iteration_dir
 from .formats import load_state_dict_file, read_cfg_args
-from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, _tensors, decoders_from_checkpoint, drop_invalid,
-                  read_masked_anchor_ply, resolve_decoded)
+from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, anchor_tensors, decoders_from_checkpoint,
+                  drop_invalid, read_masked_anchor_ply, resolve_decoded)
 from .scaffold_gs import ScaffoldGSBackend
 
 __all__ = ["ContextGSBackend", "ContextGSModel", "load_contextgs_dir", "quantize_anchor"]
@@ -121,7 +121,7 @@ def load_contextgs_dir(path: str | Path, iteration: int | None = None, *, decode
     elif not is_decoded:
         raise FileFormatError(f"{ckpt}: missing entry 'bound' ([x_bound_min, x_bound_max]) needed to quantise the raw model's anchors")
     model = ContextGSModel(hyper_latent=torch.from_numpy(np.ascontiguousarray(arrays["hyper_latent"])), x_bound_min=lo,
-                           x_bound_max=hi, decoded_version=is_decoded, **_tensors(arrays), **decoders)
+                           x_bound_max=hi, decoded_version=is_decoded, **anchor_tensors(arrays), **decoders)
     for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
         check_first_width(getattr(model, dec), f + 4, name=dec, source=str(ckpt), layout="feat, view 3, dist 1")
     return drop_invalid(model)

@@ -305,13 +305,14 @@ def load_hac_dir(path: str | Path, iteration: int | None = None, *, decoded: boo
                               f"whose size was estimated at training time and not saved; cannot reproduce get_anchor")
     ckpt = folder / "checkpoint.pth"
     decoders = decoders_from_checkpoint(load_state_dict_file(ckpt), ckpt, feature_bank=bool(cfg.get("use_feat_bank", False)))
-    model = HACModel(voxel_size=voxel_size, variant=variant, decoded_version=is_decoded, **_tensors(arrays), **decoders)
+    model = HACModel(voxel_size=voxel_size, variant=variant, decoded_version=is_decoded, **anchor_tensors(arrays), **decoders)
     for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
         check_first_width(getattr(model, dec), f + 4, name=dec, source=str(folder / "checkpoint.pth"), layout="feat, view 3, dist 1")
     return drop_invalid(model)
 
 
-def _tensors(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+def anchor_tensors(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """The arrays of :func:`read_masked_anchor_ply` that :class:`MaskedAnchorModel` takes, as tensors."""
     keep = ("anchor", "offset", "mask", "anchor_feat", "scaling", "rotation")
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in arrays.items() if k in keep}
 
