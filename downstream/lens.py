@@ -24,6 +24,8 @@ sRGB texture).
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Sequence
 
 import torch
@@ -31,7 +33,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from controlgs_adapter.checks import check_image, check_same_device, check_tensor
-from controlgs_adapter.errors import InputValueError, ShapeError
+from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError
+from controlgs_adapter.io import load_tensors, save_tensors
 from controlgs_adapter.state import RuntimeState
 
 from .stage import Stage, StageContext
@@ -52,6 +55,8 @@ CARDBOARD_RADIAL: tuple[tuple[float], tuple[float], tuple[float]] = (
 )
 
 _FLOATS = (torch.float32, torch.float64)
+LUT_KIND = "controlgs-prewarp-lut"
+LUT_FORMAT_VERSION = 1
 
 
 def pixel_grid(size: tuple[int, int], dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -418,6 +423,30 @@ class LensPrewarp(Stage):
         if bank.chief.shape[0] != 3:
             raise InputValueError(f"bank must have 3 wavelengths (R, G, B primaries), got {bank.wavelengths_nm}")
         return cls.from_chief_ray_map(bank.chief, size, sample_x=bank.chief_x, sample_y=bank.chief_y)
+
+    def save_lut(self, path: str | os.PathLike, size: tuple[int, int] | None = None) -> Path:
+        """Write the map as a LUT (safetensors, atomic): the LUT itself, or the map baked at
+        ``size`` (required unless the map is a :class:`LUTMap`). Returns the path."""
+        if size is None:
+            if not isinstance(self.map, LUTMap):
+                raise InputValueError(f"size is required to save a {type(self.map).__name__} as a LUT")
+            lut = self.map
+        else:
+            lut = self.bake(size).map
+        grid = (lut.displacement + pixel_grid(tuple(lut.gain.shape[1:]), lut.gain.dtype, lut.gain.device)).float()
+        header = {"size": list(lut.gain.shape[1:]), "source": type(self.map).__name__,
+                  "units": {"grid": "normalised (x, y) sampling positions, align_corners=False", "gain": "factor"}}
+        return save_tensors(path, {"grid": grid, "gain": lut.gain.float()}, header, kind=LUT_KIND,
+                            format_version=LUT_FORMAT_VERSION)
+
+    @classmethod
+    def load_lut(cls, path: str | os.PathLike) -> "LensPrewarp":
+        """Read a LUT written by :meth:`save_lut`."""
+        tensors, _ = load_tensors(path, kind=LUT_KIND, max_version=LUT_FORMAT_VERSION)
+        missing = {"grid", "gain"} - set(tensors)
+        if missing:
+            raise FileFormatError(f"{path}: pre-warp LUT lacks {sorted(missing)}")
+        return cls.from_lut(tensors["grid"], tensors["gain"])
 
     def bake(self, size: tuple[int, int]) -> "LensPrewarp":
         """A LUT copy of this stage's map at ``(H, W)`` (fixed, cheap at inference)."""

@@ -264,3 +264,24 @@ def test_jacobian_gain_of_a_radial_map_and_sample_coordinates():
         LensPrewarp.from_chief_ray_map(bank_edges, (8, 8), sample_x=edges.flip(0), sample_y=edges)
     with pytest.raises(InputValueError, match="gain"):
         LensPrewarp.from_chief_ray_map(bank_edges, (8, 8), sample_x=edges, sample_y=edges, gain="area")  # type: ignore[arg-type]
+
+
+def test_lut_file_round_trip(tmp_path):
+    learned = LensPrewarp.learned(hidden=8, layers=1, frequencies=1)
+    with torch.no_grad():
+        learned.map.mlp[-1].bias.copy_(torch.linspace(-0.05, 0.05, 9))
+    path = learned.save_lut(tmp_path / "prewarp.safetensors", (12, 10))
+    loaded = LensPrewarp.load_lut(path)
+    img = torch.rand(3, 12, 10)
+    with torch.no_grad():
+        assert torch.allclose(loaded(img, STATE, StageContext((12, 10))), learned(img, STATE, StageContext((12, 10))), atol=1e-5)
+    again = loaded.save_lut(tmp_path / "again.safetensors")
+    assert torch.equal(LensPrewarp.load_lut(again).map.displacement, loaded.map.displacement)
+    with pytest.raises(InputValueError, match="size"):
+        LensPrewarp().save_lut(tmp_path / "x.safetensors")
+    from controlgs_adapter.errors import FileFormatError
+    from controlgs_adapter.io import save_tensors
+
+    other = save_tensors(tmp_path / "other.safetensors", {"x": torch.zeros(1)}, {}, kind="something-else", format_version=1)
+    with pytest.raises(FileFormatError, match="expected a 'controlgs-prewarp-lut'"):
+        LensPrewarp.load_lut(other)
