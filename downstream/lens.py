@@ -414,15 +414,18 @@ class LensPrewarp(Stage):
         return cls(LUTMap(grid, gain))
 
     @classmethod
-    def from_psf_bank(cls, bank: "PSFBank | None", size: tuple[int, int]) -> "LensPrewarp":
+    def from_psf_bank(
+        cls, bank: "PSFBank | None", size: tuple[int, int], *, gain: torch.Tensor | Literal["jacobian"] | None = None
+    ) -> "LensPrewarp":
         """Compensate the distortion and lateral colour of a PSF bank's lens (None: the shipped
-        Google-Cardboard bank): its chief rays (display -> eye, one map per primary) as a LUT."""
+        Google-Cardboard bank): its chief rays (display -> eye, one map per primary) as a LUT;
+        ``gain`` as in :meth:`from_chief_ray_map`."""
         from .optics.bank import PSFBank
 
         bank = bank if bank is not None else PSFBank.default()
         if bank.chief.shape[0] != 3:
             raise InputValueError(f"bank must have 3 wavelengths (R, G, B primaries), got {bank.wavelengths_nm}")
-        return cls.from_chief_ray_map(bank.chief, size, sample_x=bank.chief_x, sample_y=bank.chief_y)
+        return cls.from_chief_ray_map(bank.chief, size, sample_x=bank.chief_x, sample_y=bank.chief_y, gain=gain)
 
     def save_lut(self, path: str | os.PathLike, size: tuple[int, int] | None = None) -> Path:
         """Write the map as a LUT (safetensors, atomic): the LUT itself, or the map baked at

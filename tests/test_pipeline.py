@@ -259,3 +259,46 @@ def test_pipeline_with_the_optics_stage():
     assert torch.allclose(eye, linear_to_srgb(optics(displayed, p["optics"].bank, mode="distortion")), atol=1e-5)
     assert inter["stages_run"] == ["lens", "resample", "display", "oled", "optics"]
     assert not torch.allclose(inter["displayed"], eye, atol=1e-3)
+
+
+def test_placement_errors():
+    class A(Stage):
+        name, after = "a", "b"
+
+        def forward(self, image, state, ctx):
+            return image
+
+    class B(Stage):
+        name, after = "b", "a"
+
+        def forward(self, image, state, ctx):
+            return image
+
+    class C(Stage):
+        name, after = "c", "nowhere"
+
+        def forward(self, image, state, ctx):
+            return image
+
+    class D(Stage):
+        name, after, before = "d", "display", "resample"
+
+        def forward(self, image, state, ctx):
+            return image
+
+    with pytest.raises(InputValueError, match="cycle"):
+        Pipeline([A(), B()])
+    with pytest.raises(InputValueError, match="'nowhere'"):
+        Pipeline([C()])
+    with pytest.raises(InputValueError, match="contradict"):
+        Pipeline.from_config({"resample": True, "display": True, "d": D()})
+
+
+def test_chained_and_before_placement():
+    def make(name_, after_=None, before_=None):
+        return type(name_.title(), (Stage,), {"name": name_, "after": after_, "before": before_,
+                                               "forward": lambda self, image, state, ctx: image})()
+
+    stages = [make("y", "x"), make("x", "resample"), make("w", None, "display"), make("v", None, "display")]
+    p = Pipeline([*stages, *Pipeline.from_config(["resample", "display"]).stages])
+    assert p.names == ["resample", "x", "y", "v", "w", "display", "oled"]
