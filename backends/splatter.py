@@ -125,10 +125,11 @@ def project_gaussians(
     j0 = (fx / z).unsqueeze(-1) * (rot[:, 0, :] - tx.unsqueeze(-1) * rot[:, 2, :])  # [M, 3]
     j1 = (fy / z).unsqueeze(-1) * (rot[:, 1, :] - ty.unsqueeze(-1) * rot[:, 2, :])
     j0, j1 = j0 * scales, j1 * scales  # (J W R S) rows
-    a = (j0 * j0).sum(-1) + LOW_PASS
-    b = (j0 * j1).sum(-1)
-    c = (j1 * j1).sum(-1) + LOW_PASS
-    det = a * c - b * b
+    a0, c0 = (j0 * j0).sum(-1), (j1 * j1).sum(-1)
+    a, b, c = a0 + LOW_PASS, (j0 * j1).sum(-1), c0 + LOW_PASS
+    # det = a c - b^2 without cancellation (Lagrange: |j0|^2 |j1|^2 - (j0.j1)^2 = |j0 x j1|^2); the naive
+    # product loses all digits for needle-like Gaussians near the camera in float32
+    det = (torch.linalg.cross(j0, j1) ** 2).sum(-1) + LOW_PASS * (a0 + c0) + LOW_PASS * LOW_PASS
     cov2d = torch.stack([a, b, c], dim=-1)
     conic = torch.stack([c / det, -b / det, a / det], dim=-1)
     return torch.stack([u, v], dim=-1), cov2d, conic

@@ -267,3 +267,17 @@ def test_input_errors() -> None:
         rasterize(*scene, cam, torch.zeros(4, dtype=F64))
     with pytest.raises(InputValueError, match="tile_size"):
         rasterize(*scene, cam, tile_size=0)
+
+
+def test_float32_needles_near_the_camera() -> None:
+    """Long thin Gaussians close to the camera have a nearly singular 2D covariance with huge entries:
+    the float32 determinant must not cancel (it would turn them into opaque slabs)."""
+    cam = Camera(torch.eye(4), torch.tensor([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]), 100, 100)
+    g = torch.Generator().manual_seed(0)
+    n = 12
+    means = torch.tensor([0.0, 0.0, 0.3]) + 0.05 * torch.randn(n, 3, generator=g)
+    scales = torch.tensor([[1e2, 1e-4, 1e-4]]).expand(n, 3)
+    args = (means, scales, torch.randn(n, 4, generator=g), torch.full((n,), 0.5), torch.rand(n, 3, generator=g))
+    fast, ref = rasterize(*args, cam), rasterize_reference(*args, cam)
+    assert float((fast.alpha.double() - ref.alpha).abs().max()) < 2e-3
+    assert float((fast.color.double() - ref.color).abs().max()) < 2e-3
