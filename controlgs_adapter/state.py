@@ -105,13 +105,9 @@ class Camera:
         (the lens's optical centre), [-1, 1] inside the image. Points behind the camera get +inf."""
         # one affine map [R, 3] -> (x_n z, y_n z, z) folds pixel scaling into the projection (this runs
         # per frame on every visible anchor: 4x faster than project() followed by rescaling)
-        k, w2c = self.intrinsics.to(points), self.world_to_camera.to(points)
-        sx, sy = 2.0 / self.width, 2.0 / self.height
-        to_screen = torch.zeros(3, 3, dtype=points.dtype, device=points.device)
-        to_screen[0, 0], to_screen[0, 2] = k[0, 0] * sx, k[0, 2] * sx - 1.0
-        to_screen[1, 1], to_screen[1, 2] = k[1, 1] * sy, k[1, 2] * sy - 1.0
-        to_screen[2, 2] = 1.0
-        m = to_screen @ w2c[:3]  # [3, 4]
+        pixels_to_screen = torch.tensor([[2.0 / self.width, 0.0, -1.0], [0.0, 2.0 / self.height, -1.0], [0.0, 0.0, 1.0]],
+                                        dtype=points.dtype, device=points.device)
+        m = pixels_to_screen @ self.intrinsics.to(points) @ self.world_to_camera.to(points)[:3]  # [3, 4]
         pc = torch.addmm(m[:, 3], points, m[:, :3].transpose(0, 1))  # [N, 3]
         z = pc[:, 2:]
         return (pc[:, :2] / z).masked_fill_(z <= 0, float("inf"))
