@@ -26,6 +26,7 @@ Domain: linear light. Shapes: ``[..., 3, H, W]``; power ``[...]`` (one value per
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Sequence
 
 import torch
@@ -105,6 +106,7 @@ def display_mapping(
     rho: float,
     reference: torch.Tensor | None = None,
     *,
+    reference_power: torch.Tensor | float | None = None,
     coefficients: Sequence[float] = PANEL_COEFFICIENTS,
     brighten: bool = True,
     return_stats: bool = False,
@@ -116,6 +118,8 @@ def display_mapping(
         rho: power saving in [0, 1); 0 returns ``image`` unchanged.
         reference: ``[..., 3, H_r, W_r]`` linear light (the ground truth, any resolution,
             broadcastable leading dims) giving ``P_ref``; None: ``P_ref = P(image)``.
+        reference_power: ``P_ref`` itself (``[...]`` or a number, panel units), instead of
+            ``reference``.
         coefficients: panel coefficients (alpha, beta, gamma).
         brighten: if False, never scale up (``scale = min(1, P_target / P(image))``).
         return_stats: also return ``{"scale", "power_target", "power", "clipped_fraction"}``
@@ -132,12 +136,18 @@ def display_mapping(
             return image
         p = power.detach()
         return image, {"scale": torch.ones_like(p), "power_target": p, "power": p, "clipped_fraction": torch.zeros_like(p)}
-    if reference is None:
-        power_ref = power.detach()
-    else:
+    if reference is not None and reference_power is not None:
+        raise InputValueError("give reference or reference_power, not both")
+    if reference is not None:
         check_image("reference", reference, finite=False)
         check_same_device(image=image, reference=reference)
         power_ref = _power(reference.detach().to(image.dtype), c)
+    elif reference_power is not None:
+        power_ref = torch.as_tensor(reference_power, dtype=image.dtype, device=image.device).detach()
+        if not bool(torch.isfinite(power_ref).all()) or bool((power_ref < 0).any()):
+            raise InputValueError(f"reference_power must be finite and >= 0, got {reference_power!r}")
+    else:
+        power_ref = power.detach()
     target = (1.0 - rho) * power_ref
     black = power <= _TINY_POWER
     safe_power = torch.where(black, torch.ones_like(power), power)
@@ -158,8 +168,9 @@ def display_mapping(
 class DisplayStage(Stage):
     """P_disp: uniform dimming to ``(1 - state.power_saving) * P(reference)``, then clipping.
 
-    ``ctx.reference`` is the sRGB ground truth at S (decoded here); without it the image's own
-    power is the reference. Records ``display.scale``, ``display.power_target``, ``display.power``
+    ``ctx.reference`` is the sRGB ground truth at S (decoded here; its power is cached while the
+    same, unmodified tensor comes back, e.g. across the states of an evaluation grid); without it
+    the image's own power is the reference. Records ``display.scale``, ``display.power_target``, ``display.power``
     and ``display.clipped_fraction`` into ``ctx.record``.
 
     Args:
@@ -176,13 +187,24 @@ class DisplayStage(Stage):
         super().__init__()
         self.coefficients = _check_coefficients(coefficients)
         self.brighten = bool(brighten)
+        self._reference_power: tuple[weakref.ref, int, torch.dtype, torch.Tensor] | None = None
 
     def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
         return state.power_saving == 0.0
 
+    def reference_power(self, reference: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """``P_ref`` ``[...]`` of an sRGB ``reference``; reused while the same tensor object comes
+        back unmodified (a weak reference: a new tensor at a recycled address never matches)."""
+        cached = self._reference_power
+        if cached is not None and cached[0]() is reference and cached[1] == reference._version and cached[2] == dtype:
+            return cached[3]
+        power = display_power(reference.detach().to(dtype), self.coefficients, encoding="srgb")
+        self._reference_power = (weakref.ref(reference), reference._version, dtype, power)
+        return power
+
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        reference = None if ctx.reference is None else srgb_to_linear(ctx.reference)
-        out, stats = display_mapping(image, state.power_saving, reference, coefficients=self.coefficients,
+        power_ref = None if ctx.reference is None else self.reference_power(ctx.reference, image.dtype)
+        out, stats = display_mapping(image, state.power_saving, reference_power=power_ref, coefficients=self.coefficients,
                                      brighten=self.brighten, return_stats=True)
         if ctx.record is not None:
             ctx.record.update({f"display.{k}": v for k, v in stats.items()})

@@ -16,7 +16,7 @@ from controlgs_adapter.downstream.lens import LensPrewarp, RadialMap, lens_prewa
 from controlgs_adapter.downstream.oled import box_emission
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.resample import area_resample
-from controlgs_adapter.downstream.stage import Stage, StageContext
+from controlgs_adapter.downstream.stage import Stage
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.hookspecs import hookimpl
 from controlgs_adapter.state import RuntimeState

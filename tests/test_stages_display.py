@@ -153,3 +153,22 @@ def test_display_stage():
     out = stage(img, RuntimeState(2.0, 0.2), StageContext((8, 8), reference=gt, record=record))
     assert torch.equal(out, display_mapping(img, 0.2, srgb_to_linear(gt)))
     assert {"display.scale", "display.power_target", "display.power", "display.clipped_fraction"} <= set(record)
+
+
+def test_reference_power_argument_and_stage_cache():
+    img = torch.rand(2, 3, 4, 4, dtype=torch.float64) * 0.3
+    ref = torch.rand(3, 8, 8, dtype=torch.float64)
+    p_ref = display_power(ref)
+    assert torch.equal(display_mapping(img, 0.3, reference_power=p_ref), display_mapping(img, 0.3, ref))
+    assert torch.allclose(display_mapping(img, 0.3, reference_power=float(p_ref)), display_mapping(img, 0.3, ref))
+    with pytest.raises(InputValueError, match="not both"):
+        display_mapping(img, 0.3, ref, reference_power=p_ref)
+    with pytest.raises(InputValueError, match="reference_power"):
+        display_mapping(img, 0.3, reference_power=-1.0)
+    stage = DisplayStage()
+    gt = torch.rand(3, 8, 8, dtype=torch.float64)
+    first = stage.reference_power(gt, torch.float64)
+    assert stage.reference_power(gt, torch.float64) is first  # cached for the same tensor
+    assert stage.reference_power(gt.clone(), torch.float64) is not first  # another tensor: recomputed
+    gt.mul_(0.5)  # modified in place: recomputed
+    assert float(stage.reference_power(gt, torch.float64)) == pytest.approx(float(display_power(gt, encoding="srgb")))
