@@ -130,14 +130,16 @@ def _smooth_scene():
 def test_gradcheck() -> None:
     inputs, cam = _smooth_scene()
     ref = rasterize_reference(*inputs[:5], cam, inputs[5])
-    a = ref.alpha
-    assert bool(ref.visible.all()) and float(a.min()) > 0.1
+    assert bool(ref.visible.all()) and float(ref.alpha.min()) > 0.1  # the scene is as intended
     inputs = tuple(t.clone().requires_grad_() for t in inputs)
 
     def fn(*args):
         return _stack(rasterize(*args[:5], cam, args[5], tile_size=4))
 
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+    # fast mode compares u^T J v (analytic) with finite differences for random u, v: any wrong entry of
+    # the Jacobian fails it; the full Jacobian (45 inputs x 320 outputs) would take ~20 s
+    torch.manual_seed(0)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6, fast_mode=True)
 
 
 def test_chunked_and_recomputed_backward_agree(monkeypatch: pytest.MonkeyPatch) -> None:
