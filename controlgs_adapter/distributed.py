@@ -163,9 +163,9 @@ class DistContext:
         ck = ("no checkpoint was written yet" if self.last_checkpoint is None else
               f"the last checkpoint, {self.last_checkpoint[0]} (iteration {self.last_checkpoint[1]}), resumes the run "
               "on any number of processes: run the same command again")
+        msg = (str(e.args[0]) if e.args else str(e)).strip().splitlines() or [repr(e)]
         return DistributedError(f"rank {self.rank} of {self.world_size}: {what}{at} failed ({type(e).__name__}: "
-                                f"{str(e).strip().splitlines()[0] if str(e).strip() else e!r}); another process has "
-                                f"probably died or stalled past the timeout; {ck}")
+                                f"{msg[0]}); another process has probably died or stalled past the timeout; {ck}")
 
     def _run(self, what: str, step: int | None, fn: Callable[..., Any], *args: Any) -> Any:
         try:
