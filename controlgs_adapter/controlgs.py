@@ -69,9 +69,9 @@ class _Plan:
 
 
 def _describe(backend: Backend) -> str:
-    """``name (first paragraph of the backend's docstring)``: what the backend looks for."""
+    """``name: first paragraph of the backend's docstring`` (what the backend looks for)."""
     para = (type(backend).__doc__ or "").strip().split("\n\n")[0]
-    return f"{backend.name} ({' '.join(para.split()).rstrip('.') or type(backend).__qualname__})"
+    return f"{backend.name}: {' '.join(para.split()).rstrip('.') or type(backend).__qualname__}"
 
 
 def _select_backend(model: Any, backend: str | Backend | None) -> Backend:
@@ -79,16 +79,16 @@ def _select_backend(model: Any, backend: str | Backend | None) -> Backend:
         chosen = backend
     else:
         registered = {name: info.obj for name, info in plugins.backends().items()}
-        listing = "; ".join(_describe(b) for b in registered.values()) or "none"
+        listing = "".join(f"\n  - {_describe(b)}" for b in registered.values()) or " none"
         if backend is None:
             for b in registered.values():
                 if b.matches(model):
                     return b
             raise NoMatchingBackendError(
-                f"no registered backend recognises a {type(model).__name__}; registered backends: {listing}"
+                f"no registered backend recognises a {type(model).__name__}; registered backends (tried in this order):{listing}"
             )
         if backend not in registered:
-            raise NoMatchingBackendError(f"backend {backend!r} is not registered; registered backends: {listing}")
+            raise NoMatchingBackendError(f"backend {backend!r} is not registered; registered backends:{listing}")
         chosen = registered[backend]
     if not chosen.matches(model):
         raise NoMatchingBackendError(f"backend {_describe(chosen)} does not recognise a {type(model).__name__}")
