@@ -267,21 +267,28 @@ class LUTMap(PrewarpMap):
         self.register_buffer("displacement", (grid.detach() - ident).float())  # [3, Hl, Wl, 2]
         self.register_buffer("gain", gain.detach().float())  # [3, Hl, Wl]
         self._identity: tuple[tuple, bool] | None = None  # (buffer versions, answer)
+        self._evaluated: tuple[tuple, tuple[torch.Tensor, torch.Tensor]] | None = None  # last (key, (grid, gain))
+
+    def _version_key(self) -> tuple:
+        return tuple((t.data_ptr(), t._version) for t in (self.displacement, self.gain))
 
     def is_identity(self) -> bool:  # noqa: D102
-        key = tuple((t.data_ptr(), t._version) for t in (self.displacement, self.gain))
+        key = self._version_key()
         if self._identity is None or self._identity[0] != key:  # O(N) scan only after a change
             self._identity = (key, not bool(self.displacement.any()) and bool((self.gain == 1).all()))
         return self._identity[1]
 
     def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: D102
-        disp, gain = self.displacement.to(dtype), self.gain.to(dtype)
-        p = pixel_grid(size, dtype, device)
-        if tuple(size) != tuple(disp.shape[1:3]):
-            table = torch.cat([disp, gain[..., None]], dim=-1)  # [3, Hl, Wl, 3]
-            table = _interp_regular(table, p.expand(3, -1, -1, -1))
-            disp, gain = table[..., :2], table[..., 2]
-        return p[None] + disp, gain
+        key = (tuple(size), dtype, torch.device(device), self._version_key())
+        if self._evaluated is None or self._evaluated[0] != key:  # the table is fixed: evaluate once per size
+            disp, gain = self.displacement.to(device=device, dtype=dtype), self.gain.to(device=device, dtype=dtype)
+            p = pixel_grid(size, dtype, device)
+            if tuple(size) != tuple(disp.shape[1:3]):
+                table = torch.cat([disp, gain[..., None]], dim=-1)  # [3, Hl, Wl, 3]
+                table = _interp_regular(table, p.expand(3, -1, -1, -1))
+                disp, gain = table[..., :2], table[..., 2]
+            self._evaluated = (key, (p[None] + disp, gain))
+        return self._evaluated[1]
 
 
 class MLPMap(PrewarpMap):

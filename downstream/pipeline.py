@@ -36,6 +36,10 @@ from .stage import Stage, StageContext
 
 __all__ = ["Pipeline", "PHYSICAL_STAGES"]
 
+#: Resolution of the pre-warp LUT built from the optics' chief rays for ``{"lens": True, "optics": ...}``
+#: (evaluated at the image size by bilinear interpolation, once per size).
+LENS_LUT_SIZE: tuple[int, int] = (512, 512)
+
 #: Names of the stages that model the physical display-optics path (paper Eq. 6); everything
 #: ordered before the first of them is post-processing.
 PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
@@ -133,13 +137,26 @@ class Pipeline(nn.Module):
                 or an iterable of names (all with defaults). Names are those of registered stages
                 (:func:`controlgs_adapter.plugins.stages`), e.g. ``lens``, ``resample``,
                 ``display`` (power saving), ``foveation``, ``optics`` (needs the optics plug-in).
-                The physical display ``oled`` is always included unless set to False.
+                The physical display ``oled`` is always included unless set to False. With
+                ``"lens": True`` and an optics stage, the lens pre-warp compensates that optics:
+                a LUT from its PSF bank's chief rays (:meth:`LensPrewarp.from_psf_bank`); without
+                optics it is the analytic Cardboard radial map.
         """
         spec: dict[str, Any] = dict(effects) if isinstance(effects, Mapping) else {n: True for n in effects}
         spec.setdefault("oled", True)
         registered = _registered_stages()
         stages: list[Stage] = []
-        for name, value in spec.items():
+        # the default lens correction compensates the configured optics (its PSF bank's chief rays)
+        lens_from_optics = spec.get("lens") is True and spec.get("optics") not in (None, False)
+        for name, value in sorted(spec.items(), key=lambda kv: kv[0] == "lens"):  # lens last: it may need the optics
+            if name == "lens" and lens_from_optics:
+                optics = next(s for s in stages if s.name == "optics")
+                bank = getattr(optics, "bank", None)
+                if bank is not None and hasattr(bank, "chief"):
+                    from .lens import LensPrewarp
+
+                    stages.append(LensPrewarp.from_psf_bank(bank, LENS_LUT_SIZE))
+                    continue
             if value is None or value is False:
                 continue
             if isinstance(value, Stage):

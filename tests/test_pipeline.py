@@ -253,6 +253,10 @@ def test_pipeline_with_the_optics_stage():
 
     p = Pipeline.from_config({**ALL, "optics": {"mode": "distortion"}})
     assert p.names[-2:] == ["oled", "optics"]
+    default_lens = Pipeline.from_config({"lens": True, "optics": {"mode": "distortion"}})["lens"]
+    bank_lens = LensPrewarp.from_psf_bank(p["optics"].bank, (40, 40))
+    grid, _ = default_lens.map((40, 40), torch.float32, torch.device("cpu"))
+    assert torch.allclose(grid, bank_lens.map((40, 40), torch.float32, torch.device("cpu"))[0], atol=1e-4)
     image, gt = torch.rand(3, 32, 32), torch.rand(3, 32, 32)
     eye, inter = p(image, RuntimeState(2.0, 0.3), reference=gt, record=True)
     displayed = srgb_to_linear(inter["displayed"])
