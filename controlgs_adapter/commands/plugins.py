@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import re
+import sys
+
+from controlgs_adapter.errors import PluginLoadError
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -11,15 +15,43 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.set_defaults(func=run)
 
 
+def _what(info, width: int = 60) -> str:
+    """One line on what the item does: a backend's or stage's docstring summary, a schedule's mapping."""
+    if info.kind == "schedule":
+        text = repr(info.obj).split("(", 1)[-1].rstrip(")")
+    else:
+        cls = info.obj if isinstance(info.obj, type) else type(info.obj)
+        text = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split()).replace("``", "")
+        text = re.sub(r":\w+:`~?([^`]*)`", r"\1", text)  # :class:`X` -> X
+        if info.kind == "stage":
+            text = f"[order {cls.order:g}, {cls.domain}] {text}"
+    return text if len(text) <= width else text[: width - 3].rstrip() + "..."
+
+
 def run(args: argparse.Namespace) -> int:
     from controlgs_adapter import plugins
 
-    plugins.get_plugin_manager(strict=args.strict or None)
-    rows = [(i.kind, i.name, i.plugin, i.source) for i in plugins.plugin_report()]
-    head = ("kind", "name", "plugin", "source")
-    widths = [max(len(str(r[c])) for r in [head, *rows]) for c in range(4)]
-    for r in [head, tuple("-" * w for w in widths), *rows]:
-        print("  ".join(str(v).ljust(w) for v, w in zip(r, widths)).rstrip())
+    try:
+        plugins.get_plugin_manager(strict=args.strict or None)
+        report = plugins.plugin_report()
+    except PluginLoadError as e:
+        print(f"controlgs plugins: {e}", file=sys.stderr)
+        return 1
+    head = ("kind", "name", "plugin", "source", "what")
+    rows = [(i.kind, i.name, i.plugin, "built-in" if i.source == plugins.BUILTIN_DIST else i.source, _what(i))
+            for i in report]
+    widths = [max(len(str(r[c])) for r in [head, *rows]) for c in range(len(head))]
+
+    def line(r) -> str:
+        return "  ".join(str(v).ljust(w) for v, w in zip(r, widths)).rstrip()
+
+    print(line(head))
+    print(line(tuple("-" * w for w in widths)))
+    for k, r in enumerate(rows):
+        if k and r[0] != rows[k - 1][0]:
+            print()
+        print(line(r))
+    print("\nbackends are tried in the order listed (plug-ins first); a plug-in item replaces a built-in of the same name")
     for msg in plugins.load_failures():
         print(f"FAILED: {msg}")
     return 0
