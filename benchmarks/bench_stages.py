@@ -2,7 +2,7 @@
 
     python benchmarks/bench_stages.py [--sizes 256 512 1024] [--device cpu|cuda] [--out docs/benchmarks-stages.md]
 
-Images are ``[1, 3, S, S]`` float32. Each row reports the median time over repeats and its ratio
+Images are ``[1, 3, S, S]`` float32. Each row reports the best time over repeats and its ratio
 to an elementwise copy of the same image (``x * 1``), measured in the same run: a memory-bound
 unit that makes numbers from different machines comparable. The table is printed and written to
 ``--out`` (markdown).
@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import time
 from pathlib import Path
 from typing import Callable
@@ -35,7 +34,8 @@ def _sync(device: torch.device) -> None:
 
 
 def _time(fn: Callable[[], object], device: torch.device, budget_s: float, max_reps: int) -> float:
-    """Median seconds of ``fn`` after two warm-up calls."""
+    """Best (minimum) seconds of ``fn`` over the repeats after two warm-up calls: on a shared
+    machine the load only adds time, so the minimum is the stablest estimate of the cost."""
     for _ in range(2):
         fn()
     _sync(device)
@@ -46,7 +46,7 @@ def _time(fn: Callable[[], object], device: torch.device, budget_s: float, max_r
         fn()
         _sync(device)
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return min(times)
 
 
 def _cases(size: int, device: torch.device) -> dict[str, Callable[[torch.Tensor], torch.Tensor]]:
@@ -104,7 +104,7 @@ def to_markdown(rows: list[dict], device: torch.device) -> str:
         "",
         f"`python benchmarks/bench_stages.py` on {where}, torch {torch.__version__}, float32, image `[1, 3, S, S]`;"
         f" load average at the end {load:.1f}.",
-        "Median times; `x` = ratio to an elementwise copy of the same image in the same run (memory-bound unit)."
+        "Best-of-repeats times; `x` = ratio to an elementwise copy of the same image in the same run (memory-bound unit)."
         " On a shared machine absolute times vary with the load; compare ratios within one run.",
         "Display and OLED rows run at the display size of d = 2.5. The pipeline is lens + resample + display +"
         " OLED with the sRGB decode/encode (the optics/PSF stage is not included).",

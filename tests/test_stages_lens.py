@@ -200,6 +200,13 @@ def test_gradcheck_prewarp():
         return lens_prewarp(image, grid_)
 
     assert torch.autograd.gradcheck(radial, (img, k))
+    learned = LensPrewarp.learned(hidden=4, layers=1, frequencies=1).double()
+    bias = (torch.rand(9, dtype=torch.float64, generator=g) * 0.1).requires_grad_(True)
+
+    def mlp_warp(image: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return torch.func.functional_call(learned, {"map.mlp.2.bias": b}, (image, STATE, StageContext((4, 5))))
+
+    assert torch.autograd.gradcheck(mlp_warp, (img, bias))
 
 
 def test_bad_input_names_the_argument():
