@@ -1,0 +1,108 @@
+"""``controlgs demo``: the main job. Loads the built-in scene and its baked backbone, trains the
+ControlGS adapter (and with ``--ablations`` the four ablations), evaluates the 4 x 5 run-time grid
+and writes the report (tables, heatmaps, images) to a folder."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+DEFAULT_ITERATIONS = 300
+DEFAULT_RESOLUTION = 96
+
+
+def add_common(p: argparse.ArgumentParser) -> None:
+    """Options shared by demo, train and eval."""
+    p.add_argument("--variant", choices=("ar", "vr"), default="ar", help="built-in scene: object-centric AR or immersive VR")
+    p.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="native resolution S (pixels, square)")
+    p.add_argument("--test-views", type=int, default=None, help="evaluate only the first N test views")
+    p.add_argument("--optics", choices=("fast", "exact"), default="fast",
+                   help="PSF operator of the last training phase and of the evaluation")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+
+
+def add_training(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="adapter training iterations")
+    p.add_argument("--psf-fraction", type=float, default=0.1, help="final fraction of iterations with the full PSF")
+    p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--cond-dim", type=int, default=8, help="N per module")
+    p.add_argument("--checkpoint-every", type=int, default=100)
+
+
+def add_parser(sub: "argparse._SubParsersAction") -> None:
+    p = sub.add_parser("demo", help="train ControlGS on the built-in scene, evaluate the run-time grid, write a report")
+    p.add_argument("--out", default="report", help="report folder")
+    add_common(p)
+    add_training(p)
+    p.add_argument("--ablations", action="store_true", help="also train and evaluate w/o lens, display, resample, state-blind")
+    p.set_defaults(func=run)
+
+
+def train_adapters(scene: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str]) -> dict[str, Path]:
+    """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
+    names) on ``scene``; returns ``{name: adapter file}``. Checkpoints go to ``out/checkpoints``."""
+    from controlgs_adapter.report import ABLATIONS
+    from controlgs_adapter.training import TrainConfig, Trainer
+
+    paths = {}
+    for name in names:
+        modules, blind = ABLATIONS.get(name, (None, False))
+        config = TrainConfig(iterations=args.iterations, lr=args.lr, modules=modules, cond_dim=args.cond_dim,
+                             state_blind=blind, psf_fraction=args.psf_fraction, psf_mode=args.optics,
+                             checkpoint_every=args.checkpoint_every, seed=args.seed)
+        target = out / f"{name}.controlgs.safetensors"
+        ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
+        trainer = Trainer(model, scene.train_images, scene.train_cameras, config, background=scene.background,
+                          checkpoint=ckpt)
+        if trainer.resume():
+            print(f"{name}: resuming at iteration {trainer.iteration}")
+        try:
+            trainer.train(progress=args.progress)
+            trainer.cgs.save(target)
+        finally:
+            trainer.cgs.unwrap()
+        paths[name] = target
+    return paths
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from controlgs_adapter.evaluation import condition_response, evaluate_grid, side_by_side
+    from controlgs_adapter.report import ABLATIONS, write_report
+    from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    scene = load_builtin_scene(args.variant, args.resolution, cache=True)
+    model = load_builtin_backbone(args.variant)
+    timings["load_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    names = ["controlgs", *(ABLATIONS if args.ablations else [])]
+    adapters = train_adapters(scene, model, out, args, names)
+    timings["train_s"] = time.perf_counter() - t
+
+    n = len(scene.test_cameras) if args.test_views is None else max(1, min(args.test_views, len(scene.test_cameras)))
+    t = time.perf_counter()
+    result = evaluate_grid(model, scene.test_images[:n], scene.test_cameras[:n], adapters, background=scene.background,
+                           optics_mode=args.optics, progress=args.progress)
+    timings["eval_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    comparison = side_by_side(model, adapters["controlgs"], scene.test_cameras[0], scene.test_images[0],
+                              background=scene.background, optics_mode=args.optics)
+    response = condition_response(model, adapters["controlgs"], scene.test_cameras[0], background=scene.background)
+    timings["figures_s"] = time.perf_counter() - t
+    info = {"scene": scene.name, "resolution": args.resolution, "iterations": args.iterations, "test_views": n,
+            "optics": args.optics, "seed": args.seed, "threads": torch.get_num_threads(),
+            **{k: round(v, 1) for k, v in timings.items()}}
+    paths = write_report(out, result, info=info, comparison=comparison, response=response)
+    print(json.dumps({m: {k: round(result.mean(m, k), 4) for k in result.metrics} for m in result.methods}, indent=1))
+    print("report: " + ", ".join(str(p) for p in paths))
+    return 0

@@ -1,0 +1,211 @@
+"""The paper's evaluation (Sec. 4.1-4.2): end-to-end quality on the run-time grid.
+
+For every test view and every setting of the 4 x 5 grid (d in {1, 2, 4, 8} x rho in {0, .2, .4,
+.6, .8}) each method's render goes through the same downstream pipeline E_s and its eye image
+is compared with the ground truth (PSNR, SSIM; FLIP / ColorVideoVDP when installed). Methods:
+
+- ``no_ss``: the backbone rendered directly at the display size round(S/d) (no supersampling);
+- ``ss``: the SS-backbone: rendered at S, area-pooled to S/d by the pipeline's resampling;
+- ``controlgs`` (and ablations): rendered at S through an adapter conditioned on the state.
+
+Eye images are clamped to [0, 1] (what a display-encoded image can hold) before the metrics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import torch
+from tqdm.auto import tqdm
+
+from .controlgs import ControlGS
+from .errors import InputValueError
+from .metrics import optional_metrics, psnr, ssim
+from .state import Camera, RuntimeState
+from .training import DEFAULT_EFFECTS, render_view
+
+__all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "GridResult", "evaluate_grid", "make_pipeline",
+           "side_by_side", "condition_response"]
+
+GRID_DOWNSAMPLE: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
+GRID_POWER_SAVING: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
+#: the two backbone baselines, always evaluated
+BASELINES: tuple[str, ...] = ("no_ss", "ss")
+
+
+@dataclass
+class GridResult:
+    """Metrics of every method on the grid.
+
+    Attributes:
+        downsample, power_saving: the grid axes.
+        per_view: ``{method: {metric: Tensor[D, P, V]}}`` (float64).
+        optics_mode: the optics operator used.
+    """
+
+    downsample: tuple[float, ...]
+    power_saving: tuple[float, ...]
+    per_view: dict[str, dict[str, torch.Tensor]] = field(default_factory=dict)
+    optics_mode: str = "fast"
+
+    @property
+    def methods(self) -> list[str]:
+        return list(self.per_view)
+
+    @property
+    def metrics(self) -> list[str]:
+        return list(next(iter(self.per_view.values()))) if self.per_view else []
+
+    def grid(self, method: str, metric: str) -> torch.Tensor:
+        """``[D, P]`` mean over the test views."""
+        return self.per_view[method][metric].mean(dim=-1)
+
+    def mean(self, method: str, metric: str) -> float:
+        """Mean over views and the whole grid (the paper's Tbl. 1 entry)."""
+        return float(self.per_view[method][metric].mean())
+
+    def to_json(self) -> dict[str, Any]:
+        """Every number: per-view values, grid means and overall means."""
+        return {
+            "downsample": list(self.downsample),
+            "power_saving": list(self.power_saving),
+            "optics_mode": self.optics_mode,
+            "methods": {
+                m: {k: {"mean": self.mean(m, k), "grid": self.grid(m, k).tolist(), "per_view": v.tolist()}
+                    for k, v in metrics.items()}
+                for m, metrics in self.per_view.items()
+            },
+        }
+
+
+def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "fast") -> Any:
+    """The evaluation pipeline E_s from ``effects`` (default :data:`DEFAULT_EFFECTS`) with the
+    optics operator ``optics_mode``, in eval mode."""
+    from .downstream.pipeline import Pipeline
+
+    pipeline = Pipeline.from_config(dict(DEFAULT_EFFECTS if effects is None else effects))
+    if "optics" in pipeline:
+        pipeline["optics"].mode = optics_mode
+    return pipeline.eval()
+
+
+def _scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> dict[str, float]:
+    e, g = eye.detach().clamp(0.0, 1.0).double(), gt.double()
+    out = {"psnr": float(psnr(e, g)), "ssim": float(ssim(e, g))}
+    for name, fn in extra.items():
+        out[name] = fn(e, g)
+    return out
+
+
+@torch.no_grad()
+def evaluate_grid(model: Any, images: torch.Tensor, cameras: Sequence[Camera], adapters: Mapping[str, str | Path], *,
+                  effects: Mapping[str, Any] | None = None, background: torch.Tensor | None = None,
+                  downsample: Sequence[float] = GRID_DOWNSAMPLE, power_saving: Sequence[float] = GRID_POWER_SAVING,
+                  optics_mode: str = "fast", baselines: Sequence[str] = BASELINES,
+                  extra_metrics: bool = True, progress: bool = True) -> GridResult:
+    """Evaluate the baselines and every adapter file in ``adapters`` (``{method name: path}``,
+    each saved by :meth:`ControlGS.save` for ``model``) on the test views ``images``
+    ``[V, 3, S, S]`` / ``cameras``. ``model`` must not be wrapped; each adapter is loaded onto it
+    in turn and removed afterwards.
+
+    The renders that do not depend on the state are made once per view (``ss``) or once per d
+    (``no_ss``); the pipeline runs for every (method, view, d, rho).
+    """
+    if images.dim() != 4 or images.shape[0] != len(cameras):
+        raise InputValueError(f"need images [V, 3, S, S] with one camera each, got {list(images.shape)} and {len(cameras)}")
+    unknown = [b for b in baselines if b not in BASELINES]
+    if unknown:
+        raise InputValueError(f"baselines must be among {BASELINES}, got {unknown}")
+    clash = [a for a in adapters if a in BASELINES]
+    if clash:
+        raise InputValueError(f"adapter names {clash} clash with the baselines {BASELINES}")
+    pipeline = make_pipeline(effects, optics_mode)
+    extra = optional_metrics() if extra_metrics else {}
+    names = list(baselines) + list(adapters)
+    nd, npow, nv = len(downsample), len(power_saving), len(cameras)
+    metric_names = ["psnr", "ssim", *extra]
+    result = {m: {k: torch.zeros(nd, npow, nv, dtype=torch.float64) for k in metric_names} for m in names}
+    bar = tqdm(total=nv * nd * npow * len(names), desc="evaluating grid", disable=not progress, dynamic_ncols=True)
+
+    def score(name: str, i: int, j: int, v: int, rendered: torch.Tensor, state: RuntimeState, gt: torch.Tensor) -> None:
+        eye = pipeline(rendered, state, reference=gt)
+        for k, value in _scores(eye, gt, extra).items():
+            result[name][k][i, j, v] = value
+        bar.update(1)
+
+    for v, (cam, gt) in enumerate(zip(cameras, images)):
+        full = render_view(None, model, cam, None, background) if "ss" in names else None
+        for i, d in enumerate(downsample):
+            small = render_view(None, model, cam.scaled(d), None, background) if "no_ss" in names else None
+            for j, rho in enumerate(power_saving):
+                state = RuntimeState(downsample=d, power_saving=rho)
+                for name in baselines:
+                    score(name, i, j, v, full if name == "ss" else small, state, gt)
+    for name, path in adapters.items():
+        cgs = ControlGS.load(path, model)
+        try:
+            for v, (cam, gt) in enumerate(zip(cameras, images)):
+                for i, d in enumerate(downsample):
+                    for j, rho in enumerate(power_saving):
+                        state = RuntimeState(downsample=d, power_saving=rho)
+                        score(name, i, j, v, render_view(cgs, model, cam, state, background), state, gt)
+        finally:
+            cgs.unwrap()
+    bar.close()
+    return GridResult(tuple(float(d) for d in downsample), tuple(float(p) for p in power_saving), result, optics_mode)
+
+
+@torch.no_grad()
+def side_by_side(model: Any, adapter: str | Path, camera: Camera, gt: torch.Tensor, *,
+                 settings: Sequence[tuple[float, float]] = ((1.0, 0.0), (8.0, 0.8)), effects: Mapping[str, Any] | None = None,
+                 background: torch.Tensor | None = None, optics_mode: str = "fast") -> dict[str, Any]:
+    """Rendered and eye images of no-SS, SS-backbone and ControlGS (adapter file) for one view at
+    ``settings`` ``[(d, rho)]`` (paper Fig. 1): ``{"gt", "settings", "rows": {method: [(rendered,
+    eye, psnr, ssim)]}}``."""
+    pipeline = make_pipeline(effects, optics_mode)
+    rows: dict[str, list[tuple[torch.Tensor, torch.Tensor, float, float]]] = {"no_ss": [], "ss": [], "controlgs": []}
+    full = render_view(None, model, camera, None, background)
+
+    def add(name: str, rendered: torch.Tensor, state: RuntimeState) -> None:
+        eye = pipeline(rendered, state, reference=gt).clamp(0.0, 1.0)
+        sc = _scores(eye, gt, {})
+        rows[name].append((rendered, eye, sc["psnr"], sc["ssim"]))
+
+    for d, rho in settings:
+        state = RuntimeState(downsample=d, power_saving=rho)
+        add("no_ss", render_view(None, model, camera.scaled(d), None, background), state)
+        add("ss", full, state)
+    cgs = ControlGS.load(adapter, model)
+    try:
+        for d, rho in settings:
+            state = RuntimeState(downsample=d, power_saving=rho)
+            add("controlgs", render_view(cgs, model, camera, state, background), state)
+    finally:
+        cgs.unwrap()
+    return {"gt": gt, "settings": [(float(d), float(r)) for d, r in settings], "rows": rows}
+
+
+@torch.no_grad()
+def condition_response(model: Any, adapter: str | Path, camera: Camera, *,
+                       background: torch.Tensor | None = None) -> dict[str, list[tuple[str, torch.Tensor]]]:
+    """Raw renders before the pipeline while one condition varies and the others are off (paper
+    Fig. 8): resample over d in {1, 2, 4, 8}, display over rho in {0, .2, .4, .6, .8}, lens off /
+    on / ten times the difference. Only the adapter's modules appear."""
+    cgs = ControlGS.load(adapter, model)
+    strips: dict[str, list[tuple[str, torch.Tensor]]] = {}
+    try:
+        if "resample" in cgs.modules:
+            strips["resample"] = [(f"d={d:g}", render_view(cgs, model, camera, RuntimeState(downsample=d), background,
+                                                           modules=("resample",))) for d in GRID_DOWNSAMPLE]
+        if "display" in cgs.modules:
+            strips["display"] = [(f"ρ={r:.0%}", render_view(cgs, model, camera, RuntimeState(power_saving=r), background,
+                                                            modules=("display",))) for r in GRID_POWER_SAVING]
+        if "lens" in cgs.modules:
+            off = render_view(None, model, camera, None, background)
+            on = render_view(cgs, model, camera, RuntimeState(), background, modules=("lens",))
+            strips["lens"] = [("off", off), ("on", on), ("|on - off| x 10", ((on - off).abs() * 10.0).clamp(0, 1))]
+    finally:
+        cgs.unwrap()
+    return strips

@@ -1,0 +1,274 @@
+"""Training a ControlGS adapter on a frozen backbone (paper Sec. 3.4, Supp. A).
+
+Per iteration: one training view and one run-time state sampled as the paper does (downsample d
+log-uniform in [1, d_max], power saving rho uniform in [0, rho_max], the lens condition from each
+anchor's projection under the sampled camera), a render at the native resolution S through the
+wrapped backbone (supersampling), the downstream pipeline E_s, and the image loss against the
+ground truth; only the adapter's parameters are optimised (Adam). Optics run distortion-only for
+the first ``1 - psf_fraction`` of the iterations and with the full PSF after.
+
+Checkpoints (adapter, optimizer, RNG state, iteration) are safetensors files written atomically;
+resuming from one continues bit-for-bit as if never interrupted (same thread count).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import torch
+from tqdm.auto import tqdm
+
+from .checks import check_image
+from .controlgs import ControlGS
+from .errors import FileFormatError, InputValueError
+from .io import load_tensors, save_tensors
+from .losses import LossWeights, image_loss
+from .state import Camera, RuntimeState
+
+__all__ = ["TrainConfig", "Trainer", "DEFAULT_EFFECTS", "modules_for", "render_view", "CHECKPOINT_KIND"]
+
+CHECKPOINT_KIND = "controlgs_training_checkpoint"
+CHECKPOINT_FORMAT_VERSION = 1
+
+#: the downstream path of the paper's evaluation: lens pre-warp, area resampling, uniform
+#: dimming, OLED box pixels and the Cardboard PSF optics
+DEFAULT_EFFECTS: dict[str, Any] = {"lens": True, "resample": True, "display": True, "oled": True, "optics": True}
+
+# condition module -> downstream stages that make it useful
+_MODULE_STAGES = {"lens": ("lens", "optics"), "resample": ("resample",), "display": ("display",)}
+
+
+def modules_for(effects: Mapping[str, Any]) -> tuple[str, ...]:
+    """The condition modules a scene's downstream ``effects`` call for (only those whose stage is on)."""
+    on = {k for k, v in effects.items() if v is not None and v is not False}
+    return tuple(m for m, stages in _MODULE_STAGES.items() if on.intersection(stages))
+
+
+def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: RuntimeState | None,
+                background: torch.Tensor | None = None, *, modules: Sequence[str] | None = None) -> torch.Tensor:
+    """Render ``camera`` with the reference model (``visible_anchors`` + ``render``): through the
+    adapter ``cgs`` at ``state`` (restricted to ``modules`` if given), or the bare backbone when
+    ``cgs`` or ``state`` is None. Returns sRGB ``[3, H, W]``."""
+    visible = model.visible_anchors(camera)
+    if cgs is None or state is None:
+        return model.render(camera, visible, background).color
+    with cgs.conditioned(state, camera, visible, modules=modules):
+        return model.render(camera, visible, background).color
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (defaults: the paper's, Supp. A).
+
+    Attributes:
+        iterations: optimisation steps.
+        lr: Adam learning rate of conditions and projections.
+        modules: condition modules; None = those the downstream effects call for (:func:`modules_for`).
+        cond_dim: N per module.
+        state_blind: the ablation with strength 1 everywhere.
+        max_downsample: d is sampled log-uniformly in [1, max_downsample].
+        max_power_saving: rho is sampled uniformly in [0, max_power_saving].
+        psf_fraction: final fraction of the iterations run with the full PSF (``psf_mode``); the
+            rest use distortion-only optics.
+        psf_mode: optics operator of that final phase (``"fast"`` or ``"exact"``).
+        loss: weights of Eq. 14.
+        checkpoint_every: write a checkpoint every this many iterations (0 = only at the end).
+        seed: seeds view and state sampling.
+    """
+
+    iterations: int = 10_000
+    lr: float = 3e-3
+    modules: tuple[str, ...] | None = None
+    cond_dim: int = 8
+    state_blind: bool = False
+    max_downsample: float = 8.0
+    max_power_saving: float = 0.8
+    psf_fraction: float = 0.1
+    psf_mode: str = "fast"
+    loss: LossWeights = field(default_factory=LossWeights)
+    checkpoint_every: int = 500
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if int(self.iterations) < 0:
+            raise InputValueError(f"iterations must be >= 0, got {self.iterations!r}")
+        if not self.lr > 0:
+            raise InputValueError(f"lr must be > 0, got {self.lr!r}")
+        if not self.max_downsample >= 1.0:
+            raise InputValueError(f"max_downsample must be >= 1, got {self.max_downsample!r}")
+        if not 0.0 <= self.max_power_saving < 1.0:
+            raise InputValueError(f"max_power_saving must be in [0, 1), got {self.max_power_saving!r}")
+        if not 0.0 <= self.psf_fraction <= 1.0:
+            raise InputValueError(f"psf_fraction must be in [0, 1], got {self.psf_fraction!r}")
+        if self.psf_mode not in ("fast", "exact"):
+            raise InputValueError(f"psf_mode must be 'fast' or 'exact', got {self.psf_mode!r}")
+        if int(self.checkpoint_every) < 0:
+            raise InputValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every!r}")
+
+    def as_header(self) -> dict[str, Any]:
+        """JSON-able form (for checkpoints and reports)."""
+        d = asdict(self)
+        d["modules"] = None if self.modules is None else list(self.modules)
+        return d
+
+
+class Trainer:
+    """Train a ControlGS adapter on a frozen backbone.
+
+    Args:
+        model: the backbone (the reference :class:`NeuralGaussianModel` or anything with its
+            ``visible_anchors(camera)`` / ``render(camera, visible, background)``); frozen.
+        images: ground truth ``[V, 3, S, S]`` sRGB of the training views.
+        cameras: ``V`` cameras at S.
+        config: :class:`TrainConfig`.
+        effects: the downstream pipeline's stages (:meth:`Pipeline.from_config`); default
+            :data:`DEFAULT_EFFECTS`.
+        background: ``[3]`` background colour of the renders (as in ``images``).
+        checkpoint: path of the checkpoint file to write (and to resume from, see :meth:`resume`).
+
+    Attributes: ``cgs`` (the :class:`ControlGS`), ``pipeline``, ``optimizer``, ``generator``,
+    ``iteration``, ``history`` (loss per iteration run in this process).
+    """
+
+    def __init__(self, model: Any, images: torch.Tensor, cameras: Sequence[Camera], config: TrainConfig = TrainConfig(),
+                 *, effects: Mapping[str, Any] | None = None, background: torch.Tensor | None = None,
+                 checkpoint: str | Path | None = None) -> None:
+        from .downstream.pipeline import Pipeline
+
+        dims = check_image("images", images)
+        if images.dim() != 4 or images.shape[0] != len(cameras) or not len(cameras):
+            raise InputValueError(f"need images [V, 3, S, S] with one camera each, got {list(images.shape)} and {len(cameras)} cameras")
+        for i, cam in enumerate(cameras):
+            if (cam.height, cam.width) != (dims["H"], dims["W"]):
+                raise InputValueError(f"cameras[{i}] is {cam.width}x{cam.height}, images are {dims['W']}x{dims['H']}")
+        self.config = config
+        self.effects = dict(DEFAULT_EFFECTS if effects is None else effects)
+        modules = modules_for(self.effects) if config.modules is None else tuple(config.modules)
+        if not modules:
+            raise InputValueError(f"no condition module to train: the effects {sorted(self.effects)} call for none")
+        self.model, self.images, self.cameras = model, images, list(cameras)
+        self.background = background
+        with torch.random.fork_rng(devices=[]):  # the projections' initialisation follows the seed, not the global RNG
+            torch.manual_seed(int(config.seed))
+            self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind)
+        self.pipeline = Pipeline.from_config(self.effects)
+        self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)
+        self.generator = torch.Generator().manual_seed(int(config.seed))
+        self.iteration = 0
+        self.history: list[float] = []
+        self.checkpoint_path = None if checkpoint is None else Path(checkpoint)
+
+    # ------------------------------------------------------------------ one step
+    def sample(self) -> tuple[int, RuntimeState]:
+        """Draw a training view index and a run-time state (from :attr:`generator`)."""
+        g, c = self.generator, self.config
+        view = int(torch.randint(len(self.cameras), (1,), generator=g))
+        u = torch.rand(2, generator=g, dtype=torch.float64)
+        d = math.exp(float(u[0]) * math.log(c.max_downsample)) if "resample" in self.pipeline else 1.0
+        rho = float(u[1]) * c.max_power_saving if "display" in self.pipeline else 0.0
+        return view, RuntimeState(downsample=min(d, c.max_downsample), power_saving=rho)
+
+    def optics_mode(self, iteration: int) -> str:
+        """``"distortion"`` for the first ``1 - psf_fraction`` of the iterations, then ``psf_mode``."""
+        switch = round(self.config.iterations * (1.0 - self.config.psf_fraction))
+        return "distortion" if iteration < switch else self.config.psf_mode
+
+    def step(self) -> float:
+        """One optimisation step; returns the loss."""
+        if "optics" in self.pipeline:
+            self.pipeline["optics"].mode = self.optics_mode(self.iteration)
+        view, state = self.sample()
+        cam, gt = self.cameras[view], self.images[view]
+        image = render_view(self.cgs, self.model, cam, state, self.background)
+        eye = self.pipeline(image, state, reference=gt)
+        loss = image_loss(eye, gt, self.config.loss)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.iteration += 1
+        value = float(loss.detach())
+        self.history.append(value)
+        return value
+
+    def train(self, *, until: int | None = None, progress: bool = True) -> ControlGS:
+        """Run steps up to iteration ``until`` (default ``config.iterations``), writing checkpoints
+        every ``config.checkpoint_every`` iterations and at the end when a path was given."""
+        end = self.config.iterations if until is None else min(int(until), self.config.iterations)
+        bar = tqdm(total=self.config.iterations, initial=self.iteration, desc="training ControlGS", disable=not progress,
+                   dynamic_ncols=True)
+        every = self.config.checkpoint_every
+        t0 = time.perf_counter()
+        try:
+            while self.iteration < end:
+                loss = self.step()
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.4f}", optics=self.optics_mode(self.iteration - 1), refresh=False)
+                if self.checkpoint_path is not None and every and self.iteration % every == 0:
+                    self.save_checkpoint(self.checkpoint_path)
+        finally:
+            bar.close()
+        self.seconds = time.perf_counter() - t0
+        if self.checkpoint_path is not None:
+            self.save_checkpoint(self.checkpoint_path)
+        return self.cgs
+
+    # ------------------------------------------------------------------ checkpoints
+    def save_checkpoint(self, path: str | Path) -> Path:
+        """Write adapter, optimizer state, RNG state and iteration to ``path`` (atomically)."""
+        tensors = {f"adapter.{k}": v for k, v in self.cgs.injector.state_dict().items()}
+        opt = self.optimizer.state_dict()
+        for i, st in opt["state"].items():
+            for k, v in st.items():
+                tensors[f"optimizer.{i}.{k}"] = v if isinstance(v, torch.Tensor) else torch.tensor(v)
+        tensors["rng"] = self.generator.get_state()
+        header = {
+            "iteration": self.iteration,
+            "config": self.config.as_header(),
+            "modules": list(self.cgs.modules),
+            "effects": sorted(k for k, v in self.effects.items() if v is not None and v is not False),
+            "fingerprint": self.cgs.fingerprint,
+            "data": list(self.images.shape),
+            "param_groups": opt["param_groups"],
+            "history": self.history,
+        }
+        return save_tensors(path, tensors, header, kind=CHECKPOINT_KIND, format_version=CHECKPOINT_FORMAT_VERSION)
+
+    def load_checkpoint(self, path: str | Path) -> None:
+        """Restore the state written by :meth:`save_checkpoint`; the trainer must have been built
+        with the same backbone, config and effects (checked, naming what differs)."""
+        tensors, header = load_tensors(path, kind=CHECKPOINT_KIND, max_version=CHECKPOINT_FORMAT_VERSION)
+        mine = self.config.as_header()
+        theirs = dict(header.get("config", {}))
+        theirs["loss"] = dict(theirs.get("loss", {}))
+        diffs = [k for k in mine if k not in ("iterations", "checkpoint_every") and
+                 (mine[k] if k != "loss" else dict(mine[k])) != theirs.get(k)]
+        if diffs:
+            raise FileFormatError(f"{path}: checkpoint was written with a different config ({', '.join(diffs)})")
+        if header.get("fingerprint") != self.cgs.fingerprint:
+            raise FileFormatError(f"{path}: checkpoint belongs to another backbone (fingerprint differs)")
+        if header.get("data") != list(self.images.shape):
+            raise FileFormatError(f"{path}: checkpoint was trained on images {header.get('data')}, this trainer has "
+                                  f"{list(self.images.shape)}")
+        if header.get("modules") != list(self.cgs.modules):
+            raise FileFormatError(f"{path}: checkpoint trains modules {header.get('modules')}, this trainer {list(self.cgs.modules)}")
+        self.cgs.injector.load_state_dict({k[len("adapter."):]: v for k, v in tensors.items() if k.startswith("adapter.")})
+        state: dict[int, dict[str, torch.Tensor]] = {}
+        for k, v in tensors.items():
+            if k.startswith("optimizer."):
+                _, i, name = k.split(".", 2)
+                state.setdefault(int(i), {})[name] = v
+        self.optimizer.load_state_dict({"state": state, "param_groups": header["param_groups"]})
+        self.generator.set_state(tensors["rng"])
+        self.iteration = int(header["iteration"])
+        self.history = list(header.get("history", []))
+
+    def resume(self) -> bool:
+        """Load :attr:`checkpoint_path` if it exists; True if it did."""
+        if self.checkpoint_path is not None and self.checkpoint_path.is_file():
+            self.load_checkpoint(self.checkpoint_path)
+            return True
+        return False
