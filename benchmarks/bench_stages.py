@@ -1,6 +1,7 @@
 """Time each downstream stage and the whole pipeline (no PSF), forward and forward+backward.
 
-    python benchmarks/bench_stages.py [--sizes 256 512 1024] [--device cpu|cuda] [--out docs/benchmarks-stages.md]
+    python benchmarks/bench_stages.py [--sizes 256 512 1024] [--device cpu|cuda] [--reps 10] [--threads N]
+                                      [--out docs/benchmarks-stages.md]
 
 Images are ``[1, 3, S, S]`` float32. Each row reports the best time over repeats and its ratio
 to an elementwise copy of the same image (``x * 1``), measured in the same run: a memory-bound
@@ -33,20 +34,22 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _time(fn: Callable[[], object], device: torch.device, budget_s: float, max_reps: int) -> float:
-    """Best (minimum) seconds of ``fn`` over the repeats after two warm-up calls: on a shared
-    machine the load only adds time, so the minimum is the stablest estimate of the cost."""
-    for _ in range(2):
-        fn()
+def _time_interleaved(fns: dict[str, Callable[[], object]], device: torch.device, reps: int) -> dict[str, float]:
+    """Best (minimum) seconds of each function over ``reps`` round-robin repeats, after two warm-up
+    calls. Interleaving spreads a shared machine's load over all cases alike, and the load only
+    adds time, so the minimum is the stablest estimate of the cost."""
+    for fn in fns.values():
+        for _ in range(2):
+            fn()
     _sync(device)
-    times: list[float] = []
-    start = time.perf_counter()
-    while len(times) < max_reps and (len(times) < 3 or time.perf_counter() - start < budget_s):
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append(time.perf_counter() - t0)
-    return min(times)
+    best = {name: float("inf") for name in fns}
+    for _ in range(reps):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            _sync(device)
+            best[name] = min(best[name], time.perf_counter() - t0)
+    return best
 
 
 def _cases(size: int, device: torch.device) -> dict[str, Callable[[torch.Tensor], torch.Tensor]]:
@@ -57,6 +60,12 @@ def _cases(size: int, device: torch.device) -> dict[str, Callable[[torch.Tensor]
     low = (round(size / 2.5),) * 2
     pipeline = Pipeline.from_config({"lens": True, "resample": True, "display": True}).to(device)
     state = RuntimeState(2.5, 0.4)
+    power_ref = pipeline["display"].reference_power(gt, torch.float32)
+
+    def by_hand(x: torch.Tensor) -> torch.Tensor:  # the same E_s from the functionals: pipeline overhead
+        y = area_resample(lens_prewarp(srgb_to_linear(x), grid), 2.5)
+        return linear_to_srgb(box_emission(display_mapping(y, 0.4, reference_power=power_ref), (size, size)))
+
     return {
         "copy (x * 1, unit)": lambda x: x * 1.0,
         "sRGB decode": srgb_to_linear,
@@ -66,30 +75,33 @@ def _cases(size: int, device: torch.device) -> dict[str, Callable[[torch.Tensor]
         "resample d=2.5 (area taps)": lambda x: area_resample(x, 2.5),
         "display rho=0.4 (at S/2.5)": lambda x: display_mapping(x[..., : low[0], : low[1]], 0.4, gt_lin),
         "OLED S/2.5 -> S": lambda x: box_emission(x[..., : low[0], : low[1]], (size, size)),
+        "functionals composed by hand": by_hand,
         "pipeline d=2.5 rho=0.4 (no PSF)": lambda x: pipeline(x, state, reference=gt),
     }
 
 
-def run(sizes: list[int], device: torch.device, budget_s: float, max_reps: int) -> list[dict]:
+def run(sizes: list[int], device: torch.device, reps: int) -> list[dict]:
     rows = []
     for size in sizes:
         x = torch.rand(1, 3, size, size, device=device)
         xg = x.clone().requires_grad_(True)
-        unit_f = unit_b = None
-        for name, fn in _cases(size, device).items():
-            fwd = _time(lambda: fn(x), device, budget_s, max_reps)
+        cases = _cases(size, device)
 
-            def fwd_bwd() -> None:
+        def backward_of(fn: Callable[[torch.Tensor], torch.Tensor]) -> Callable[[], None]:
+            def run_once() -> None:
                 xg.grad = None
                 fn(xg).sum().backward()
+            return run_once
 
-            both = _time(fwd_bwd, device, budget_s, max_reps)
-            if unit_f is None:
-                unit_f, unit_b = fwd, both
-            rows.append({"size": size, "stage": name, "fwd_ms": fwd * 1e3, "fwd_bwd_ms": both * 1e3,
-                         "fwd_x": fwd / unit_f, "fwd_bwd_x": both / unit_b})
-            print(f"{size:5d}  {name:34s} fwd {fwd * 1e3:9.3f} ms ({fwd / unit_f:6.1f}x)   "
-                  f"fwd+bwd {both * 1e3:9.3f} ms ({both / unit_b:6.1f}x)", flush=True)
+        fwd = _time_interleaved({name: (lambda fn=fn: fn(x)) for name, fn in cases.items()}, device, reps)
+        both = _time_interleaved({name: backward_of(fn) for name, fn in cases.items()}, device, reps)
+        unit = next(iter(cases))
+        for name in cases:
+            f, b = fwd[name], both[name]
+            rows.append({"size": size, "stage": name, "fwd_ms": f * 1e3, "fwd_bwd_ms": b * 1e3,
+                         "fwd_x": f / fwd[unit], "fwd_bwd_x": b / both[unit]})
+            print(f"{size:5d}  {name:34s} fwd {f * 1e3:9.3f} ms ({f / fwd[unit]:6.1f}x)   "
+                  f"fwd+bwd {b * 1e3:9.3f} ms ({b / both[unit]:6.1f}x)", flush=True)
     return rows
 
 
@@ -104,10 +116,11 @@ def to_markdown(rows: list[dict], device: torch.device) -> str:
         "",
         f"`python benchmarks/bench_stages.py` on {where}, torch {torch.__version__}, float32, image `[1, 3, S, S]`;"
         f" load average at the end {load:.1f}.",
-        "Best-of-repeats times; `x` = ratio to an elementwise copy of the same image in the same run (memory-bound unit)."
+        "Best of round-robin repeats; `x` = ratio to an elementwise copy of the same image in the same run (memory-bound unit)."
         " On a shared machine absolute times vary with the load; compare ratios within one run.",
         "Display and OLED rows run at the display size of d = 2.5. The pipeline is lens + resample + display +"
-        " OLED with the sRGB decode/encode (the optics/PSF stage is not included).",
+        " OLED with the sRGB decode/encode (the optics/PSF stage is not included); the row above it runs the same"
+        " functionals composed by hand, so their ratio is the pipeline's own overhead.",
         "",
         "| S | stage | fwd ms | fwd x | fwd+bwd ms | fwd+bwd x |",
         "|---:|---|---:|---:|---:|---:|",
@@ -121,15 +134,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--budget", type=float, default=1.0, help="seconds of repeats per measurement")
-    ap.add_argument("--max-reps", type=int, default=50)
+    ap.add_argument("--reps", type=int, default=10, help="round-robin repeats (the best of them is reported)")
     ap.add_argument("--threads", type=int, default=0, help="CPU intra-op threads (0: torch's default)")
     ap.add_argument("--out", type=Path, default=Path("docs/benchmarks-stages.md"))
     args = ap.parse_args()
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    table = to_markdown(run(args.sizes, device, args.budget, args.max_reps), device)
+    table = to_markdown(run(args.sizes, device, args.reps), device)
     print(table)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
