@@ -1,4 +1,4 @@
-"""Display mapping P_disp: uniform dimming to a power target (paper Eq. 5, Supp. "Display Mapping").
+"""Display mapping P_disp: uniform dimming to a power target (paper Eq. 4, Supp. "Display Mapping").
 
 Power model (paper Eq. 7 / S2, dynamic OLED power, no static term), on linear RGB:
 ``P(I) = mean_{x,y}(alpha R + beta G + gamma B)`` with panel coefficients

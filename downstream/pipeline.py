@@ -1,4 +1,4 @@
-"""The end-to-end XR operator E_s of paper Eq. 8, composed from stages.
+"""The end-to-end XR operator E_s of paper Eq. 9 (Sec. 3, "Problem Formulation"), composed from stages.
 
     I_eye = O_phys(D_phys(P_disp(P_res(P_lens(I; s_lens); s_res); s_disp)))
 
@@ -40,7 +40,7 @@ __all__ = ["Pipeline", "PHYSICAL_STAGES"]
 #: (evaluated at the image size by bilinear interpolation, once per size).
 LENS_LUT_SIZE: tuple[int, int] = (512, 512)
 
-#: Names of the stages that model the physical display-optics path (paper Eq. 6); everything
+#: Names of the stages that model the physical display-optics path (paper Eq. 5); everything
 #: ordered before the first of them is post-processing.
 PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
 

@@ -1,4 +1,4 @@
-"""Anti-aliasing resampling P_res (paper Eq. 4, Supp. "Anti-Aliasing Resampling").
+"""Anti-aliasing resampling P_res (paper Eq. 3, Supp. "Anti-Aliasing Resampling").
 
 The image is supersampled at the native resolution S and box-filtered ("area" filter) to the
 display sampling rate S/d for a continuous factor d >= 1. Each output pixel is the exact area

@@ -1,4 +1,4 @@
-"""The end-to-end operator E_s (paper Eq. 8): composition, order, domains, skipping, records."""
+"""The end-to-end operator E_s (paper Eq. 9): composition, order, domains, skipping, records."""
 
 from __future__ import annotations
 
