@@ -58,7 +58,7 @@ ALPHA_MAX = 0.99  # per-splat alpha clamp
 ALPHA_MIN = 1.0 / 255.0  # splats with alpha below this are skipped
 TRANSMITTANCE_MIN = 1e-4  # a splat that would take T below this is not drawn, nor is any behind it
 
-_PAIR_BUDGET = 1 << 21  # (pixel, Gaussian) pairs expanded at once (~100 MB of temporaries)
+_PAIR_BUDGET = 1 << 20  # (pixel, Gaussian) pairs expanded at once (~150 bytes of temporaries each)
 _CACHE_BYTES = 512 << 20  # pair data kept from forward for backward; chunks beyond it are recomputed
 
 
@@ -235,7 +235,7 @@ class _Pairs:
     """The candidate (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by
     (pixel, depth)."""
 
-    gauss: torch.Tensor  # [P] int32 (int64 beyond 2^31)
+    gauss: torch.Tensor  # [P] int32
     pix: torch.Tensor  # [P] int32 flat pixel index y * W + x
     dx: torch.Tensor  # [P] pixel centre - mean, x
     dy: torch.Tensor  # [P]
@@ -255,30 +255,36 @@ def _expand_pairs(
 ) -> _Pairs:
     r0, r1, n = chunk
     dev, dtype = means2d.device, means2d.dtype
-    count = tiling.count[r0:r1]
+    count = tiling.count[r0:r1].int()
     g_rec = tiling.gauss[r0:r1]
-    # per record: offsets of its first pixel centre from the mean, its conic, opacity, first pixel id
+    # per record: offsets of its first pixel centre from the mean, first pixel id
     ox = tiling.x0[r0:r1].to(dtype) + 0.5 - means2d[:, 0].index_select(0, g_rec)
     oy = tiling.y0[r0:r1].to(dtype) + 0.5 - means2d[:, 1].index_select(0, g_rec)
-    rec_vals = (ox, oy, *conic.t().index_select(1, g_rec), opacity.index_select(0, g_rec))
     pix0 = (tiling.y0[r0:r1] * width + tiling.x0[r0:r1]).int()
-    # expand to pairs (gathers by the record index are monotone, hence cache-friendly)
-    rec = torch.repeat_interleave(torch.arange(r1 - r0, device=dev), count)  # [n]
-    local = torch.arange(n, device=dev) - (torch.cumsum(count, 0) - count).index_select(0, rec)
-    wx = tiling.wx[r0:r1].index_select(0, rec)
+    # expand to pairs, int32 and temporaries freed early to keep the peak low (gathers by the record
+    # index are monotone, hence cache-friendly)
+    rec = torch.repeat_interleave(torch.arange(r1 - r0, device=dev, dtype=torch.int32), count)  # [n]
+    first_of_rec = torch.cumsum(count, 0, dtype=torch.int32) - count
+    local = torch.arange(n, device=dev, dtype=torch.int32) - first_of_rec.index_select(0, rec)
+    wx = tiling.wx[r0:r1].int().index_select(0, rec)
     ly = local // wx
     lx = local - ly * wx
-    ox, oy, ca, cb, cc, o = (t.index_select(0, rec) for t in rec_vals)  # 1D gathers: fast
-    dx = ox + lx.to(dtype)
-    dy = oy + ly.to(dtype)
+    del local, wx
+    pix = pix0.index_select(0, rec) + ly * width + lx  # [n] int32
+    dx = ox.index_select(0, rec) + lx.to(dtype)
+    dy = oy.index_select(0, rec) + ly.to(dtype)
+    del lx, ly
+    ca, cb, cc = (row.index_select(0, g_rec).index_select(0, rec) for row in conic.t())
+    o = opacity.index_select(0, g_rec).index_select(0, rec)
     raw = o * torch.exp(-0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy)
+    del ca, cb, cc, o
     keep = (raw >= ALPHA_MIN).nonzero().squeeze(1)
-    pix = (pix0.index_select(0, rec) + (ly * width + lx).int()).index_select(0, keep)
+    pix = pix.index_select(0, keep)
     pix, order = torch.sort(pix, stable=True)  # runs per pixel, depth order kept inside each run
     sel = keep.index_select(0, order)
-    index_dtype = torch.int32 if max(n, means2d.shape[0], pix.numel()) < 2**31 else torch.int64
-    gauss = g_rec.index_select(0, rec.index_select(0, sel)).to(index_dtype)
+    gauss = g_rec.index_select(0, rec.index_select(0, sel)).int()
     dx, dy, raw = dx.index_select(0, sel), dy.index_select(0, sel), raw.index_select(0, sel)
+    del rec, keep, order, sel
     clamped = raw > ALPHA_MAX
     alpha = torch.where(clamped, torch.full_like(raw, ALPHA_MAX), raw)
     # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
@@ -287,11 +293,12 @@ def _expand_pairs(
     first[1:] = pix[1:] != pix[:-1]
     starts = first.nonzero().squeeze(1)
     seg = torch.cumsum(first, 0) - 1
-    excl = torch.cumsum(log_t, 0) - log_t
-    log_before = excl - excl.index_select(0, starts).index_select(0, seg)
+    excl = torch.cumsum(log_t, 0).sub_(log_t)
+    log_before = excl.index_select(0, starts).index_select(0, seg).neg_().add_(excl)
+    del excl
     t_before = torch.exp(log_before.to(dtype))
     drawn = (log_before + log_t) >= torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=torch.float64))
-    seg_end = torch.cat([starts[1:] - 1, starts.new_tensor([pix.numel() - 1])]).index_select(0, seg).to(index_dtype)
+    seg_end = torch.cat([starts[1:] - 1, starts.new_tensor([pix.numel() - 1])]).index_select(0, seg).int()
     return _Pairs(gauss, pix, dx, dy, alpha, clamped, t_before, drawn, seg_end)
 
 
@@ -303,7 +310,7 @@ class _Composite(torch.autograd.Function):
         hw, nf = width * height, feats.shape[1]
         out = feats.new_zeros(nf, hw)
         cached: list[_Pairs | None] = []
-        cache_left = _CACHE_BYTES
+        cache_left = _CACHE_BYTES if any(ctx.needs_input_grad[:4]) else 0
         for chunk in tiling.chunks:
             p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
             w = p.alpha * p.t_before * p.drawn
