@@ -10,19 +10,24 @@ Conventions (all shared with the reference; see ``rasterize``'s docstring for th
 * Gaussian ``n``: mean ``mu_n`` (world), covariance ``R(q_n) diag(s_n)^2 R(q_n)^T`` with the quaternion
   ``q_n = (w, x, y, z)`` normalised here, opacity ``o_n`` in [0, 1], a colour.
 
-How it is fast (2 CPU cores, no compiled extension):
+How it is fast (2 CPU cores, no compiled extension; profiler labels ``splatter.*`` in brackets):
 
-1. project only the Gaussians in front of the near plane; drop those whose screen footprint misses
+1. [project] project only the Gaussians in front of the near plane; drop those whose footprint misses
    the image (``visible``);
-2. bin the footprints into ``tile_size`` x ``tile_size`` tiles, sort the (tile, depth) records, and
-   cut the tiles into chunks of at most ``_PAIR_BUDGET`` (pixel, Gaussian) pairs, so that memory is
-   bounded whatever the scene (never a dense [pixels x Gaussians] tensor);
-3. per chunk, expand the records into the (pixel, Gaussian) pairs inside each footprint, drop those
-   with alpha < 1/255, sort them by pixel (stable, so each pixel's run stays in depth order) and
-   composite all pixels at once with a segmented scan of ``log(1 - alpha)``;
-4. the compositing is a ``torch.autograd.Function`` with a hand-written backward (the 3DGS
-   back-to-front suffix sums as a reverse segmented scan); the pairs of a chunk are kept for the
-   backward pass while they fit in ``_CACHE_BYTES``, the others are recomputed (as the CUDA kernel does).
+2. [bin] sort the rest by depth, bin their candidate rectangles (footprint cut to the box where
+   alpha can reach 1/255) into ``tile_size`` x ``tile_size`` tiles, stable-sort the records by tile
+   (so (tile, depth) order), and cut the tiles into chunks of about ``_PAIR_BUDGET`` (pixel,
+   Gaussian) pairs, so that memory is bounded whatever the scene (never a dense
+   [pixels x Gaussians] tensor);
+3. [expand_pairs] per chunk, expand the records into their (pixel, Gaussian) pairs, drop those with
+   alpha < 1/255, stable-sort them by pixel (each pixel's run stays in depth order) and get every
+   pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix sums);
+4. [accumulate] ``sum_i w_i f_i`` per pixel is one sparse CSR [pixels x Gaussians] @ [Gaussians x 5]
+   product (colour, depth, alpha);
+5. [backward_pairs] the compositing is a ``torch.autograd.Function`` with a hand-written backward
+   (the 3DGS back-to-front suffix sums as a reverse segmented scan, then scatter-adds to the
+   Gaussians); a chunk's pairs are kept for it while they fit in ``_CACHE_BYTES``, the others are
+   recomputed (as the CUDA kernel does).
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import warnings
 from dataclasses import dataclass
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from controlgs_adapter.checks import check_same_device, check_tensor
 from controlgs_adapter.errors import InputValueError
@@ -40,7 +46,6 @@ __all__ = [
     "RasterOutput",
     "rasterize",
     "project_gaussians",
-    "composite_features",
     "NEAR_PLANE",
     "LOW_PASS",
     "EXTENT_SIGMAS",
@@ -161,7 +166,8 @@ def _footprints(
 
         def rect(hx: torch.Tensor, hy: torch.Tensor) -> torch.Tensor:
             out = torch.stack(
-                [torch.ceil(u - hx - 0.5), torch.floor(u + hx - 0.5), torch.ceil(v - hy - 0.5), torch.floor(v + hy - 0.5)],
+                [torch.ceil(u - hx - 0.5), torch.floor(u + hx - 0.5),
+                 torch.ceil(v - hy - 0.5), torch.floor(v + hy - 0.5)],
                 dim=-1,
             ).clamp(-big, big).long()
             out[:, 0].clamp_(min=0)
@@ -312,15 +318,17 @@ class _Composite(torch.autograd.Function):
         cached: list[_Pairs | None] = []
         cache_left = _CACHE_BYTES if any(ctx.needs_input_grad[:4]) else 0
         for chunk in tiling.chunks:
-            p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
-            w = p.alpha * p.t_before * p.drawn
-            # out[pix] += w feats[gauss]: the pairs are sorted by pixel, i.e. a CSR matrix [HW, M]
-            crow = torch.zeros(hw + 1, dtype=p.pix.dtype, device=w.device)
-            crow[1:] = torch.cumsum(torch.bincount(p.pix, minlength=hw), 0)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-                weights = torch.sparse_csr_tensor(crow, p.gauss, w, (hw, feats.shape[0]), check_invariants=False)
-                out += (weights @ feats).t()
+            with torch.profiler.record_function("splatter.expand_pairs"):
+                p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
+            with torch.profiler.record_function("splatter.accumulate"):
+                w = p.alpha * p.t_before * p.drawn
+                # out[pix] += w feats[gauss]: the pairs are sorted by pixel, i.e. a CSR matrix [HW, M]
+                crow = torch.zeros(hw + 1, dtype=p.pix.dtype, device=w.device)
+                crow[1:] = torch.cumsum(torch.bincount(p.pix, minlength=hw), 0)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+                    weights = torch.sparse_csr_tensor(crow, p.gauss, w, (hw, feats.shape[0]), check_invariants=False)
+                    out += (weights @ feats).t()
             keep = p.nbytes() <= cache_left
             cache_left -= p.nbytes() if keep else 0
             cached.append(p if keep else None)
@@ -329,6 +337,7 @@ class _Composite(torch.autograd.Function):
         return out
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_out):  # type: ignore[override]
         means2d, conic, opacity, feats = ctx.saved_tensors
         tiling, width = ctx.tiling, ctx.width
@@ -341,58 +350,37 @@ class _Composite(torch.autograd.Function):
         for i, chunk in enumerate(tiling.chunks):
             p = ctx.cached[i]
             if p is None:
-                p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
-            w = p.alpha * p.t_before * p.drawn
-            f = torch.zeros_like(w)  # dL/dw per pair: feats . grad_out at the pixel
-            for k in range(nf):
-                g_pix = grad_out[k].index_select(0, p.pix)
-                f += feats_t[k].index_select(0, p.gauss) * g_pix
-                g_feats[k].index_add_(0, p.gauss, w * g_pix)
-            # dL/dalpha_k = T_k f_k - (sum_{j > k} w_j f_j) / (1 - alpha_k): reverse segmented scan
-            wf = (w * f).double()
-            csum = torch.cumsum(wf, 0)
-            behind = (csum.index_select(0, p.seg_end) - csum).to(w.dtype)
-            g_alpha = (p.t_before * f - behind / (1 - p.alpha)) * p.drawn
-            g_pow = torch.where(p.clamped, torch.zeros_like(g_alpha), g_alpha * p.alpha)  # dalpha/dpower = alpha
-            ca, cb, cc = (row.index_select(0, p.gauss) for row in conic_t)
-            o = opacity.index_select(0, p.gauss)
-            dx, dy = p.dx, p.dy
-            per_pair = (
-                g_pow * (ca * dx + cb * dy),  # d power / d u = -d power / d dx
-                g_pow * (cb * dx + cc * dy),
-                -0.5 * g_pow * dx * dx,
-                -g_pow * dx * dy,
-                -0.5 * g_pow * dy * dy,
-                g_pow / o,  # alpha = o G  ->  d alpha / d o = G = alpha / o (o > 0 since alpha >= 1/255)
-            )
-            for k, val in enumerate(per_pair):
-                g_geo[k].index_add_(0, p.gauss, val)
+                with torch.profiler.record_function("splatter.expand_pairs"):
+                    p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
+            with torch.profiler.record_function("splatter.backward_pairs"):
+                w = p.alpha * p.t_before * p.drawn
+                f = torch.zeros_like(w)  # dL/dw per pair: feats . grad_out at the pixel
+                for k in range(nf):
+                    g_pix = grad_out[k].index_select(0, p.pix)
+                    f += feats_t[k].index_select(0, p.gauss) * g_pix
+                    g_feats[k].index_add_(0, p.gauss, w * g_pix)
+                # dL/dalpha_k = T_k f_k - (sum_{j > k} w_j f_j) / (1 - alpha_k): reverse segmented scan
+                wf = (w * f).double()
+                csum = torch.cumsum(wf, 0)
+                behind = (csum.index_select(0, p.seg_end) - csum).to(w.dtype)
+                g_alpha = (p.t_before * f - behind / (1 - p.alpha)) * p.drawn
+                g_pow = torch.where(p.clamped, torch.zeros_like(g_alpha), g_alpha * p.alpha)  # dalpha/dpower = alpha
+                ca, cb, cc = (row.index_select(0, p.gauss) for row in conic_t)
+                o = opacity.index_select(0, p.gauss)
+                dx, dy = p.dx, p.dy
+                per_pair = (
+                    g_pow * (ca * dx + cb * dy),  # d power / d u = -d power / d dx
+                    g_pow * (cb * dx + cc * dy),
+                    -0.5 * g_pow * dx * dx,
+                    -g_pow * dx * dy,
+                    -0.5 * g_pow * dy * dy,
+                    g_pow / o,  # alpha = o G  ->  d alpha / d o = G = alpha / o (o > 0 since alpha >= 1/255)
+                )
+                for k, val in enumerate(per_pair):
+                    g_geo[k].index_add_(0, p.gauss, val)
         g_means2d = g_geo[:2].t()
         g_conic = g_geo[2:5].t()
         return g_means2d, g_conic, g_geo[5], g_feats.t(), None, None, None
-
-
-def composite_features(
-    means2d: torch.Tensor,  # [M, 2]
-    cov2d: torch.Tensor,  # [M, 3]
-    conic: torch.Tensor,  # [M, 3]
-    opacity: torch.Tensor,  # [M]
-    feats: torch.Tensor,  # [M, F]
-    depth_order: torch.Tensor,  # [M] keys, smaller is drawn first
-    width: int,
-    height: int,
-    tile_size: int = 16,
-) -> torch.Tensor:
-    """Composite any per-Gaussian features front to back: ``[F, H, W]`` = ``sum_i w_i f_i`` with
-    ``w_i = alpha_i prod_{j<i} (1 - alpha_j)`` under the 3DGS cut-offs (see ``rasterize``).
-    Differentiable w.r.t. ``means2d``, ``conic``, ``opacity`` and ``feats``; ``cov2d`` only sets the
-    footprint. All Gaussians must have non-empty footprints (``rasterize`` culls the others)."""
-    order = torch.argsort(depth_order, stable=True)
-    means2d, cov2d, conic, opacity, feats = (t[order] for t in (means2d, cov2d, conic, opacity, feats))
-    _, candidates = _footprints(means2d, cov2d, opacity, width, height)
-    tiling = _bin_tiles(candidates, width, tile_size)
-    out = _Composite.apply(means2d, conic.contiguous(), opacity.contiguous(), feats.contiguous(), tiling, width, height)
-    return out.reshape(feats.shape[1], height, width)
 
 
 # ----------------------------------------------------------------------------- public API
@@ -487,22 +475,26 @@ def rasterize(
     dtype, dev = means.dtype, means.device
     w2c = camera.world_to_camera.to(device=dev, dtype=dtype)
     k = camera.intrinsics.to(device=dev, dtype=dtype)
-    means_cam = means @ w2c[:3, :3].t() + w2c[:3, 3]  # [N, 3]
-    visible = torch.zeros(n, dtype=torch.bool, device=dev)
-    front = (means_cam[:, 2] > NEAR_PLANE).nonzero().squeeze(1)  # [M0]
-    means2d, cov2d, conic = project_gaussians(
-        means_cam[front], scales[front], rotations[front], w2c, k, width, height
-    )
-    rect, _ = _footprints(means2d, cov2d, opacities[front], width, height)
-    on_screen = ((rect[:, 0] <= rect[:, 1]) & (rect[:, 2] <= rect[:, 3])).nonzero().squeeze(1)
-    idx = front[on_screen]  # [M]
-    visible[idx] = True
-    z = means_cam[idx, 2]
-    feats = torch.cat([colors[idx], z.unsqueeze(-1), torch.ones_like(z).unsqueeze(-1)], dim=-1)  # [M, 5]
-    out = composite_features(
-        means2d[on_screen], cov2d[on_screen], conic[on_screen], opacities[idx], feats, z.detach(),
-        width, height, tile_size,
-    )  # [5, H, W]
+    with torch.profiler.record_function("splatter.project"):
+        means_cam = means @ w2c[:3, :3].t() + w2c[:3, 3]  # [N, 3]
+        front = (means_cam[:, 2] > NEAR_PLANE).nonzero().squeeze(1)  # [M0]
+        means2d, cov2d, conic = project_gaussians(
+            means_cam[front], scales[front], rotations[front], w2c, k, width, height
+        )
+        rect, candidates = _footprints(means2d, cov2d, opacities[front], width, height)
+        on_screen = ((rect[:, 0] <= rect[:, 1]) & (rect[:, 2] <= rect[:, 3])).nonzero().squeeze(1)
+        idx = front[on_screen]  # [M]
+        visible = torch.zeros(n, dtype=torch.bool, device=dev)
+        visible[idx] = True
+    with torch.profiler.record_function("splatter.bin"):
+        z = means_cam[idx, 2]  # [M]
+        order = torch.argsort(z.detach(), stable=True)  # front to back; ties keep the input order
+        sel, idx = on_screen[order], idx[order]
+        z = z[order]
+        feats = torch.cat([colors[idx], z.unsqueeze(-1), torch.ones_like(z).unsqueeze(-1)], dim=-1)  # [M, 5]
+        tiling = _bin_tiles(candidates[sel], width, tile_size)
+    out = _Composite.apply(means2d[sel], conic[sel], opacities[idx], feats, tiling, width, height)
+    out = out.reshape(5, height, width)
     alpha = out[4:5]
     color = out[:3]
     if background is not None:
