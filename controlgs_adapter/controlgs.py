@@ -118,7 +118,8 @@ def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
     if not isinstance(fc1, nn.Linear):
         raise TargetError(f"{backend.name}: first layer {fc1_path!r} of {path!r} must be an eager nn.Linear, got {type(fc1).__name__}")
     if fc1 in _ATTACHED:
-        raise TargetError(f"{fc1_path!r} already carries a ControlGS injector: unwrap() the existing wrapper first")
+        raise TargetError(f"{fc1_path!r} already carries an injector ({_ATTACHED[fc1]!r}): unwrap it first, "
+                          "e.g. ControlGS.attached(model).unwrap()")
     target = Target(path, fc1_path, fc1.in_features, fc1.out_features, eager is not None)
     return _Plan(target, eager)
 
@@ -276,6 +277,22 @@ class ControlGS:
         self._wrapped = False
         return self.model
 
+    @staticmethod
+    def attached(model: Any) -> "ControlGS | None":
+        """The live wrapper whose injector sits on ``model``'s decoders, or None (e.g. to unwrap a
+        model whose wrapper object was lost after an exception)."""
+        for backend in (info.obj for info in plugins.backends().values()):
+            if not backend.matches(model):
+                continue
+            for path in backend.decoder_paths(model):
+                try:
+                    fc1 = get_attr_path(model, backend.first_linear_path(model, path))
+                except (AttributeError, IndexError, KeyError, TypeError):
+                    continue
+                if isinstance(fc1, nn.Module) and fc1 in _ATTACHED:
+                    return _ATTACHED[fc1]
+        return None
+
     def _check_live(self) -> None:
         if not self._wrapped:
             raise StateError("this ControlGS was unwrapped; wrap the model again")
@@ -308,7 +325,7 @@ class ControlGS:
         if anchor_ids.dim() != 1:
             raise ShapeError(f"anchor_ids must have shape [R], got {list(anchor_ids.shape)}")
         ids = anchor_ids.to(device=device, dtype=torch.int64)
-        if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= a):
+        if ids.numel() and bool(((ids < 0) | (ids >= a)).any()):  # one device sync; min/max only on error
             raise InputValueError(f"anchor_ids must lie in [0, {a}), got values in [{int(ids.min())}, {int(ids.max())}]")
         return ids
 

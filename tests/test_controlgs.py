@@ -358,9 +358,11 @@ def test_no_matching_backend_lists_what_each_backend_looks_for():
 def test_wrapping_twice_is_refused_and_feature_bank_is_targetable():
     model = make_model("eager", use_feat_bank=True)
     cgs = ControlGS.wrap(model)
-    with pytest.raises(TargetError, match="already carries"):
+    with pytest.raises(TargetError, match=r"already carries an injector \(ControlGS\(backend='scaffold_gs'"):
         ControlGS.wrap(model)
-    cgs.unwrap()
+    assert ControlGS.attached(model) is cgs
+    ControlGS.attached(model).unwrap()
+    assert ControlGS.attached(model) is None
     cgs = ControlGS.wrap(model, targets=["mlp_feature_bank", "mlp_color"])
     assert [(t.decoder, t.in_features, t.out_features) for t in cgs.targets] == [("mlp_feature_bank", 4, 32),
                                                                                 ("mlp_color", 35, 32)]
