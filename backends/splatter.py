@@ -410,8 +410,6 @@ def _check_inputs(means, scales, rotations, opacities, colors, camera, backgroun
             )
         if bool((rotations.detach().norm(dim=-1) == 0).any()):
             raise InputValueError("rotations must be non-zero quaternions (w, x, y, z), got an all-zero row")
-    if not (isinstance(camera.width, int) and camera.width >= 1 and camera.height >= 1):
-        raise InputValueError(f"camera size must be >= 1 x 1, got {camera.width}x{camera.height}")
     return n
 
 
@@ -464,6 +462,13 @@ def rasterize(
         * ``color = sum_i w_i c_i + T_final background``, ``alpha = 1 - T_final = sum_i w_i``,
           ``depth = sum_i w_i z_i``.
         The cut-offs (near plane, footprint, 1/255, 1e-4, 0.99 clamp) have zero gradient.
+
+    Differences from the 3DGS CUDA rasteriser (all at the level of single low-alpha pixels): the
+    footprint test is per pixel, not per 16 px tile (3DGS also draws a splat in the parts of the
+    tiles it touches that lie outside its square); ``lambda_max`` is exact (3DGS floors the
+    discriminant at 0.1 and rounds the radius up to whole pixels); the 2D determinant is computed
+    without cancellation (``|j0 x j1|^2 + ...``), which keeps needle-like Gaussians near the camera
+    right in float32.
 
     Supersampling: render at ``camera`` and area-pool (``downstream.resample.area_resample``), or
     render directly at ``camera.scaled(d)``.
