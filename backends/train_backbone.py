@@ -184,5 +184,5 @@ def train_reference_model(
         loss.backward()
         opt.step()
         if step % 10 == 0:
-            bar.set_postfix(loss=f"{float(loss):.4f}", gaussians=int(g.means.shape[0]))
+            bar.set_postfix(loss=f"{loss.item():.4f}", gaussians=int(g.means.shape[0]))
     return model.eval()

@@ -144,7 +144,11 @@ def decode_by_hand(raw: dict, cam_center: torch.Tensor, visible: torch.Tensor, u
             out["opacities"].append(op[j])
             out["colors"].append(col[3 * j:3 * j + 3])
             out["anchor_of"].append(v)
-    return {n: torch.stack(t) if n != "anchor_of" else torch.tensor(t, dtype=torch.long) for n, t in out.items()}
+    widths = {"means": 3, "scales": 3, "rotations": 4, "colors": 3}
+    res = {n: torch.stack(t) if t else torch.zeros(0, widths.get(n, 0), dtype=torch.float64).squeeze(1)
+           for n, t in out.items() if n != "anchor_of"}
+    res["anchor_of"] = torch.tensor(out["anchor_of"], dtype=torch.long)
+    return res
 
 
 def camera_looking_down_z(size: int = 32, f: float = 30.0, center=(0.0, 0.0, 0.0)):
