@@ -4,15 +4,18 @@ Every operator maps ``[..., L, H, W]`` primary intensities (L = the bank's wavel
 light) on the display grid to the virtual image on the same grid (scaled by the reference
 magnification), and implements the discretisation in :mod:`.resampled`:
 
-- :func:`psf_exact`: the reference. Every display pixel splats its intensity through its own
-  bilinearly blended PSF at its chief-ray footprint. Linear; its backward is the exact adjoint
-  (a hand-written gather). Cost ``N k^2`` per wavelength: slow, it is the ground truth.
+- :func:`psf_reference`: the literal reference. Every display pixel splats its intensity through
+  its own bilinearly blended PSF at its chief-ray footprint. Linear; its backward is the exact
+  adjoint (a hand-written gather). Cost ``N k^2`` per wavelength: for tests at small sizes.
+- :func:`psf_exact`: the same operator, exactly, as one FFT convolution per field sample (each
+  pixel's PSF is a bilinear blend of 4 field PSFs, so the operator is a sum of field-weighted
+  shift-invariant convolutions). The ground truth of the benchmark.
 - :func:`psf_distortion`: the chief-ray warp alone (the PSF taken as a delta): the paper's
   approximation for the first 90 % of training. Cost ``O(N)``.
-- :func:`psf_lowrank`: ``sum_r E_r * S(a_r . x)``: eigen-PSFs ``E_r`` of the field PSFs (truncated
-  SVD) applied as FFT convolutions after splatting the coefficient-weighted image to its chief rays.
-  Converges to :func:`psf_exact` as ``rank`` grows (exact at full rank); cost ``O(R N log N)``,
-  independent of the kernel size.
+- :func:`psf_fast`: per group of ``zone x zone`` field samples, ``sum_r E_r * S(a_r . x)`` with the
+  eigen-PSFs ``E_r`` of the group (truncated SVD to relative residual ``tol``) applied as FFT
+  convolutions after splatting the coefficient-weighted image to its chief rays. Converges to
+  :func:`psf_exact` as ``tol -> 0`` (exact at 0); cost independent of the kernel size.
 
 Pixels that are zero in every channel are skipped in the splats when no gradient is needed
 (object scenes on black). With a gradient they cannot be skipped: the gradient there is not zero.
@@ -27,7 +30,7 @@ from controlgs_adapter.errors import InputValueError
 
 from .resampled import ResampledBank
 
-__all__ = ["psf_exact", "psf_distortion", "psf_lowrank"]
+__all__ = ["psf_exact", "psf_reference", "psf_distortion", "psf_fast"]
 
 _FLOATS = (torch.float32, torch.float64)
 _CHUNK_ELEMS = 1 << 22
@@ -77,25 +80,53 @@ def psf_distortion(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
     return torch.stack(outs, 1).reshape(*lead, rb.L, rb.H, rb.W)
 
 
-def psf_lowrank(primaries: torch.Tensor, rb: ResampledBank, rank: int) -> torch.Tensor:
-    """Shift-variant PSF with ``rank`` eigen-PSFs per wavelength (FFT convolutions)."""
-    if not isinstance(rank, int) or rank < 1:
-        raise InputValueError(f"rank must be an int >= 1, got {rank!r}")
-    x, lead = _prepare(primaries, rb)
-    kfft, coeff, (fh, fw) = rb.lowrank(rank)
-    act = _active(x)
-    B, R = x.shape[0], kfft.shape[1]
-    outs = []
+def _apply_zones(x: torch.Tensor, rb: ResampledBank, zones: list) -> torch.Tensor:
+    B = x.shape[0]
+    out = x.new_zeros(B, rb.L, rb.H, rb.W)
+    nz = None
+    if not (torch.is_grad_enabled() and x.requires_grad):
+        nz = (x != 0).any(0)                                                   # [L, N]
     for li in range(rb.L):
-        idx, w, a, v = rb.splat_index[li], rb.splat_weight[li], coeff[li], x[:, li]
-        if act is not None:
-            idx, w, a, v = idx[:, act], w[:, act], a[:, act], v[:, act]
-        vals = (v[:, None, :] * a[None]).reshape(B * R, -1)                  # [B*R, N]
-        canvas = _splat(vals, idx, w, rb.Hc * rb.Wc)[:, :-1].reshape(B, R, rb.Hc, rb.Wc)
-        spec = (torch.fft.rfft2(canvas, s=(fh, fw)) * kfft[li]).sum(1)      # [B, fh, fw//2+1]
-        full = torch.fft.irfft2(spec, s=(fh, fw))
-        outs.append(full[:, rb.m:rb.m + rb.H, rb.m:rb.m + rb.W])
-    return torch.stack(outs, 1).reshape(*lead, rb.L, rb.H, rb.W)
+        for z in zones[li]:
+            idx, w, a, pix = z.splat_index, z.splat_weight, z.coeff, z.pixels
+            if nz is not None:
+                keep = nz[li, pix]
+                n_keep = int(keep.sum())
+                if n_keep == 0:
+                    continue
+                if n_keep < 0.75 * keep.numel():
+                    idx, w, a, pix = idx[:, keep], w[:, keep], a[:, keep], pix[keep]
+            R = a.shape[0]
+            fh, fw = z.fft_size
+            vals = (x[:, li, pix][:, None, :] * a[None]).reshape(B * R, -1)
+            arr = _splat(vals, idx, w, fh * fw)[:, :-1].reshape(B, R, fh, fw)
+            res = torch.fft.irfft2((torch.fft.rfft2(arr) * z.kernel_fft).sum(1), s=(fh, fw))
+            a0, a1, b0, b1 = z.src
+            r, c = z.dst
+            out[:, li, r:r + a1 - a0, c:c + b1 - b0] += res[:, a0:a1, b0:b1]
+    return out
+
+
+def psf_fast(primaries: torch.Tensor, rb: ResampledBank, tol: float = 0.02, zone: int = 6,
+             max_rank: int | None = None) -> torch.Tensor:
+    """Shift-variant PSF as a sum of FFT convolutions: the field grid is split into ``zone x zone``
+    groups; in each, the field PSFs are replaced by their truncated SVD (eigen-PSFs) with relative
+    Frobenius residual <= ``tol`` (the accuracy knob; ``tol=0`` is exact). Cost grows with the
+    number of eigen-PSFs, not with the kernel size."""
+    if not (isinstance(tol, (int, float)) and 0 <= tol < 1):
+        raise InputValueError(f"tol must be in [0, 1), got {tol!r}")
+    if not isinstance(zone, int) or zone < 1:
+        raise InputValueError(f"zone must be an int >= 1, got {zone!r}")
+    x, lead = _prepare(primaries, rb)
+    return _apply_zones(x, rb, rb.zones(zone, tol, max_rank)).reshape(*lead, rb.L, rb.H, rb.W)
+
+
+def psf_exact(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
+    """Paper Eq. S3, exactly: since each pixel's PSF is a bilinear blend of field PSFs,
+    ``out = sum_f H_f * S(w_f . x)`` (one FFT convolution per field over the pixels that use it).
+    Equal to :func:`psf_reference` to rounding; backward by autograd (the exact adjoint)."""
+    x, lead = _prepare(primaries, rb)
+    return _apply_zones(x, rb, rb.zones(1, 0.0)).reshape(*lead, rb.L, rb.H, rb.W)
 
 
 def _tap_chunks(rb: ResampledBank):
@@ -154,7 +185,9 @@ def _crop_full(canvas: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
     return canvas[..., :-1].reshape(*canvas.shape[:-1], rb.Hc, rb.Wc)
 
 
-def psf_exact(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
-    """Reference per-pixel splat of paper Eq. S3 (slow; backward = exact adjoint)."""
+def psf_reference(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
+    """Brute-force per-pixel splat of paper Eq. S3: every pixel's blended PSF, tap by tap, through
+    its footprint. Very slow (``N k^2 J``); the independent reference for tests. Its backward is a
+    hand-written gather: the exact adjoint."""
     x, lead = _prepare(primaries, rb)
     return _ExactPSF.apply(x, rb).reshape(*lead, rb.L, rb.H, rb.W)

@@ -20,6 +20,7 @@ lands outside it.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -30,7 +31,7 @@ from controlgs_adapter.errors import InputValueError
 if TYPE_CHECKING:
     from .bank import PSFBank
 
-__all__ = ["ResampledBank", "fast_len"]
+__all__ = ["ResampledBank", "Zone", "fast_len"]
 
 
 def fast_len(n: int) -> int:
@@ -72,7 +73,7 @@ class ResampledBank:
         self.Hc, self.Wc = height + 2 * self.m, width + 2 * self.m
         self._px = (px_x, px_y)
         self._kernels: torch.Tensor | None = None
-        self._lowrank: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._zones: dict = {}
         self.field_index, self.field_weight = self._field_weights()   # [4, N] long, [4, N]
         self.splat_index, self.splat_weight = self._footprints()     # [L, J, N] long, [L, J, N]
 
@@ -101,11 +102,33 @@ class ResampledBank:
 
     # ----------------------------------------------------------------- chief-ray footprints
     def _chief_at(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """Chief-ray landing ``[L, *u.shape, 2]`` (normalised) at normalised display points (bilinear)."""
-        grid = torch.stack([u, v], -1).double()[None].expand(self.L, *u.shape, 2)
-        ch = self.bank.chief.double().permute(0, 3, 1, 2)           # [L, 2, Cy, Cx]
-        out = F.grid_sample(ch, grid, mode="bilinear", align_corners=True, padding_mode="border")
-        return out.permute(0, 2, 3, 1)
+        """Chief-ray landing ``[L, *u.shape, 2]`` (normalised) at normalised display points.
+
+        Separable Keys cubic convolution (a = -1/2: reproduces quadratics, C1), so the derivative,
+        the local magnification, is continuous and a flat field shows no steps at grid lines.
+        The grid is extended by one sample each side by quadratic extrapolation."""
+        ch = self.bank.chief.double()                                           # [L, Cy, Cx, 2]
+        ch = torch.cat([3 * ch[:, :1] - 3 * ch[:, 1:2] + ch[:, 2:3], ch, 3 * ch[:, -1:] - 3 * ch[:, -2:-1] + ch[:, -3:-2]], 1)
+        ch = torch.cat([3 * ch[:, :, :1] - 3 * ch[:, :, 1:2] + ch[:, :, 2:3], ch,
+                        3 * ch[:, :, -1:] - 3 * ch[:, :, -2:-1] + ch[:, :, -3:-2]], 2)
+        Cy, Cx = self.bank.chief.shape[1:3]
+
+        def taps(t: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+            g = (t.double() + 1) / 2 * (n - 1)                                 # grid units, 0..n-1
+            i = torch.floor(g).clamp(0, n - 2)
+            f = g - i
+            w = torch.stack([((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0,
+                             ((-1.5 * f + 2.0) * f + 0.5) * f, (0.5 * f - 0.5) * f * f], -1)
+            idx = i.long()[..., None] + torch.arange(4)                         # padded grid index
+            return idx, w
+
+        iy, wy = taps(v, Cy)
+        ix, wx = taps(u, Cx)
+        out = 0
+        for a in range(4):
+            for b in range(4):
+                out = out + ch[:, iy[..., a], ix[..., b]] * (wy[..., a] * wx[..., b])[None, ..., None]
+        return out
 
     def _footprints(self) -> tuple[torch.Tensor, torch.Tensor]:
         H, W, m = self.H, self.W, self.m
@@ -161,33 +184,99 @@ class ResampledBank:
             out = out + kf[self.field_index[i]] * self.field_weight[i, :, None]
         return out.T
 
-    def lowrank(self, rank: int) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int]]:
-        """Truncated SVD of the field kernels per wavelength: ``(kernel_fft [L, R, Fh, Fw//2+1],
-        coeff [L, R, N], fft_size)``. Coefficients are rescaled per pixel so that every truncated
-        pixel kernel keeps unit sum (energy-preserving truncation)."""
-        if rank not in self._lowrank:
-            kern = self.kernels.double()
-            L, G = kern.shape[:2]
-            R = min(rank, G, self.k * self.k)
-            fh, fw = fast_len(self.Hc), fast_len(self.Wc)
-            ffts, coeffs = [], []
-            for li in range(L):
-                A = kern[li].reshape(G, -1)                                 # [G, k*k]
-                evals, U = torch.linalg.eigh(A @ A.T)
-                order = torch.argsort(evals, descending=True)[:R]
-                s = evals[order].clamp_min(1e-30).sqrt()
-                U = U[:, order]                                              # [G, R]
-                E = (U.T @ A) / s[:, None]                                   # [R, k*k] orthonormal eigen-PSFs
-                a = U * s                                                    # [G, R]
-                ap = sum(a[self.field_index[i]] * self.field_weight[i, :, None].double() for i in range(4))  # [N, R]
-                total = ap @ E.sum(1)                                         # [N] sum of each truncated kernel
-                ap = ap / torch.where(total.abs() > 1e-6, total, torch.ones_like(total))[:, None]
-                Ek = torch.zeros(R, fh, fw, dtype=torch.float64, device=E.device)
-                Ek[:, : self.k, : self.k] = E.reshape(R, self.k, self.k)
-                Ek = torch.roll(Ek, shifts=(-self.m, -self.m), dims=(1, 2))  # tap t at index t mod size
-                ffts.append(torch.fft.rfft2(Ek))
-                coeffs.append(ap.T)
-            cdt = torch.complex64 if self.dtype == torch.float32 else torch.complex128
-            self._lowrank[rank] = (torch.stack(ffts).to(self.device, cdt), torch.stack(coeffs).to(self.device, self.dtype),
-                                   (fh, fw))
-        return self._lowrank[rank]
+    def zones(self, zone: int, tol: float, max_rank: int | None = None) -> list["Zone"]:
+        """Field-group decomposition of the operator (cached): the fields are split into groups of
+        ``zone x zone``; within a group, the kernels are replaced by their truncated SVD with the
+        smallest rank whose relative Frobenius residual is <= ``tol`` (capped by ``max_rank``).
+        Because each pixel's PSF is a bilinear blend of field PSFs, ``zone=1`` (any tol) and
+        ``tol=0`` are exact."""
+        key = (zone, float(tol), max_rank)
+        if key not in self._zones:
+            self._zones[key] = _build_zones(self, zone, float(tol), max_rank)
+        return self._zones[key]
+
+
+@dataclass
+class Zone:
+    """One field group at one wavelength: ``out[box] += sum_r E_r * splat(coeff_r . x[pixels])``."""
+
+    pixels: torch.Tensor        # [n] flat display-pixel indices whose PSF uses a field of the group
+    splat_index: torch.Tensor   # [J, n] flat index into the zone's FFT array (fh * fw = dump slot)
+    splat_weight: torch.Tensor  # [J, n]
+    coeff: torch.Tensor         # [R, n]
+    kernel_fft: torch.Tensor    # [R, fh, fw // 2 + 1]
+    fft_size: tuple[int, int]
+    src: tuple[int, int, int, int]   # rows/cols of the FFT array that reach the frame: r0, r1, c0, c1
+    dst: tuple[int, int]             # frame row/col where src (r0, c0) lands
+
+
+def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | None) -> list[list[Zone]]:
+    b = rb.bank
+    Gy, Gx = b.psf.shape[1:3]
+    kern = rb.kernels.double()                                             # [L, G, k, k]
+    fidx, fw_ = rb.field_index, rb.field_weight.double()                   # [4, N]
+    gy_of, gx_of = fidx // Gx // zone, fidx % Gx // zone                   # zone of each of the 4 fields
+    zid = gy_of * ((Gx + zone - 1) // zone) + gx_of
+    nzx = (Gx + zone - 1) // zone
+    out: list[list[Zone]] = []
+    dump = rb.Hc * rb.Wc
+    for li in range(rb.L):
+        zones_l: list[Zone] = []
+        for zy in range(0, Gy, zone):
+            for zx in range(0, Gx, zone):
+                z = (zy // zone) * nzx + zx // zone
+                fields = torch.tensor([fy * Gx + fx for fy in range(zy, min(zy + zone, Gy))
+                                       for fx in range(zx, min(zx + zone, Gx))], device=fidx.device)
+                sel = ((zid == z) & (fw_ > 0)).any(0)
+                pix = sel.nonzero().squeeze(1)
+                if pix.numel() == 0:
+                    continue
+                K = kern[li, fields]                                           # [nf, k, k]
+                nzr = (K.abs().sum(0) > 0)
+                rows, cols = nzr.any(1).nonzero().squeeze(1), nzr.any(0).nonzero().squeeze(1)
+                mz = int(max((rows - rb.m).abs().max(), (cols - rb.m).abs().max()))
+                K = K[:, rb.m - mz:rb.m + mz + 1, rb.m - mz:rb.m + mz + 1].reshape(len(fields), -1)
+                evals, U = torch.linalg.eigh(K @ K.T)
+                order = torch.argsort(evals, descending=True)
+                evals, U = evals[order].clamp_min(0), U[:, order]
+                total = evals.sum()
+                resid = (total - torch.cumsum(evals, 0)).clamp_min(0)
+                R = int((resid > (tol * tol) * total).sum().item()) + 1
+                R = min(R, len(fields), max_rank or R)
+                s = evals[:R].clamp_min(1e-300).sqrt()
+                E = (U[:, :R].T @ K) / s[:, None]                                # [R, kz*kz]
+                A = U[:, :R] * s                                                 # [nf, R] per-field coefficients
+                # per-pixel coefficients: sum of the pixel's bilinear weights on this group's fields
+                pos = torch.full((Gy * Gx,), -1, dtype=torch.long, device=fidx.device)
+                pos[fields] = torch.arange(len(fields), device=fidx.device)
+                coeff = torch.zeros(pix.numel(), R, dtype=torch.float64, device=fidx.device)
+                for i in range(4):
+                    pi = pos[fidx[i, pix]]
+                    ok = pi >= 0
+                    coeff[ok] += fw_[i, pix[ok], None] * A[pi[ok]]
+                # landing box of the group's pixels on the canvas
+                idx, w = rb.splat_index[li][:, pix], rb.splat_weight[li][:, pix]
+                live = (w > 0) & (idx < dump)
+                if not live.any():
+                    continue
+                flat = idx[live]
+                r, c = flat // rb.Wc, flat % rb.Wc
+                r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
+                fh, fwid = fast_len(r1 - r0 + 2 * mz), fast_len(c1 - c0 + 2 * mz)
+                lr, lc = idx // rb.Wc - r0 + mz, idx % rb.Wc - c0 + mz
+                local = torch.where(live, lr * fwid + lc, torch.full_like(idx, fh * fwid))
+                Ek = torch.zeros(R, fh, fwid, dtype=torch.float64, device=fidx.device)
+                Ek[:, :2 * mz + 1, :2 * mz + 1] = E.reshape(R, 2 * mz + 1, 2 * mz + 1)
+                Ek = torch.roll(Ek, shifts=(-mz, -mz), dims=(1, 2))
+                # array (i, j) is canvas (i - mz + r0, j - mz + c0); frame = canvas - m
+                fr0, fc0 = r0 - mz - rb.m, c0 - mz - rb.m
+                a0, b0 = max(0, -fr0), max(0, -fc0)
+                a1, b1 = min(r1 - r0 + 2 * mz, rb.H - fr0), min(c1 - c0 + 2 * mz, rb.W - fc0)
+                if a1 <= a0 or b1 <= b0:
+                    continue
+                cdt = torch.complex64 if rb.dtype == torch.float32 else torch.complex128
+                zones_l.append(Zone(pixels=pix, splat_index=local, splat_weight=w.to(rb.dtype),
+                                    coeff=coeff.T.contiguous().to(rb.dtype), kernel_fft=torch.fft.rfft2(Ek).to(cdt),
+                                    fft_size=(fh, fwid), src=(a0, a1, b0, b1), dst=(fr0 + a0, fc0 + b0)))
+        out.append(zones_l)
+    return out

@@ -14,18 +14,20 @@ from controlgs_adapter.state import RuntimeState
 from ..color import primaries_to_rgb, rgb_to_primaries
 from ..stage import Stage, StageContext
 from .bank import PSFBank
-from .operators import psf_distortion, psf_exact, psf_lowrank
+from .operators import psf_distortion, psf_exact, psf_fast
 
-__all__ = ["OpticsStage", "optics", "MODES", "DEFAULT_RANK"]
+__all__ = ["OpticsStage", "optics", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
 
 Mode = Literal["distortion", "fast", "exact"]
 MODES: tuple[str, ...] = ("distortion", "fast", "exact")
-#: eigen-PSFs per wavelength of the "fast" mode (see docs/optics.md for error vs time)
-DEFAULT_RANK = 16
+#: accuracy knob of the "fast" mode: relative residual of the truncated eigen-PSF expansion per
+#: group of DEFAULT_ZONE x DEFAULT_ZONE field samples (docs/optics.md: error vs time)
+DEFAULT_TOL = 0.02
+DEFAULT_ZONE = 5
 
 
-def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "fast", rank: int = DEFAULT_RANK,
-           stretch: bool = False) -> torch.Tensor:
+def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "fast", tol: float = DEFAULT_TOL,
+           zone: int = DEFAULT_ZONE, stretch: bool = False) -> torch.Tensor:
     """Functional O_phys. ``image [..., 3, H, W]`` linear RGB on the display -> linear RGB of the
     virtual image on the same grid (reference magnification). ``bank`` defaults to the shipped
     Cardboard bank; it is resampled once per (H, W, device, dtype) and cached."""
@@ -42,7 +44,7 @@ def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "fast"
     if mode == "distortion":
         out = psf_distortion(prim, rb)
     elif mode == "fast":
-        out = psf_lowrank(prim, rb, rank)
+        out = psf_fast(prim, rb, tol, zone)
     else:
         out = psf_exact(prim, rb)
     return primaries_to_rgb(out)
@@ -54,9 +56,9 @@ class OpticsStage(Stage):
     Args:
         bank: a :class:`PSFBank`, a path to one, or None for the shipped Google-Cardboard bank.
         mode: ``"distortion"`` (chief-ray warp only; the paper's first 90 % of training), ``"fast"``
-            (low-rank shift-variant blur, ``rank`` eigen-PSFs per wavelength) or ``"exact"``
-            (per-pixel reference; slow). Settable at any time (``stage.mode = "fast"``).
-        rank: accuracy knob of ``"fast"``.
+            (eigen-PSF shift-variant blur, see :func:`psf_fast`) or ``"exact"`` (paper Eq. S3 exactly).
+            Settable at any time (``stage.mode = "fast"``).
+        tol, zone: accuracy knobs of ``"fast"`` (``tol=0`` is exact).
         stretch: allow an image whose aspect differs from the display's (anisotropic pixels).
     """
 
@@ -65,13 +67,15 @@ class OpticsStage(Stage):
     resolution = "keep"
     order = 50.0
 
-    def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "fast", rank: int = DEFAULT_RANK,
-                 stretch: bool = False) -> None:
+    def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "fast", tol: float = DEFAULT_TOL,
+                 zone: int = DEFAULT_ZONE, stretch: bool = False) -> None:
         super().__init__()
         self.bank = PSFBank.load(bank) if isinstance(bank, (str, os.PathLike)) else (bank or PSFBank.default())
-        if not isinstance(rank, int) or rank < 1:
-            raise InputValueError(f"rank must be an int >= 1, got {rank!r}")
-        self.rank, self.stretch = rank, stretch
+        if not (isinstance(tol, (int, float)) and 0 <= tol < 1):
+            raise InputValueError(f"tol must be in [0, 1), got {tol!r}")
+        if not isinstance(zone, int) or zone < 1:
+            raise InputValueError(f"zone must be an int >= 1, got {zone!r}")
+        self.tol, self.zone, self.stretch = float(tol), zone, stretch
         self.mode = mode
 
     @property
@@ -85,7 +89,7 @@ class OpticsStage(Stage):
         self._mode = value
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        return optics(image, self.bank, self.mode, self.rank, self.stretch)
+        return optics(image, self.bank, self.mode, self.tol, self.zone, self.stretch)
 
     def extra_repr(self) -> str:
-        return f"mode={self.mode!r}, rank={self.rank}, wavelengths={self.bank.wavelengths_nm}"
+        return f"mode={self.mode!r}, tol={self.tol}, zone={self.zone}, wavelengths={self.bank.wavelengths_nm}"
