@@ -70,14 +70,15 @@ class CommStats:
         steps: exchanges counted.
         bytes_sent: total bytes this rank sent.
         dense_bytes: what a dense all-reduce of every gradient would have sent over the same steps.
-        rows_sent: touched condition rows this rank sent (sparse exchanges).
+        rows_touched: row-sparse rows with a non-zero gradient on this rank (what the sparse
+            exchange sends).
         last: the most recent step's ``{"bytes_sent", "dense_bytes", "rows", "exchange"}``.
     """
 
     steps: int = 0
     bytes_sent: int = 0
     dense_bytes: int = 0
-    rows_sent: int = 0
+    rows_touched: int = 0
     last: dict[str, Any] = field(default_factory=dict)
 
     def per_step(self) -> tuple[float, float]:
@@ -279,7 +280,7 @@ class DistContext:
             offset += p.numel()
 
         # 2. the row-sparse tables
-        rows_sent, exchange = 0, "none"
+        rows, exchange = sum(ids.numel() for ids, _ in local), "none"
         for p, (ids, vals), cnt in zip(sparse, local, counts.tolist()):
             if not has_grad[id(p)]:
                 p.grad = None
@@ -311,15 +312,14 @@ class DistContext:
                             torch.cat([v[:c] for v, c in zip(all_vals, cnt)]))
             p.grad = grad.view_as(p)
             sent += sparse_bytes
-            rows_sent += ids.numel()
             exchange = "sparse" if exchange in ("none", "sparse") else "mixed"
 
         st = self.stats
         st.steps += 1
         st.bytes_sent += sent
         st.dense_bytes += dense_equiv
-        st.rows_sent += rows_sent
-        st.last = {"bytes_sent": sent, "dense_bytes": dense_equiv, "rows": rows_sent, "exchange": exchange}
+        st.rows_touched += rows
+        st.last = {"bytes_sent": sent, "dense_bytes": dense_equiv, "rows": rows, "exchange": exchange}
         return float(buf[-1])
 
 

@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 from .checks import check_image
 from .controlgs import ControlGS
+from .distributed import DistContext
 from .errors import FileFormatError, InputValueError
 from .io import load_tensors, save_tensors
 from .losses import LossWeights, image_loss
@@ -78,6 +79,8 @@ class TrainConfig:
         loss: weights of Eq. 14.
         checkpoint_every: write a checkpoint every this many iterations (0 = only at the end).
         seed: seeds view and state sampling.
+        batch_size: (view, state) samples per step, the global batch (split over the processes
+            of a distributed run, :mod:`controlgs_adapter.distributed`); the loss is their mean.
     """
 
     iterations: int = 10_000
@@ -92,6 +95,7 @@ class TrainConfig:
     loss: LossWeights = field(default_factory=LossWeights)
     checkpoint_every: int = 500
     seed: int = 0
+    batch_size: int = 1
 
     def __post_init__(self) -> None:
         if int(self.iterations) < 0:
@@ -106,6 +110,8 @@ class TrainConfig:
             raise InputValueError(f"psf_fraction must be in [0, 1], got {self.psf_fraction!r}")
         if self.psf_mode not in ("fast", "exact"):
             raise InputValueError(f"psf_mode must be 'fast' or 'exact', got {self.psf_mode!r}")
+        if int(self.batch_size) < 1:
+            raise InputValueError(f"batch_size must be >= 1, got {self.batch_size!r}")
         if int(self.checkpoint_every) < 0:
             raise InputValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every!r}")
 
@@ -129,6 +135,8 @@ class Trainer:
             :data:`DEFAULT_EFFECTS`.
         background: ``[3]`` background colour of the renders (as in ``images``).
         checkpoint: path of the checkpoint file to write (and to resume from, see :meth:`resume`).
+        dist: this process's place in a data-parallel run (:func:`~controlgs_adapter.distributed.init_distributed`);
+            default a single process.
 
     Attributes: ``cgs`` (the :class:`ControlGS`), ``pipeline``, ``optimizer``, ``generator``,
     ``iteration``, ``history`` (loss per iteration run in this process).
@@ -136,7 +144,7 @@ class Trainer:
 
     def __init__(self, model: Any, images: torch.Tensor, cameras: Sequence[Camera], config: TrainConfig = TrainConfig(),
                  *, effects: Mapping[str, Any] | None = None, background: torch.Tensor | None = None,
-                 checkpoint: str | Path | None = None) -> None:
+                 checkpoint: str | Path | None = None, dist: DistContext | None = None) -> None:
         from .downstream.pipeline import Pipeline
 
         dims = check_image("images", images)
@@ -157,6 +165,9 @@ class Trainer:
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind)
         self.pipeline = Pipeline.from_config(self.effects)
         self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)
+        self.dist = DistContext() if dist is None else dist
+        self.dist.check_batch(config.batch_size)
+        self.dist.broadcast_parameters(self.cgs.trainable_parameters())  # every replica starts as rank 0
         self.generator = torch.Generator().manual_seed(int(config.seed))
         self.iteration = 0
         self.history: list[float] = []
@@ -181,16 +192,20 @@ class Trainer:
         """One optimisation step; returns the loss."""
         if "optics" in self.pipeline:
             self.pipeline["optics"].mode = self.optics_mode(self.iteration)
-        view, state = self.sample()
-        cam, gt = self.cameras[view], self.images[view]
-        image = render_view(self.cgs, self.model, cam, state, self.background)
-        eye = self.pipeline(image, state, reference=gt)
-        loss = image_loss(eye, gt, self.config.loss)
+        batch = [self.sample() for _ in range(self.config.batch_size)]  # the global batch, the same on every rank
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        value = 0.0
+        for view, state in self.dist.shard(batch):  # this process's share
+            cam, gt = self.cameras[view], self.images[view]
+            image = render_view(self.cgs, self.model, cam, state, self.background)
+            eye = self.pipeline(image, state, reference=gt)
+            loss = image_loss(eye, gt, self.config.loss) / len(batch)
+            loss.backward()
+            value += float(loss.detach())
+        value = self.dist.sync_gradients(self.cgs.trainable_parameters(), row_sparse=(self.cgs.injector.conditions,),
+                                         loss=value, step=self.iteration)
         self.optimizer.step()
         self.iteration += 1
-        value = float(loss.detach())
         self.history.append(value)
         return value
 
@@ -198,7 +213,8 @@ class Trainer:
         """Run steps up to iteration ``until`` (default ``config.iterations``), writing checkpoints
         every ``config.checkpoint_every`` iterations and at the end when a path was given."""
         end = self.config.iterations if until is None else min(int(until), self.config.iterations)
-        bar = tqdm(total=self.config.iterations, initial=self.iteration, desc="training ControlGS", disable=not progress,
+        bar = tqdm(total=self.config.iterations, initial=self.iteration, desc="training ControlGS",
+                   disable=not progress or not self.dist.is_main,
                    dynamic_ncols=True)
         every = self.config.checkpoint_every
         t0 = time.perf_counter()
@@ -218,7 +234,11 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path: str | Path) -> Path:
-        """Write adapter, optimizer state, RNG state and iteration to ``path`` (atomically)."""
+        """Write adapter, optimizer state, RNG state and iteration to ``path`` (atomically; in a
+        distributed run only rank 0 writes, the replicas being identical)."""
+        self.dist.last_checkpoint = (str(path), self.iteration)
+        if not self.dist.is_main:
+            return Path(path)
         tensors = {f"adapter.{k}": v for k, v in self.cgs.injector.state_dict().items()}
         opt = self.optimizer.state_dict()
         for i, st in opt["state"].items():
