@@ -154,8 +154,7 @@ def _footprints(
     """
     with torch.no_grad():
         a, b, c = cov2d.unbind(-1)
-        mid = 0.5 * (a + c)
-        lam = mid + torch.sqrt(torch.clamp(mid * mid - (a * c - b * b), min=0.0))
+        lam = 0.5 * (a + c) + torch.sqrt(0.25 * (a - c) ** 2 + b * b)  # largest eigenvalue, no cancellation
         r = EXTENT_SIGMAS * torch.sqrt(lam)
         level = 2.0 * torch.log(torch.clamp(opacity / ALPHA_MIN, min=1e-30))  # < 0: never drawn
         slack = 1.0 + 1e-6
