@@ -29,9 +29,10 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
     c = osub.add_parser("bench", help="error vs time of the PSF operators (table + plot into docs/)")
     c.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
-    c.add_argument("--ranks", type=int, nargs="+", default=[2, 4, 8, 16, 32])
-    c.add_argument("--exact-max", type=int, default=256,
-                   help="largest size where the exact operator runs on the full image; above it, on a crop")
+    c.add_argument("--tols", type=float, nargs="+", default=[0.1, 0.05, 0.02, 0.01], help="fast-mode tolerances")
+    c.add_argument("--zone", type=int, default=5, help="fast-mode field-group size")
+    c.add_argument("--exact-max", type=int, default=1024,
+                   help="largest size where the exact operator is also timed (it is always the reference)")
     c.add_argument("--threads", type=int, default=2)
     c.add_argument("--out", type=Path, default=Path("docs"), help="folder for optics_bench.md / optics_bench.png")
     c.set_defaults(func=run_bench)
@@ -69,7 +70,7 @@ def run_figures(args: argparse.Namespace) -> int:
 def run_bench(args: argparse.Namespace) -> int:
     from controlgs_adapter.downstream.optics.bench import run
 
-    run(sizes=args.sizes, ranks=args.ranks, exact_max=args.exact_max, threads=args.threads, out=args.out)
+    run(sizes=args.sizes, tols=args.tols, zone=args.zone, exact_max=args.exact_max, threads=args.threads, out=args.out)
     return 0
 
 

@@ -215,9 +215,14 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
     Gy, Gx = b.psf.shape[1:3]
     kern = rb.kernels.double()                                             # [L, G, k, k]
     fidx, fw_ = rb.field_index, rb.field_weight.double()                   # [4, N]
-    gy_of, gx_of = fidx // Gx // zone, fidx % Gx // zone                   # zone of each of the 4 fields
-    zid = gy_of * ((Gx + zone - 1) // zone) + gx_of
     nzx = (Gx + zone - 1) // zone
+    zid = (fidx // Gx // zone) * nzx + fidx % Gx // zone                   # [4, N] group of each field used
+    N = fidx.shape[1]
+    pix_all = torch.arange(N, device=fidx.device).expand(4, N)
+    key = torch.unique(zid[fw_ > 0] * N + pix_all[fw_ > 0])                # sorted (group, pixel) pairs
+    groups = key // N
+    counts = torch.bincount(groups, minlength=nzx * ((Gy + zone - 1) // zone)).tolist()
+    pixels_of = dict(enumerate(torch.split(key % N, counts)))
     out: list[list[Zone]] = []
     dump = rb.Hc * rb.Wc
     for li in range(rb.L):
@@ -227,8 +232,7 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
                 z = (zy // zone) * nzx + zx // zone
                 fields = torch.tensor([fy * Gx + fx for fy in range(zy, min(zy + zone, Gy))
                                        for fx in range(zx, min(zx + zone, Gx))], device=fidx.device)
-                sel = ((zid == z) & (fw_ > 0)).any(0)
-                pix = sel.nonzero().squeeze(1)
+                pix = pixels_of[z]
                 if pix.numel() == 0:
                     continue
                 K = kern[li, fields]                                           # [nf, k, k]
