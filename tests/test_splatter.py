@@ -283,3 +283,29 @@ def test_float32_needles_near_the_camera() -> None:
     fast, ref = rasterize(*args, cam), rasterize_reference(*args, cam)
     assert float((fast.alpha.double() - ref.alpha).abs().max()) < 2e-3
     assert float((fast.color.double() - ref.color).abs().max()) < 2e-3
+
+
+@pytest.mark.parametrize("x_over_z", [0.0, 0.25])
+def test_single_gaussian_closed_form(x_over_z: float) -> None:
+    """One isotropic Gaussian (sigma s) at (X, 0, Z): its 2D covariance is
+    s^2 [[f^2/Z^2 (1 + X^2/Z^2), 0], [0, f^2/Z^2]] + 0.3 I, so every pixel is known in closed form
+    (checks the conventions that the reference shares: Jacobian, low-pass, pixel centres, cut-offs)."""
+    f, z, s, o = 20.0, 2.0, 0.05, 0.8
+    x = x_over_z * z
+    cam = Camera(torch.eye(4, dtype=F64), torch.tensor([[f, 0, 8.0], [0, f, 8.0], [0, 0, 1]], dtype=F64), 24, 16)
+    args = (torch.tensor([[x, 0.0, z]], dtype=F64), torch.full((1, 3), s, dtype=F64),
+            torch.tensor([[1.0, 0, 0, 0]], dtype=F64), torch.tensor([o], dtype=F64),
+            torch.tensor([[0.2, 0.5, 1.0]], dtype=F64))
+    out = rasterize(*args, cam)
+    var_x = (s * f / z) ** 2 * (1 + x_over_z**2) + 0.3
+    var_y = (s * f / z) ** 2 + 0.3
+    u0, v0 = f * x_over_z + 8.0, 8.0
+    xs = torch.arange(24, dtype=F64) + 0.5 - u0
+    ys = torch.arange(16, dtype=F64) + 0.5 - v0
+    alpha = o * torch.exp(-0.5 * (ys[:, None] ** 2 / var_y + xs[None, :] ** 2 / var_x))
+    r = 3 * math.sqrt(max(var_x, var_y))
+    alpha = alpha * (xs.abs()[None, :] <= r) * (ys.abs()[:, None] <= r) * (alpha >= 1 / 255)
+    assert int((alpha > 0).sum()) >= 9
+    torch.testing.assert_close(out.alpha[0], alpha, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.color, alpha * args[4][0].view(3, 1, 1), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.depth[0], alpha * z, rtol=1e-12, atol=1e-12)
