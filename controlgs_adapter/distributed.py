@@ -36,6 +36,7 @@ next to what a dense all-reduce of every gradient would have sent.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 from dataclasses import dataclass, field
@@ -48,7 +49,8 @@ from torch import nn
 
 from .errors import ControlGSError, InputValueError
 
-__all__ = ["DistributedError", "CommStats", "DistContext", "init_distributed", "shard_scenes", "EXCHANGES"]
+__all__ = ["DistributedError", "CommStats", "DistContext", "init_distributed", "shard_scenes", "add_distributed_arguments",
+           "EXCHANGES"]
 
 T = TypeVar("T")
 
@@ -378,3 +380,22 @@ def shard_scenes(scenes: Sequence[str], ctx: DistContext) -> list[str]:
     if not scenes:
         raise InputValueError("scenes must name at least one scene")
     return ctx.shard(list(scenes))
+
+
+def add_distributed_arguments(p: argparse.ArgumentParser, scene_choices: Sequence[str] | None = None) -> None:
+    """The ``controlgs train`` options of data-parallel and many-scenes training (torchrun)."""
+    g = p.add_argument_group("distributed training (launch with torchrun; see docs/distributed.md)")
+    g.add_argument("--batch-size", type=int, default=1,
+                   help="views per step, the global batch split over the processes (the same batch size gives the "
+                        "same result on any number of processes)")
+    g.add_argument("--scenes", nargs="+", choices=scene_choices, metavar="SCENE",
+                   help="many-scenes mode: train every SCENE's adapter(s) into OUT/<SCENE>/, the scenes split over "
+                        "the processes (each process trains its scenes alone)"
+                        + (f"; one of {', '.join(scene_choices)}" if scene_choices else ""))
+    g.add_argument("--dist-backend", choices=("gloo", "nccl"), default=None,
+                   help="process-group backend (default: nccl with CUDA, else gloo)")
+    g.add_argument("--dist-timeout", type=float, default=300.0,
+                   help="seconds a collective waits for the other processes before the run fails")
+    g.add_argument("--exchange", choices=EXCHANGES, default="auto",
+                   help="how per-anchor condition gradients travel: touched rows only, a dense all-reduce, or the "
+                        "cheaper of the two per step")

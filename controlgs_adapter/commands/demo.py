@@ -42,9 +42,11 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.set_defaults(func=run)
 
 
-def train_adapters(scene: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str]) -> dict[str, Path]:
+def train_adapters(scene: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
+                   dist: Any = None) -> dict[str, Path]:
     """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
-    names) on ``scene``; returns ``{name: adapter file}``. Checkpoints go to ``out/checkpoints``."""
+    names) on ``scene``; returns ``{name: adapter file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this
+    process's :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files)."""
     from controlgs_adapter.report import ABLATIONS
     from controlgs_adapter.training import TrainConfig, Trainer
 
@@ -53,16 +55,19 @@ def train_adapters(scene: Any, model: Any, out: Path, args: argparse.Namespace, 
         modules, blind = ABLATIONS.get(name, (None, False))
         config = TrainConfig(iterations=args.iterations, lr=args.lr, modules=modules, cond_dim=args.cond_dim,
                              state_blind=blind, psf_fraction=args.psf_fraction, psf_mode=args.optics,
-                             checkpoint_every=args.checkpoint_every, seed=args.seed)
+                             checkpoint_every=args.checkpoint_every, seed=args.seed,
+                             batch_size=getattr(args, "batch_size", 1))
         target = out / f"{name}.controlgs.safetensors"
         ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
         trainer = Trainer(model, scene.train_images, scene.train_cameras, config, background=scene.background,
-                          checkpoint=ckpt)
-        if trainer.resume():
+                          checkpoint=ckpt, dist=dist)
+        main = trainer.dist.is_main
+        if trainer.resume() and main:
             print(f"{name}: resuming at iteration {trainer.iteration}")
         try:
             trainer.train(progress=args.progress)
-            trainer.cgs.save(target)
+            if main:
+                trainer.cgs.save(target)
         finally:
             trainer.cgs.unwrap()
         paths[name] = target

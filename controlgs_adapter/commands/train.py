@@ -1,11 +1,14 @@
 """``controlgs train``: train a ControlGS adapter on the built-in scene's baked backbone
-(checkpoints resume exactly after an interruption; the adapter is saved as safetensors)."""
+(checkpoints resume exactly after an interruption; the adapter is saved as safetensors).
+Under ``torchrun`` it trains data-parallel, or with ``--scenes`` one scene per process
+(docs/distributed.md)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from ..distributed import DistContext, add_distributed_arguments, init_distributed, shard_scenes
 from .demo import add_common, add_training, train_adapters
 
 
@@ -14,6 +17,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--out", default="controlgs-run", help="folder for the adapter file(s) and checkpoints")
     add_common(p)
     add_training(p)
+    add_distributed_arguments(p, scene_choices=("ar", "vr"))
     p.add_argument("--ablation", choices=("wo_lens", "wo_display", "wo_resample", "state_blind"), action="append",
                    default=[], help="also train this ablation (repeatable)")
     p.set_defaults(func=run)
@@ -22,9 +26,22 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 def run(args: argparse.Namespace) -> int:
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
-    scene = load_builtin_scene(args.variant, args.resolution, cache=True)
-    model = load_builtin_backbone(args.variant)
-    paths = train_adapters(scene, model, Path(args.out), args, ["controlgs", *args.ablation])
-    for name, path in paths.items():
-        print(f"{name}: {path}")
+    names = ["controlgs", *args.ablation]
+    with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
+        if args.scenes:  # many-scenes mode: this process's scenes, each trained alone
+            for variant in shard_scenes(args.scenes, dist):
+                scene = load_builtin_scene(variant, args.resolution, cache=True)
+                paths = train_adapters(scene, load_builtin_backbone(variant), Path(args.out) / variant, args, names,
+                                       dist=DistContext())
+                for name, path in paths.items():
+                    print(f"[rank {dist.rank}] {variant} {name}: {path}")
+            return 0
+        scene = load_builtin_scene(args.variant, args.resolution, cache=True)
+        model = load_builtin_backbone(args.variant).to(dist.device)
+        if dist.device.type != "cpu":
+            scene.train_images, scene.background = scene.train_images.to(dist.device), scene.background.to(dist.device)
+        paths = train_adapters(scene, model, Path(args.out), args, names, dist=dist)
+        if dist.is_main:
+            for name, path in paths.items():
+                print(f"{name}: {path}")
     return 0
