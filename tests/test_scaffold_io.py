@@ -240,3 +240,29 @@ def test_offset_fields_not_numbered_contiguously_are_refused(tmp_path):
 def test_not_a_scaffold_directory(tmp_path):
     with pytest.raises(FileFormatError, match="iteration"):
         load_scaffold_dir(tmp_path)
+
+
+def test_loaded_directory_is_wrappable_and_rows_map_to_visible_anchors(tmp_path):
+    from controlgs_adapter import ControlGS
+    from controlgs_adapter.state import RuntimeState
+
+    raw = make_raw_model(30, 8, 3, seed=11)
+    write_scaffold_dir_by_hand(tmp_path, raw)
+    model = load_scaffold_dir(tmp_path)
+    cam = camera_looking_down_z()
+    visible = torch.arange(30) % 3 != 1
+    before = model.decode(cam, visible)
+    cgs = ControlGS.wrap(model, modules=("resample",))
+    state = RuntimeState(downsample=8.0)
+    with torch.no_grad(), cgs.conditioned(state, camera=cam, anchor_ids=visible):
+        same = model.decode(cam, visible)  # conditions are zero at init: bit-identical
+        cgs.injector.conditions[12].normal_()  # anchor 12 (visible) only
+        moved = model.decode(cam, visible)
+    for name in ("means", "scales", "rotations", "opacities", "colors"):
+        assert torch.equal(getattr(same, name), getattr(before, name)), name
+    # only anchor 12's rows change (the mask may drop/keep some of its Gaussians)
+    keep_b, keep_m = before.anchor_of != 12, moved.anchor_of != 12
+    assert torch.equal(before.colors[keep_b], moved.colors[keep_m])
+    changed = (moved.neural_opacity - before.neural_opacity).reshape(-1, 3).abs().sum(1) > 0
+    assert torch.equal(before.visible_ids[changed], torch.tensor([12]))
+    cgs.unwrap()
