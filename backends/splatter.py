@@ -435,7 +435,8 @@ def rasterize(
         camera: ``Camera`` (OpenCV axes; ``world_to_camera`` ``[4, 4]``, ``intrinsics`` ``[3, 3]``
             in pixels at ``camera.width`` x ``camera.height``).
         background: ``[3]`` colour behind everything (default black).
-        tile_size: tile edge in pixels used to bin the footprints (affects speed and memory only).
+        tile_size: tile edge in pixels used to bin the footprints; memory chunks are whole tiles, so a
+            tile much larger than 16 raises the peak memory (affects speed and memory only, never the image).
 
     Returns:
         ``RasterOutput(color [3, H, W], alpha [1, H, W], depth [1, H, W], visible [N] bool)``, with
