@@ -31,7 +31,7 @@ from controlgs_adapter.state import Camera
 
 from .splatter import NEAR_PLANE, RasterOutput, project_gaussians, rasterize
 
-__all__ = ["NeuralGaussianModel", "NeuralGaussians", "AppearanceEmbedding"]
+__all__ = ["NeuralGaussianModel", "NeuralGaussians", "AppearanceEmbedding", "median_spacing"]
 
 
 @dataclass
@@ -200,9 +200,7 @@ class NeuralGaussianModel(nn.Module):
             check_tensor("colors", colors, [points.shape[0], 3], dtypes=(torch.float32, torch.float64), finite=True)
         pts = points.detach().to(torch.float64)
         if voxel_size is None:
-            nn_d = _knn_sq_dists(pts, 1)[:, 0].sqrt()
-            positive = nn_d[nn_d > 0]
-            voxel_size = float(positive.median()) if positive.numel() else 1.0
+            voxel_size = median_spacing(pts)
         if not (math.isfinite(voxel_size) and voxel_size > 0):
             raise InputValueError(f"voxel_size must be a finite number > 0, got {voxel_size!r}")
         cells, inverse = torch.unique(torch.round(pts / voxel_size), dim=0, return_inverse=True)
@@ -332,15 +330,28 @@ class NeuralGaussianModel(nn.Module):
                 f"cov={self.add_cov_dist}, color={self.add_color_dist})")
 
 
-def _knn_sq_dists(points: torch.Tensor, k: int, chunk: int = 4096) -> torch.Tensor:
-    """``[P, k]`` squared distances of every point to its ``k`` nearest other points (brute force, chunked)."""
+def _knn_sq_dists(points: torch.Tensor, k: int, rows: torch.Tensor | None = None) -> torch.Tensor:
+    """``[R, k]`` squared distances of the points ``rows`` (default: all) to their ``k`` nearest
+    other points (brute force, chunked to about 2^24 distances at a time)."""
     n = points.shape[0]
+    rows = torch.arange(n) if rows is None else rows
     if n < 2:
-        return torch.zeros(n, k, dtype=points.dtype)
+        return torch.zeros(rows.shape[0], k, dtype=points.dtype)
     k = min(k, n - 1)
+    chunk = max(1, (1 << 24) // n)
     out = []
-    for s in range(0, n, chunk):
-        d2 = torch.cdist(points[s:s + chunk], points).pow(2)
-        d2[torch.arange(d2.shape[0]), torch.arange(s, s + d2.shape[0])] = float("inf")
+    for s in range(0, rows.shape[0], chunk):
+        idx = rows[s:s + chunk]
+        d2 = torch.cdist(points[idx], points).pow(2)
+        d2[torch.arange(idx.shape[0]), idx] = float("inf")
         out.append(d2.topk(k, dim=1, largest=False).values)
     return torch.cat(out)
+
+
+def median_spacing(points: torch.Tensor, samples: int = 4096) -> float:
+    """Median distance of a point to its nearest neighbour (over at most ``samples`` evenly strided
+    points, each against all points); 1.0 when all points coincide."""
+    rows = torch.arange(0, points.shape[0], max(1, points.shape[0] // samples))
+    d = _knn_sq_dists(points.double(), 1, rows)[:, 0].sqrt()
+    d = d[d > 0]
+    return float(d.median()) if d.numel() else 1.0

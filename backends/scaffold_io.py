@@ -37,7 +37,7 @@ from controlgs_adapter.io import atomic_write
 from controlgs_adapter.torchscript import eager_from_script
 
 from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields, write_ply
-from .reference_model import NeuralGaussianModel, _knn_sq_dists
+from .reference_model import NeuralGaussianModel, median_spacing
 
 __all__ = ["save_scaffold_dir", "load_scaffold_dir", "latest_iteration", "MLP_FILES"]
 
@@ -332,9 +332,7 @@ def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
     opts = _infer_options(anchors, dec, cfg, str(cfg_path))
     voxel = float(cfg.get("voxel_size", 0) or 0)
     if voxel <= 0:  # Scaffold-GS picks it from the point cloud when the argument is <= 0
-        sample = torch.from_numpy(anchors["anchor"][:: max(1, len(anchors["anchor"]) // 2048)]).double()
-        d = _knn_sq_dists(sample, 1)[:, 0].sqrt() if len(sample) > 1 else torch.ones(1)
-        voxel = float(d[d > 0].median()) if bool((d > 0).any()) else 1.0
+        voxel = median_spacing(torch.from_numpy(anchors["anchor"]))
     num_cameras = int(dec.state["embedding_appearance"]["embedding.weight"].shape[0]) if opts["appearance_dim"] else 1
     model = NeuralGaussianModel(anchors["anchor"].shape[0], voxel_size=voxel, num_cameras=num_cameras,
                                 **{key: opts[key] for key in _OPTION_KEYS})

@@ -27,7 +27,7 @@ from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.metrics import ssim
 from controlgs_adapter.state import Camera
 
-from .reference_model import NeuralGaussianModel, _knn_sq_dists
+from .reference_model import NeuralGaussianModel, median_spacing
 from .splatter import rasterize
 
 __all__ = ["train_reference_model", "grid_points", "camera_target"]
@@ -64,9 +64,7 @@ def grid_points(bounds: torch.Tensor, count: int) -> torch.Tensor:
 def _anchor_voxel(points: torch.Tensor, max_anchors: int) -> float:
     """The smallest voxel size (median nearest-neighbour spacing, grown by 1.2x steps) that gives at
     most ``max_anchors`` anchors."""
-    sample = points[:: max(1, points.shape[0] // 4096)].double()
-    d = _knn_sq_dists(sample, 1)[:, 0].sqrt()
-    voxel = float(d[d > 0].median()) if bool((d > 0).any()) else 1.0
+    voxel = median_spacing(points)
     while torch.unique(torch.round(points.double() / voxel), dim=0).shape[0] > max_anchors:
         voxel *= 1.2
     return voxel
