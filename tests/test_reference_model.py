@@ -9,7 +9,7 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.reference_model import NeuralGaussianModel, median_spacing
 from controlgs_adapter.backends.splatter import rasterize
 from controlgs_adapter.backends.train_backbone import grid_points, train_reference_model
 from controlgs_adapter.errors import InputValueError, ShapeError
@@ -218,6 +218,15 @@ def test_from_points_snaps_to_the_voxel_grid_like_scaffold_gs():
     knn = np.sort(d2, axis=1)[:, :3].mean(1)
     np.testing.assert_allclose(m.get_scaling.detach().numpy(), np.sqrt(knn)[:, None].repeat(6, 1), rtol=1e-5)
     assert torch.equal(m._offset, torch.zeros_like(m._offset)) and torch.equal(m._anchor_feat, torch.zeros_like(m._anchor_feat))
+
+
+def test_default_voxel_is_the_median_nearest_neighbour_spacing():
+    g = torch.arange(6, dtype=torch.float64) * 0.1
+    grid = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    pts = torch.cat([grid, grid[:20] + 0.01])  # 20 extra points 0.017 from a grid point: a minority
+    assert median_spacing(pts) == pytest.approx(0.1)
+    m = NeuralGaussianModel.from_points(pts.float(), feat_dim=4, n_offsets=2)
+    assert m.voxel_size == pytest.approx(0.1) and m.num_anchors == 216
 
 
 def test_from_points_colours_warm_start_the_colour_decoder():
