@@ -148,17 +148,24 @@ class DistContext:
                 f"ranks {batch_size}..{self.world_size - 1} would have no view to render; pass a batch size >= "
                 f"{self.world_size} (the same batch size gives the same result on any number of processes)")
 
-    def close(self) -> None:
-        """Leave the process group if :func:`init_distributed` created it."""
+    def close(self, *, wait_for_all: bool = True) -> None:
+        """Leave the process group if :func:`init_distributed` created it; with ``wait_for_all``
+        after a barrier, so that no rank tears its connections down while a peer still uses them
+        (gloo can abort a process whose peer vanished mid-teardown)."""
         if self._owns_group and dist.is_initialized():
+            if wait_for_all:
+                try:
+                    self.barrier()
+                except DistributedError:
+                    pass  # a peer is gone already: nothing left to wait for
             dist.destroy_process_group()
         self._owns_group = False
 
     def __enter__(self) -> "DistContext":
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type | None, *exc: object) -> None:
+        self.close(wait_for_all=exc_type is None)  # after an error a peer may never arrive
 
     # ------------------------------------------------------------------ collectives
     def _failed(self, what: str, step: int | None, e: BaseException) -> DistributedError:
@@ -301,17 +308,17 @@ class DistContext:
                 sent += dense_bytes
                 exchange = "dense"
                 continue
-            pad_ids = torch.zeros(k, dtype=torch.long, device=device)
-            pad_ids[:ids.numel()] = ids
-            pad_vals = vals.new_zeros(k, vals.shape[1])
-            pad_vals[:ids.numel()] = vals
+            pad = k - ids.numel()  # all-gather needs equal sizes: pad with row 0 += 0
+            pad_ids = torch.cat([ids, ids.new_zeros(pad)]) if pad else ids
+            pad_vals = torch.cat([vals, vals.new_zeros(pad, vals.shape[1])]) if pad else vals
             all_ids = [torch.empty_like(pad_ids) for _ in range(w)]
             all_vals = [torch.empty_like(pad_vals) for _ in range(w)]
             self._run("the sparse condition all-gather (row ids)", step, dist.all_gather, all_ids, pad_ids)
             self._run("the sparse condition all-gather (rows)", step, dist.all_gather, all_vals, pad_vals)
             grad = p.new_zeros(p.shape[0], vals.shape[1])
-            grad.index_add_(0, torch.cat([a[:c] for a, c in zip(all_ids, cnt)]),
-                            torch.cat([v[:c] for v, c in zip(all_vals, cnt)]))
+            for a, v, c in zip(all_ids, all_vals, cnt):  # rank order: the same sum on every rank
+                if c:
+                    grad.index_add_(0, a[:c], v[:c])
             p.grad = grad.view_as(p)
             sent += sparse_bytes
             exchange = "sparse" if exchange in ("none", "sparse") else "mixed"
