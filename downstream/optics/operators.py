@@ -80,15 +80,16 @@ def psf_distortion(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
     return torch.stack(outs, 1).reshape(*lead, rb.L, rb.H, rb.W)
 
 
-def _apply_zones(x: torch.Tensor, rb: ResampledBank, zones: list) -> torch.Tensor:
+def _apply_zones(x: torch.Tensor, rb: ResampledBank, buckets: list) -> torch.Tensor:
     B = x.shape[0]
-    out = x.new_zeros(B, rb.L, rb.H, rb.W)
+    out = x.new_zeros(B, rb.L, rb.H * rb.W)
     nz = None
     if not (torch.is_grad_enabled() and x.requires_grad):
         nz = (x != 0).any(0)                                                   # [L, N]
     for li in range(rb.L):
-        for z in zones[li]:
-            idx, w, a, pix = z.splat_index, z.splat_weight, z.coeff, z.pixels
+        acc = out.new_zeros(B, rb.H * rb.W)
+        for bk in buckets[li]:
+            idx, w, a, pix = bk.splat_index, bk.splat_weight, bk.coeff, bk.pixels
             if nz is not None:
                 keep = nz[li, pix]
                 n_keep = int(keep.sum())
@@ -96,15 +97,14 @@ def _apply_zones(x: torch.Tensor, rb: ResampledBank, zones: list) -> torch.Tenso
                     continue
                 if n_keep < 0.75 * keep.numel():
                     idx, w, a, pix = idx[:, keep], w[:, keep], a[:, keep], pix[keep]
-            R = a.shape[0]
-            fh, fw = z.fft_size
+            R, Z = bk.kernel_fft.shape[:2]
+            fh, fw = bk.fft_size
             vals = (x[:, li, pix][:, None, :] * a[None]).reshape(B * R, -1)
-            arr = _splat(vals, idx, w, fh * fw)[:, :-1].reshape(B, R, fh, fw)
-            res = torch.fft.irfft2((torch.fft.rfft2(arr) * z.kernel_fft).sum(1), s=(fh, fw))
-            a0, a1, b0, b1 = z.src
-            r, c = z.dst
-            out[:, li, r:r + a1 - a0, c:c + b1 - b0] += res[:, a0:a1, b0:b1]
-    return out
+            arr = _splat(vals, idx, w, Z * fh * fw)[:, :-1].reshape(B, R, Z, fh, fw)
+            res = torch.fft.irfft2((torch.fft.rfft2(arr) * bk.kernel_fft).sum(1), s=(fh, fw))   # [B, Z, fh, fw]
+            acc = acc.index_add(1, bk.out_index, res.reshape(B, -1)[:, bk.src_index])
+        out[:, li] = acc
+    return out.reshape(B, rb.L, rb.H, rb.W)
 
 
 def psf_fast(primaries: torch.Tensor, rb: ResampledBank, tol: float = 0.02, zone: int = 6,

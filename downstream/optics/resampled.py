@@ -31,7 +31,7 @@ from controlgs_adapter.errors import InputValueError
 if TYPE_CHECKING:
     from .bank import PSFBank
 
-__all__ = ["ResampledBank", "Zone", "fast_len"]
+__all__ = ["ResampledBank", "Zone", "Bucket", "fast_len", "ladder_len"]
 
 
 def fast_len(n: int) -> int:
@@ -45,6 +45,25 @@ def fast_len(n: int) -> int:
         if r == 1:
             return m
         m += 1
+
+
+_LADDER: list[int] = []
+
+
+def ladder_len(n: int) -> int:
+    """Round ``n`` up to a coarse ladder of fast FFT sizes (steps of ~12 %), so that field groups
+    share FFT sizes and are transformed in one batched call."""
+    if not _LADDER:
+        v = 8.0
+        while v < 1 << 16:
+            m = fast_len(int(math.ceil(v)))
+            if not _LADDER or m > _LADDER[-1]:
+                _LADDER.append(m)
+            v *= 1.12
+    for m in _LADDER:
+        if m >= n:
+            return m
+    return fast_len(n)
 
 
 def _box_matrix(pitch_px: torch.Tensor, K: int, m: int) -> torch.Tensor:
@@ -266,7 +285,7 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
                 flat = idx[live]
                 r, c = flat // rb.Wc, flat % rb.Wc
                 r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
-                fh, fwid = fast_len(r1 - r0 + 2 * mz), fast_len(c1 - c0 + 2 * mz)
+                fh, fwid = ladder_len(r1 - r0 + 2 * mz), ladder_len(c1 - c0 + 2 * mz)
                 lr, lc = idx // rb.Wc - r0 + mz, idx % rb.Wc - c0 + mz
                 local = torch.where(live, lr * fwid + lc, torch.full_like(idx, fh * fwid))
                 Ek = torch.zeros(R, fh, fwid, dtype=torch.float64, device=fidx.device)
@@ -282,5 +301,45 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
                 zones_l.append(Zone(pixels=pix, splat_index=local, splat_weight=w.to(rb.dtype),
                                     coeff=coeff.T.contiguous().to(rb.dtype), kernel_fft=torch.fft.rfft2(Ek).to(cdt),
                                     fft_size=(fh, fwid), src=(a0, a1, b0, b1), dst=(fr0 + a0, fc0 + b0)))
-        out.append(zones_l)
+        out.append(_bucketize(zones_l, rb))
     return out
+
+
+@dataclass
+class Bucket:
+    """Field groups with the same FFT size and rank, transformed in one batched call."""
+
+    pixels: torch.Tensor        # [n] display pixels (a pixel appears once per group that uses it)
+    splat_index: torch.Tensor   # [J, n] flat index into [Z, fh, fw] (Z * fh * fw = dump slot)
+    splat_weight: torch.Tensor  # [J, n]
+    coeff: torch.Tensor         # [R, n]
+    kernel_fft: torch.Tensor    # [R, Z, fh, fw // 2 + 1]
+    fft_size: tuple[int, int]
+    num_groups: int
+    out_index: torch.Tensor     # [M] flat frame index receiving ...
+    src_index: torch.Tensor     # [M] ... this flat index of the [Z, fh, fw] result
+
+
+def _bucketize(zones: list[Zone], rb: "ResampledBank") -> list[Bucket]:
+    keys: dict[tuple[int, int, int], list[Zone]] = {}
+    for z in zones:
+        keys.setdefault((*z.fft_size, z.coeff.shape[0]), []).append(z)
+    buckets = []
+    for (fh, fw, R), zs in sorted(keys.items()):
+        area = fh * fw
+        dump = len(zs) * area
+        idx, outs, srcs = [], [], []
+        for slot, z in enumerate(zs):
+            idx.append(torch.where(z.splat_index >= area, torch.full_like(z.splat_index, dump), z.splat_index + slot * area))
+            a0, a1, b0, b1 = z.src
+            r, c = z.dst
+            ii, jj = torch.meshgrid(torch.arange(a0, a1), torch.arange(b0, b1), indexing="ij")
+            srcs.append((slot * area + ii * fw + jj).reshape(-1))
+            outs.append(((ii - a0 + r) * rb.W + (jj - b0 + c)).reshape(-1))
+        buckets.append(Bucket(pixels=torch.cat([z.pixels for z in zs]), splat_index=torch.cat(idx, 1),
+                              splat_weight=torch.cat([z.splat_weight for z in zs], 1),
+                              coeff=torch.cat([z.coeff for z in zs], 1),
+                              kernel_fft=torch.stack([z.kernel_fft for z in zs], 1), fft_size=(fh, fw),
+                              num_groups=len(zs), out_index=torch.cat(outs).to(rb.device),
+                              src_index=torch.cat(srcs).to(rb.device)))
+    return buckets
