@@ -223,7 +223,7 @@ class Zone:
     splat_index: torch.Tensor   # [J, n] flat index into the zone's FFT array (fh * fw = dump slot)
     splat_weight: torch.Tensor  # [J, n]
     coeff: torch.Tensor         # [R, n]
-    kernel_fft: torch.Tensor    # [R, fh, fw // 2 + 1]
+    kernels: torch.Tensor       # [R, fh, fw] eigen-PSFs, tap t at index t mod size (float64)
     fft_size: tuple[int, int]
     src: tuple[int, int, int, int]   # rows/cols of the FFT array that reach the frame: r0, r1, c0, c1
     dst: tuple[int, int]             # frame row/col where src (r0, c0) lands
@@ -297,9 +297,8 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
                 a1, b1 = min(r1 - r0 + 2 * mz, rb.H - fr0), min(c1 - c0 + 2 * mz, rb.W - fc0)
                 if a1 <= a0 or b1 <= b0:
                     continue
-                cdt = torch.complex64 if rb.dtype == torch.float32 else torch.complex128
                 zones_l.append(Zone(pixels=pix, splat_index=local, splat_weight=w.to(rb.dtype),
-                                    coeff=coeff.T.contiguous().to(rb.dtype), kernel_fft=torch.fft.rfft2(Ek).to(cdt),
+                                    coeff=coeff.T.contiguous().to(rb.dtype), kernels=Ek,
                                     fft_size=(fh, fwid), src=(a0, a1, b0, b1), dst=(fr0 + a0, fc0 + b0)))
         out.append(_bucketize(zones_l, rb))
     return out
@@ -325,6 +324,7 @@ def _bucketize(zones: list[Zone], rb: "ResampledBank") -> list[Bucket]:
     for z in zones:
         keys.setdefault((*z.fft_size, z.coeff.shape[0]), []).append(z)
     buckets = []
+    cdt = torch.complex64 if rb.dtype == torch.float32 else torch.complex128
     for (fh, fw, R), zs in sorted(keys.items()):
         area = fh * fw
         dump = len(zs) * area
@@ -339,7 +339,7 @@ def _bucketize(zones: list[Zone], rb: "ResampledBank") -> list[Bucket]:
         buckets.append(Bucket(pixels=torch.cat([z.pixels for z in zs]), splat_index=torch.cat(idx, 1),
                               splat_weight=torch.cat([z.splat_weight for z in zs], 1),
                               coeff=torch.cat([z.coeff for z in zs], 1),
-                              kernel_fft=torch.stack([z.kernel_fft for z in zs], 1), fft_size=(fh, fw),
+                              kernel_fft=torch.fft.rfft2(torch.stack([z.kernels for z in zs], 1)).to(cdt), fft_size=(fh, fw),
                               num_groups=len(zs), out_index=torch.cat(outs).to(rb.device),
                               src_index=torch.cat(srcs).to(rb.device)))
     return buckets
