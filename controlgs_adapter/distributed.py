@@ -299,6 +299,9 @@ class DistContext:
             row_bytes = ids.element_size() + vals.shape[1] * vals.element_size()
             sparse_bytes = (w - 1) * k * row_bytes
             dense_bytes = _all_reduce_bytes(p.numel() * p.element_size(), w)
+            if k == 0:  # a gradient on some rank, but zero everywhere
+                p.grad = torch.zeros_like(p)
+                continue
             use_dense = self.exchange == "dense" or (self.exchange == "auto" and sparse_bytes >= dense_bytes)
             if use_dense:
                 g = p.grad if p.grad is not None else torch.zeros_like(p)
@@ -308,14 +311,17 @@ class DistContext:
                 sent += dense_bytes
                 exchange = "dense"
                 continue
-            pad = k - ids.numel()  # all-gather needs equal sizes: pad with row 0 += 0
+            pad = k - ids.numel()  # all-gather needs equal sizes; the padding is cut off before the sum
             pad_ids = torch.cat([ids, ids.new_zeros(pad)]) if pad else ids
             pad_vals = torch.cat([vals, vals.new_zeros(pad, vals.shape[1])]) if pad else vals
             all_ids = [torch.empty_like(pad_ids) for _ in range(w)]
             all_vals = [torch.empty_like(pad_vals) for _ in range(w)]
             self._run("the sparse condition all-gather (row ids)", step, dist.all_gather, all_ids, pad_ids)
             self._run("the sparse condition all-gather (rows)", step, dist.all_gather, all_vals, pad_vals)
-            grad = p.new_zeros(p.shape[0], vals.shape[1])
+            if p.grad is None:
+                grad = p.new_zeros(p.shape[0], vals.shape[1])
+            else:  # the local gradient is zero outside this rank's rows: clear those, no O(A) fill
+                grad = p.grad.contiguous().view(p.shape[0], -1).index_fill_(0, ids, 0.0)
             for a, v, c in zip(all_ids, all_vals, cnt):  # rank order: the same sum on every rank
                 if c:
                     grad.index_add_(0, a[:c], v[:c])
