@@ -5,7 +5,8 @@ number of processes to the uninterrupted result.
 
 Tolerance (docs/distributed.md): adapter parameters within 1e-6 absolute (+1e-5 relative), loss
 history within 1e-6 relative. Measured: bit-identical for 2 processes and a batch of 2 (each
-gradient element is one sum of two terms, whichever the order).
+gradient element is one sum of two terms, whichever the order); 7.8e-8 in the conditions for a
+batch of 4 after 3 iterations.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import torch
 
 from controlgs_adapter.distributed import DistContext, DistributedError, init_distributed, shard_scenes
 from controlgs_adapter.errors import InputValueError
-from controlgs_adapter.io import load_tensors, read_header
+from controlgs_adapter.io import load_tensors
 
 sys.path.insert(0, str(Path(__file__).parent))
 import _dist_worker as worker  # noqa: E402
