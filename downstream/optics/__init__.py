@@ -1,1 +1,16 @@
-"""Optics: PSF banks and shift-variant PSF operators."""
+"""Optics: PSF banks from lens prescriptions and shift-variant PSF operators (paper Eqs. 5, S1-S4).
+
+- :class:`PSFBank` (``bank``): file format, the shipped Google-Cardboard bank, per-resolution resampling;
+- :func:`build_bank` (``generate``): traces a bank from a prescription with the built-in ray tracer;
+- ``operators``: :func:`psf_exact`, :func:`psf_fast`, :func:`psf_distortion`, :func:`psf_reference`;
+- :class:`OpticsStage` / :func:`optics` (``stage``): the pipeline stage ``"optics"``.
+"""
+
+from .bank import PSFBank
+from .generate import build_bank
+from .operators import psf_distortion, psf_exact, psf_fast, psf_reference
+from .prescription import CARDBOARD, Prescription
+from .stage import OpticsStage, optics
+
+__all__ = ["PSFBank", "build_bank", "psf_exact", "psf_fast", "psf_distortion", "psf_reference", "CARDBOARD",
+           "Prescription", "OpticsStage", "optics"]
