@@ -26,7 +26,7 @@ DEFAULT_TOL = 0.02
 DEFAULT_ZONE = 5
 
 
-def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "fast", tol: float = DEFAULT_TOL,
+def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
            zone: int = DEFAULT_ZONE, stretch: bool = False) -> torch.Tensor:
     """Functional O_phys. ``image [..., 3, H, W]`` linear RGB on the display -> linear RGB of the
     virtual image on the same grid (reference magnification). ``bank`` defaults to the shipped
@@ -56,8 +56,9 @@ class OpticsStage(Stage):
     Args:
         bank: a :class:`PSFBank`, a path to one, or None for the shipped Google-Cardboard bank.
         mode: ``"distortion"`` (chief-ray warp only; the paper's first 90 % of training), ``"fast"``
-            (eigen-PSF shift-variant blur, see :func:`psf_fast`) or ``"exact"`` (paper Eq. S3 exactly).
-            Settable at any time (``stage.mode = "fast"``).
+            (eigen-PSF shift-variant blur, see :func:`psf_fast`) or ``"exact"`` (paper Eq. S3 exactly, as
+            per-field FFT convolutions; the default: on CPU it measured faster than ``"fast"`` at
+            256-1024 px, docs/optics.md). Settable at any time (``stage.mode = "distortion"``).
         tol, zone: accuracy knobs of ``"fast"`` (``tol=0`` is exact).
         stretch: allow an image whose aspect differs from the display's (anisotropic pixels).
     """
@@ -67,7 +68,7 @@ class OpticsStage(Stage):
     resolution = "keep"
     order = 50.0
 
-    def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "fast", tol: float = DEFAULT_TOL,
+    def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
                  zone: int = DEFAULT_ZONE, stretch: bool = False) -> None:
         super().__init__()
         self.bank = PSFBank.load(bank) if isinstance(bank, (str, os.PathLike)) else (bank or PSFBank.default())
