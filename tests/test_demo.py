@@ -28,7 +28,7 @@ def test_tiny_demo_writes_the_report(tmp_path, monkeypatch):
     data = json.loads((out / "results.json").read_text())
     assert set(data["methods"]) == {"no_ss", "ss", "controlgs"}
     for m in data["methods"].values():
-        grid = torch.tensor(m["psnr"]["grid"])
+        grid = torch.tensor(m["psnr"]["grid"], dtype=torch.float64)
         assert grid.shape == (4, 5) and bool(torch.isfinite(grid).all())
         assert m["psnr"]["mean"] == pytest.approx(float(grid.mean()), rel=1e-9)
     assert data["info"]["iterations"] == 2
