@@ -87,7 +87,7 @@ def _findings(result: GridResult) -> list[str]:
         delta = sign * (result.grid("controlgs", k) - result.grid("ss", k))
         wins = int((delta > 0).sum())
         out.append(f"- {k.upper()}: ControlGS better than SS-backbone in {wins}/{delta.numel()} settings "
-                   f"(mean {sign * float(delta.mean()):+.4g}, worst cell {sign * float(delta.min() if sign > 0 else delta.max()):+.4g}).")
+                   f"(mean difference {sign * float(delta.mean()):+.4g}, worst cell {sign * float(delta.min()):+.4g}).")
         if "no_ss" in result.methods:
             d2 = sign * (result.grid("ss", k) - result.grid("no_ss", k))
             out.append(f"- {k.upper()}: SS-backbone better than no-SS in {int((d2 > 0).sum())}/{d2.numel()} settings "

@@ -139,7 +139,7 @@ class Trainer:
             default a single process.
 
     Attributes: ``cgs`` (the :class:`ControlGS`), ``pipeline``, ``optimizer``, ``generator``,
-    ``iteration``, ``history`` (loss per iteration run in this process).
+    ``iteration``, ``history`` (loss of every iteration, kept across resumes), ``seconds``.
     """
 
     def __init__(self, model: Any, images: torch.Tensor, cameras: Sequence[Camera], config: TrainConfig = TrainConfig(),
@@ -171,6 +171,7 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(int(config.seed))
         self.iteration = 0
         self.history: list[float] = []
+        self.seconds = 0.0  # wall time of the last train() call
         self.checkpoint_path = None if checkpoint is None else Path(checkpoint)
 
     # ------------------------------------------------------------------ one step

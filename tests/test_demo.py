@@ -19,7 +19,7 @@ from controlgs_adapter.scene import builtin_backbone_dir
 def test_tiny_demo_writes_the_report(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "report"
-    rc = main(["demo", "--out", str(out), "--resolution", "24", "--iterations", "2", "--psf-fraction", "0.5",
+    rc = main(["demo", "--out", str(out), "--resolution", "16", "--iterations", "2", "--psf-fraction", "0.5",
                "--test-views", "1", "--checkpoint-every", "1", "--no-progress"])
     assert rc == 0
     for name in ("results.json", "report.md", "heatmap.png", "comparison.png", "condition_response.png",
