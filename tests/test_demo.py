@@ -46,3 +46,25 @@ def test_markdown_tables_state_what_was_measured():
     assert "ControlGS better than SS-backbone in 19/20 settings" in md
     want = f"{r.mean('controlgs', 'psnr'):.2f}"
     assert f"| ControlGS | {want}" in md or f"| ControlGS | **{want}**" in md
+
+
+def test_grid_invariants_zero_adapter_equals_ss(tmp_path):
+    """An adapter at initialisation (zero conditions) is the backbone: its grid equals the
+    SS-backbone's exactly; at d = 1 the no-SS render is the SS render."""
+    from controlgs_adapter import ControlGS
+    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.evaluation import evaluate_grid
+    from controlgs_adapter.scene import load_builtin_scene
+
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=1)
+    xyz, rgb = scene.points(0.3)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.4, color_fit_steps=10).eval()
+    cgs = ControlGS.wrap(model, cond_dim=4)
+    path = cgs.save(tmp_path / "zero.safetensors")
+    cgs.unwrap()
+    r = evaluate_grid(model, scene.test_images, scene.test_cameras, {"controlgs": path}, downsample=(1.0, 4.0),
+                      power_saving=(0.0, 0.6), optics_mode="fast", extra_metrics=False, progress=False)
+    for k in ("psnr", "ssim"):
+        assert torch.equal(r.per_view["controlgs"][k], r.per_view["ss"][k])
+        assert torch.equal(r.per_view["no_ss"][k][0], r.per_view["ss"][k][0])
+        assert not torch.equal(r.per_view["no_ss"][k][1], r.per_view["ss"][k][1])
