@@ -4,13 +4,15 @@
         [--checkpoint CK] [--die-at K]
 
 FIXTURE is written by :func:`write_fixture` (a tiny backbone, the training views); OUT receives
-the trained adapter's tensors and the loss history (rank 0). ``--die-at K``: rank 1 kills itself
-(SIGKILL) once iteration K is done, to test that the others stop with an error.
+the trained adapter's tensors and the loss history (rank 0). ``--die-at K``: every rank prints its
+exchange statistics once iteration K is done, then rank 1 kills itself (SIGKILL), to test that
+the others stop with an error.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import sys
@@ -80,6 +82,10 @@ def main(argv: list[str] | None = None) -> int:
         trainer.resume()
         if args.die_at is not None:
             trainer.train(until=args.die_at, progress=False)
+            sent, dense = ctx.stats.per_step()
+            print(f"rank {ctx.rank} exchange: " + json.dumps({"bytes": sent, "dense_bytes": dense,
+                  "rows": ctx.stats.rows_touched / max(ctx.stats.steps, 1), "exchange": ctx.stats.last.get("exchange")}),
+                  flush=True)
             if ctx.rank == 1:
                 os.kill(os.getpid(), signal.SIGKILL)
         trainer.train(progress=False)

@@ -11,6 +11,7 @@ batch of 4 after 3 iterations.
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -108,21 +109,6 @@ def _assert_same(got: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> 
 
 
 # ---------------------------------------------------------------------------------------- torchrun
-def test_two_processes_equal_single_process(fixture_path, reference, tmp_path):
-    out = tmp_path / "result.safetensors"
-    (proc,), _ = _torchrun(2, str(fixture_path), str(out), f"--iterations={ITERATIONS}", f"--batch={BATCH}")
-    assert proc.returncode == 0, proc.stdout[-4000:]
-    got, header = load_tensors(out, kind="controlgs_test_dist_result", max_version=1)
-    _assert_same(got, reference[ITERATIONS])
-    assert reference[ITERATIONS]["conditions"].abs().max() > 0  # training moved the adapter
-    # only touched condition rows travelled (auto picked the sparse exchange): fewer rows than
-    # anchors (the far ones are never seen) and fewer bytes than a dense all-reduce
-    num_anchors = reference[ITERATIONS]["conditions"].shape[0]
-    assert header["exchange"] == "sparse"
-    assert 0 < header["rows"] <= num_anchors - 512
-    assert 0 < header["bytes"] < header["dense_bytes"]
-
-
 def test_killed_rank_errors_and_checkpoint_resumes_on_one_process(fixture_path, reference, tmp_path):
     from controlgs_adapter.training import CHECKPOINT_KIND, Trainer
 
@@ -132,12 +118,18 @@ def test_killed_rank_errors_and_checkpoint_resumes_on_one_process(fixture_path, 
     # learns it only through the failing collective (its agent cannot see the other node)
     (node0, node1), seconds = _torchrun(1, str(fixture_path), str(out), f"--iterations={ITERATIONS}",
                                         f"--batch={BATCH}", f"--checkpoint={ck}", f"--die-at={DIE_AT}", "--timeout=30",
-                                        "--exchange=dense", nodes=2)
+                                        nodes=2)
     assert node0.returncode != 0 and node1.returncode != 0 and seconds < RUN_TIMEOUT
     assert not out.exists()
     assert "SIGKILL" in node1.stdout, node1.stdout[-4000:]  # torchrun names the dead rank
     assert "DistributedError: rank 0 of 2" in node0.stdout, node0.stdout[-4000:]
     assert f"{ck} (iteration {DIE_AT}), resumes the run" in node0.stdout
+    # only touched condition rows travelled (auto picked the sparse exchange): fewer rows than
+    # anchors (the far ones are never seen) and fewer bytes than a dense all-reduce
+    stats = json.loads(node0.stdout.split("rank 0 exchange: ", 1)[1].splitlines()[0])
+    assert stats["exchange"] == "sparse"
+    assert 0 < stats["rows"] <= reference[ITERATIONS]["conditions"].shape[0] - 512
+    assert 0 < stats["bytes"] < stats["dense_bytes"]
     # rank 0 wrote the checkpoint of the last completed iteration, atomically (no stray temp file),
     # and it holds what one process computes in DIE_AT iterations
     assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []
@@ -151,6 +143,40 @@ def test_killed_rank_errors_and_checkpoint_resumes_on_one_process(fixture_path, 
     assert trainer.resume() and trainer.iteration == DIE_AT
     trainer.train(progress=False)
     _assert_same(worker.result_tensors(trainer), reference[ITERATIONS])
+
+
+def _backbone_baked() -> bool:
+    from controlgs_adapter.scene import builtin_backbone_dir
+
+    return (builtin_backbone_dir("ar") / "point_cloud").is_dir()
+
+
+@pytest.mark.skipif(not _backbone_baked(), reason="built-in backbone not baked")
+def test_controlgs_train_command_under_torchrun(tmp_path, monkeypatch):
+    """The unchanged `controlgs train` under torchrun (2 processes, dense condition exchange)
+    writes the adapter once and it equals the single-process command's with the same global batch
+    and seed."""
+    from controlgs_adapter.cli import main
+    from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    common = ["train", "--resolution", "16", "--iterations", "2", "--batch-size", "2", "--checkpoint-every", "1",
+              "--exchange", "dense", "--no-progress"]
+    assert main([*common, "--out", str(tmp_path / "one")]) == 0
+    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore",
+           "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nnodes=1", "--nproc_per_node=2",
+                           "--master_addr=127.0.0.1", f"--master_port={_free_port()}", "--max_restarts=0",
+                           "-m", "controlgs_adapter.cli", *common, "--out", str(tmp_path / "two")],
+                          env=env, capture_output=True, text=True, timeout=RUN_TIMEOUT)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert proc.stdout.count("controlgs: ") == 1  # only rank 0 reports (and writes)
+    name = "controlgs.controlgs.safetensors"
+    want, _ = load_tensors(tmp_path / "one" / name, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+    got, _ = load_tensors(tmp_path / "two" / name, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+    assert set(got) == set(want) and want["conditions"].abs().max() > 0
+    for k in want:
+        torch.testing.assert_close(got[k], want[k], rtol=RTOL, atol=ATOL, msg=lambda m: f"{k}: {m}")
 
 
 # ---------------------------------------------------------------------------------------- in-process
