@@ -28,19 +28,20 @@ def run(args: argparse.Namespace) -> int:
 
     names = ["controlgs", *args.ablation]
     with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
+
+        def load(variant: str):  # scene and backbone on this rank's device (cuda:<LOCAL_RANK> with NCCL)
+            scene = load_builtin_scene(variant, args.resolution, cache=True)
+            if dist.device.type != "cpu":
+                scene.train_images, scene.background = scene.train_images.to(dist.device), scene.background.to(dist.device)
+            return scene, load_builtin_backbone(variant).to(dist.device)
+
         if args.scenes:  # many-scenes mode: this process's scenes, each trained alone
             for variant in shard_scenes(args.scenes, dist):
-                scene = load_builtin_scene(variant, args.resolution, cache=True)
-                paths = train_adapters(scene, load_builtin_backbone(variant), Path(args.out) / variant, args, names,
-                                       dist=DistContext())
+                paths = train_adapters(*load(variant), Path(args.out) / variant, args, names, dist=DistContext())
                 for name, path in paths.items():
                     print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
-        scene = load_builtin_scene(args.variant, args.resolution, cache=True)
-        model = load_builtin_backbone(args.variant).to(dist.device)
-        if dist.device.type != "cpu":
-            scene.train_images, scene.background = scene.train_images.to(dist.device), scene.background.to(dist.device)
-        paths = train_adapters(scene, model, Path(args.out), args, names, dist=dist)
+        paths = train_adapters(*load(args.variant), Path(args.out), args, names, dist=dist)
         if dist.is_main:
             for name, path in paths.items():
                 print(f"{name}: {path}")
