@@ -58,7 +58,7 @@ def _splat(values: torch.Tensor, index: torch.Tensor, weight: torch.Tensor, size
     """``values [B, N]`` -> canvas ``[B, size + 1]`` (last slot = dump) through footprints ``[J, N]``."""
     out = values.new_zeros(values.shape[0], size + 1)
     for j in range(index.shape[0]):
-        out = out.index_add(1, index[j], values * weight[j])
+        out.index_add_(1, index[j], values * weight[j])
     return out
 
 
