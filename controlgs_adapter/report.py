@@ -90,8 +90,10 @@ def _findings(result: GridResult) -> list[str]:
                    f"(mean difference {sign * float(delta.mean()):+.4g}, worst cell {sign * float(delta.min()):+.4g}).")
         if "no_ss" in result.methods:
             d2 = sign * (result.grid("ss", k) - result.grid("no_ss", k))
-            out.append(f"- {k.upper()}: SS-backbone better than no-SS in {int((d2 > 0).sum())}/{d2.numel()} settings "
-                       f"(mean {sign * float(d2.mean()):+.4g}).")
+            ties = int((d2 == 0).sum())
+            out.append(f"- {k.upper()}: SS-backbone better than no-SS in {int((d2 > 0).sum())}/{d2.numel()} settings"
+                       + (f", equal in {ties} (at d = 1 both render at S)" if ties else "")
+                       + f" (mean difference {sign * float(d2.mean()):+.4g}).")
     ablations = [a for a in ABLATIONS if a in result.methods]
     if ablations:
         drop = {a: result.mean("controlgs", "psnr") - result.mean(a, "psnr") for a in ablations}

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 DEFAULT_ITERATIONS = 300
-DEFAULT_RESOLUTION = 96
+DEFAULT_RESOLUTION = 64
 
 
 def add_common(p: argparse.ArgumentParser) -> None:
