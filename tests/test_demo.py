@@ -74,3 +74,22 @@ def test_grid_invariants_zero_adapter_equals_ss(tmp_path):
         assert torch.equal(r.per_view["controlgs"][k], r.per_view["ss"][k])
         assert torch.equal(r.per_view["no_ss"][k][0], r.per_view["ss"][k][0])
         assert not torch.equal(r.per_view["no_ss"][k][1], r.per_view["ss"][k][1])
+
+
+@pytest.mark.parametrize("variant", ["ar", "vr"])
+def test_baked_backbones_reproduce_their_build_record(variant):
+    """The shipped backbone loads from its Scaffold-GS folder and renders a held-out view at the
+    PSNR that build.json recorded when it was trained (ground truth rendered afresh)."""
+    from controlgs_adapter.metrics import psnr
+    from controlgs_adapter.scene import arc_cameras, diorama_planes, load_builtin_backbone, render_planes
+
+    folder = builtin_backbone_dir(variant)
+    if not (folder / "point_cloud").is_dir():
+        pytest.skip("built-in backbone not baked")
+    record = json.loads((folder / "build.json").read_text())
+    cam = arc_cameras(32, size=record["resolution"])[8]  # test view 1 (views i % 8 == 0 are the test split)
+    gt = render_planes(diorama_planes(variant), cam, samples=4)[0].float()
+    model = load_builtin_backbone(variant)
+    with torch.no_grad():
+        img = model.render(cam, None, torch.zeros(3)).color.clamp(0, 1)
+    assert float(psnr(img, gt)) == pytest.approx(record["test_psnr"][1], abs=0.02)
