@@ -77,7 +77,7 @@ def optional_metrics() -> dict[str, Callable[[torch.Tensor, torch.Tensor], float
     """Perceptual metrics whose packages are installed, as ``{name: f(eye, gt) -> float}`` on one
     sRGB image pair ``[3, H, W]`` in [0, 1]: ``"flip"`` (LDR-FLIP, lower is better; package
     ``flip-evaluator``) and ``"cvvdp"`` (ColorVideoVDP JOD, higher is better; package ``cvvdp``,
-    installed with ``--no-deps`` so that it keeps the CPU torch, see docs/metrics.md). Empty when
+    installed with ``--no-deps`` so that it keeps the CPU torch, see docs/demo.md). Empty when
     neither is installed: nothing is ever downloaded."""
     found: dict[str, Callable[[torch.Tensor, torch.Tensor], float]] = {}
     try:
