@@ -14,9 +14,10 @@ equals the target (the paper's equal-power comparison; this brightens an image d
 target unless ``brighten=False``), then clipped to the display range [0, 1]. The power after
 dimming equals the target exactly unless clipping happens (the clipped fraction is reported).
 Gradients flow through ``P(image)``; the reference is a constant. Conventions:
-- ``rho == 0`` means power saving is off: the image is returned unchanged (not rescaled to
-  ``P_ref``, not clipped) and the stage is skipped.
-- no reference: ``P_ref = P(image)``, i.e. the image is scaled by ``1 - rho``.
+- with a reference, ``rho == 0`` still maps the image to ``P_ref`` (the paper's equal-power
+  operator is continuous in rho; an earlier "rho = 0 is off" rule made a jump just above 0).
+- no reference: ``P_ref = P(image)``, i.e. the image is scaled by ``1 - rho``; at ``rho == 0`` it
+  is returned unchanged (not clipped) and the stage costs nothing.
 - ``P(image) == 0`` (a black image): there is nothing to scale; the scale is 1 (no NaN, zero
   gradient through the power).
 
@@ -115,7 +116,7 @@ def display_mapping(
 
     Args:
         image: ``[..., 3, H, W]`` linear light (the rendered, resampled image).
-        rho: power saving in [0, 1); 0 returns ``image`` unchanged.
+        rho: power saving in [0, 1); 0 without a reference returns ``image`` unchanged.
         reference: ``[..., 3, H_r, W_r]`` linear light (the ground truth, any resolution,
             broadcastable leading dims) giving ``P_ref``; None: ``P_ref = P(image)``.
         reference_power: ``P_ref`` itself (``[...]`` or a number, panel units), instead of
@@ -131,7 +132,7 @@ def display_mapping(
     rho = _check_rho(rho)
     c = _check_coefficients(coefficients)
     power = _power(image, c)  # [...]
-    if rho == 0.0:  # power saving off
+    if rho == 0.0 and reference is None and reference_power is None:  # scale 1: nothing to do
         if not return_stats:
             return image
         p = power.detach()
@@ -189,8 +190,10 @@ class DisplayStage(Stage):
         self.brighten = bool(brighten)
         self._reference_power: tuple[weakref.ref, int, torch.dtype, torch.Tensor] | None = None
 
-    def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
-        return state.power_saving == 0.0
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:
+        """Identity only at rho = 0 without a reference: with one, rho = 0 still maps the image to
+        ``P_ref`` (the equal-power operator is continuous in rho)."""
+        return state.power_saving == 0.0 and (ctx is None or ctx.reference is None)
 
     def reference_power(self, reference: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """``P_ref`` ``[...]`` of an sRGB ``reference``; reused while the same tensor object comes

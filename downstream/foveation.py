@@ -45,7 +45,7 @@ class FoveationStage(Stage):
     resolution = "keep"
     order = 5.0
 
-    def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         return True
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102

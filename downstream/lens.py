@@ -466,7 +466,7 @@ class LensPrewarp(Stage):
             grid, gain = self.map(size, torch.float32, device)
             return LensPrewarp(LUTMap(grid, gain))
 
-    def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         if self.training and any(p.requires_grad for p in self.map.parameters()):
             return False
         return self.map.is_identity()

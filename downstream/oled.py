@@ -54,7 +54,7 @@ class OLEDStage(Stage):
     resolution = "restore"
     order = 40.0
 
-    def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         return state.downsample == 1.0
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102

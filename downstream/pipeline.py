@@ -243,7 +243,7 @@ class Pipeline(nn.Module):
         for stage in self.stages:
             if record and post_image is None and stage.name in PHYSICAL_STAGES:
                 post_image = convert_domain(x, domain, "srgb").detach()
-            if stage.is_identity(state):
+            if stage.is_identity(state, ctx):
                 continue
             x = stage(convert_domain(x, domain, stage.domain), state, ctx)
             domain = stage.domain

@@ -121,7 +121,7 @@ class ResampleStage(Stage):
         super().__init__()
         self.max_factor = _check_factor(max_factor, "max_factor")
 
-    def is_identity(self, state: RuntimeState) -> bool:  # noqa: D102
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         return state.downsample == 1.0
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:

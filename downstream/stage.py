@@ -58,8 +58,9 @@ class Stage(nn.Module):
     after: ClassVar[str | None] = None
     before: ClassVar[str | None] = None
 
-    def is_identity(self, state: RuntimeState) -> bool:
-        """True if the stage does nothing at ``state`` (the pipeline then skips it at no cost)."""
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:
+        """True if the stage does nothing at ``state`` given ``ctx`` (the pipeline then skips it at
+        no cost); ``ctx`` None asks about the state alone."""
         return False
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102

@@ -61,7 +61,7 @@ class VignetteStage(Stage):
         super().__init__()
         self.strength = float(strength)
 
-    def is_identity(self, state: RuntimeState) -> bool:
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:
         return self.strength == 0.0
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:

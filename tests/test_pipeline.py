@@ -90,11 +90,11 @@ def test_what_is_off_or_identity_costs_nothing():
     p = Pipeline.from_config({"lens": {"coefficients": [[0.0]] * 3}, "resample": True, "display": True, "foveation": True})
     counter = _Counter(p)
     image = torch.rand(3, 12, 12)
-    assert p(image, RuntimeState(1.0, 0.0), reference=torch.rand(3, 12, 12)) is image  # no stage, no conversion
+    assert p(image, RuntimeState(1.0, 0.0)) is image  # no stage, no conversion
     assert sum(counter.calls.values()) == 0
     p(image, RuntimeState(2.0, 0.0))
     assert counter.calls == Counter({"resample": 1, "oled": 1})
-    p(image, RuntimeState(1.0, 0.5))
+    p(image, RuntimeState(1.0, 0.0), reference=torch.rand(3, 12, 12))  # rho 0 with a GT: mapped to P_ref
     assert counter.calls == Counter({"resample": 1, "oled": 1, "display": 1})
     assert p.active(RuntimeState(3.0, 0.2)) == ["resample", "display", "oled"]
     off = Pipeline.from_config({"resample": True})  # display not configured: never runs

@@ -103,9 +103,14 @@ def test_black_image_scale_is_one_and_no_reference_scales_by_one_minus_rho():
     assert torch.allclose(display_mapping(img, 0.3), img * 0.7)
 
 
-def test_rho_zero_is_off():
+def test_rho_zero_without_reference_is_identity_and_with_reference_maps_to_p_ref():
     img = torch.rand(3, 4, 4) * 1.5  # not even clipped
-    assert display_mapping(img, 0.0, torch.rand(3, 4, 4)) is img
+    assert display_mapping(img, 0.0) is img
+    img = torch.rand(3, 4, 4, dtype=torch.float64) * 0.3
+    ref = torch.rand(3, 6, 6, dtype=torch.float64) * 0.5
+    out = display_mapping(img, 0.0, ref)  # continuous in rho: same as a tiny rho
+    assert torch.allclose(out, display_mapping(img, 1e-12, ref), atol=1e-9)
+    assert torch.allclose(display_power(out), display_power(ref), rtol=1e-9)
 
 
 def test_brighten_false_never_scales_up():
@@ -147,6 +152,8 @@ def test_gradcheck_and_gradient_through_the_power():
 def test_display_stage():
     stage = DisplayStage()
     assert stage.is_identity(RuntimeState(power_saving=0.0)) and not stage.is_identity(RuntimeState(power_saving=0.2))
+    ctx = StageContext(native_size=(4, 4), reference=torch.rand(3, 4, 4))
+    assert not stage.is_identity(RuntimeState(power_saving=0.0), ctx)  # maps to P_ref when a reference comes
     img = torch.rand(3, 4, 4, dtype=torch.float64) * 0.2
     gt = torch.rand(3, 8, 8, dtype=torch.float64)
     record: dict = {}
