@@ -30,15 +30,6 @@ def synthetic_bank(K=7, G=4, L=2, pitch_px=1.0, width_px=16, uniform=True, ident
                    display_mm=(24.0, 24.0))
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small FFTs run much faster single-threaded on a loaded machine; restored afterwards."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def cardboard():
     return PSFBank.default()

@@ -25,14 +25,6 @@ K = [[0.08], [0.1], [0.12]]
 ALL = {"lens": {"coefficients": K}, "resample": True, "display": True, "foveation": True}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: one intra-op thread avoids OpenMP contention on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _manual(image, state, gt, k=K):
     """E_s written out with the functionals (the reference the pipeline must equal)."""

@@ -19,14 +19,6 @@ from controlgs_adapter.errors import InputValueError, ShapeError
 CMFS = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: one intra-op thread avoids OpenMP contention on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def test_transfer_functions_match_colour_science():
     t = torch.from_numpy(np.linspace(0.0, 1.0, 3 * 27 * 74)).reshape(3, 27, 74)

@@ -16,14 +16,6 @@ from controlgs_adapter.errors import InputValueError, StateError
 from controlgs_adapter.state import RuntimeState
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: one intra-op thread avoids OpenMP contention on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _power_reference(img: torch.Tensor, coeffs=PANEL_COEFFICIENTS) -> float:
     """Explicit loop over pixels: mean of alpha R + beta G + gamma B (negatives emit nothing)."""

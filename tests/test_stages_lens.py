@@ -20,14 +20,6 @@ from controlgs_adapter.state import RuntimeState
 STATE = RuntimeState()
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: one intra-op thread avoids OpenMP contention on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _bilinear_reference(img: np.ndarray, gx: float, gy: float) -> float:
     """Brute-force bilinear sample of a [H, W] array at normalised (gx, gy), zeros outside."""

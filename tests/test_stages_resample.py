@@ -19,14 +19,6 @@ from controlgs_adapter.errors import InputValueError, ShapeError, StateError
 from controlgs_adapter.state import Camera, RuntimeState
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: one intra-op thread avoids OpenMP contention on a loaded machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _area_reference(img: np.ndarray, out_h: int, out_w: int) -> np.ndarray:
     """Brute force: every output pixel integrates the piecewise-constant input over its footprint."""
