@@ -20,7 +20,7 @@ def test_tiny_demo_writes_the_report(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "report"
     rc = main(["demo", "--out", str(out), "--resolution", "16", "--iterations", "2", "--psf-fraction", "0.5",
-               "--test-views", "1", "--checkpoint-every", "1", "--no-progress"])
+               "--test-views", "1", "--checkpoint-every", "1", "--no-progress", "--no-ablations"])
     assert rc == 0
     for name in ("results.json", "report.md", "heatmap.png", "comparison.png", "condition_response.png",
                  "controlgs.controlgs.safetensors"):

@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-DEFAULT_ITERATIONS = 300
-DEFAULT_RESOLUTION = 64
+DEFAULT_ITERATIONS = 1000
+DEFAULT_RESOLUTION = 96
 
 
 def add_common(p: argparse.ArgumentParser) -> None:
@@ -38,7 +38,8 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--out", default="report", help="report folder")
     add_common(p)
     add_training(p)
-    p.add_argument("--ablations", action="store_true", help="also train and evaluate w/o lens, display, resample, state-blind")
+    p.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
+                   help="also train and evaluate w/o lens, display, resample, state-blind (default: on)")
     p.set_defaults(func=run)
 
 
