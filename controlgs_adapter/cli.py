@@ -9,7 +9,7 @@ import sys
 
 from ._version import __version__
 
-COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "train", "eval", "demo")
+COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "train", "eval", "demo", "bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

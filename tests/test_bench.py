@@ -1,0 +1,64 @@
+"""``controlgs bench`` machinery at a tiny size: every table is there with finite positive times."""
+
+import math
+import re
+
+from controlgs_adapter.commands.bench import (COND_DIMS, MODULE_SETS, PART_DOCS, PSF_MODES, BenchSettings, format_report,
+                                              run_bench, write_report)
+
+
+def _table_rows(text: str, header_start: str) -> list[list[str]]:
+    """Cells of the Markdown table whose header line starts with ``header_start``."""
+    lines = text.splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith(header_start))
+    rows = []
+    for line in lines[i + 2:]:
+        if not line.startswith("|"):
+            break
+        rows.append([c.strip() for c in line.strip("|").split("|")])
+    return rows
+
+
+def _positive(cell: str) -> float:
+    value = float(re.sub(r"[^0-9.eE+-]", "", cell))
+    assert math.isfinite(value) and value > 0, cell
+    return value
+
+
+def test_bench_report_tiny(tmp_path):
+    s = BenchSettings(resolution=16, iterations=2, phase_iterations=1, repeats=1, test_views=1,
+                      downsample=(1.0, 2.0), power_saving=(0.0, 0.6))
+    r = run_bench(s)
+    r.info["date"] = "test"
+    text = format_report(r, "controlgs bench --test")
+    path = write_report(text, tmp_path / "benchmarks.md")
+    assert path.read_text() == text
+
+    phases = _table_rows(text, "| optics |")
+    assert [row[0] for row in phases] == list(PSF_MODES)
+    for mode, p in r.phases.items():  # the PSF phase is timed by hooks on the real optics stage: > 0 in every mode
+        assert all(math.isfinite(v) and v > 0 for v in p.values()), (mode, p)
+        assert p["total"] >= sum(v for k, v in p.items() if k != "total") * 0.999
+
+    knobs = _table_rows(text, "| knob |")
+    settings = [row[1] for row in knobs]
+    assert set(PSF_MODES) <= set(settings)
+    assert {f"N={n}" for n in COND_DIMS if n != 8} <= set(settings)
+    assert {"+".join(m) for m in MODULE_SETS if len(m) < 3} <= set(settings)
+    for row in knobs:
+        _positive(row[2])  # ms / iteration
+        assert math.isfinite(float(row[3])) and math.isfinite(float(row[4]))
+    ref = next(row for row in knobs if row[0] == "reference")
+    assert float(ref[4]) == 0.0
+
+    ss = _table_rows(text, "| d |")
+    assert [float(row[0]) for row in ss] == [1.0, 2.0]
+    for row in ss:
+        _positive(row[1]), _positive(row[2]), _positive(row[3]), _positive(row[4]), _positive(row[5])
+
+    overhead = _table_rows(text, "| | SS-backbone |")
+    assert [row[0] for row in overhead][:3] == ["render time (ms)", "parameters", "storage (float32)"]
+    _positive(overhead[0][1]), _positive(overhead[0][2])
+    assert r.overhead["bytes_adapter_fp16"] < r.overhead["bytes_adapter"]
+    for doc, _, _ in PART_DOCS:
+        assert f"]({doc})" in text
