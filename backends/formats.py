@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -163,7 +164,9 @@ def load_torchscript(path: str | os.PathLike) -> torch.jit.ScriptModule:
     if not path.is_file():
         raise FileFormatError(f"{path}: no such file")
     try:
-        return torch.jit.load(str(path), map_location="cpu")
+        with warnings.catch_warnings():  # the families' on-disk format is TorchScript: not our choice to deprecate
+            warnings.filterwarnings("ignore", message=r"`torch.jit.load` is deprecated", category=DeprecationWarning)
+            return torch.jit.load(str(path), map_location="cpu")
     except Exception as e:  # noqa: BLE001
         raise FileFormatError(f"{path}: not a loadable TorchScript archive (truncated?): {type(e).__name__}") from e
 
