@@ -60,5 +60,7 @@ def test_bench_report_tiny(tmp_path):
     assert [row[0] for row in overhead][:3] == ["render time (ms)", "parameters", "storage (float32)"]
     _positive(overhead[0][1]), _positive(overhead[0][2])
     assert r.overhead["bytes_adapter_fp16"] < r.overhead["bytes_adapter"]
+    # reference adapter: N = 8 per anchor for each of the three modules, plus the projections
+    assert r.overhead["params_conditions"] == r.info["anchors"] * 3 * 8 < r.overhead["params_adapter"]
     for doc, _, _ in PART_DOCS:
         assert f"]({doc})" in text

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import torch
+from tqdm.auto import tqdm
 
 from controlgs_adapter.errors import InputValueError
 
@@ -63,7 +64,7 @@ class BenchSettings:
 
     resolution: int = 64
     iterations: int = DEFAULT_ITERATIONS
-    phase_iterations: int = 16
+    phase_iterations: int = 40
     repeats: int = 20
     test_views: int = 4
     downsample: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
@@ -87,7 +88,7 @@ class BenchResult:
         phases: ``{optics mode: {phase: seconds per iteration}}`` (median over the timed steps).
         knobs: rows ``{"knob", "setting", "s_per_it", "psnr", "ssim"}``.
         ss: rows ``{"d", "render_s_no_ss", "render_s_ss", "psnr_no_ss", "psnr_ss", "psnr_controlgs"}`` (rho = 0).
-        overhead: ``{"render_s_ss", "render_s_controlgs", "params_adapter", "params_backbone",
+        overhead: ``{"render_s_ss", "render_s_controlgs", "params_adapter", "params_conditions", "params_backbone",
             "bytes_adapter", "bytes_adapter_fp16", "bytes_backbone"}``.
         info: machine and settings.
     """
@@ -112,13 +113,15 @@ def _median_times(fns: Sequence[Any], repeats: int) -> list[float]:
     return [statistics.median(ts) for ts in times]
 
 
-def phase_times(model: Any, scene: Any, mode: str, steps: int, seed: int = 0) -> dict[str, float]:
-    """Median seconds per training step by phase, with the optics operator ``mode``.
+def phase_times(model: Any, scene: Any, modes: tuple[str, ...], steps: int, seed: int = 0) -> dict[str, dict[str, float]]:
+    """Median seconds per training step by phase, for each optics operator of ``modes``.
 
     The step is :meth:`Trainer.step` (batch 1, one process) with clocks between its calls:
     ``decode`` = anchor prefilter + the adapter-injected decoders, ``splat`` = rasterization,
     ``stages`` = the pipeline without its optics stage, ``psf`` = the optics stage (timed by
     hooks on the real pipeline's stage), ``backward`` = loss + backward, ``optimizer`` = Adam step.
+    Every sampled (view, state) is stepped once per mode in turn (the order rotates), so that the
+    modes see the same inputs and the same machine load; the first sample is a warm-up.
     """
     from controlgs_adapter.backends.splatter import rasterize
     from controlgs_adapter.losses import image_loss
@@ -127,44 +130,45 @@ def phase_times(model: Any, scene: Any, mode: str, steps: int, seed: int = 0) ->
     trainer = Trainer(model, scene.train_images, scene.train_cameras,
                       TrainConfig(iterations=steps + 1, checkpoint_every=0, seed=seed), background=scene.background)
     pipeline, cgs = trainer.pipeline, trainer.cgs
+    if "optics" not in pipeline:
+        raise InputValueError(f"the training pipeline has no optics stage (stages: {pipeline.names})")
+    optics = pipeline["optics"]
     psf_clock = [0.0, 0.0]  # [start, accumulated]
-    hooks = []
-    if "optics" in pipeline:
-        optics = pipeline["optics"]
-        optics.mode = mode
-        hooks.append(optics.register_forward_pre_hook(lambda *_: psf_clock.__setitem__(0, time.perf_counter())))
-        hooks.append(optics.register_forward_hook(
-            lambda *_: psf_clock.__setitem__(1, psf_clock[1] + time.perf_counter() - psf_clock[0])))
-    rows: dict[str, list[float]] = {k: [] for k in ("decode", "splat", "stages", "psf", "backward", "optimizer", "total")}
+    hooks = [optics.register_forward_pre_hook(lambda *_: psf_clock.__setitem__(0, time.perf_counter())),
+             optics.register_forward_hook(
+                 lambda *_: psf_clock.__setitem__(1, psf_clock[1] + time.perf_counter() - psf_clock[0]))]
+    names = ("decode", "splat", "stages", "psf", "backward", "optimizer", "total")
+    rows: dict[str, dict[str, list[float]]] = {m: {k: [] for k in names} for m in modes}
     try:
         for it in range(steps + 1):
             view, state = trainer.sample()
             cam, gt = trainer.cameras[view], trainer.images[view]
-            trainer.optimizer.zero_grad(set_to_none=True)
-            psf_clock[1] = 0.0
-            t0 = time.perf_counter()
-            visible = model.visible_anchors(cam)
-            with cgs.conditioned(state, cam, visible):
-                g = model.decode(cam, visible)
-                t1 = time.perf_counter()
-                image = rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, cam, scene.background).color
-            t2 = time.perf_counter()
-            eye = pipeline(image, state, reference=gt)
-            t3 = time.perf_counter()
-            image_loss(eye, gt, trainer.config.loss).backward()
-            t4 = time.perf_counter()
-            trainer.optimizer.step()
-            t5 = time.perf_counter()
-            if it == 0:  # warm-up
-                continue
-            for k, v in (("decode", t1 - t0), ("splat", t2 - t1), ("stages", t3 - t2 - psf_clock[1]), ("psf", psf_clock[1]),
-                         ("backward", t4 - t3), ("optimizer", t5 - t4), ("total", t5 - t0)):
-                rows[k].append(v)
+            for mode in modes[it % len(modes):] + modes[:it % len(modes)]:  # rotated: no mode always runs first
+                optics.mode = mode
+                trainer.optimizer.zero_grad(set_to_none=True)
+                psf_clock[1] = 0.0
+                t0 = time.perf_counter()
+                visible = model.visible_anchors(cam)
+                with cgs.conditioned(state, cam, visible):
+                    g = model.decode(cam, visible)
+                    t1 = time.perf_counter()
+                    image = rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, cam, scene.background).color
+                t2 = time.perf_counter()
+                eye = pipeline(image, state, reference=gt)
+                t3 = time.perf_counter()
+                image_loss(eye, gt, trainer.config.loss).backward()
+                t4 = time.perf_counter()
+                trainer.optimizer.step()
+                t5 = time.perf_counter()
+                if it == 0:  # warm-up
+                    continue
+                for k, v in zip(names, (t1 - t0, t2 - t1, t3 - t2 - psf_clock[1], psf_clock[1], t4 - t3, t5 - t4, t5 - t0)):
+                    rows[mode][k].append(v)
     finally:
         for h in hooks:
             h.remove()
         cgs.unwrap()
-    return {k: statistics.median(v) for k, v in rows.items()}
+    return {m: {k: statistics.median(v) for k, v in r.items()} for m, r in rows.items()}
 
 
 def _knob_configs(s: BenchSettings) -> list[tuple[str, str, dict[str, Any]]]:
@@ -181,28 +185,33 @@ def _knob_configs(s: BenchSettings) -> list[tuple[str, str, dict[str, Any]]]:
 
 def knob_results(model: Any, scene: Any, s: BenchSettings, workdir: Path, progress: bool = False) -> tuple[list[dict[str, Any]], Any]:
     """Train one adapter per knob setting for ``s.iterations`` and evaluate all of them (and the
-    two baselines) on the grid with the exact PSF. Returns the knob rows and the :class:`GridResult`."""
+    two baselines) on the grid with the exact PSF. Returns the knob rows and the :class:`GridResult`.
+
+    Each setting trains on its own copy of the backbone and the trainers step in turn (iteration
+    i of every setting, then i + 1), so that a change of machine load hits all settings alike;
+    the time per iteration is the median over a setting's steps."""
     from controlgs_adapter.evaluation import evaluate_grid
+    from controlgs_adapter.scene import load_builtin_backbone
     from controlgs_adapter.training import TrainConfig, Trainer
 
     configs = _knob_configs(s)
+    trainers = [Trainer(load_builtin_backbone(s.variant), scene.train_images, scene.train_cameras,
+                        TrainConfig(iterations=s.iterations, checkpoint_every=0, seed=s.seed, **kw),
+                        background=scene.background) for _, _, kw in configs]
+    steps: list[list[float]] = [[] for _ in configs]
     adapters: dict[str, Path] = {}
-    speed: dict[str, float] = {}
-    for i, (knob, setting, kw) in enumerate(configs):
-        config = TrainConfig(iterations=s.iterations, checkpoint_every=0, seed=s.seed, **kw)
-        trainer = Trainer(model, scene.train_images, scene.train_cameras, config, background=scene.background)
-        name, steps = f"k{i}", []
-        try:
-            while trainer.iteration < s.iterations:  # Trainer.train without progress bar, each step timed
+    try:
+        for _ in tqdm(range(s.iterations), desc="training knobs", disable=not progress, dynamic_ncols=True):
+            for trainer, times in zip(trainers, steps):  # Trainer.train without checkpoints, each step timed
                 t = time.perf_counter()
                 trainer.step()
-                steps.append(time.perf_counter() - t)
-            adapters[name] = trainer.cgs.save(workdir / f"{name}.controlgs.safetensors")
-        finally:
+                times.append(time.perf_counter() - t)
+        for i, trainer in enumerate(trainers):
+            adapters[f"k{i}"] = trainer.cgs.save(workdir / f"k{i}.controlgs.safetensors")
+    finally:
+        for trainer in trainers:
             trainer.cgs.unwrap()
-        speed[name] = statistics.median(steps)
-        if progress:
-            print(f"  {knob} {setting}: {speed[name] * 1e3:.0f} ms/it", file=sys.stderr)
+    speed = {f"k{i}": statistics.median(times) for i, times in enumerate(steps)}
     n = min(s.test_views, len(scene.test_cameras))
     result = evaluate_grid(model, scene.test_images[:n], scene.test_cameras[:n], adapters, background=scene.background,
                            downsample=s.downsample, power_saving=s.power_saving, optics_mode="exact",
@@ -248,11 +257,12 @@ def render_overhead(model: Any, scene: Any, adapter: Path, workdir: Path, repeat
             bare, wrapped = _median_times([lambda: render_view(None, model, cam, None, scene.background),
                                            lambda: render_view(cgs, model, cam, state, scene.background)], repeats)
             params = sum(p.numel() for p in cgs.trainable_parameters())
+            conditions = cgs.injector.conditions.numel()
             fp16 = cgs.save(workdir / "fp16.controlgs.safetensors", dtype=torch.float16)
         finally:
             cgs.unwrap()
     backbone_dir = builtin_backbone_dir(scene.variant) / "point_cloud"
-    return {"render_s_ss": bare, "render_s_controlgs": wrapped, "params_adapter": float(params),
+    return {"render_s_ss": bare, "render_s_controlgs": wrapped, "params_adapter": float(params), "params_conditions": float(conditions),
             "params_backbone": float(backbone_params), "bytes_adapter": float(Path(adapter).stat().st_size),
             "bytes_adapter_fp16": float(fp16.stat().st_size),
             "bytes_backbone": float(sum(p.stat().st_size for p in backbone_dir.rglob("*") if p.is_file()))}
@@ -266,10 +276,9 @@ def run_bench(s: BenchSettings, progress: bool = False) -> BenchResult:
     model = load_builtin_backbone(s.variant)
     out = BenchResult(info={"nproc": os.cpu_count(), "threads": torch.get_num_threads(), "torch": torch.__version__,
                             "scene": scene.name, "anchors": model.num_anchors, **vars(s)})
-    for mode in PSF_MODES:
-        if progress:
-            print(f"phases ({mode})", file=sys.stderr)
-        out.phases[mode] = phase_times(model, scene, mode, s.phase_iterations, s.seed)
+    if progress:
+        print("training phases", file=sys.stderr)
+    out.phases = phase_times(model, scene, PSF_MODES, s.phase_iterations, s.seed)
     with tempfile.TemporaryDirectory(prefix="controlgs-bench-") as tmp:
         work = Path(tmp)
         out.knobs, grid = knob_results(model, scene, s, work, progress)
@@ -302,16 +311,20 @@ def format_report(r: BenchResult, command: str) -> str:
         "## 1. Training time per iteration by phase",
         "",
         f"One training step of `Trainer.step` (batch 1) with clocks between its calls; median of {i['phase_iterations']} "
-        "steps after a warm-up, in ms. *decode*: anchor prefilter + adapter-injected decoders; *splat*: rasterization; "
+        "samples after a warm-up, each sample stepped in every optics mode in turn, in a rotating order (same inputs, "
+        "same machine load), "
+        "in ms; *total* is the median of the whole step. *decode*: anchor prefilter + adapter-injected decoders; *splat*: rasterization; "
         "*stages*: the downstream pipeline without its optics; *PSF*: the optics stage; *backward*: loss + backward "
         "through all of them; *optimizer*: Adam. Training runs the distortion-only optics for the first 90 % of the "
         "iterations and the full PSF (`fast` by default) for the rest.",
         "",
-        "| optics | decode | splat | stages | PSF | backward | optimizer | total |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| optics | decode | splat | stages | PSF | backward | optimizer | total | total vs distortion |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    base = r.phases["distortion"]["total"]
     for mode, p in r.phases.items():
-        lines.append(f"| {mode} | " + " | ".join(_ms(p[k]) for k in ("decode", "splat", "stages", "psf", "backward", "optimizer", "total")) + " |")
+        lines.append(f"| {mode} | " + " | ".join(_ms(p[k]) for k in ("decode", "splat", "stages", "psf", "backward", "optimizer", "total"))
+                     + f" | {p['total'] / base:.2f}x |")
     ref = next(k for k in r.knobs if k["knob"] == "reference")
     lines += [
         "",
@@ -319,7 +332,10 @@ def format_report(r: BenchResult, command: str) -> str:
         "",
         f"Each row trains an adapter for {i['iterations']} iterations (seed {i['seed']}, otherwise the Trainer's defaults) "
         f"and evaluates it on {i['test_views']} test view(s) over the grid {grid} through the pipeline with the *exact* PSF. "
-        "Time per iteration is the median over the training's steps (robust to load spikes from other processes); PSNR / SSIM are means over views and grid "
+        "The trainings step in turn (one iteration of each setting, then the next) on their own copies of the backbone "
+        "and the time per iteration is the median of a setting's steps, so that machine load hits all rows alike "
+        "(for the reference this is its distortion-phase step). The *modules* rows keep every downstream stage "
+        "(the adapter lacks the other conditions); PSNR / SSIM are means over views and grid "
         "(paper Tbl. 1). These are short trainings: differences of a few hundredths of a dB are within run-to-run noise.",
         "",
         "| knob | setting | ms / iteration | PSNR (dB) | Δ PSNR vs reference | SSIM |",
@@ -347,7 +363,9 @@ def format_report(r: BenchResult, command: str) -> str:
         "",
         f"One frame at S of a test view (median of {i['repeats']} interleaved calls, no grad): the SS-backbone bare vs wrapped by the "
         "reference adapter inside `conditioned` (state d = 2, rho = 0.4: strengths, injected decoders). Storage: the "
-        "adapter file (`ControlGS.save`, float32 and float16) vs the backbone's Scaffold-GS files (`point_cloud/`).",
+        "adapter file (`ControlGS.save`, float32 and float16) vs the backbone's Scaffold-GS files (`point_cloud/`). "
+        f"Most adapter parameters are the per-anchor conditions ({o['params_conditions']:.0f} = anchors x modules x N), "
+        "so the relative storage grows with N and the number of modules and shrinks with the backbone's per-anchor size.",
         "",
         "| | SS-backbone | ControlGS | overhead |",
         "|---|---:|---:|---:|",
