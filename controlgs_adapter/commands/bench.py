@@ -274,7 +274,8 @@ def run_bench(s: BenchSettings, progress: bool = False) -> BenchResult:
 
     scene = load_builtin_scene(s.variant, s.resolution, cache=True)
     model = load_builtin_backbone(s.variant)
-    out = BenchResult(info={"nproc": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(), "threads": torch.get_num_threads(), "torch": torch.__version__,
+    nproc = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()  # as `nproc`
+    out = BenchResult(info={"nproc": nproc, "threads": torch.get_num_threads(), "torch": torch.__version__,
                             "scene": scene.name, "anchors": model.num_anchors, **vars(s)})
     if progress:
         print("training phases", file=sys.stderr)
