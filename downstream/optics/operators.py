@@ -24,6 +24,7 @@ Pixels that are zero in every channel are skipped in the splats when no gradient
 from __future__ import annotations
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import InputValueError
@@ -80,31 +81,62 @@ def psf_distortion(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
     return torch.stack(outs, 1).reshape(*lead, rb.L, rb.H, rb.W)
 
 
+def _skip_mask(x: torch.Tensor) -> torch.Tensor | None:
+    """``[L, N]`` pixels non-zero in some batch item, or None when a gradient is needed."""
+    return None if torch.is_grad_enabled() and x.requires_grad else (x != 0).any(0)
+
+
+class _ZonesFn(torch.autograd.Function):
+    """``sum_r E_r * splat(coeff_r . x)`` per bucket of field groups, forward and its exact adjoint
+    (the same FFT convolutions with conjugate kernel spectra, then a gather through the taps)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, rb: ResampledBank, buckets: list, nz: torch.Tensor | None) -> torch.Tensor:
+        ctx.rb, ctx.buckets = rb, buckets                                      # x [B, L, N]
+        B = x.shape[0]
+        out = x.new_zeros(B, rb.L, rb.H * rb.W)
+        for li in range(rb.L):
+            xl, ol = x[:, li], out[:, li]
+            for bk in buckets[li]:
+                tp, ti, tw = bk.tap_pixel, bk.tap_index, bk.tap_weight
+                if nz is not None:
+                    keep = nz[li, tp]
+                    n_keep = int(keep.sum())
+                    if n_keep == 0:
+                        continue
+                    if n_keep < 0.75 * keep.numel():
+                        tp, ti, tw = tp[keep], ti[keep], tw[:, keep]
+                R, Z = bk.kernel_fft.shape[:2]
+                fh, fw = bk.fft_size
+                arr = x.new_zeros(B * R, Z * fh * fw)
+                arr.index_add_(1, ti, (xl[:, tp][:, None, :] * tw).reshape(B * R, -1))
+                spec = torch.fft.rfft2(arr.view(B, R, Z, fh, fw)).mul_(bk.kernel_fft)
+                res = torch.fft.irfft2(spec.sum(1) if R > 1 else spec[:, 0], s=(fh, fw))   # [B, Z, fh, fw]
+                ol.index_add_(1, bk.out_index, res.reshape(B, -1)[:, bk.src_index])
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g: torch.Tensor):  # g [B, L, N]
+        rb, buckets = ctx.rb, ctx.buckets
+        B = g.shape[0]
+        gx = g.new_zeros(B, rb.L, rb.H * rb.W)
+        for li in range(rb.L):
+            gl, xl = g[:, li], gx[:, li]
+            for bk in buckets[li]:
+                R, Z = bk.kernel_fft.shape[:2]
+                fh, fw = bk.fft_size
+                garr = g.new_zeros(B, Z * fh * fw)
+                garr[:, bk.src_index] = gl[:, bk.out_index]
+                spec = torch.fft.rfft2(garr.view(B, 1, Z, fh, fw))
+                spec = spec.mul_(bk.kernel_fft.conj()) if R == 1 else spec * bk.kernel_fft.conj()
+                G = torch.fft.irfft2(spec, s=(fh, fw)).reshape(B, R, -1)[..., bk.tap_index]   # [B, R, M]
+                xl.index_add_(1, bk.tap_pixel, (G * bk.tap_weight).sum(1) if R > 1 else G[:, 0] * bk.tap_weight[0])
+        return gx, None, None, None
+
+
 def _apply_zones(x: torch.Tensor, rb: ResampledBank, buckets: list) -> torch.Tensor:
-    B = x.shape[0]
-    out = x.new_zeros(B, rb.L, rb.H * rb.W)
-    nz = None
-    if not (torch.is_grad_enabled() and x.requires_grad):
-        nz = (x != 0).any(0)                                                   # [L, N]
-    for li in range(rb.L):
-        acc = out.new_zeros(B, rb.H * rb.W)
-        for bk in buckets[li]:
-            idx, w, a, pix = bk.splat_index, bk.splat_weight, bk.coeff, bk.pixels
-            if nz is not None:
-                keep = nz[li, pix]
-                n_keep = int(keep.sum())
-                if n_keep == 0:
-                    continue
-                if n_keep < 0.75 * keep.numel():
-                    idx, w, a, pix = idx[:, keep], w[:, keep], a[:, keep], pix[keep]
-            R, Z = bk.kernel_fft.shape[:2]
-            fh, fw = bk.fft_size
-            vals = (x[:, li, pix][:, None, :] * a[None]).reshape(B * R, -1)
-            arr = _splat(vals, idx, w, Z * fh * fw)[:, :-1].reshape(B, R, Z, fh, fw)
-            res = torch.fft.irfft2((torch.fft.rfft2(arr) * bk.kernel_fft).sum(1), s=(fh, fw))   # [B, Z, fh, fw]
-            acc = acc.index_add(1, bk.out_index, res.reshape(B, -1)[:, bk.src_index])
-        out[:, li] = acc
-    return out.reshape(B, rb.L, rb.H, rb.W)
+    return _ZonesFn.apply(x, rb, buckets, _skip_mask(x)).reshape(x.shape[0], rb.L, rb.H, rb.W)
 
 
 def psf_fast(primaries: torch.Tensor, rb: ResampledBank, tol: float = 0.02, zone: int = 6,
@@ -124,7 +156,7 @@ def psf_fast(primaries: torch.Tensor, rb: ResampledBank, tol: float = 0.02, zone
 def psf_exact(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
     """Paper Eq. S3, exactly: since each pixel's PSF is a bilinear blend of field PSFs,
     ``out = sum_f H_f * S(w_f . x)`` (one FFT convolution per field over the pixels that use it).
-    Equal to :func:`psf_reference` to rounding; backward by autograd (the exact adjoint)."""
+    Equal to :func:`psf_reference` to rounding; hand-written backward (the exact adjoint)."""
     x, lead = _prepare(primaries, rb)
     return _apply_zones(x, rb, rb.zones(1, 0.0)).reshape(*lead, rb.L, rb.H, rb.W)
 

@@ -308,10 +308,9 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
 class Bucket:
     """Field groups with the same FFT size and rank, transformed in one batched call."""
 
-    pixels: torch.Tensor        # [n] display pixels (a pixel appears once per group that uses it)
-    splat_index: torch.Tensor   # [J, n] flat index into [Z, fh, fw] (Z * fh * fw = dump slot)
-    splat_weight: torch.Tensor  # [J, n]
-    coeff: torch.Tensor         # [R, n]
+    tap_pixel: torch.Tensor     # [M] display pixel of each splat tap (non-zero footprint entries only)
+    tap_index: torch.Tensor     # [M] flat index into [Z, fh, fw] where the tap lands
+    tap_weight: torch.Tensor    # [R, M] footprint weight x the pixel's coefficient of eigen-PSF r
     kernel_fft: torch.Tensor    # [R, Z, fh, fw // 2 + 1]
     fft_size: tuple[int, int]
     num_groups: int
@@ -327,18 +326,19 @@ def _bucketize(zones: list[Zone], rb: "ResampledBank") -> list[Bucket]:
     cdt = torch.complex64 if rb.dtype == torch.float32 else torch.complex128
     for (fh, fw, R), zs in sorted(keys.items()):
         area = fh * fw
-        dump = len(zs) * area
-        idx, outs, srcs = [], [], []
+        tpix, tidx, twt, outs, srcs = [], [], [], [], []
         for slot, z in enumerate(zs):
-            idx.append(torch.where(z.splat_index >= area, torch.full_like(z.splat_index, dump), z.splat_index + slot * area))
+            live = (z.splat_weight > 0) & (z.splat_index < area)                 # [J, n]
+            i, j = live.T.nonzero(as_tuple=True)                                 # pixel-major
+            tpix.append(z.pixels[i])
+            tidx.append(z.splat_index[j, i] + slot * area)
+            twt.append(z.coeff[:, i] * z.splat_weight[j, i])
             a0, a1, b0, b1 = z.src
             r, c = z.dst
             ii, jj = torch.meshgrid(torch.arange(a0, a1), torch.arange(b0, b1), indexing="ij")
             srcs.append((slot * area + ii * fw + jj).reshape(-1))
             outs.append(((ii - a0 + r) * rb.W + (jj - b0 + c)).reshape(-1))
-        buckets.append(Bucket(pixels=torch.cat([z.pixels for z in zs]), splat_index=torch.cat(idx, 1),
-                              splat_weight=torch.cat([z.splat_weight for z in zs], 1),
-                              coeff=torch.cat([z.coeff for z in zs], 1),
+        buckets.append(Bucket(tap_pixel=torch.cat(tpix), tap_index=torch.cat(tidx), tap_weight=torch.cat(twt, 1),
                               kernel_fft=torch.fft.rfft2(torch.stack([z.kernels for z in zs], 1)).to(cdt), fft_size=(fh, fw),
                               num_groups=len(zs), out_index=torch.cat(outs).to(rb.device),
                               src_index=torch.cat(srcs).to(rb.device)))
