@@ -30,7 +30,13 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    return int(args.func(args) or 0)
+    from .errors import ControlGSError
+
+    try:
+        return int(args.func(args) or 0)
+    except ControlGSError as e:  # bad input: a clear message, not a traceback
+        print(f"controlgs {args.command}: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

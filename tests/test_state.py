@@ -24,3 +24,4 @@ def test_normalized_screen_matches_pixel_convention(x, y, z):
     u, v = 50 * x / z + 32, 50 * y / z + 24
     assert math.isclose(float(p[0]), 2 * u / 64 - 1, abs_tol=1e-9)
     assert math.isclose(float(p[1]), 2 * v / 48 - 1, abs_tol=1e-9)
+
