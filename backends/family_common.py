@@ -59,7 +59,7 @@ def iteration_dir(root: str | Path, iteration: int | None, *, family: str) -> Pa
     """``<root>/point_cloud/iteration_<it>``: the given iteration or the highest one present."""
     pc = Path(root) / "point_cloud"
     if not pc.is_dir():
-        raise FileFormatError(f"{Path(root)}: not a {family} output directory (no 'point_cloud/' folder)")
+        raise FileFormatError(f"{Path(root)}: not a {family} output directory (no 'point_cloud/iteration_<N>' folder)")
     found = {int(m.group(1)): p for p in pc.iterdir() if p.is_dir() and (m := re.fullmatch(r"iteration_(\d+)", p.name))}
     if iteration is None:
         if not found:

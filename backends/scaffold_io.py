@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import copy
 import os
-import re
 import shutil
 import tempfile
 from argparse import Namespace
@@ -37,6 +36,7 @@ from controlgs_adapter.io import atomic_write
 from controlgs_adapter.torchscript import eager_from_script
 
 from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields, write_ply
+from .family_common import iteration_dir
 from .reference_model import NeuralGaussianModel, median_spacing
 
 __all__ = ["save_scaffold_dir", "load_scaffold_dir", "latest_iteration", "MLP_FILES"]
@@ -146,12 +146,7 @@ def save_scaffold_dir(model: NeuralGaussianModel, path: str | os.PathLike, itera
 
 def latest_iteration(path: str | os.PathLike) -> int:
     """Largest ``N`` of the ``<path>/point_cloud/iteration_<N>`` folders."""
-    parent = Path(path) / "point_cloud"
-    its = [int(m.group(1)) for p in (parent.iterdir() if parent.is_dir() else ())
-           if p.is_dir() and (m := re.fullmatch(r"iteration_(\d+)", p.name))]
-    if not its:
-        raise FileFormatError(f"{parent}: no point_cloud/iteration_<N> folder (not a Scaffold-GS output directory)")
-    return max(its)
+    return int(iteration_dir(path, None, family="Scaffold-GS").name.removeprefix("iteration_"))
 
 
 def _indexed(fields: dict[str, np.ndarray], prefix: str, source: str) -> list[np.ndarray]:
@@ -321,10 +316,7 @@ def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
             (arbitrary pickled objects are refused).
     """
     root = Path(path)
-    it = latest_iteration(root) if iteration is None else int(iteration)
-    folder = root / "point_cloud" / f"iteration_{it}"
-    if not folder.is_dir():
-        raise FileFormatError(f"{folder}: no such iteration folder (latest is {latest_iteration(root)})")
+    folder = iteration_dir(root, None if iteration is None else int(iteration), family="Scaffold-GS")
     cfg_path = root / "cfg_args"
     cfg = read_cfg_args(cfg_path) if cfg_path.is_file() else {}
     anchors = _read_anchors(folder / "point_cloud.ply")
