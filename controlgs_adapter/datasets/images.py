@@ -11,7 +11,7 @@ import torch
 from ..errors import FileFormatError, InputValueError
 from .base import Frame
 
-__all__ = ["read_image", "load_frame_image"]
+__all__ = ["read_image", "image_size", "load_frame_image"]
 
 
 def read_image(path: str | Path) -> torch.Tensor:
@@ -34,6 +34,20 @@ def read_image(path: str | Path) -> torch.Tensor:
     except (UnidentifiedImageError, OSError, ValueError) as e:
         raise FileFormatError(f"{p}: cannot decode the image ({e})") from None
     return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """``(width, height)`` of an image file from its header (no decoding)."""
+    from PIL import Image, UnidentifiedImageError
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileFormatError(f"{p}: image file not found")
+    try:
+        with Image.open(p) as im:
+            return int(im.width), int(im.height)
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        raise FileFormatError(f"{p}: cannot read the image header ({e})") from None
 
 
 def load_frame_image(frame: Frame, background: torch.Tensor) -> torch.Tensor:
