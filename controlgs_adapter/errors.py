@@ -37,3 +37,15 @@ class FileFormatError(ControlGSError, ValueError):
 
 class PluginLoadError(ControlGSError, RuntimeError):
     """An installed plug-in failed to load (raised only in strict mode)."""
+
+
+class RunLockedError(ControlGSError, RuntimeError):
+    """A run folder is in use by another process (its lock file names the holder)."""
+
+
+class NonFiniteError(ControlGSError, FloatingPointError):
+    """Training produced a non-finite loss or parameter, or a file would hold non-finite values."""
+
+
+class MissingDependencyError(ControlGSError, ImportError):
+    """An optional dependency (an ``extra`` of the package) is not installed."""
