@@ -1,0 +1,139 @@
+"""instant-ngp captures: one ``transforms.json`` for all frames (``colmap2nerf.py``'s output).
+
+Poses are camera to world in OpenGL axes, as in the NeRF-synthetic files. Intrinsics come from the
+top level (``fl_x, fl_y, cx, cy, w, h``, floats allowed, or ``camera_angle_x`` / ``camera_angle_y``
+in radians) and OpenCV radial-tangential distortion ``k1 k2 p1 p2 [k3]``; a frame that carries its
+own keys overrides them. ``aabb_scale``, ``scale`` and ``offset`` are ignored: they only place the
+scene in instant-ngp's unit cube for its hash grid (a similarity transform of every camera alike),
+not part of the camera model; the cameras stay in the file's world frame.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..errors import FileFormatError, InputValueError
+from ..state import Camera
+from .base import Frame, SceneData
+from .blender import _is_number, frame_image_path, frame_pose, read_json, resolve_background
+from .images import image_size
+
+__all__ = ["read_instant_ngp"]
+
+#: key groups a frame overrides as a whole (its camera_angle_x replaces the file's fl_x, ...)
+_GROUPS = {
+    "focal": ("fl_x", "fl_y", "camera_angle_x", "camera_angle_y"),
+    "centre": ("cx", "cy"),
+    "size": ("w", "h"),
+    "distortion": ("k1", "k2", "p1", "p2", "k3"),
+}
+#: camera models this reader cannot represent as a pinhole plus radial-tangential distortion
+_UNSUPPORTED = ("is_fisheye", "k4")
+#: how many missing images a warning names
+_NAMED = 5
+
+
+def read_instant_ngp(root: str | Path, *, holdout: int = 8, background: torch.Tensor | None = None,
+                     transforms: str = "transforms.json") -> SceneData:
+    """Read an instant-ngp dataset into ``{"train", "test"}`` frames (no SfM points).
+
+    Args:
+        root: the folder holding ``transforms``; image paths are relative to it.
+        holdout: frames sorted by name, every ``holdout``-th (index % holdout == 0) is a test view
+            (3DGS ``--eval``); 0: all frames train.
+        background: ``[3]`` sRGB colour in [0, 1] RGBA images are composited over (default black).
+        transforms: the JSON file's name inside ``root``.
+
+    Each camera's size is its image's (header); when the file's ``w, h`` differ from it by one
+    uniform factor (downscaled images), the intrinsics are scaled, otherwise the file is refused.
+    Frames whose image is missing are skipped with a ``RuntimeWarning`` naming how many and the first
+    few; none left is a :class:`FileFormatError`.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileFormatError(f"{root}: dataset folder not found")
+    if isinstance(holdout, bool) or not isinstance(holdout, int) or holdout < 0 or holdout == 1:
+        raise InputValueError(f"holdout must be 0 (no test split) or an int >= 2, got {holdout!r}")
+    bg = resolve_background(background)
+    path = root / transforms
+    if not path.is_file():
+        raise FileFormatError(f"{path}: not found (an instant-ngp dataset needs {transforms})")
+    meta = read_json(path)
+    entries = meta.get("frames")
+    if not isinstance(entries, list) or not entries:
+        raise FileFormatError(f"{path}: 'frames' must be a non-empty list, got {entries!r:.60}")
+    frames, missing = [], []
+    for i, entry in enumerate(entries):
+        name, image = frame_image_path(path, i, entry)
+        if not image.is_file():
+            missing.append(entry["file_path"])
+            continue
+        camera, distortion = _camera(path, i, meta, entry, image)
+        frames.append(Frame(name=name, camera=camera, source=image, distortion=distortion))
+    if missing:
+        warnings.warn(f"{path}: {len(missing)} of {len(entries)} frames list an image that is not there, "
+                      f"skipped: {', '.join(missing[:_NAMED])}{', ...' if len(missing) > _NAMED else ''}",
+                      RuntimeWarning, stacklevel=2)
+    if not frames:
+        raise FileFormatError(f"{path}: none of the {len(entries)} images its frames list exists "
+                              f"(first: {root / entries[0]['file_path']})")
+    frames.sort(key=lambda f: f.name)
+    names = [f.name for f in frames]
+    if len(set(names)) != len(names):
+        raise FileFormatError(f"{path}: an image is listed twice ({next(n for n in names if names.count(n) > 1)!r})")
+    test = [f for j, f in enumerate(frames) if holdout and j % holdout == 0]
+    train = [f for j, f in enumerate(frames) if not (holdout and j % holdout == 0)]
+    return SceneData(splits={"train": train, "test": test}, points=None, background=bg, source=str(root),
+                     format="instant_ngp")
+
+
+def _camera(path: Path, i: int, meta: dict[str, Any], entry: dict[str, Any],
+            image: Path) -> tuple[Camera, tuple[float, float, float, float, float] | None]:
+    """Camera (at the image file's size) and distortion of ``frames[i]``: each key group from the
+    frame if it has any key of it, else from the top level."""
+    where = f"{path}: frames[{i}] ({entry['file_path']!r})"
+    for key in _UNSUPPORTED:
+        if entry.get(key, meta.get(key)):
+            raise FileFormatError(f"{where}: {key} set: fisheye cameras are not supported (pinhole with "
+                                  "k1 k2 p1 p2 k3 only); undistort the images first")
+    p: dict[str, float] = {}
+    for keys in _GROUPS.values():
+        src = entry if any(k in entry for k in keys) else meta
+        for k in keys:
+            if k in src:
+                if not _is_number(src[k]):
+                    raise FileFormatError(f"{where}: {k} must be a finite number, got {src[k]!r}")
+                p[k] = float(src[k])
+    width, height = image_size(image)
+    w, h = p.get("w", float(width)), p.get("h", float(height))
+    if w <= 0 or h <= 0:
+        raise FileFormatError(f"{where}: w and h must be > 0, got {w} x {h}")
+    fx = p["fl_x"] if "fl_x" in p else _focal(where, p.get("camera_angle_x"), w, "x")
+    fy = p["fl_y"] if "fl_y" in p else _focal(where, p.get("camera_angle_y"), h, "y")
+    fx, fy = fx if fx is not None else fy, fy if fy is not None else fx
+    if fx is None or fy is None or fx <= 0 or fy <= 0:
+        raise FileFormatError(f"{where}: no usable focal length (give fl_x / fl_y > 0 or camera_angle_x / "
+                              "camera_angle_y, at the top level or per frame)")
+    cx, cy = p.get("cx", w / 2.0), p.get("cy", h / 2.0)
+    sx, sy = width / w, height / h
+    if abs(h * sx - height) > 1.0 or abs(w * sy - width) > 1.0:
+        raise FileFormatError(f"{where}: the file says {w:g} x {h:g} but the image {image} is {width} x {height} "
+                              f"(not one uniform scale: x {sx:.4g}, y {sy:.4g})")
+    k = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
+    d = tuple(p.get(key, 0.0) for key in _GROUPS["distortion"])
+    distortion = (d[0], d[1], d[2], d[3], d[4]) if any(d) else None
+    return Camera(frame_pose(path, i, entry), k, width, height), distortion
+
+
+def _focal(where: str, angle: float | None, size: float, axis: str) -> float | None:
+    """Focal length in pixels from a field of view in radians (None if not given)."""
+    if angle is None:
+        return None
+    if not 0.0 < angle < math.pi:
+        raise FileFormatError(f"{where}: camera_angle_{axis} must be in (0, pi) radians, got {angle}")
+    return 0.5 * size / math.tan(angle / 2.0)
