@@ -89,6 +89,9 @@ def _yaml_value(text: str) -> object:
     return text
 
 
+YAML_MAX_BYTES = 1 << 20
+
+
 def read_yaml_scalars(path: str | Path) -> dict[str, list[object]]:
     """The ``key: scalar`` entries of a YAML file, block or flow style (Octree-AnyGS's
     ``config.yaml``), without a YAML dependency: ``{key: [value, ...]}`` in file order (a key may
@@ -96,6 +99,8 @@ def read_yaml_scalars(path: str | Path) -> dict[str, list[object]]:
     path = Path(path)
     if not path.is_file():
         raise FileFormatError(f"{path}: no such file")
+    if path.stat().st_size > YAML_MAX_BYTES:
+        raise FileFormatError(f"{path}: {path.stat().st_size} bytes, more than a config file holds (<= {YAML_MAX_BYTES})")
     out: dict[str, list[object]] = {}
     for line in path.read_text(errors="replace").splitlines():
         line = line.split(" #", 1)[0] if not line.lstrip().startswith("#") else ""

@@ -7,6 +7,7 @@ file and the field.
 from __future__ import annotations
 
 import ast
+import math
 import os
 import warnings
 from pathlib import Path
@@ -27,62 +28,115 @@ _PLY_TYPES = {
 }
 
 
+_PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+_PLY_MAX_HEADER = 1 << 20  # bytes; real headers are a few hundred
+
+
+def _ply_header(f: Any, path: Path) -> tuple[str, int, list[tuple[str, str]], list[str]]:
+    """Parse a PLY header up to ``end_header``: ``(format, vertex count, vertex properties, comments)``.
+    Every malformed line raises :class:`FileFormatError` naming the file and the line number."""
+    if f.readline(16).strip() != b"ply":
+        raise FileFormatError(f"{path}: not a PLY file (first line is not 'ply')")
+    fmt, count, props, comments, in_vertex, seen_vertex = None, None, [], [], False, False
+    lineno = 1
+    while True:
+        line = f.readline(_PLY_MAX_HEADER)
+        lineno += 1
+        if not line:
+            raise FileFormatError(f"{path}: PLY header ends before 'end_header' (truncated file, {lineno - 1} lines)")
+        if f.tell() > _PLY_MAX_HEADER:
+            raise FileFormatError(f"{path}: PLY header longer than {_PLY_MAX_HEADER} bytes without 'end_header'")
+        words = line.decode("ascii", "replace").strip().split()
+        where = f"{path}: PLY header line {lineno} {' '.join(words)[:80]!r}"
+        if not words:
+            continue
+        key = words[0]
+        if key == "end_header":
+            break
+        if key in ("comment", "obj_info"):
+            comments.append(" ".join(words[1:]))
+        elif key == "format":
+            if len(words) != 3 or words[1] not in _PLY_FORMATS:
+                raise FileFormatError(f"{where}: expected 'format <{'|'.join(_PLY_FORMATS)}> 1.0'")
+            fmt = words[1]
+        elif key == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise FileFormatError(f"{where}: expected 'element <name> <count>' with a non-negative integer count")
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                if seen_vertex:
+                    raise FileFormatError(f"{where}: a second 'vertex' element")
+                count, seen_vertex = int(words[2]), True
+            elif not seen_vertex:
+                raise FileFormatError(f"{where}: element {words[1]!r} precedes 'vertex'; only vertex-first files are read")
+        elif key == "property":
+            if not seen_vertex:
+                raise FileFormatError(f"{where}: 'property' before any 'element vertex' line")
+            if len(words) >= 2 and words[1] == "list":
+                if in_vertex:
+                    raise FileFormatError(f"{where}: list property {words[-1]!r} in 'vertex' is not supported")
+                continue
+            if len(words) != 3:
+                raise FileFormatError(f"{where}: expected 'property <type> <name>'")
+            if words[1] not in _PLY_TYPES:
+                raise FileFormatError(f"{where}: property {words[2]!r} has unknown type {words[1]!r} "
+                                      f"(known: {', '.join(_PLY_TYPES)})")
+            if in_vertex:
+                if any(n == words[2] for n, _ in props):
+                    raise FileFormatError(f"{where}: property {words[2]!r} declared twice")
+                props.append((words[2], _PLY_TYPES[words[1]]))
+        else:
+            raise FileFormatError(f"{where}: unknown header keyword {key!r}")
+    if fmt is None:
+        raise FileFormatError(f"{path}: no 'format' line in the PLY header")
+    if count is None:
+        raise FileFormatError(f"{path}: no 'vertex' element in the PLY header")
+    if not props and count:
+        raise FileFormatError(f"{path}: the 'vertex' element declares {count} vertices but no properties")
+    return fmt, count, props, comments
+
+
 def read_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], list[str]]:
     """Read the ``vertex`` element of a PLY file (binary little/big endian or ASCII).
 
     Returns ``(fields, comments)``: one ``[V]`` array per property, in file order, and the header's
     ``comment``/``obj_info`` lines (without the keyword). Elements after ``vertex`` are ignored.
+    The declared vertex count is checked against the file's size before anything is read, so a
+    small file cannot make this allocate or loop for long.
     """
     path = Path(path)
     if not path.is_file():
         raise FileFormatError(f"{path}: no such file")
+    size = path.stat().st_size
     with open(path, "rb") as f:
-        if f.readline().strip() != b"ply":
-            raise FileFormatError(f"{path}: not a PLY file (first line is not 'ply')")
-        fmt, count, props, comments, in_vertex, seen_vertex = None, None, [], [], False, False
-        while True:
-            line = f.readline()
-            if not line:
-                raise FileFormatError(f"{path}: PLY header ends before 'end_header' (truncated file)")
-            words = line.decode("ascii", "replace").strip().split()
-            if not words:
-                continue
-            if words[0] == "end_header":
-                break
-            if words[0] == "format":
-                fmt = words[1]
-            elif words[0] in ("comment", "obj_info"):
-                comments.append(" ".join(words[1:]))
-            elif words[0] == "element":
-                in_vertex = words[1] == "vertex"
-                if in_vertex:
-                    count, seen_vertex = int(words[2]), True
-                elif not seen_vertex:
-                    raise FileFormatError(f"{path}: element {words[1]!r} precedes 'vertex'; only vertex-first files are read")
-            elif words[0] == "property" and in_vertex:
-                if words[1] == "list":
-                    raise FileFormatError(f"{path}: list property {words[-1]!r} in 'vertex' is not supported")
-                if words[1] not in _PLY_TYPES:
-                    raise FileFormatError(f"{path}: property {words[2]!r} has unknown type {words[1]!r}")
-                props.append((words[2], _PLY_TYPES[words[1]]))
-        if count is None:
-            raise FileFormatError(f"{path}: no 'vertex' element in the PLY header")
+        fmt, count, props, comments = _ply_header(f, path)
+        remaining = size - f.tell()
         if fmt == "ascii":
-            rows = [f.readline().split() for _ in range(count)]
-            if len(rows) < count or any(len(r) < len(props) for r in rows):
-                raise FileFormatError(f"{path}: truncated ASCII PLY: expected {count} vertices of {len(props)} values")
-            table = np.asarray(rows, dtype=np.float64).reshape(count, len(props)) if count else np.zeros((0, len(props)))
+            # each vertex needs len(props) numbers of >= 1 character, separated by one byte
+            if count * (2 * len(props) - 1) > remaining:
+                raise FileFormatError(
+                    f"{path}: header declares {count} vertices of {len(props)} values, but only {remaining} bytes "
+                    "follow the header (truncated file or a wrong count)")
+            rows = []
+            for i in range(count):
+                words = f.readline().split()
+                if len(words) < len(props):
+                    raise FileFormatError(f"{path}: truncated ASCII PLY: vertex {i} has {len(words)} of {len(props)} "
+                                          f"values (expected {count} vertices)")
+                rows.append(words[:len(props)])
+            try:
+                table = np.asarray(rows, dtype=np.float64).reshape(count, len(props))
+            except ValueError as e:
+                raise FileFormatError(f"{path}: ASCII PLY vertex data holds a value that is not a number: {e}") from e
             return {n: table[:, i].astype(t) for i, (n, t) in enumerate(props)}, comments
-        if fmt not in ("binary_little_endian", "binary_big_endian"):
-            raise FileFormatError(f"{path}: unsupported PLY format {fmt!r}")
         order = "<" if fmt == "binary_little_endian" else ">"
         dtype = np.dtype([(n, order + t) for n, t in props])
-        data = f.read(count * dtype.itemsize)
-    if len(data) < count * dtype.itemsize:
-        raise FileFormatError(
-            f"{path}: truncated PLY: header declares {count} vertices x {dtype.itemsize} bytes, "
-            f"file holds {len(data)} bytes of vertex data"
-        )
+        need = count * dtype.itemsize
+        if need > remaining:
+            raise FileFormatError(
+                f"{path}: truncated PLY: header declares {count} vertices x {dtype.itemsize} bytes = {need} bytes, "
+                f"file holds {remaining} bytes of vertex data")
+        data = f.read(need)
     arr = np.frombuffer(data, dtype=dtype, count=count)
     return {n: np.ascontiguousarray(arr[n]).astype(dtype[n].newbyteorder("=")) for n in arr.dtype.names}, comments
 
@@ -113,31 +167,65 @@ def write_ply(path: str | os.PathLike, fields: Mapping[str, np.ndarray], comment
     return atomic_write(path, write)
 
 
+CFG_MAX_BYTES = 1 << 20  # a real cfg_args is a few kB
+CFG_MAX_DEPTH = 32  # nesting of a value (lists of lists ...)
+CFG_MAX_NODES = 100_000
+_CFG_FLOATS = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}  # how repr() prints these floats
+
+
+def _check_cfg_tree(node: ast.AST, source: str) -> None:
+    """Refuse a parse tree deeper than :data:`CFG_MAX_DEPTH` or larger than :data:`CFG_MAX_NODES`
+    (iteratively: no recursion on hostile input)."""
+    stack, seen = [(node, 0)], 0
+    while stack:
+        n, depth = stack.pop()
+        seen += 1
+        if depth > CFG_MAX_DEPTH + 2 or seen > CFG_MAX_NODES:
+            raise FileFormatError(f"{source}: nested deeper than {CFG_MAX_DEPTH} levels or longer than "
+                                  f"{CFG_MAX_NODES} terms; not a printed argparse Namespace")
+        stack.extend((c, depth + 1) for c in ast.iter_child_nodes(n))
+
+
 def parse_cfg_args(text: str, *, source: str = "cfg_args") -> dict[str, Any]:
-    """Parse a printed ``Namespace(a=1, b='x', ...)`` without evaluating code. Values that are not
-    Python literals are kept as their source text."""
+    """Parse a printed ``Namespace(a=1, b='x', ...)`` without evaluating code.
+
+    Values must be Python literals (``inf``/``nan`` as ``repr`` prints them included); anything
+    else, text over :data:`CFG_MAX_BYTES`, or nesting deeper than :data:`CFG_MAX_DEPTH` raises
+    :class:`FileFormatError` naming ``source`` (and the key)."""
+    if len(text) > CFG_MAX_BYTES:
+        raise FileFormatError(f"{source}: {len(text)} characters, more than a cfg_args holds (<= {CFG_MAX_BYTES})")
     try:
         node = ast.parse(text.strip(), mode="eval").body
-    except SyntaxError as e:
-        raise FileFormatError(f"{source}: not a printed argparse Namespace: {e}") from e
+    except (SyntaxError, ValueError, RecursionError, MemoryError) as e:
+        raise FileFormatError(f"{source}: not a printed argparse Namespace: {type(e).__name__}: {e}") from None
+    _check_cfg_tree(node, source)
     if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "Namespace"):
         raise FileFormatError(f"{source}: expected 'Namespace(...)', got {text.strip()[:60]!r}")
+    if node.args:
+        raise FileFormatError(f"{source}: 'Namespace(...)' has positional arguments; expected only key=value pairs")
     out: dict[str, Any] = {}
     for kw in node.keywords:
         if kw.arg is None:
+            raise FileFormatError(f"{source}: '**' in 'Namespace(...)'; expected only key=value pairs")
+        code = ast.unparse(kw.value)
+        if code in _CFG_FLOATS:
+            out[kw.arg] = _CFG_FLOATS[code]
             continue
         try:
             out[kw.arg] = ast.literal_eval(kw.value)
-        except ValueError:
-            out[kw.arg] = ast.unparse(kw.value)
+        except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError):
+            raise FileFormatError(f"{source}: value of {kw.arg!r} must be a Python literal (number, string, bool, "
+                                  f"None, list, tuple, dict), got {code[:60]!r}") from None
     return out
 
 
 def read_cfg_args(path: str | os.PathLike) -> dict[str, Any]:
-    """Read and parse a ``cfg_args`` file."""
+    """Read and parse a ``cfg_args`` file (at most :data:`CFG_MAX_BYTES`)."""
     path = Path(path)
     if not path.is_file():
         raise FileFormatError(f"{path}: no such file")
+    if path.stat().st_size > CFG_MAX_BYTES:
+        raise FileFormatError(f"{path}: {path.stat().st_size} bytes, more than a cfg_args holds (<= {CFG_MAX_BYTES})")
     return parse_cfg_args(path.read_text(errors="replace"), source=str(path))
 
 

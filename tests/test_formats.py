@@ -47,10 +47,12 @@ def test_ply_truncated_names_file(tmp_path):
 
 def test_cfg_args_without_eval():
     text = "Namespace(feat_dim=32, n_offsets=10, source_path='/d/x', white_background=False, lod=0, resolution=-1, " \
-           "ratio=1, voxel_size=0.001, add_opacity_dist=False, test_iterations=[7000, 30000], weird=os.system('x'))"
+           "ratio=1, voxel_size=0.001, add_opacity_dist=False, test_iterations=[7000, 30000], far=inf)"
     cfg = parse_cfg_args(text)
     assert cfg["feat_dim"] == 32 and cfg["source_path"] == "/d/x" and cfg["test_iterations"] == [7000, 30000]
-    assert cfg["weird"] == "os.system('x')"  # kept as text, never run
+    assert cfg["far"] == float("inf")
+    with pytest.raises(FileFormatError, match="'weird' must be a Python literal"):  # refused, never run
+        parse_cfg_args(text[:-1] + ", weird=os.system('x'))")
     with pytest.raises(FileFormatError):
         parse_cfg_args("__import__('os')")
 
