@@ -43,9 +43,13 @@ class RunLockedError(ControlGSError, RuntimeError):
     """A run folder is in use by another process (its lock file names the holder)."""
 
 
-class NonFiniteError(ControlGSError, FloatingPointError):
+class NonFiniteError(InputValueError, FloatingPointError):
     """Training produced a non-finite loss or parameter, or a file would hold non-finite values."""
 
 
 class MissingDependencyError(ControlGSError, ImportError):
     """An optional dependency (an ``extra`` of the package) is not installed."""
+
+
+class FileWriteError(ControlGSError, OSError):
+    """A file could not be written (unwritable folder, disk full, a folder in the way)."""

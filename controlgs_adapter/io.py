@@ -7,6 +7,8 @@ unpickled.
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import json
 import os
 import tempfile
@@ -18,26 +20,85 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
 from ._version import __version__
-from .errors import FileFormatError
+from .errors import FileFormatError, FileWriteError, InputValueError, NonFiniteError
 
 __all__ = ["HEADER_KEY", "atomic_write", "save_tensors", "load_tensors", "read_header"]
 
 HEADER_KEY = "controlgs_adapter"
 
 
+def as_path(path: object, what: str = "path") -> Path:
+    """``path`` as a :class:`Path`; :class:`InputValueError` naming ``what`` if it is not a path."""
+    if isinstance(path, bytes):
+        path = os.fsdecode(path)
+    if not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise InputValueError(f"{what} must be a file path (str or os.PathLike), got {path!r}")
+    return Path(path)
+
+
+def file_mode() -> int:
+    """Permission bits of a new file under the process's umask (0644 under the usual 022)."""
+    try:
+        with open("/proc/self/status") as f:
+            umask = next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
+    except (OSError, StopIteration, ValueError):
+        umask = os.umask(0o022)
+        os.umask(umask)
+    return 0o666 & ~umask
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_tmp(path: Path) -> list[Path]:
+    """Remove the ``.<name>.<pid>.*.tmp`` siblings of ``path`` left by writers (of this host) that
+    were killed mid-write: those whose pid is no longer running. Returns what was removed."""
+    removed = []
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        pid = tmp.name[len(path.name) + 2:].split(".", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+                removed.append(tmp)
+    return removed
+
+
 def atomic_write(path: str | os.PathLike, write: "callable[[str], None]") -> Path:  # type: ignore[valid-type]
-    """Call ``write(tmp_path)`` then rename onto ``path`` so that readers never see a half file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    """Call ``write(tmp_path)`` then rename onto ``path`` so that readers never see a half file.
+
+    The file gets the umask's mode (as ``open`` would give it); the temporary sibling is named
+    ``.<name>.<pid>.<random>.tmp`` so that one left by a killed writer is removed by the next write
+    to ``path``. Raises :class:`InputValueError` for a path that is not one or names a folder, and
+    :class:`FileWriteError` (an ``OSError``) naming ``path`` when the write fails."""
+    path = as_path(path)
+    if path.is_dir():
+        raise InputValueError(f"{path}: is a folder; expected the path of a file to write")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_tmp(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+    except OSError as e:
+        raise FileWriteError(f"{path}: cannot write here: {e.strerror or e}") from e
     try:
         write(tmp)
+        os.chmod(tmp, file_mode())
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise FileWriteError(f"{path}: write failed: {e.strerror or e}") from e
     except BaseException:
-        if os.path.exists(tmp):
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
     return path
@@ -45,16 +106,31 @@ def atomic_write(path: str | os.PathLike, write: "callable[[str], None]") -> Pat
 
 def save_tensors(path: str | os.PathLike, tensors: Mapping[str, torch.Tensor], header: Mapping[str, Any], *, kind: str,
                  format_version: int) -> Path:
-    """Write ``tensors`` (made contiguous, de-aliased, moved to CPU) with ``header`` atomically."""
+    """Write ``tensors`` (made contiguous, de-aliased, moved to CPU) with ``header`` atomically.
+
+    Raises :class:`NonFiniteError` naming the tensor if a floating-point one holds NaN/Inf (a
+    float16 one: its values overflowed float16's range), before anything is written."""
+    path = as_path(path)
+    for k, v in tensors.items():
+        if not isinstance(v, torch.Tensor):
+            raise InputValueError(f"{path}: tensor {k!r} must be a torch.Tensor, got {type(v).__name__}")
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            why = (f" (values beyond {v.dtype}'s range {torch.finfo(v.dtype).max:g} overflowed)"
+                   if v.dtype in (torch.float16, torch.bfloat16) else "")
+            raise NonFiniteError(f"{path}: refusing to save tensor {k!r}: it holds "
+                                 f"{int((~torch.isfinite(v)).sum())} NaN/Inf value(s){why}")
     full = {"kind": kind, "format_version": format_version, "library_version": __version__, **header}
-    meta = {HEADER_KEY: json.dumps(full, sort_keys=True), "format": "pt"}
+    try:
+        meta = {HEADER_KEY: json.dumps(full, sort_keys=True, allow_nan=False), "format": "pt"}
+    except ValueError as e:
+        raise NonFiniteError(f"{path}: refusing to save a header with a NaN/Inf number: {e}") from e
     data = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
     return atomic_write(path, lambda tmp: save_file(data, tmp, metadata=meta))
 
 
 def read_header(path: str | os.PathLike, *, kind: str, max_version: int) -> dict[str, Any]:
     """Read and check the JSON header only. Raises :class:`FileFormatError` naming the file."""
-    path = Path(path)
+    path = as_path(path)
     if not path.is_file():
         raise FileFormatError(f"{path}: no such file")
     try:
@@ -66,12 +142,16 @@ def read_header(path: str | os.PathLike, *, kind: str, max_version: int) -> dict
         raise FileFormatError(f"{path}: a safetensors file, but not written by controlgs-adapter (no '{HEADER_KEY}' header)")
     try:
         header = json.loads(meta[HEADER_KEY])
-    except json.JSONDecodeError as e:
-        raise FileFormatError(f"{path}: corrupt controlgs-adapter header: {e}") from e
+    except (ValueError, RecursionError) as e:
+        raise FileFormatError(f"{path}: corrupt controlgs-adapter header: {type(e).__name__}: {e}") from None
+    if not isinstance(header, dict):
+        raise FileFormatError(f"{path}: controlgs-adapter header must be a JSON object, got {type(header).__name__}")
     if header.get("kind") != kind:
         raise FileFormatError(f"{path}: holds a {header.get('kind')!r}, expected a {kind!r}")
     v = header.get("format_version")
-    if not isinstance(v, int) or v > max_version:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise FileFormatError(f"{path}: format_version must be an integer >= 1, got {v!r}")
+    if v > max_version:
         raise FileFormatError(
             f"{path}: format_version {v!r} is newer than this library reads (<= {max_version}); "
             f"written by controlgs-adapter {header.get('library_version')}, this is {__version__}: upgrade"

@@ -10,11 +10,16 @@ centres, ``align_corners=False``), plus a per-pixel, per-channel gain ``[3, H, W
 colour shifts of the display-optics path. Sampling is bilinear; outside the image is black.
 
 Sources of the grid (all :class:`PrewarpMap` modules, evaluated at any image size):
-- :class:`RadialMap`: ``grid_c(p) = p (1 + k_c1 r^2 + k_c2 r^4 + ...)``, r measured with the
-  aspect ratio corrected (the longer axis spans [-1, 1]). Default: a one-term fit to the chief
+- :class:`RadialMap`: ``grid_c(p) = p (1 + k_c1 r^2 + k_c2 r^4 + ...)``, r the radius in
+  display-normalised coordinates of the image placed on the square Cardboard display with
+  ``"fit"`` (the longer image axis spans [-1, 1]; the same frame as the optics). Default: a one-term fit to the chief
   rays of the Google-Cardboard lens (``CARDBOARD_RADIAL``), for tests and users without a bank.
-- :class:`LUTMap`: a lookup table (grid + gain), e.g. from the optics bank's chief rays with
-  :meth:`LensPrewarp.from_chief_ray_map`, or baked from a learned map.
+- :class:`LUTMap`: a lookup table (grid + gain), e.g. from chief rays with
+  :meth:`LensPrewarp.from_chief_ray_map`, or baked from a learned map. A LUT holds for images of
+  the aspect it was made at.
+- :class:`BankMap`: a PSF bank's chief rays for an image placed on the bank's display
+  (:mod:`.placement`, default ``"fit"``), evaluated at each image size:
+  :meth:`LensPrewarp.from_psf_bank`.
 - :class:`MLPMap`: a small MLP (x, y) -> per-channel displacement and log-gain, zero-initialised
   (identity), trained end to end through the optics; :meth:`LensPrewarp.bake` turns it into a LUT.
 
@@ -37,14 +42,15 @@ from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeErro
 from controlgs_adapter.io import load_tensors, save_tensors
 from controlgs_adapter.state import RuntimeState
 
+from .placement import CARDBOARD_DISPLAY_MM, PLACEMENTS, Placement, image_region
 from .stage import Stage, StageContext
 
 if TYPE_CHECKING:  # pragma: no cover
     from .optics.bank import PSFBank
 
 __all__ = [
-    "CARDBOARD_RADIAL", "pixel_grid", "lens_prewarp", "invert_map", "PrewarpMap", "RadialMap", "LUTMap",
-    "MLPMap", "LensPrewarp",
+    "CARDBOARD_RADIAL", "pixel_grid", "lens_prewarp", "invert_map", "chief_ray_grid", "PrewarpMap", "RadialMap",
+    "LUTMap", "BankMap", "MLPMap", "LensPrewarp",
 ]
 
 #: Radial coefficients k1 per channel (R, G, B) fitted to the Cardboard lens's chief rays (the
@@ -194,6 +200,36 @@ def _area_magnification(grid: torch.Tensor) -> torch.Tensor:
     return (dgx_dx * dgy_dy - dgx_dy * dgy_dx).abs()
 
 
+def chief_ray_grid(
+    chief_ray_map: torch.Tensor,
+    size: tuple[int, int],
+    *,
+    direction: Literal["display_to_eye", "eye_to_display"] = "display_to_eye",
+    sample_x: torch.Tensor | None = None,
+    sample_y: torch.Tensor | None = None,
+    gain: torch.Tensor | Literal["jacobian"] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The sampling grid ``[3, H, W, 2]`` and gain ``[3, H, W]`` (or None) that compensate a chief-ray
+    map; arguments as in :meth:`LensPrewarp.from_chief_ray_map`."""
+    check_tensor("chief_ray_map", chief_ray_map, [3, "Gh", "Gw", 2], dtypes=_FLOATS, finite=True)
+    if min(chief_ray_map.shape[1:3]) < 2:
+        raise ShapeError(f"chief_ray_map needs at least 2x2 samples, got {list(chief_ray_map.shape)}")
+    xs = _sample_span("sample_x", sample_x, chief_ray_map.shape[2])
+    ys = _sample_span("sample_y", sample_y, chief_ray_map.shape[1])
+    if direction == "display_to_eye":
+        p = pixel_grid(size, chief_ray_map.dtype, chief_ray_map.device).expand(3, -1, -1, -1)
+        grid = _interp_regular(chief_ray_map.detach(), p, xs, ys)
+    elif direction == "eye_to_display":
+        grid = invert_map(chief_ray_map, size, sample_x=sample_x, sample_y=sample_y)
+    else:
+        raise InputValueError(f"direction must be 'display_to_eye' or 'eye_to_display', got {direction!r}")
+    if isinstance(gain, str):
+        if gain != "jacobian":
+            raise InputValueError(f"gain must be a tensor, 'jacobian' or None, got {gain!r}")
+        gain = _area_magnification(grid)
+    return grid, gain
+
+
 class PrewarpMap(nn.Module):
     """Source of the pre-warp: ``forward(size, dtype, device) -> (grid [3, H, W, 2], gain [3, H, W] | None)``."""
 
@@ -241,9 +277,9 @@ class RadialMap(PrewarpMap):
 
     def _grid(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         p = pixel_grid(size, dtype, device)  # [H, W, 2]
-        h, w = size
-        aspect = torch.tensor([w, h], dtype=dtype, device=device) / max(h, w)
-        r2 = ((p * aspect) ** 2).sum(-1)  # [H, W]
+        region = image_region(int(size[0]), int(size[1]), CARDBOARD_DISPLAY_MM, "fit")
+        aspect = torch.tensor([region.half_x, region.half_y], dtype=dtype, device=device)
+        r2 = ((p * aspect) ** 2).sum(-1)  # [H, W] squared display-normalised radius
         k = self.coefficients.to(device=device, dtype=dtype)  # [3, K]
         powers = r2[None] ** torch.arange(1, k.shape[1] + 1, device=device, dtype=dtype)[:, None, None]  # [K, H, W]
         factor = 1.0 + torch.einsum("ck,khw->chw", k, powers)  # [3, H, W]
@@ -289,6 +325,50 @@ class LUTMap(PrewarpMap):
                 disp, gain = table[..., :2], table[..., 2]
             self._evaluated = (key, (p[None] + disp, gain))
         return self._evaluated[1]
+
+
+def _bank_in_image_frame(bank: "PSFBank", size: tuple[int, int],
+                         placement: Placement) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A bank's chief rays in the normalised frame of an ``(H, W)`` image placed on its display:
+    ``(chief [3, Cy, Cx, 2], sample_x [Cx], sample_y [Cy])``, display coordinates divided by the
+    image region's half-extents (the frame the optics uses, ``ResampledBank``)."""
+    region = image_region(int(size[0]), int(size[1]), bank.display_mm, placement)
+    half = torch.tensor([region.half_x, region.half_y], dtype=bank.chief.dtype, device=bank.chief.device)
+    return bank.chief / half, bank.chief_x / region.half_x, bank.chief_y / region.half_y
+
+
+class BankMap(PrewarpMap):
+    """The pre-warp that compensates a PSF bank's lens (distortion and lateral colour, one map per
+    primary) for an image placed on the bank's display with ``placement``; the grid (and the
+    ``"jacobian"`` gain, see :meth:`LensPrewarp.from_chief_ray_map`) is evaluated at each image
+    size, so every aspect gets the region the optics simulates. Fixed (no parameters)."""
+
+    def __init__(self, bank: "PSFBank", placement: Placement = "fit", gain: Literal["jacobian"] | None = None) -> None:
+        super().__init__()
+        if bank.chief.shape[0] != 3:
+            raise InputValueError(f"bank must have 3 wavelengths (R, G, B primaries), got {bank.wavelengths_nm}")
+        if placement not in PLACEMENTS:
+            raise InputValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
+        if gain not in (None, "jacobian"):
+            raise InputValueError(f"gain must be 'jacobian' or None, got {gain!r}")
+        self.bank, self.placement, self.gain = bank, placement, gain
+        ident = torch.stack(torch.meshgrid(bank.chief_x.float(), bank.chief_y.float(), indexing="xy"), -1)
+        self._identity = gain is None and bool((bank.chief == ident).all())
+        self._evaluated: tuple[tuple, tuple[torch.Tensor, torch.Tensor | None]] | None = None
+
+    def is_identity(self) -> bool:  # noqa: D102
+        return self._identity
+
+    def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor | None]:  # noqa: D102
+        key = (tuple(size), dtype, torch.device(device))
+        if self._evaluated is None or self._evaluated[0] != key:
+            chief, sx, sy = _bank_in_image_frame(self.bank, size, self.placement)
+            grid, gain = chief_ray_grid(chief, size, sample_x=sx, sample_y=sy, gain=self.gain)
+            self._evaluated = (key, (grid.to(device, dtype), None if gain is None else gain.to(device, dtype)))
+        return self._evaluated[1]
+
+    def extra_repr(self) -> str:
+        return f"placement={self.placement!r}, gain={self.gain!r}"
 
 
 class MLPMap(PrewarpMap):
@@ -402,37 +482,35 @@ class LensPrewarp(Stage):
                 area); it exceeds 1 off axis, so the display clips there unless the image is dimmer;
                 None: 1.
         """
-        check_tensor("chief_ray_map", chief_ray_map, [3, "Gh", "Gw", 2], dtypes=_FLOATS, finite=True)
-        if min(chief_ray_map.shape[1:3]) < 2:
-            raise ShapeError(f"chief_ray_map needs at least 2x2 samples, got {list(chief_ray_map.shape)}")
-        xs = _sample_span("sample_x", sample_x, chief_ray_map.shape[2])
-        ys = _sample_span("sample_y", sample_y, chief_ray_map.shape[1])
-        if direction == "display_to_eye":
-            p = pixel_grid(size, chief_ray_map.dtype, chief_ray_map.device).expand(3, -1, -1, -1)
-            grid = _interp_regular(chief_ray_map.detach(), p, xs, ys)
-        elif direction == "eye_to_display":
-            grid = invert_map(chief_ray_map, size, sample_x=sample_x, sample_y=sample_y)
-        else:
-            raise InputValueError(f"direction must be 'display_to_eye' or 'eye_to_display', got {direction!r}")
-        if isinstance(gain, str):
-            if gain != "jacobian":
-                raise InputValueError(f"gain must be a tensor, 'jacobian' or None, got {gain!r}")
-            gain = _area_magnification(grid)
-        return cls(LUTMap(grid, gain))
+        return cls(LUTMap(*chief_ray_grid(chief_ray_map, size, direction=direction, sample_x=sample_x,
+                                          sample_y=sample_y, gain=gain)))
 
     @classmethod
     def from_psf_bank(
-        cls, bank: "PSFBank | None", size: tuple[int, int], *, gain: torch.Tensor | Literal["jacobian"] | None = None
+        cls, bank: "PSFBank | None", size: tuple[int, int] | None = None, *,
+        gain: torch.Tensor | Literal["jacobian"] | None = None, placement: Placement = "fit",
     ) -> "LensPrewarp":
         """Compensate the distortion and lateral colour of a PSF bank's lens (None: the shipped
-        Google-Cardboard bank): its chief rays (display -> eye, one map per primary) as a LUT;
-        ``gain`` as in :meth:`from_chief_ray_map`."""
+        Google-Cardboard bank): its chief rays (display -> eye, one map per primary) for an image
+        placed on the bank's display with ``placement`` (as the optics stage places it).
+
+        Args:
+            size: None: a :class:`BankMap`, evaluated at each image's size (any aspect); ``(H, W)``:
+                a :class:`LUTMap` at that size (valid for images of that aspect).
+            gain: as in :meth:`from_chief_ray_map` (a tensor needs ``size``).
+            placement: ``"fit"`` or ``"stretch"``, :mod:`controlgs_adapter.downstream.placement`.
+        """
         from .optics.bank import PSFBank
 
         bank = bank if bank is not None else PSFBank.default()
+        if size is None:
+            if isinstance(gain, torch.Tensor):
+                raise InputValueError("a gain tensor needs a LUT size: pass size=(H, W)")
+            return cls(BankMap(bank, placement, gain))
         if bank.chief.shape[0] != 3:
             raise InputValueError(f"bank must have 3 wavelengths (R, G, B primaries), got {bank.wavelengths_nm}")
-        return cls.from_chief_ray_map(bank.chief, size, sample_x=bank.chief_x, sample_y=bank.chief_y, gain=gain)
+        chief, sx, sy = _bank_in_image_frame(bank, size, placement)
+        return cls(LUTMap(*chief_ray_grid(chief, size, sample_x=sx, sample_y=sy, gain=gain)))
 
     def save_lut(self, path: str | os.PathLike, size: tuple[int, int] | None = None) -> Path:
         """Write the map as a LUT (safetensors, atomic): the LUT itself, or the map baked at

@@ -36,10 +36,6 @@ from .stage import Stage, StageContext
 
 __all__ = ["Pipeline", "PHYSICAL_STAGES"]
 
-#: Resolution of the pre-warp LUT built from the optics' chief rays for ``{"lens": True, "optics": ...}``
-#: (evaluated at the image size by bilinear interpolation, once per size).
-LENS_LUT_SIZE: tuple[int, int] = (512, 512)
-
 #: Names of the stages that model the physical display-optics path (paper Eq. 5); everything
 #: ordered before the first of them is post-processing.
 PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
@@ -139,7 +135,8 @@ class Pipeline(nn.Module):
                 ``display`` (power saving), ``foveation``, ``optics`` (needs the optics plug-in).
                 The physical display ``oled`` is always included unless set to False. With
                 ``"lens": True`` and an optics stage, the lens pre-warp compensates that optics:
-                a LUT from its PSF bank's chief rays (:meth:`LensPrewarp.from_psf_bank`); without
+                its PSF bank's chief rays for the image placed on the display as the optics places it
+                (:meth:`LensPrewarp.from_psf_bank`, evaluated at each image size); without
                 optics it is the analytic Cardboard radial map.
         """
         spec: dict[str, Any] = dict(effects) if isinstance(effects, Mapping) else {n: True for n in effects}
@@ -155,7 +152,7 @@ class Pipeline(nn.Module):
                 if bank is not None and hasattr(bank, "chief"):
                     from .lens import LensPrewarp
 
-                    stages.append(LensPrewarp.from_psf_bank(bank, LENS_LUT_SIZE))
+                    stages.append(LensPrewarp.from_psf_bank(bank, placement=getattr(optics, "placement", "fit")))
                     continue
             if value is None or value is False:
                 continue

@@ -86,8 +86,10 @@ def test_bad_files_fail_clearly(tmp_path):
         PSFBank.load(tmp_path / "trunc.safetensors")
 
 
-def test_a_bank_for_another_display_aspect_is_refused():
+def test_an_image_of_another_aspect_is_placed_on_the_display():
     bank = tiny_bank()
-    with pytest.raises(InputValueError, match="stretch=True"):
-        bank.resample_to(48, 64)
-    assert bank.resample_to(48, 64, stretch=True).W == 64
+    fit, stretch = bank.resample_to(48, 64), bank.resample_to(48, 64, placement="stretch")
+    assert (fit.region.half_x, fit.region.half_y) == (1.0, 0.75) and fit.W == 64
+    assert (stretch.region.half_x, stretch.region.half_y) == (1.0, 1.0)
+    with pytest.raises(InputValueError, match="placement"):
+        bank.resample_to(48, 64, placement="crop")

@@ -20,7 +20,6 @@ up to the corner).
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field
 from importlib import resources
@@ -30,6 +29,8 @@ import torch
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.io import load_tensors, save_tensors
+
+from ..placement import Placement, image_region
 
 __all__ = ["PSFBank", "BANK_KIND", "BANK_FORMAT_VERSION", "DEFAULT_BANK_FILE"]
 
@@ -167,25 +168,22 @@ class PSFBank:
         return len(self.wavelengths_nm)
 
     def resample_to(self, height: int, width: int, *, device: torch.device | str = "cpu",
-                    dtype: torch.dtype = torch.float32, stretch: bool = False) -> "ResampledBank":
-        """The bank at a simulation resolution (cached per size/device/dtype; no ray tracing).
+                    dtype: torch.dtype = torch.float32, placement: Placement = "fit") -> "ResampledBank":
+        """The bank at a simulation resolution (cached per size/placement/device/dtype; no ray tracing).
 
-        The display is mapped onto the ``height x width`` image; if their aspect ratios differ by
-        more than 1 %, this fails unless ``stretch=True`` (anisotropic pixels).
+        ``placement`` says where the ``height x width`` image sits on the display
+        (:mod:`controlgs_adapter.downstream.placement`): ``"fit"`` (square pixels, scaled to fit,
+        centred; only the image's region is simulated, the rest of the display is black) or
+        ``"stretch"`` (the display stretched onto the image, anisotropic pixels).
         """
         if not (isinstance(height, int) and isinstance(width, int)) or height < 2 or width < 2:
             raise InputValueError(f"resample_to: height and width must be ints >= 2, got {height!r}, {width!r}")
-        aspect_img, aspect_disp = width / height, self.display_mm[0] / self.display_mm[1]
-        if not stretch and abs(math.log(aspect_img / aspect_disp)) > 0.01:
-            raise InputValueError(
-                f"resample_to: a {width} x {height} image (aspect {aspect_img:.4f}) does not fit the bank's "
-                f"{self.display_mm[0]} x {self.display_mm[1]} mm display (aspect {aspect_disp:.4f}); "
-                "pass stretch=True to map the display onto it anyway")
-        key = (height, width, str(torch.device(device)), dtype)
+        region = image_region(height, width, self.display_mm, placement)
+        key = (height, width, placement, str(torch.device(device)), dtype)
         if key not in self._cache:
             from .resampled import ResampledBank
 
-            self._cache[key] = ResampledBank(self, height, width, device=torch.device(device), dtype=dtype)
+            self._cache[key] = ResampledBank(self, height, width, region, device=torch.device(device), dtype=dtype)
         return self._cache[key]
 
 

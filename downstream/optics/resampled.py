@@ -12,6 +12,12 @@ Discretisation of paper Eq. S3 used by every operator (so they converge to the s
   of neighbouring pixels tile, so a flat field stays seam-free; for a distortion-free bank B_p is a
   single output pixel and the operator is exactly a convolution.
 
+Placement (``region``, :func:`controlgs_adapter.downstream.placement.image_region`): image pixel
+centre ``u`` (image-normalised) sits at display-normalised ``u * (half_x, half_y)``, where the bank's
+field PSFs and chief rays are sampled; landing points are divided by the same factors, so the output
+is the virtual image (at the reference magnification) on the image's own pixel grid, with the
+image's pixel pitch ``region.pitch_mm`` converting the PSFs' millimetres to pixels.
+
 Shapes: ``N = H * W`` pixels (row-major), canvas ``(H + 2m) x (W + 2m)`` with ``m = k // 2`` (the
 light that can still reach the frame), flattened with one extra trailing "dump" slot for light that
 lands outside it.
@@ -29,6 +35,7 @@ import torch.nn.functional as F
 from controlgs_adapter.errors import InputValueError
 
 if TYPE_CHECKING:
+    from ..placement import ImageRegion
     from .bank import PSFBank
 
 __all__ = ["ResampledBank", "Zone", "Bucket", "fast_len", "ladder_len"]
@@ -81,10 +88,12 @@ def _box_matrix(pitch_px: torch.Tensor, K: int, m: int) -> torch.Tensor:
 class ResampledBank:
     """Per-resolution tables (see module docstring). Build through :meth:`PSFBank.resample_to`."""
 
-    def __init__(self, bank: "PSFBank", height: int, width: int, *, device: torch.device, dtype: torch.dtype):
+    def __init__(self, bank: "PSFBank", height: int, width: int, region: "ImageRegion", *, device: torch.device,
+                 dtype: torch.dtype):
         self.bank, self.H, self.W, self.device, self.dtype = bank, height, width, device, dtype
+        self.region = region
         self.L = bank.num_wavelengths
-        px_x, px_y = bank.display_mm[0] / width, bank.display_mm[1] / height
+        px_x, px_y = region.pitch_mm
         K = bank.psf.shape[-1]
         reach = float(bank.psf_pitch_mm.max()) * (K // 2 + 0.5) / min(px_x, px_y)
         self.m = int(math.ceil(reach - 0.5 - 1e-9))
@@ -101,8 +110,8 @@ class ResampledBank:
         b = self.bank
         Gy, Gx = b.psf.shape[1:3]
 
-        def axis(n_px: int, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-            u = (2 * torch.arange(n_px, dtype=torch.float64) + 1) / n_px - 1
+        def axis(n_px: int, f: torch.Tensor, half: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            u = ((2 * torch.arange(n_px, dtype=torch.float64) + 1) / n_px - 1) * half   # display-normalised
             f = f.double()
             j = torch.searchsorted(f, u).clamp(1, len(f) - 1) if len(f) > 1 else torch.zeros_like(u, dtype=torch.long)
             if len(f) == 1:
@@ -110,8 +119,8 @@ class ResampledBank:
             a = ((u - f[j - 1]) / (f[j] - f[j - 1])).clamp(0, 1)   # constant beyond the outer samples
             return j - 1, j, a
 
-        y0, y1, ay = axis(self.H, b.field_y)
-        x0, x1, ax = axis(self.W, b.field_x)
+        y0, y1, ay = axis(self.H, b.field_y, self.region.half_y)
+        x0, x1, ax = axis(self.W, b.field_x, self.region.half_x)
         Y0, X0 = torch.meshgrid(y0, x0, indexing="ij")
         Y1, X1 = torch.meshgrid(y1, x1, indexing="ij")
         AY, AX = torch.meshgrid(ay, ax, indexing="ij")
@@ -150,15 +159,19 @@ class ResampledBank:
         return out
 
     def _footprints(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Chief rays at the image pixels' display positions (image-normalised ``u`` times the
+        region's half-extent), landing points back in the image's frame (divided by it: the virtual
+        image at the reference magnification, on the image's own pixel grid)."""
         H, W, m = self.H, self.W, self.m
+        sx, sy = self.region.half_x, self.region.half_y
         ue = 2 * torch.arange(W + 1, dtype=torch.float64) / W - 1     # pixel edges
         uc = (2 * torch.arange(W, dtype=torch.float64) + 1) / W - 1   # pixel centres
         ve = 2 * torch.arange(H + 1, dtype=torch.float64) / H - 1
         vc = (2 * torch.arange(H, dtype=torch.float64) + 1) / H - 1
         Vc, Ue = torch.meshgrid(vc, ue, indexing="ij")                # [H, W+1]
         Ve, Uc = torch.meshgrid(ve, uc, indexing="ij")                # [H+1, W]
-        cx = (self._chief_at(Ue, Vc)[..., 0] + 1) * W / 2 + m        # [L, H, W+1] canvas px (edge units)
-        cy = (self._chief_at(Uc, Ve)[..., 1] + 1) * H / 2 + m        # [L, H+1, W]
+        cx = (self._chief_at(Ue * sx, Vc * sy)[..., 0] / sx + 1) * W / 2 + m   # [L, H, W+1] canvas px (edge units)
+        cy = (self._chief_at(Uc * sx, Ve * sy)[..., 1] / sy + 1) * H / 2 + m   # [L, H+1, W]
         ax, bx = cx[..., :-1], cx[..., 1:]
         ay, by = cy[:, :-1, :], cy[:, 1:, :]
         if (bx <= ax).any() or (by <= ay).any():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Literal
 
 import torch
@@ -12,6 +13,7 @@ from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.state import RuntimeState
 
 from ..color import primaries_to_rgb, rgb_to_primaries
+from ..placement import PLACEMENTS, Placement
 from ..stage import Stage, StageContext
 from .bank import PSFBank
 from .operators import psf_distortion, psf_exact, psf_fast
@@ -27,10 +29,13 @@ DEFAULT_ZONE = 5
 
 
 def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
-           zone: int = DEFAULT_ZONE, stretch: bool = False) -> torch.Tensor:
+           zone: int = DEFAULT_ZONE, placement: Placement = "fit") -> torch.Tensor:
     """Functional O_phys. ``image [..., 3, H, W]`` linear RGB on the display -> linear RGB of the
     virtual image on the same grid (reference magnification). ``bank`` defaults to the shipped
-    Cardboard bank; it is resampled once per (H, W, device, dtype) and cached."""
+    Cardboard bank; it is resampled once per (H, W, placement, device, dtype) and cached.
+    ``placement``: where the image sits on the display (``"fit"``: square pixels, scaled to fit,
+    centred; ``"stretch"``: the display stretched onto the image), see
+    :mod:`controlgs_adapter.downstream.placement`."""
     check_image("image", image)
     if mode not in MODES:
         raise InputValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -39,7 +44,7 @@ def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact
         raise InputValueError(f"the optics stage needs a bank with 3 wavelengths (656/550/486 nm primaries), "
                               f"got {bank.wavelengths_nm}")
     H, W = image.shape[-2:]
-    rb = bank.resample_to(H, W, device=image.device, dtype=image.dtype, stretch=stretch)
+    rb = bank.resample_to(H, W, device=image.device, dtype=image.dtype, placement=placement)
     prim = rgb_to_primaries(image)
     if mode == "distortion":
         out = psf_distortion(prim, rb)
@@ -60,7 +65,10 @@ class OpticsStage(Stage):
             per-field FFT convolutions; the default: on CPU it measured faster than ``"fast"`` at
             256-1024 px, docs/optics.md). Settable at any time (``stage.mode = "distortion"``).
         tol, zone: accuracy knobs of ``"fast"`` (``tol=0`` is exact).
-        stretch: allow an image whose aspect differs from the display's (anisotropic pixels).
+        placement: where the image sits on the display: ``"fit"`` (default; square pixels, scaled
+            to fit and centred, the rest of the display black) or ``"stretch"`` (the display
+            stretched onto the image, anisotropic pixels); :mod:`controlgs_adapter.downstream.placement`.
+        stretch: deprecated; ``stretch=True`` is ``placement="stretch"``.
     """
 
     name = "optics"
@@ -69,14 +77,20 @@ class OpticsStage(Stage):
     order = 50.0
 
     def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
-                 zone: int = DEFAULT_ZONE, stretch: bool = False) -> None:
+                 zone: int = DEFAULT_ZONE, placement: Placement = "fit", stretch: bool | None = None) -> None:
         super().__init__()
         self.bank = PSFBank.load(bank) if isinstance(bank, (str, os.PathLike)) else (bank or PSFBank.default())
         if not (isinstance(tol, (int, float)) and 0 <= tol < 1):
             raise InputValueError(f"tol must be in [0, 1), got {tol!r}")
         if not isinstance(zone, int) or zone < 1:
             raise InputValueError(f"zone must be an int >= 1, got {zone!r}")
-        self.tol, self.zone, self.stretch = float(tol), zone, stretch
+        if stretch is not None:
+            warnings.warn('OpticsStage(stretch=...) is deprecated; use placement="stretch" or "fit"',
+                          DeprecationWarning, stacklevel=2)
+            placement = "stretch" if stretch else "fit"
+        if placement not in PLACEMENTS:
+            raise InputValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
+        self.tol, self.zone, self.placement = float(tol), zone, placement
         self.mode = mode
 
     @property
@@ -90,7 +104,8 @@ class OpticsStage(Stage):
         self._mode = value
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        return optics(image, self.bank, self.mode, self.tol, self.zone, self.stretch)
+        return optics(image, self.bank, self.mode, self.tol, self.zone, self.placement)
 
     def extra_repr(self) -> str:
-        return f"mode={self.mode!r}, tol={self.tol}, zone={self.zone}, wavelengths={self.bank.wavelengths_nm}"
+        return (f"mode={self.mode!r}, placement={self.placement!r}, tol={self.tol}, zone={self.zone}, "
+                f"wavelengths={self.bank.wavelengths_nm}")
