@@ -9,6 +9,8 @@ from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.io import save_tensors
 
+from _rawfiles import write_raw
+
 D64 = torch.float64
 
 
@@ -75,7 +77,7 @@ def test_bad_files_fail_clearly(tmp_path):
     save_tensors(tmp_path / "other.safetensors", {"x": torch.zeros(1)}, {}, kind="adapter", format_version=1)
     with pytest.raises(FileFormatError, match="psf_bank"):
         PSFBank.load(tmp_path / "other.safetensors")
-    save_tensors(tmp_path / "nan.safetensors", {"psf": torch.full((3, 3, 3, 5, 5), math.nan), "psf_pitch_mm": bank.psf_pitch_mm,
+    write_raw(tmp_path / "nan.safetensors", {"psf": torch.full((3, 3, 3, 5, 5), math.nan), "psf_pitch_mm": bank.psf_pitch_mm,
                                                 "field_x": bank.field_x, "field_y": bank.field_y, "chief": bank.chief,
                                                 "chief_x": bank.chief_x, "chief_y": bank.chief_y},
                  {"wavelengths_nm": [656, 550, 486], "display_mm": [24, 24]}, kind="psf_bank", format_version=1)
