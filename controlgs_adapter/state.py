@@ -9,6 +9,7 @@ coordinate ``u``.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,6 +19,24 @@ from .checks import check_tensor
 from .errors import InputValueError, StateError
 
 __all__ = ["RuntimeState", "Camera"]
+
+
+def _real(name: str, value: Any, error: type[InputValueError] = InputValueError) -> float:
+    """``value`` as a float if it is a real number (a Python/NumPy number or a 0-d tensor, not a
+    bool or a string), else ``error`` naming ``name``."""
+    if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.is_complex():
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise error(f"{name} must be a real number, got {value!r} ({type(value).__name__})")
+    return float(value)
+
+
+def _positive_int(name: str, value: Any) -> int:
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
+        raise InputValueError(f"{name} must be an int >= 1 (pixels), got {value!r}")
+    return int(value)
 
 
 @dataclass(frozen=True)
@@ -35,7 +54,7 @@ class RuntimeState:
     gaze: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
-        d, rho = float(self.downsample), float(self.power_saving)
+        d, rho = _real("downsample", self.downsample, StateError), _real("power_saving", self.power_saving, StateError)
         if not math.isfinite(d) or d < 1.0:
             raise StateError(f"downsample must be a finite number >= 1 (S / display rate), got {self.downsample!r}")
         if not math.isfinite(rho) or not (0.0 <= rho < 1.0):
@@ -43,8 +62,11 @@ class RuntimeState:
         object.__setattr__(self, "downsample", d)
         object.__setattr__(self, "power_saving", rho)
         if self.gaze is not None:
-            g = tuple(float(v) for v in self.gaze)
-            if len(g) != 2 or not all(math.isfinite(v) and -1.0 <= v <= 1.0 for v in g):
+            gaze = self.gaze.tolist() if isinstance(self.gaze, torch.Tensor) else self.gaze
+            if isinstance(gaze, (str, bytes)) or not isinstance(gaze, (tuple, list)) or len(gaze) != 2:
+                raise StateError(f"gaze must be None or a pair (x, y) in [-1, 1]^2, got {self.gaze!r}")
+            g = tuple(_real("gaze", v, StateError) for v in gaze)
+            if not all(math.isfinite(v) and -1.0 <= v <= 1.0 for v in g):
                 raise StateError(f"gaze must be None or (x, y) in [-1, 1]^2, got {self.gaze!r}")
             object.__setattr__(self, "gaze", g)
 
@@ -66,11 +88,20 @@ class Camera:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        self.width, self.height = _positive_int("width", self.width), _positive_int("height", self.height)
         check_tensor("world_to_camera", self.world_to_camera, [4, 4], finite=True)
         check_tensor("intrinsics", self.intrinsics, [3, 3], finite=True)
-        if int(self.width) < 1 or int(self.height) < 1:
-            raise InputValueError(f"width and height must be >= 1, got {self.width}x{self.height}")
-        self.width, self.height = int(self.width), int(self.height)
+        if not self.world_to_camera.is_floating_point() or not self.intrinsics.is_floating_point():
+            raise InputValueError(f"world_to_camera and intrinsics must be floating-point, got "
+                                  f"{self.world_to_camera.dtype} and {self.intrinsics.dtype}")
+        _check_intrinsics(self.intrinsics.detach().double().cpu())
+        _check_rigid(self.world_to_camera.detach().double().cpu())
+
+    @property
+    def fov(self) -> tuple[float, float]:
+        """Horizontal and vertical field of view in radians, each in (0, pi)."""
+        k = self.intrinsics
+        return (2.0 * math.atan(self.width / (2.0 * float(k[0, 0]))), 2.0 * math.atan(self.height / (2.0 * float(k[1, 1]))))
 
     @property
     def center(self) -> torch.Tensor:
@@ -117,8 +148,33 @@ class Camera:
         """Convert a Scaffold-GS / 3DGS ``Camera`` (``world_view_transform`` is the transposed
         world-to-camera, ``FoVx``/``FoVy`` in radians, ``image_width``/``image_height``)."""
         w2c = viewpoint_camera.world_view_transform.detach().transpose(0, 1).float().cpu()
-        w, h = int(viewpoint_camera.image_width), int(viewpoint_camera.image_height)
-        fx = w / (2.0 * math.tan(float(viewpoint_camera.FoVx) / 2.0))
-        fy = h / (2.0 * math.tan(float(viewpoint_camera.FoVy) / 2.0))
+        w = _positive_int("image_width", viewpoint_camera.image_width)
+        h = _positive_int("image_height", viewpoint_camera.image_height)
+        fovs = [_real(n, getattr(viewpoint_camera, n)) for n in ("FoVx", "FoVy")]
+        for name, fov in zip(("FoVx", "FoVy"), fovs):
+            if not (math.isfinite(fov) and 0.0 < fov < math.pi):
+                raise InputValueError(f"{name} must be a field of view in (0, pi) radians, got {fov!r}")
+        fx, fy = (n / (2.0 * math.tan(f / 2.0)) for n, f in zip((w, h), fovs))
         k = torch.tensor([[fx, 0.0, w / 2.0], [0.0, fy, h / 2.0], [0.0, 0.0, 1.0]])
         return cls(w2c, k, w, h)
+
+
+def _check_intrinsics(k: torch.Tensor) -> None:
+    """A pinhole ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with fx, fy > 0 (float64 CPU copy)."""
+    if not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise InputValueError(f"intrinsics: focal lengths fx = K[0, 0] and fy = K[1, 1] must be > 0 (pixels), "
+                              f"got fx = {float(k[0, 0]):g}, fy = {float(k[1, 1]):g}")
+    if abs(float(k[2, 2]) - 1.0) > 1e-6 or bool(k[2, :2].abs().max() > 1e-9) or abs(float(k[1, 0])) > 1e-9:
+        raise InputValueError(f"intrinsics must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {k.tolist()}")
+
+
+def _check_rigid(w2c: torch.Tensor, tol: float = 1e-3) -> None:
+    """A rigid world-to-camera: rotation block orthonormal with det +1, last row ``[0, 0, 0, 1]``."""
+    if bool((w2c[3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=w2c.dtype)).abs().max() > 1e-6):
+        raise InputValueError(f"world_to_camera: last row must be [0, 0, 0, 1], got {w2c[3].tolist()}")
+    r = w2c[:3, :3]
+    err = float((r @ r.T - torch.eye(3, dtype=r.dtype)).abs().max())
+    if err > tol or float(torch.linalg.det(r)) < 0:
+        raise InputValueError(f"world_to_camera: the rotation block must be orthonormal with determinant +1 "
+                              f"(a rigid transform, no scale or mirror), got R R^T - I up to {err:.3g}, "
+                              f"det {float(torch.linalg.det(r)):.4g}")
