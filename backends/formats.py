@@ -19,7 +19,7 @@ import torch
 from controlgs_adapter.errors import FileFormatError
 
 __all__ = ["read_ply", "write_ply", "parse_cfg_args", "read_cfg_args", "load_state_dict_file", "load_torchscript",
-           "require_fields"]
+           "load_torchscript_tensors", "require_fields"]
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
@@ -246,9 +246,45 @@ def load_state_dict_file(path: str | os.PathLike) -> dict[str, Any]:
     return obj
 
 
-def load_torchscript(path: str | os.PathLike) -> torch.jit.ScriptModule:
-    """Load a TorchScript archive on CPU (no pickle of arbitrary objects)."""
+def load_torchscript(path: str | os.PathLike, *, trust_code: bool = False) -> torch.nn.Module:
+    """A TorchScript decoder file (``opacity_mlp.pt``, ...) as an eager module on CPU.
+
+    By default the archive is read as data and nothing in it runs
+    (:func:`controlgs_adapter.torchscript.eager_from_archive`): it must be a traced or scripted
+    ``nn.Sequential`` of the supported layers, else it is refused with a FileFormatError naming the
+    file and what was found. ``trust_code=True`` is an explicit opt-in for archives you trust
+    outside that subset: ``torch.jit.load`` (which can run code stored in the archive) and a rebuild
+    checked by running the module on a probe batch.
+    """
+    from controlgs_adapter.errors import TargetError
+    from controlgs_adapter.torchscript import eager_from_archive, eager_from_script
+
     path = Path(path)
+    if not trust_code:
+        return eager_from_archive(path)
+    script = _jit_load_trusted(path)
+    try:
+        return eager_from_script(script, name=str(path))
+    except TargetError as e:
+        raise FileFormatError(f"{path}: TorchScript decoder cannot be rebuilt as an eager module: {e}") from e
+
+
+def load_torchscript_tensors(path: str | os.PathLike, *, trust_code: bool = False) -> dict[str, torch.Tensor]:
+    """The tensors of a TorchScript archive (e.g. ``embedding_appearance.pt``) by state-dict name, on CPU.
+
+    By default read as data, nothing in the archive runs
+    (:func:`controlgs_adapter.torchscript.tensors_from_archive`); ``trust_code=True`` uses
+    ``torch.jit.load`` (which can run code stored in the archive).
+    """
+    from controlgs_adapter.torchscript import tensors_from_archive
+
+    if not trust_code:
+        return tensors_from_archive(path)
+    return {k: v.detach().clone() for k, v in _jit_load_trusted(Path(path)).state_dict().items()}
+
+
+def _jit_load_trusted(path: Path) -> torch.jit.ScriptModule:
+    """``torch.jit.load`` on CPU: only for archives the caller trusts (``trust_code=True``)."""
     if not path.is_file():
         raise FileFormatError(f"{path}: no such file")
     try:

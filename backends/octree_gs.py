@@ -30,12 +30,12 @@ from torch import nn
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError, TargetError
 from controlgs_adapter.state import Camera
-from controlgs_adapter.torchscript import eager_from_script
 
 from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, check_first_width,
                             has_attrs, iteration_dir, mlp_from_state_dict, ply_columns, ply_offsets, read_yaml_scalars,
                             render_gaussians)
-from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields
+from .formats import (load_state_dict_file, load_torchscript, load_torchscript_tensors, read_cfg_args, read_ply,
+                      require_fields)
 from .reference_model import NeuralGaussians
 from .scaffold_gs import ScaffoldGSBackend
 from .splatter import RasterOutput
@@ -281,7 +281,7 @@ class OctreeGSModel(nn.Module):
         return render_gaussians(self.decode(camera, visible_mask, appearance_id), camera, background)
 
 
-def _load_decoders(folder: Path) -> dict[str, nn.Module]:
+def _load_decoders(folder: Path, trust_code: bool) -> dict[str, nn.Module]:
     jit = {"mlp_opacity": "opacity_mlp.pt", "mlp_cov": "cov_mlp.pt", "mlp_color": "color_mlp.pt",
            "mlp_feature_bank": "feature_bank_mlp.pt"}
     if (folder / "opacity_mlp.pt").is_file():
@@ -289,12 +289,12 @@ def _load_decoders(folder: Path) -> dict[str, nn.Module]:
         for attr, fname in jit.items():
             path = folder / fname
             if path.is_file():
-                out[attr] = eager_from_script(load_torchscript(path), name=f"{path}")
+                out[attr] = load_torchscript(path, trust_code=trust_code)
             elif attr != "mlp_feature_bank":
                 raise FileFormatError(f"{path}: missing (the decoders were saved as TorchScript, 'split' mode)")
         app = folder / "embedding_appearance.pt"
         if app.is_file():
-            weights = [v for k, v in load_torchscript(app).state_dict().items() if k.endswith("weight")]
+            weights = [v for k, v in load_torchscript_tensors(app, trust_code=trust_code).items() if k.endswith("weight")]
             if len(weights) != 1 or weights[0].dim() != 2:
                 raise FileFormatError(f"{app}: expected one [num_cameras, appearance_dim] embedding table")
             out["embedding_appearance"] = nn.Embedding.from_pretrained(weights[0].float().clone())
@@ -322,19 +322,22 @@ def _load_decoders(folder: Path) -> dict[str, nn.Module]:
     return out
 
 
-def load_octree_gs_dir(path: str | Path, iteration: int | None = None) -> OctreeGSModel:
+def load_octree_gs_dir(path: str | Path, iteration: int | None = None, *, trust_code: bool = False) -> OctreeGSModel:
     """Load an Octree-GS output directory (``cfg_args``) or an Octree-AnyGS one with the Scaffold-GS
     base model (``config.yaml``; LOD metadata in the PLY's ``obj_info`` lines, LOD distance from the
     raw anchor) into an :class:`OctreeGSModel`. ``iteration=None`` takes the highest iteration.
+    TorchScript decoders are read as data and never run; ``trust_code=True`` reads them with
+    ``torch.jit.load`` instead (which can run code stored in them: only for folders you trust).
 
     Raises:
-        FileFormatError: naming the file and what is missing or inconsistent.
+        FileFormatError: naming the file and what is missing or inconsistent, or a TorchScript
+            decoder outside the supported subset (see ``docs/backends.md``).
     """
     root = Path(path)
     if (root / "cfg_args").is_file():
-        return _load_octree_gs(root, iteration)
+        return _load_octree_gs(root, iteration, trust_code)
     if (root / "config.yaml").is_file():
-        return _load_octree_anygs(root, iteration)
+        return _load_octree_anygs(root, iteration, trust_code)
     raise FileFormatError(f"{root}: neither 'cfg_args' (Octree-GS) nor 'config.yaml' (Octree-AnyGS): not an Octree-GS output directory")
 
 
@@ -368,7 +371,7 @@ def _checked(model: OctreeGSModel, source: str) -> OctreeGSModel:
     return model
 
 
-def _load_octree_gs(root: Path, iteration: int | None) -> OctreeGSModel:
+def _load_octree_gs(root: Path, iteration: int | None, trust_code: bool) -> OctreeGSModel:
     cfg_path = root / "cfg_args"
     cfg = {**CFG_DEFAULTS, **read_cfg_args(cfg_path)}
     folder = iteration_dir(root, iteration, family="Octree-GS")
@@ -382,11 +385,11 @@ def _load_octree_gs(root: Path, iteration: int | None) -> OctreeGSModel:
     model = OctreeGSModel(voxel_size=float(info[0]), standard_dist=float(info[1]), fork=int(cfg["fork"]),
                           dist2level=str(cfg["dist2level"]), add_level=bool(cfg["add_level"]),
                           add_opacity_dist=bool(cfg["add_opacity_dist"]), add_cov_dist=bool(cfg["add_cov_dist"]),
-                          add_color_dist=bool(cfg["add_color_dist"]), **t, **_load_decoders(folder))
+                          add_color_dist=bool(cfg["add_color_dist"]), **t, **_load_decoders(folder, trust_code))
     return _checked(model, f"{folder} + {cfg_path}")
 
 
-def _load_octree_anygs(root: Path, iteration: int | None) -> OctreeGSModel:
+def _load_octree_anygs(root: Path, iteration: int | None, trust_code: bool) -> OctreeGSModel:
     yaml_path = root / "config.yaml"
     raw = read_yaml_scalars(yaml_path)
 
@@ -411,5 +414,5 @@ def _load_octree_anygs(root: Path, iteration: int | None) -> OctreeGSModel:
         raise FileFormatError(f"{ply}: the header must carry 'obj_info standard_dist <v>' and 'obj_info levels <v>' "
                               f"(Octree-AnyGS's LOD metadata); got {comments}") from e
     model = OctreeGSModel(voxel_size=0.0, standard_dist=standard_dist, levels=levels, fork=int(get("fork", 2)),
-                          dist2level=str(get("dist2level", "round")), voxel_centre=False, **t, **_load_decoders(folder))
+                          dist2level=str(get("dist2level", "round")), voxel_centre=False, **t, **_load_decoders(folder, trust_code))
     return _checked(model, f"{folder} + {yaml_path}")

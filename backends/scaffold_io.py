@@ -12,9 +12,10 @@ Layout (exactly as Scaffold-GS's ``Scene.save`` / ``train.py`` write it)::
         opacity_mlp, cov_mlp, color_mlp [, feature_bank_mlp] [, appearance]
 
 ``f_offset_{c * K + k}`` is coordinate ``c`` of offset ``k`` (Scaffold-GS saves
-``_offset.transpose(1, 2).flatten(1)``). Nothing is unpickled: TorchScript goes through
-``torch.jit.load``, state dicts through ``torch.load(weights_only=True)``, ``cfg_args`` through an
-``ast`` literal parser. See ``docs/reference-model.md``.
+``_offset.transpose(1, 2).flatten(1)``). Nothing in the folder is run or unpickled: TorchScript
+archives are read as data (:func:`controlgs_adapter.torchscript.eager_from_archive`; ``torch.jit.load``
+only with ``trust_code=True``), state dicts go through ``torch.load(weights_only=True)``,
+``cfg_args`` through an ``ast`` literal parser. See ``docs/reference-model.md``.
 """
 
 from __future__ import annotations
@@ -31,11 +32,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from controlgs_adapter.errors import FileFormatError, TargetError
+from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.io import atomic_write
-from controlgs_adapter.torchscript import eager_from_script
 
-from .formats import load_state_dict_file, load_torchscript, read_cfg_args, read_ply, require_fields, write_ply
+from .formats import (load_state_dict_file, load_torchscript, load_torchscript_tensors, read_cfg_args, read_ply,
+                      require_fields, write_ply)
 from .family_common import iteration_dir
 from .reference_model import NeuralGaussianModel, median_spacing
 
@@ -210,7 +211,7 @@ def _describe(module: nn.Module) -> list[tuple[str, tuple[int, int] | None]]:
 class _Decoders:
     """The decoders of one iteration folder as state dicts, in either mode, before any width check."""
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, trust_code: bool = False) -> None:
         split = {n: folder / f for n, (f, _) in MLP_FILES.items()}
         self.mode = "split" if any(p.is_file() for p in split.values()) else "unite"
         self.state: dict[str, dict[str, torch.Tensor]] = {}
@@ -220,15 +221,11 @@ class _Decoders:
             for name, p in split.items():
                 if not p.is_file():
                     continue
-                script = load_torchscript(p)
                 self.source[name] = str(p)
                 if name == "embedding_appearance":
-                    self.state[name] = {k: v.detach().clone() for k, v in script.state_dict().items()}
+                    self.state[name] = load_torchscript_tensors(p, trust_code=trust_code)
                     continue
-                try:
-                    eager = eager_from_script(script, name=name)
-                except TargetError as e:
-                    raise FileFormatError(f"{p}: decoder {name!r} cannot be rebuilt as an eager module: {e}") from e
+                eager = load_torchscript(p, trust_code=trust_code)
                 self.layers[name] = _describe(eager)
                 self.state[name] = eager.state_dict()
             missing = [MLP_FILES[n][0] for n in ("mlp_opacity", "mlp_cov", "mlp_color") if n not in self.state]
@@ -295,32 +292,36 @@ def _infer_options(anchors: dict[str, np.ndarray], dec: _Decoders, cfg: dict[str
 
 
 def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
-                      device: str | torch.device = "cpu") -> NeuralGaussianModel:
+                      device: str | torch.device = "cpu", trust_code: bool = False) -> NeuralGaussianModel:
     """Load a Scaffold-GS output directory as a :class:`NeuralGaussianModel` (eager decoders).
 
     Args:
         path: the model directory (holding ``cfg_args`` and ``point_cloud/``).
         iteration: which ``point_cloud/iteration_<N>``; None = the largest N.
         device: where the returned model lives.
+        trust_code: read TorchScript decoders with ``torch.jit.load``, which can run code stored in
+            the archives: only for folders you trust whose decoders are outside the supported
+            subset. By default nothing in the folder runs.
 
     Widths and options come from ``cfg_args`` (keys ``feat_dim, n_offsets, appearance_dim,
     use_feat_bank, add_{opacity,cov,color}_dist, voxel_size``) and are checked against the PLY and
     every decoder's layer types and shapes; keys missing from ``cfg_args`` (or a missing
-    ``cfg_args``) are inferred from the files. TorchScript decoders are rebuilt as eager
-    ``nn.Sequential`` s with identical outputs (:func:`controlgs_adapter.torchscript.eager_from_script`).
+    ``cfg_args``) are inferred from the files. TorchScript decoders are read as data, never run,
+    and rebuilt as eager ``nn.Sequential`` s (:func:`controlgs_adapter.torchscript.eager_from_archive`).
 
     Raises:
         FileFormatError: naming the file and the field: no iteration folder, missing/truncated
             PLY or missing PLY fields, non-finite values, missing MLP, MLP widths that do not fit
             the PLY's feature/offset counts or cfg_args, unreadable TorchScript or state dict
-            (arbitrary pickled objects are refused).
+            (arbitrary pickled objects are refused), a TorchScript decoder outside the supported
+            subset (code beyond a chain of layers, ``__setstate__``, foreign globals, NaN weights).
     """
     root = Path(path)
     folder = iteration_dir(root, None if iteration is None else int(iteration), family="Scaffold-GS")
     cfg_path = root / "cfg_args"
     cfg = read_cfg_args(cfg_path) if cfg_path.is_file() else {}
     anchors = _read_anchors(folder / "point_cloud.ply")
-    dec = _Decoders(folder)
+    dec = _Decoders(folder, trust_code)
     opts = _infer_options(anchors, dec, cfg, str(cfg_path))
     voxel = float(cfg.get("voxel_size", 0) or 0)
     if voxel <= 0:  # Scaffold-GS picks it from the point cloud when the argument is <= 0

@@ -20,6 +20,7 @@ up to the corner).
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from importlib import resources
@@ -78,6 +79,9 @@ class PSFBank:
         if psf.dim() != 5 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
             raise InputValueError(f"PSF bank: psf must be [L, Gy, Gx, K, K] with odd K, got {list(psf.shape)}")
         Gy, Gx = psf.shape[1:3]
+        if min(psf.shape[:3]) < 1 or L < 1:
+            raise InputValueError(f"PSF bank: empty grid: psf is {list(psf.shape)} with {L} wavelength(s); "
+                                  "need >= 1 wavelength and >= 1 x 1 field samples")
         if psf.shape[0] != L:
             raise InputValueError(f"PSF bank: {psf.shape[0]} PSF channels but {L} wavelengths {self.wavelengths_nm}")
         if tuple(pitch.shape) != (L, Gy, Gx):
@@ -140,11 +144,15 @@ class PSFBank:
         missing = {"psf", "psf_pitch_mm", "field_x", "field_y", "chief", "chief_x", "chief_y"} - set(t)
         if missing:
             raise FileFormatError(f"{path}: PSF bank lacks tensors {sorted(missing)}")
+        wavelengths = _header_numbers(path, h, "wavelengths_nm", None)
+        display = _header_numbers(path, h, "display_mm", 2)
+        meta = h.get("meta", {})
+        if not isinstance(meta, dict):
+            raise FileFormatError(f"{path}: header field 'meta' must be a JSON object, got {type(meta).__name__}")
         try:
             bank = cls(psf=t["psf"].float(), psf_pitch_mm=t["psf_pitch_mm"], field_x=t["field_x"], field_y=t["field_y"],
                        chief=t["chief"], chief_x=t["chief_x"], chief_y=t["chief_y"],
-                       wavelengths_nm=tuple(float(w) for w in h["wavelengths_nm"]),
-                       display_mm=tuple(float(d) for d in h["display_mm"]), meta=h.get("meta", {}))
+                       wavelengths_nm=wavelengths, display_mm=display, meta=meta)
         except InputValueError as e:
             raise FileFormatError(f"{path}: {e}") from e
         if display_mm is not None and any(abs(a - b) > 1e-6 * max(a, b) for a, b in zip(bank.display_mm, display_mm)):
@@ -188,3 +196,16 @@ class PSFBank:
 
 
 _DEFAULT: PSFBank | None = None
+
+
+def _header_numbers(path: str | os.PathLike, header: dict[str, Any], key: str, count: int | None) -> tuple[float, ...]:
+    """Header field ``key`` as a tuple of finite positive numbers (``count`` of them if given):
+    :class:`FileFormatError` naming the file and the field otherwise (a string such as ``"66"``
+    is refused, not read digit by digit)."""
+    value = header.get(key)
+    want = f"a list of {count if count else 'one or more'} positive numbers"
+    if not isinstance(value, list) or (count is not None and len(value) != count) or not value:
+        raise FileFormatError(f"{path}: header field {key!r} must be {want}, got {value!r}")
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in value):
+        raise FileFormatError(f"{path}: header field {key!r} must be {want}, got {value!r}")
+    return tuple(float(v) for v in value)
