@@ -95,7 +95,8 @@ def _read_split(path: Path) -> list[Frame]:
     for i, entry in enumerate(frames):
         name, image = frame_image_path(path, i, entry)
         if not image.is_file():
-            raise FileFormatError(f"{path}: frames[{i}] image {entry['file_path']!r} not found (looked for {image})")
+            raise FileFormatError(f"{path}: frames[{i}] image {entry['file_path']!r} not found (looked for {image}"
+                                  f"{'' if image.suffix == '.png' else ' and with .png appended'})")
         w, h = image_size(image)
         f = 0.5 * w / tan_half
         k = torch.tensor([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float32)

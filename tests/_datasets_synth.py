@@ -1,0 +1,76 @@
+"""Synthetic posed-image scenes for the dataset tests, built independently of the library: OpenGL
+look-at poses in numpy, the OpenGL pinhole projection, and JSON / PNG writers."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+
+def look_at_gl(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world [4, 4] in OpenGL axes (x right, y up, camera looks down -z) at ``eye`` looking
+    at ``target``."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    back = eye - target
+    back /= np.linalg.norm(back)
+    right = np.cross(up, back)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(back, right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, back, eye
+    return c2w
+
+
+def project_gl(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, points: np.ndarray):
+    """Continuous pixel coordinates ``[N, 2]`` and depth ``[N]`` of world ``points`` ``[N, 3]`` seen by
+    an OpenGL camera: camera-space (x, y, z) with the view along -z, so depth = -z,
+    u = cx + fx x / depth, v = cy - fy y / depth (image rows grow downwards)."""
+    w2c = np.linalg.inv(c2w)
+    pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+    depth = -pc[:, 2]
+    return np.stack([cx + fx * pc[:, 0] / depth, cy - fy * pc[:, 1] / depth], axis=-1), depth
+
+
+def unproject_gl(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, uv, depth: float) -> np.ndarray:
+    """The world point at continuous pixel ``uv`` and ``depth`` of an OpenGL camera (inverse of
+    :func:`project_gl`)."""
+    u, v = uv
+    pc = np.array([(u - cx) / fx * depth, -(v - cy) / fy * depth, -depth, 1.0])
+    return (c2w @ pc)[:3]
+
+
+def ring_poses(n: int, radius: float = 4.0, height: float = 1.5, target=(0.0, 0.0, 0.0), phase: float = 0.3):
+    """``n`` OpenGL look-at poses on a ring around ``target``."""
+    out = []
+    for i in range(n):
+        a = phase + 2 * np.pi * i / n
+        eye = np.array(target) + np.array([radius * np.cos(a), radius * np.sin(a), height + 0.2 * i])
+        out.append(look_at_gl(eye, target))
+    return out
+
+
+def write_png(path: Path, pixels: np.ndarray) -> None:
+    """Write ``[H, W, 3 | 4]`` uint8 as PNG (RGB or RGBA)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(pixels, "RGBA" if pixels.shape[-1] == 4 else "RGB").save(path)
+
+
+def write_json(path: Path, obj) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=1))
+
+
+def marker_image(width: int, height: int, marks: list[tuple[int, int, tuple[int, ...]]], rgba: bool = True,
+                 fill: tuple[int, ...] | None = None) -> np.ndarray:
+    """``[H, W, C]`` uint8: ``fill`` everywhere (default transparent black / black), ``colour`` at each
+    ``(column, row, colour)`` of ``marks``."""
+    c = 4 if rgba else 3
+    img = np.zeros((height, width, c), dtype=np.uint8)
+    if fill is not None:
+        img[:] = fill
+    for col, row, colour in marks:
+        img[row, col] = colour
+    return img
