@@ -23,8 +23,8 @@ from torch import nn
 
 from . import plugins
 from .backend import Backend, get_attr_path, set_attr_path
-from .errors import (FileFormatError, IncompatibleAdapterError, InputValueError, NoMatchingBackendError, ShapeError,
-                     StateError, TargetError)
+from .errors import (FileFormatError, IncompatibleAdapterError, InputValueError, NoMatchingBackendError,
+                     NonFiniteError, ShapeError, StateError, TargetError)
 from .injector import ConditionInjector, InjectionContext
 from .io import load_tensors, read_header, save_tensors
 from .schedules import StrengthSchedule
@@ -380,13 +380,18 @@ class ControlGS:
                 anchor ``anchor_ids[i]``), ``BoolTensor[A]`` visibility mask (rows = visible anchors,
                 ascending), or None (all anchors). With ``rows_per_anchor`` K > 1, row r belongs to
                 ``anchor_ids[r // K]``. A decoder called with another row count raises ShapeError.
-            modules: restrict the injection to these wrapped modules (others are off, not computed).
+            modules: restrict the injection to these wrapped modules (others are off, not computed);
+                a single name (``"lens"``) is one module.
         """
         self._check_live()
         ids = self.anchor_ids(anchor_ids)
         if modules is None:
             active = self.modules
         else:
+            if isinstance(modules, str):
+                modules = (modules,)
+            if not isinstance(modules, Sequence) or not all(isinstance(m, str) for m in modules):
+                raise InputValueError(f"modules must be a module name or a sequence of them, got {modules!r}")
             active = tuple(modules)
             unknown = [m for m in active if m not in self.modules]
             if unknown:
@@ -426,6 +431,10 @@ class ControlGS:
         if dtype not in (None, torch.float16, torch.float32):
             raise InputValueError(f"dtype must be None, torch.float16 or torch.float32, got {dtype!r}")
         tensors = dict(self.injector.state_dict())
+        peak = float(tensors["conditions"].abs().max()) if tensors["conditions"].numel() else 0.0
+        if dtype == torch.float16 and peak > torch.finfo(torch.float16).max:
+            raise NonFiniteError(f"{path}: conditions reach |{peak:.4g}|, beyond float16's range "
+                                 f"({torch.finfo(torch.float16).max:g}): save them as float32 (dtype=None)")
         if dtype is not None:
             tensors["conditions"] = tensors["conditions"].to(dtype)
         header = {**self.header(), "condition_dtype": str(tensors["conditions"].dtype).removeprefix("torch.")}

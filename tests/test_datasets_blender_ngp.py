@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from _datasets_synth import look_at_gl, marker_image, project_gl, ring_poses, unproject_gl, write_json, write_png
@@ -114,6 +114,14 @@ def test_blender_missing_image_names_it(tmp_path):
         read_blender(tmp_path / "nowhere")
 
 
+def test_blender_refuses_a_test_view_that_is_a_training_view(tmp_path):
+    poses, _, _ = _blender_scene(tmp_path)
+    write_json(tmp_path / "transforms_test.json",
+               {"camera_angle_x": ANGLE_X, "frames": [{"file_path": "train/r_2.png", "transform_matrix": poses[2].tolist()}]})
+    with pytest.raises(FileFormatError, match=r"transforms_test\.json: lists training images too \(train/r_2\.png\)"):
+        read_blender(tmp_path)
+
+
 def test_blender_refuses_a_non_rigid_transform(tmp_path):
     poses, _, _ = _blender_scene(tmp_path)
     bad = poses[0].copy()
@@ -153,11 +161,12 @@ def _by_index(data):
 
 def test_ngp_global_and_per_frame_intrinsics_and_distortion(tmp_path):
     own = {"fl_x": 30.0, "fl_y": 31.0, "cx": 19.0, "cy": 16.0, "k1": -0.05}
-    poses = _ngp_scene(tmp_path, per_frame={2: own, 5: {"camera_angle_x": 1.1}})
+    poses = _ngp_scene(tmp_path, per_frame={2: own, 5: {"camera_angle_x": 1.1}, 7: {"fl_x": 33.0}})
     frames = _by_index(read_instant_ngp(tmp_path, holdout=0))
     pts = np.random.default_rng(2).uniform(-1, 1, size=(20, 3))
     fov_f = 0.5 * W / math.tan(1.1 / 2)
-    expected_k = {2: (30.0, 31.0, 19.0, 16.0), 5: (fov_f, fov_f, FL[2], FL[3])}
+    # a frame's focal keys replace the global ones as a group; one focal length serves both axes
+    expected_k = {2: (30.0, 31.0, 19.0, 16.0), 5: (fov_f, fov_f, FL[2], FL[3]), 7: (33.0, 33.0, FL[2], FL[3])}
     for i, frame in frames.items():
         fx, fy, cx, cy = expected_k.get(i, FL)
         uv, depth = frame.camera.project(torch.from_numpy(pts).float())
@@ -235,9 +244,10 @@ def test_ngp_ignores_the_scene_box_keys(tmp_path):
         assert torch.equal(fa.camera.intrinsics, fb.camera.intrinsics)
 
 
-def test_ngp_refuses_fisheye_and_a_missing_file(tmp_path):
-    _ngp_scene(tmp_path, n=2, extra_top={"is_fisheye": True})
-    with pytest.raises(FileFormatError, match=r"transforms\.json.*fisheye"):
+@pytest.mark.parametrize("key, value", [("is_fisheye", True), ("k4", 0.01), ("camera_model", "OPENCV_FISHEYE")])
+def test_ngp_refuses_fisheye_and_a_missing_file(tmp_path, key, value):
+    _ngp_scene(tmp_path, n=2, per_frame={1: {key: value}})
+    with pytest.raises(FileFormatError, match=rf"transforms\.json: frames\[\d\] \('images/img_01\.png'\).*{key}"):
         read_instant_ngp(tmp_path)
     with pytest.raises(FileFormatError, match=r"other\.json: not found"):
         read_instant_ngp(tmp_path, transforms="other.json")
@@ -254,8 +264,8 @@ _coord = st.floats(-5.0, 5.0, allow_nan=False)
 def test_opengl_to_opencv_keeps_the_centre_and_looks_at_the_target(eye, target, up):
     eye, target, up = map(np.array, (eye, target, up))
     fwd = target - eye
-    if np.linalg.norm(fwd) < 0.5 or np.linalg.norm(up) < 0.5 or np.linalg.norm(np.cross(fwd, up)) < 0.2 * np.linalg.norm(fwd) * np.linalg.norm(up):
-        return
+    n_fwd, n_up = np.linalg.norm(fwd), np.linalg.norm(up)
+    assume(n_fwd > 0.5 and n_up > 0.5 and np.linalg.norm(np.cross(fwd, up)) > 0.2 * n_fwd * n_up)  # a proper look-at
     c2w = look_at_gl(eye, target, up)
     k = torch.tensor([[50.0, 0, 20.0], [0, 50.0, 15.0], [0, 0, 1]])
     cam = Camera(opengl_c2w_to_w2c(c2w), k, W, H)

@@ -78,6 +78,9 @@ def read_blender(root: str | Path, *, background: torch.Tensor | None = None,
     test_json = root / "transforms_test.json"
     if test_json.is_file():
         splits["test"] = _read_split(test_json)
+    both = {f.name for f in splits["train"]} & {f.name for f in splits["test"]}
+    if both:
+        raise FileFormatError(f"{test_json}: lists training images too ({', '.join(sorted(both)[:5])})")
     return SceneData(splits=splits, points=None, background=bg, source=str(root), format="blender")
 
 
@@ -122,10 +125,10 @@ def frame_image_path(path: Path, i: int, entry: Any) -> tuple[str, Path]:
     is that relative path, normalised (``./train/r_0`` -> ``train/r_0.png``)."""
     if not isinstance(entry, dict) or not isinstance(entry.get("file_path"), str) or not entry["file_path"]:
         raise FileFormatError(f"{path}: frames[{i}] needs a 'file_path' string")
-    rel = entry["file_path"]
+    rel = entry["file_path"].replace("\\", "/")
     if not (path.parent / rel).is_file() and (path.parent / (rel + ".png")).is_file():
         rel += ".png"
-    return posixpath.normpath(rel.replace("\\", "/")), path.parent / rel
+    return posixpath.normpath(rel), path.parent / rel
 
 
 def frame_pose(path: Path, i: int, entry: dict[str, Any]) -> torch.Tensor:

@@ -32,8 +32,10 @@ _GROUPS = {
     "size": ("w", "h"),
     "distortion": ("k1", "k2", "p1", "p2", "k3"),
 }
-#: camera models this reader cannot represent as a pinhole plus radial-tangential distortion
+#: keys of camera models this reader cannot represent as a pinhole plus radial-tangential distortion
 _UNSUPPORTED = ("is_fisheye", "k4")
+#: nerfstudio's ``camera_model`` values that are a pinhole plus radial-tangential distortion
+_PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 #: how many missing images a warning names
 _NAMED = 5
 
@@ -97,6 +99,10 @@ def _camera(path: Path, i: int, meta: dict[str, Any], entry: dict[str, Any],
     """Camera (at the image file's size) and distortion of ``frames[i]``: each key group from the
     frame if it has any key of it, else from the top level."""
     where = f"{path}: frames[{i}] ({entry['file_path']!r})"
+    model = entry.get("camera_model", meta.get("camera_model", "OPENCV"))
+    if model not in _PINHOLE_MODELS:
+        raise FileFormatError(f"{where}: camera_model {model!r} is not supported ({', '.join(_PINHOLE_MODELS)} "
+                              "only); undistort the images first")
     for key in _UNSUPPORTED:
         if entry.get(key, meta.get(key)):
             raise FileFormatError(f"{where}: {key} set: fisheye cameras are not supported (pinhole with "

@@ -85,7 +85,8 @@ def check_scene(data: SceneData, points: torch.Tensor | None = None, *, min_in_f
         return report
     named = ", ".join(blind[:_NAMED]) + (", ..." if len(blind) > _NAMED else "")
     if 2 * len(blind) > len(frames):
-        hint = _AXES_HINT.get(data.format, "cameras must be world to camera in OpenCV axes (x right, y down, z forward)")
+        hint = _AXES_HINT.get(data.format, "cameras must be world to camera in OpenCV axes "
+                                           "(x right, y down, z forward)")
         raise InputValueError(
             f"{where}: {len(blind)} of {len(frames)} cameras see none of the scene in front of them (fewer than "
             f"{min_in_front:.0%} of {pts.shape[0]} points have positive depth inside the image; on average "

@@ -22,6 +22,8 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
+from controlgs_adapter.errors import InputValueError
+
 from .bank import PSFBank
 from .prescription import CARDBOARD, Prescription
 from .raytrace import chief_ray, paraxial, real_magnification, trace
@@ -101,14 +103,31 @@ def lens_figures(rx: Prescription) -> dict[str, Any]:
     return out
 
 
+def _check_int(name: str, value: Any, low: int, *, odd: bool = False) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low or (odd and value % 2 == 0):
+        raise InputValueError(f"{name} must be {'an odd' if odd else 'an'} integer >= {low}, got {value!r}")
+
+
 def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, grid: tuple[int, int] = (30, 30),
                psf_size: int = 33, pupil_samples: int = 192, chief_grid: tuple[int, int] = (65, 65),
                min_pitch_px: float = 0.125, reference_width_px: int = 1024, progress: bool = False) -> PSFBank:
     """Trace a PSF bank. ``min_pitch_px`` is the finest PSF sample pitch, in display pixels at
     ``reference_width_px`` across the display (1/8 px at 1024 px by default)."""
     rx = prescription if isinstance(prescription, Prescription) else Prescription(prescription or CARDBOARD)
-    if psf_size % 2 == 0 or psf_size < 5:
-        raise ValueError(f"psf_size must be odd and >= 5, got {psf_size}")
+    _check_int("psf_size", psf_size, 5, odd=True)
+    if not isinstance(grid, (tuple, list)) or len(grid) != 2:
+        raise InputValueError(f"grid must be (Gy, Gx), got {grid!r}")
+    for name, v in (("grid[0] (Gy)", grid[0]), ("grid[1] (Gx)", grid[1])):
+        _check_int(name, v, 1)
+    if not isinstance(chief_grid, (tuple, list)) or len(chief_grid) != 2:
+        raise InputValueError(f"chief_grid must be (Cy, Cx), got {chief_grid!r}")
+    for name, v in (("chief_grid[0]", chief_grid[0]), ("chief_grid[1]", chief_grid[1])):
+        _check_int(name, v, 2)
+    _check_int("pupil_samples", pupil_samples, 4)
+    _check_int("reference_width_px", reference_width_px, 1)
+    if isinstance(min_pitch_px, bool) or not isinstance(min_pitch_px, (int, float)) or not (
+            math.isfinite(min_pitch_px) and min_pitch_px > 0):
+        raise InputValueError(f"min_pitch_px must be a finite number > 0, got {min_pitch_px!r}")
     Gy, Gx = grid
     W_mm, H_mm = rx.display_mm
     m_ref = real_magnification(rx, rx.reference_wavelength)

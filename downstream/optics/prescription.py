@@ -61,11 +61,16 @@ class Prescription:
     """A checked prescription. ``Prescription(CARDBOARD)`` or ``Prescription.cardboard()``."""
 
     def __init__(self, spec: Mapping[str, Any]):
+        if not isinstance(spec, Mapping):
+            raise InputValueError(f"prescription must be a mapping (JSON object) like CARDBOARD, got {type(spec).__name__}")
         self.spec = copy.deepcopy(dict(spec))
         s = self.spec
+        for key in ("display_mm", "wavelengths_nm", "surfaces"):
+            if key in s and not isinstance(s[key], (list, tuple)):
+                raise InputValueError(f"prescription[{key!r}] must be a list, got {s[key]!r}")
 
         def pos(key: str, v: Any) -> float:
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise InputValueError(f"prescription[{key!r}] must be a positive number, got {v!r}")
             return float(v)
 
@@ -86,8 +91,14 @@ class Prescription:
             raise InputValueError("prescription['surfaces'] must list at least one surface")
         self.surfaces: list[Surface] = []
         for i, sf in enumerate(surfaces):
+            if not isinstance(sf, Mapping) or "thickness_mm" not in sf:
+                raise InputValueError(f"surfaces[{i}] must be an object with 'thickness_mm' (see CARDBOARD), got {sf!r}")
             r = sf.get("radius_mm", math.inf)
-            r = math.inf if r in (None, 0, "inf") else float(r)
+            if r in (None, 0, "inf"):
+                r = math.inf
+            elif isinstance(r, bool) or not isinstance(r, (int, float)) or math.isnan(r):
+                raise InputValueError(f"surfaces[{i}].radius_mm must be a number (or 0/null/'inf' for a plane), got {r!r}")
+            r = float(r)
             mat = sf.get("after", "air")
             if mat != "air" and not (isinstance(mat, Mapping) and "nd" in mat and "vd" in mat):
                 raise InputValueError(f"surfaces[{i}]['after'] must be 'air' or {{'nd': .., 'vd': ..}}, got {mat!r}")
