@@ -11,6 +11,14 @@ from ._version import __version__
 
 COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "train", "eval", "demo", "bench")
 
+#: (command, action) -> (extra, import names, what for): optional dependencies checked before the work starts
+REQUIRES: dict[tuple[str, str | None], tuple[str, tuple[str, ...], str]] = {
+    ("demo", None): ("demo", ("skimage", "matplotlib"), "the built-in scene and the report's plots"),
+    ("eval", None): ("demo", ("skimage", "matplotlib"), "the built-in scene and the report's plots"),
+    ("optics", "bench"): ("demo", ("skimage", "matplotlib"), "the optics benchmark's test image and plot"),
+    ("scene", "export"): ("demo", ("skimage", "matplotlib"), "exporting the built-in scene's views as PNG"),
+}
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -31,11 +39,21 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     from .errors import ControlGSError
+    from .extras import require
 
     try:
+        action = next((v for k, v in vars(args).items() if k.endswith("_command") and isinstance(v, str)), None)
+        need = REQUIRES.get((args.command, action))
+        if need is not None:
+            require(need[0], f"controlgs {args.command}" + (f" {action}" if action else "") + f" ({need[2]})", need[1])
         return int(args.func(args) or 0)
-    except ControlGSError as e:  # bad input: a clear message, not a traceback
-        print(f"controlgs {args.command}: error: {e}", file=sys.stderr)
+    except (ControlGSError, OSError) as e:  # bad input, unwritable or full disk: one clear line, not a traceback
+        message = " ".join(str(e).split()) if isinstance(e, ControlGSError) else f"{type(e).__name__}: {e}"
+        print(f"controlgs {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as e:  # an optional dependency the table above does not know about
+        print(f"controlgs {args.command}: error: needs the Python package {e.name!r}, which is not installed "
+              "(pip install 'controlgs-adapter[demo]' installs the optional ones)", file=sys.stderr)
         return 2
 
 

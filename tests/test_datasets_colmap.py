@@ -223,8 +223,10 @@ def test_split_every_eighth_by_sorted_name(tmp_path):
     assert [f.name for f in read_colmap(root, holdout=5).splits["test"]] == names[::5]
     everything = read_colmap(root, holdout=0)
     assert everything.splits["test"] == [] and len(everything.splits["train"]) == 17
-    with pytest.raises(InputValueError, match="holdout"):
-        read_colmap(root, holdout=-1)
+    for bad in ({"holdout": -1}, {"holdout": 1.5}, {"resolution": 1}, {"images": "/abs/images"},
+                {"background": (1.0, 0.0)}):
+        with pytest.raises(InputValueError, match=next(iter(bad))):
+            read_colmap(root, **bad)
 
 
 def test_downscaled_folders_chosen_and_intrinsics_scaled(tmp_path):
@@ -298,7 +300,7 @@ def test_truncated_and_oversized_binary_files_refused(tmp_path):
         t0 = time.perf_counter()
         with pytest.raises(FileFormatError, match=rf"{name}: declares 100000000000 "):
             read_colmap(scene)
-        assert time.perf_counter() - t0 < 0.5
+        assert time.perf_counter() - t0 < 2.0  # no allocation or scan of 1e11 records (loaded CI: generous)
     # a huge declared count of 2D points inside an image record
     data = bytearray((sparse / "images.bin").read_bytes())
     first_name_end = data.index(b"\0", 8 + 64)

@@ -39,18 +39,42 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
 
 def _prescription(path: Path | None):
+    """The prescription of ``--prescription`` (Cardboard if None); errors name the file."""
     from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
+    from controlgs_adapter.errors import FileFormatError, InputValueError
 
     if path is None:
         return Prescription(CARDBOARD)
-    return Prescription(json.loads(path.read_text()))
+    if not path.is_file():
+        raise InputValueError(f"--prescription {path}: no such file")
+    if path.stat().st_size > 1 << 20:
+        raise FileFormatError(f"--prescription {path}: {path.stat().st_size} bytes, too large for a prescription")
+    try:
+        spec = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, RecursionError) as e:
+        raise FileFormatError(f"--prescription {path}: not a JSON file: {e}") from None
+    try:
+        return Prescription(spec)
+    except InputValueError as e:
+        raise InputValueError(f"--prescription {path}: {e}") from None
 
 
 def run_build(args: argparse.Namespace) -> int:
     import time
 
     from controlgs_adapter.downstream.optics.generate import build_bank
+    from controlgs_adapter.errors import InputValueError
 
+    if args.psf_size < 5 or args.psf_size % 2 == 0:
+        raise InputValueError(f"--psf-size must be an odd integer >= 5, got {args.psf_size}")
+    if min(args.grid) < 1:
+        raise InputValueError(f"--grid GY GX must both be >= 1, got {' '.join(map(str, args.grid))}")
+    if args.pupil_samples < 4:
+        raise InputValueError(f"--pupil-samples must be >= 4, got {args.pupil_samples}")
+    if not (args.min_pitch_px > 0 and args.min_pitch_px < float("inf")):
+        raise InputValueError(f"--min-pitch-px must be a finite number > 0, got {args.min_pitch_px}")
+    if args.out.is_dir():
+        raise InputValueError(f"--out {args.out}: is a folder; expected the path of the .safetensors file to write")
     rx = _prescription(args.prescription)
     t0 = time.perf_counter()
     bank = build_bank(rx, grid=tuple(args.grid), psf_size=args.psf_size, pupil_samples=args.pupil_samples,
