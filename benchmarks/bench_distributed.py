@@ -51,6 +51,7 @@ def _loopback_bytes() -> int:
 # ------------------------------------------------------------------------------------ workers
 def _worker_train(a: argparse.Namespace) -> None:
     from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
+    from controlgs_adapter.datasets.memory import posed_images
     from controlgs_adapter.distributed import init_distributed
     from controlgs_adapter.io import load_tensors
     from controlgs_adapter.state import Camera
@@ -61,8 +62,8 @@ def _worker_train(a: argparse.Namespace) -> None:
     model = load_scaffold_dir(Path(a.data) / "backbone").eval()
     with init_distributed(exchange=a.exchange, timeout=600) as ctx:
         config = TrainConfig(iterations=a.iterations, batch_size=a.batch, checkpoint_every=0, seed=0)
-        trainer = Trainer(model, t["images"], cams, config, effects=json.loads(a.effects), background=t["background"],
-                          dist=ctx)
+        trainer = Trainer(model, posed_images(t["images"], cams, background=t["background"]), config,
+                          effects=json.loads(a.effects), dist=ctx)
         trainer.step()  # warm-up
         ctx.barrier()
         sent0, dense0, steps0 = ctx.stats.bytes_sent, ctx.stats.dense_bytes, ctx.stats.steps

@@ -24,7 +24,7 @@ from .controlgs import ControlGS
 from .errors import InputValueError
 from .metrics import optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
-from .training import DEFAULT_EFFECTS, render_view
+from .training import DEFAULT_EFFECTS, Views, model_device, render_view
 
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "GridResult", "evaluate_grid", "make_pipeline",
            "side_by_side", "condition_response"]
@@ -35,7 +35,7 @@ GRID_POWER_SAVING: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
 BASELINES: tuple[str, ...] = ("no_ss", "ss")
 
 
-@dataclass
+@dataclass(eq=False)
 class GridResult:
     """Metrics of every method on the grid.
 
@@ -43,12 +43,22 @@ class GridResult:
         downsample, power_saving: the grid axes.
         per_view: ``{method: {metric: Tensor[D, P, V]}}`` (float64).
         optics_mode: the optics operator used.
+        info: JSON-able facts about the run (test views, their sizes, ...), kept in ``results.json``.
     """
 
     downsample: tuple[float, ...]
     power_saving: tuple[float, ...]
     per_view: dict[str, dict[str, torch.Tensor]] = field(default_factory=dict)
     optics_mode: str = "fast"
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, GridResult):
+            return NotImplemented
+        return (self.downsample == other.downsample and self.power_saving == other.power_saving
+                and self.optics_mode == other.optics_mode and self.info == other.info
+                and {m: list(v) for m, v in self.per_view.items()} == {m: list(v) for m, v in other.per_view.items()}
+                and all(torch.equal(v, other.per_view[m][k]) for m, mv in self.per_view.items() for k, v in mv.items()))
 
     @property
     def methods(self) -> list[str]:
@@ -69,6 +79,7 @@ class GridResult:
     def to_json(self) -> dict[str, Any]:
         """Every number: per-view values, grid means and overall means."""
         return {
+            "info": dict(self.info),
             "downsample": list(self.downsample),
             "power_saving": list(self.power_saving),
             "optics_mode": self.optics_mode,
@@ -78,6 +89,23 @@ class GridResult:
                 for m, metrics in self.per_view.items()
             },
         }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> "GridResult":
+        """Inverse of :meth:`to_json` (also reads a report's ``results.json``): exact, the per-view
+        values being stored as JSON floats (``repr`` round trip)."""
+        try:
+            per_view = {m: {k: torch.tensor(v["per_view"], dtype=torch.float64) for k, v in metrics.items()}
+                        for m, metrics in data["methods"].items()}
+            result = cls(tuple(float(d) for d in data["downsample"]), tuple(float(p) for p in data["power_saving"]),
+                         per_view, str(data.get("optics_mode", "fast")), dict(data.get("info", {})))
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise InputValueError(f"not a GridResult JSON ({type(e).__name__}: {e})") from None
+        shape = (len(result.downsample), len(result.power_saving))
+        bad = [f"{m}.{k}" for m, mv in per_view.items() for k, v in mv.items() if v.dim() != 3 or tuple(v.shape[:2]) != shape]
+        if bad:
+            raise InputValueError(f"GridResult JSON: per_view of {bad} is not [{shape[0]}, {shape[1]}, V]")
+        return result
 
 
 def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "fast") -> Any:
@@ -100,31 +128,36 @@ def _scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> di
 
 
 @torch.no_grad()
-def evaluate_grid(model: Any, images: torch.Tensor, cameras: Sequence[Camera], adapters: Mapping[str, str | Path], *,
-                  effects: Mapping[str, Any] | None = None, background: torch.Tensor | None = None,
-                  downsample: Sequence[float] = GRID_DOWNSAMPLE, power_saving: Sequence[float] = GRID_POWER_SAVING,
+def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], *,
+                  effects: Mapping[str, Any] | None = None, downsample: Sequence[float] = GRID_DOWNSAMPLE, power_saving: Sequence[float] = GRID_POWER_SAVING,
                   optics_mode: str = "fast", baselines: Sequence[str] = BASELINES,
                   extra_metrics: bool = True, progress: bool = True) -> GridResult:
     """Evaluate the baselines and every adapter file in ``adapters`` (``{method name: path}``,
-    each saved by :meth:`ControlGS.save` for ``model``) on the test views ``images``
-    ``[V, 3, S, S]`` / ``cameras``. ``model`` must not be wrapped; each adapter is loaded onto it
-    in turn and removed afterwards.
+    each saved by :meth:`ControlGS.save` for ``model``) on the test ``views`` (a
+    :class:`~controlgs_adapter.training.Views` dataset: ``(camera, image [3, H, W])`` per view, any
+    size; its ``background`` is the renders'). ``model`` must not be wrapped; each adapter is loaded
+    onto it in turn and removed afterwards. Everything runs on the model's device.
 
     The renders that do not depend on the state are made once per view (``ss``) or once per d
-    (``no_ss``); the pipeline runs for every (method, view, d, rho).
+    (``no_ss``); the pipeline runs for every (method, view, d, rho). ``result.info`` holds the
+    number of views and their sizes.
     """
-    if images.dim() != 4 or images.shape[0] != len(cameras):
-        raise InputValueError(f"need images [V, 3, S, S] with one camera each, got {list(images.shape)} and {len(cameras)}")
+    if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
+        raise InputValueError("views must be a non-empty dataset of (camera, image) with a background "
+                              f"(e.g. SceneData.views('test')), got {type(views).__name__}")
     unknown = [b for b in baselines if b not in BASELINES]
     if unknown:
         raise InputValueError(f"baselines must be among {BASELINES}, got {unknown}")
     clash = [a for a in adapters if a in BASELINES]
     if clash:
         raise InputValueError(f"adapter names {clash} clash with the baselines {BASELINES}")
-    pipeline = make_pipeline(effects, optics_mode)
+    device = model_device(model)
+    pipeline = make_pipeline(effects, optics_mode).to(device)
+    bg = getattr(views, "background", None)
+    background = None if bg is None else bg.to(device)
     extra = optional_metrics() if extra_metrics else {}
     names = list(baselines) + list(adapters)
-    nd, npow, nv = len(downsample), len(power_saving), len(cameras)
+    nd, npow, nv = len(downsample), len(power_saving), len(views)
     metric_names = ["psnr", "ssim", *extra]
     result = {m: {k: torch.zeros(nd, npow, nv, dtype=torch.float64) for k in metric_names} for m in names}
     bar = tqdm(total=nv * nd * npow * len(names), desc="evaluating grid", disable=not progress, dynamic_ncols=True)
@@ -135,7 +168,12 @@ def evaluate_grid(model: Any, images: torch.Tensor, cameras: Sequence[Camera], a
             result[name][k][i, j, v] = value
         bar.update(1)
 
-    for v, (cam, gt) in enumerate(zip(cameras, images)):
+    def view(v: int) -> tuple[Camera, torch.Tensor]:
+        cam, gt = views[v]
+        return cam, gt.to(device, non_blocking=True)
+
+    for v in range(nv):
+        cam, gt = view(v)
         full = render_view(None, model, cam, None, background) if "ss" in names else None
         for i, d in enumerate(downsample):
             small = render_view(None, model, cam.scaled(d), None, background) if "no_ss" in names else None
@@ -146,7 +184,8 @@ def evaluate_grid(model: Any, images: torch.Tensor, cameras: Sequence[Camera], a
     for name, path in adapters.items():
         cgs = ControlGS.load(path, model)
         try:
-            for v, (cam, gt) in enumerate(zip(cameras, images)):
+            for v in range(nv):
+                cam, gt = view(v)
                 for i, d in enumerate(downsample):
                     for j, rho in enumerate(power_saving):
                         state = RuntimeState(downsample=d, power_saving=rho)
@@ -154,7 +193,11 @@ def evaluate_grid(model: Any, images: torch.Tensor, cameras: Sequence[Camera], a
         finally:
             cgs.unwrap()
     bar.close()
-    return GridResult(tuple(float(d) for d in downsample), tuple(float(p) for p in power_saving), result, optics_mode)
+    describe = getattr(views, "describe", None)
+    info = dict(describe()) if callable(describe) else {"views": nv, "sizes": sorted({f"{c.width}x{c.height}" for c, _ in
+                                                                                       (views[v] for v in range(nv))})}
+    return GridResult(tuple(float(d) for d in downsample), tuple(float(p) for p in power_saving), result, optics_mode,
+                      {"test_" + k: v for k, v in info.items()})
 
 
 @torch.no_grad()

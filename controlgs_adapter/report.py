@@ -215,9 +215,10 @@ def write_report(out: str | Path, result: GridResult, *, info: Mapping[str, Any]
     """Write ``results.json``, ``report.md`` and the plots into folder ``out``; returns the paths."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    data = {"info": dict(info or {}), **result.to_json()}
+    data = result.to_json()
+    data = {"info": {**data.pop("info"), **dict(info or {})}, **data}
     paths = [atomic_write(out / "results.json", lambda tmp: Path(tmp).write_text(json.dumps(data, indent=1)))]
-    md = markdown_tables(result, info)
+    md = markdown_tables(result, data["info"])
     figures = []
     if {"ss", "controlgs"} <= set(result.methods):
         paths.append(plot_heatmaps(result, out / "heatmap.png"))

@@ -7,22 +7,27 @@ wrapped backbone (supersampling), the downstream pipeline E_s, and the image los
 ground truth; only the adapter's parameters are optimised (Adam). Optics run distortion-only for
 the first ``1 - psf_fraction`` of the iterations and with the full PSF after.
 
+The training views are a dataset (:class:`Views`: a :class:`~controlgs_adapter.datasets.PosedImages`
+or any sequence of ``(camera, image)`` with a ``background``); each step reads its view's image
+from it (lazily loaded and cached there) and moves it to the device of the render.
+
 Checkpoints (adapter, optimizer, RNG state, iteration) are safetensors files written atomically;
-resuming from one continues bit-for-bit as if never interrupted (same thread count).
+resuming from one continues bit-for-bit as if never interrupted (same thread count). A checkpoint
+records the fingerprint of its training views and is refused for other data.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 
 import torch
 from tqdm.auto import tqdm
 
-from .checks import check_image
 from .controlgs import ControlGS
 from .distributed import DistContext
 from .errors import FileFormatError, InputValueError
@@ -30,7 +35,8 @@ from .io import load_tensors, save_tensors
 from .losses import LossWeights, image_loss
 from .state import Camera, RuntimeState
 
-__all__ = ["TrainConfig", "Trainer", "DEFAULT_EFFECTS", "modules_for", "render_view", "CHECKPOINT_KIND"]
+__all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "render_view", "views_fingerprint",
+           "model_device", "CHECKPOINT_KIND"]
 
 CHECKPOINT_KIND = "controlgs_training_checkpoint"
 CHECKPOINT_FORMAT_VERSION = 1
@@ -47,6 +53,54 @@ def modules_for(effects: Mapping[str, Any]) -> tuple[str, ...]:
     """The condition modules a scene's downstream ``effects`` call for (only those whose stage is on)."""
     on = {k for k, v in effects.items() if v is not None and v is not False}
     return tuple(m for m, stages in _MODULE_STAGES.items() if on.intersection(stages))
+
+
+@runtime_checkable
+class Views(Protocol):
+    """The dataset protocol of :class:`Trainer` and :func:`~controlgs_adapter.evaluation.evaluate_grid`.
+
+    ``views[i]`` is ``(camera, image)``: a :class:`Camera` and its sRGB ground truth ``[3, H, W]``
+    float in [0, 1] at the camera's size (sizes may differ between views; any aspect ratio);
+    ``len(views)`` views; ``background`` is the ``[3]`` render background (or None: the model's
+    default). Optional: ``fingerprint() -> str`` identifying the data (else derived from the
+    cameras) and ``cameras`` (the list of cameras, read without loading images).
+    :class:`~controlgs_adapter.datasets.PosedImages` implements all of it with lazy, cached images.
+    """
+
+    background: torch.Tensor | None
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> tuple[Camera, torch.Tensor]: ...
+
+
+def view_cameras(views: Views) -> list[Camera]:
+    """The cameras of ``views`` (``views.cameras`` when present, else read view by view)."""
+    cams = getattr(views, "cameras", None)
+    return list(cams) if cams is not None else [views[i][0] for i in range(len(views))]
+
+
+def views_fingerprint(views: Views) -> str:
+    """``views.fingerprint()`` when it has one, else a hash of the cameras' sizes and matrices."""
+    fp = getattr(views, "fingerprint", None)
+    if callable(fp):
+        return str(fp())
+    h = hashlib.sha256()
+    for c in view_cameras(views):
+        h.update(f"{c.width}x{c.height}".encode())
+        h.update(c.world_to_camera.double().cpu().numpy().round(6).tobytes())
+        h.update(c.intrinsics.double().cpu().numpy().round(4).tobytes())
+    return h.hexdigest()[:16]
+
+
+def model_device(model: Any) -> torch.device:
+    """Device of the first parameter (or buffer) of ``model``; CPU when it has none."""
+    for attr in ("parameters", "buffers"):
+        fn = getattr(model, attr, None)
+        if callable(fn):
+            for t in fn():
+                return t.device
+    return torch.device("cpu")
 
 
 def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: RuntimeState | None,
@@ -128,42 +182,41 @@ class Trainer:
     Args:
         model: the backbone (the reference :class:`NeuralGaussianModel` or anything with its
             ``visible_anchors(camera)`` / ``render(camera, visible, background)``); frozen.
-        images: ground truth ``[V, 3, S, S]`` sRGB of the training views.
-        cameras: ``V`` cameras at S.
+        views: the training views (:class:`Views`, e.g. ``SceneData.views("train", resolution=...)``);
+            its ``background`` is the renders' background.
         config: :class:`TrainConfig`.
         effects: the downstream pipeline's stages (:meth:`Pipeline.from_config`); default
             :data:`DEFAULT_EFFECTS`.
-        background: ``[3]`` background colour of the renders (as in ``images``).
         checkpoint: path of the checkpoint file to write (and to resume from, see :meth:`resume`).
         dist: this process's place in a data-parallel run (:func:`~controlgs_adapter.distributed.init_distributed`);
             default a single process.
 
-    Attributes: ``cgs`` (the :class:`ControlGS`), ``pipeline``, ``optimizer``, ``generator``,
+    Attributes: ``cgs`` (the :class:`ControlGS`), ``views``, ``device`` (the model's), ``pipeline``, ``optimizer``, ``generator``,
     ``iteration``, ``history`` (loss of every iteration, kept across resumes), ``seconds``.
     """
 
-    def __init__(self, model: Any, images: torch.Tensor, cameras: Sequence[Camera], config: TrainConfig = TrainConfig(),
-                 *, effects: Mapping[str, Any] | None = None, background: torch.Tensor | None = None,
+    def __init__(self, model: Any, views: Views, config: TrainConfig = TrainConfig(),
+                 *, effects: Mapping[str, Any] | None = None,
                  checkpoint: str | Path | None = None, dist: DistContext | None = None) -> None:
         from .downstream.pipeline import Pipeline
 
-        dims = check_image("images", images)
-        if images.dim() != 4 or images.shape[0] != len(cameras) or not len(cameras):
-            raise InputValueError(f"need images [V, 3, S, S] with one camera each, got {list(images.shape)} and {len(cameras)} cameras")
-        for i, cam in enumerate(cameras):
-            if (cam.height, cam.width) != (dims["H"], dims["W"]):
-                raise InputValueError(f"cameras[{i}] is {cam.width}x{cam.height}, images are {dims['W']}x{dims['H']}")
+        if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
+            raise InputValueError("views must be a non-empty dataset of (camera, image) with a background "
+                                  f"(e.g. SceneData.views('train')), got {type(views).__name__}")
         self.config = config
         self.effects = dict(DEFAULT_EFFECTS if effects is None else effects)
         modules = modules_for(self.effects) if config.modules is None else tuple(config.modules)
         if not modules:
             raise InputValueError(f"no condition module to train: the effects {sorted(self.effects)} call for none")
-        self.model, self.images, self.cameras = model, images, list(cameras)
-        self.background = background
+        self.model, self.views = model, views
+        self.device = model_device(model)
+        bg = getattr(views, "background", None)
+        self.background = None if bg is None else bg.to(self.device)
+        self.data_fingerprint = views_fingerprint(views)
         with torch.random.fork_rng(devices=[]):  # the projections' initialisation follows the seed, not the global RNG
             torch.manual_seed(int(config.seed))
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind)
-        self.pipeline = Pipeline.from_config(self.effects)
+        self.pipeline = Pipeline.from_config(self.effects).to(self.device)
         self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)
         self.dist = DistContext() if dist is None else dist
         self.dist.check_batch(config.batch_size)
@@ -178,7 +231,7 @@ class Trainer:
     def sample(self) -> tuple[int, RuntimeState]:
         """Draw a training view index and a run-time state (from :attr:`generator`)."""
         g, c = self.generator, self.config
-        view = int(torch.randint(len(self.cameras), (1,), generator=g))
+        view = int(torch.randint(len(self.views), (1,), generator=g))
         u = torch.rand(2, generator=g, dtype=torch.float64)
         d = math.exp(float(u[0]) * math.log(c.max_downsample)) if "resample" in self.pipeline else 1.0
         rho = float(u[1]) * c.max_power_saving if "display" in self.pipeline else 0.0
@@ -197,8 +250,11 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         value = 0.0
         for view, state in self.dist.shard(batch):  # this process's share
-            cam, gt = self.cameras[view], self.images[view]
+            cam, gt = self.views[view]
             image = render_view(self.cgs, self.model, cam, state, self.background)
+            if tuple(gt.shape) != tuple(image.shape):
+                raise InputValueError(f"view {view}: image is {list(gt.shape)}, its camera renders {list(image.shape)}")
+            gt = gt.to(image.device, non_blocking=True)
             eye = self.pipeline(image, state, reference=gt)
             loss = image_loss(eye, gt, self.config.loss) / len(batch)
             loss.backward()
@@ -252,7 +308,7 @@ class Trainer:
             "modules": list(self.cgs.modules),
             "effects": sorted(k for k, v in self.effects.items() if v is not None and v is not False),
             "fingerprint": self.cgs.fingerprint,
-            "data": list(self.images.shape),
+            "data": self.data_fingerprint,
             "param_groups": opt["param_groups"],
             "history": self.history,
         }
@@ -271,9 +327,9 @@ class Trainer:
             raise FileFormatError(f"{path}: checkpoint was written with a different config ({', '.join(diffs)})")
         if header.get("fingerprint") != self.cgs.fingerprint:
             raise FileFormatError(f"{path}: checkpoint belongs to another backbone (fingerprint differs)")
-        if header.get("data") != list(self.images.shape):
-            raise FileFormatError(f"{path}: checkpoint was trained on images {header.get('data')}, this trainer has "
-                                  f"{list(self.images.shape)}")
+        if header.get("data") != self.data_fingerprint:
+            raise FileFormatError(f"{path}: checkpoint was trained on other views (data {header.get('data')}), this "
+                                  f"trainer's views are {self.data_fingerprint}")
         if header.get("modules") != list(self.cgs.modules):
             raise FileFormatError(f"{path}: checkpoint trains modules {header.get('modules')}, this trainer {list(self.cgs.modules)}")
         self.cgs.injector.load_state_dict({k[len("adapter."):]: v for k, v in tensors.items() if k.startswith("adapter.")})

@@ -26,8 +26,9 @@ def main() -> None:
     pipeline = Pipeline.from_config({"lens": True, "resample": True, "display": True, "optics": True})
     opt = torch.optim.Adam(cgs.trainable_parameters(), lr=3e-3)
     state = RuntimeState(downsample=4, power_saving=0.4)
+    train = scene.views("train")  # a dataset like any other: views[i] = (camera, image [3, H, W])
     for step in range(5):
-        cam, gt = scene.train_cameras[step], scene.train_images[step]
+        cam, gt = train[step]
         visible = model.visible_anchors(cam)  # row i of the decoders = i-th visible anchor
         with cgs.conditioned(state, camera=cam, anchor_ids=visible):
             image = model.render(cam, visible, background=scene.background).color

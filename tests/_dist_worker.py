@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.datasets.memory import posed_images
 from controlgs_adapter.distributed import DistContext, init_distributed
 from controlgs_adapter.io import load_tensors, save_tensors
 from controlgs_adapter.state import Camera
@@ -57,7 +58,8 @@ def make_trainer(fixture: Path, iterations: int, batch: int, checkpoint: Path | 
                  checkpoint_every: int = 1) -> Trainer:
     model, images, cams, bg = read_fixture(fixture)
     config = TrainConfig(iterations=iterations, batch_size=batch, checkpoint_every=checkpoint_every, seed=0)
-    return Trainer(model, images, cams, config, effects=EFFECTS, background=bg, checkpoint=checkpoint, dist=dist)
+    return Trainer(model, posed_images(images, cams, background=bg), config, effects=EFFECTS, checkpoint=checkpoint,
+                   dist=dist)
 
 
 def result_tensors(trainer: Trainer) -> dict[str, torch.Tensor]:

@@ -32,6 +32,8 @@ def test_tiny_demo_writes_the_report(tmp_path, monkeypatch):
         assert grid.shape == (4, 5) and bool(torch.isfinite(grid).all())
         assert m["psnr"]["mean"] == pytest.approx(float(grid.mean()), rel=1e-9)
     assert data["info"]["iterations"] == 2
+    back = GridResult.from_json(data)
+    assert back.mean("controlgs", "psnr") == data["methods"]["controlgs"]["psnr"]["mean"]
 
 
 def test_markdown_tables_state_what_was_measured():
@@ -46,6 +48,23 @@ def test_markdown_tables_state_what_was_measured():
     assert "ControlGS better than SS-backbone in 19/20 settings" in md
     want = f"{r.mean('controlgs', 'psnr'):.2f}"
     assert f"| ControlGS | {want}" in md or f"| ControlGS | **{want}**" in md
+
+
+def test_grid_result_json_round_trip_is_exact(tmp_path):
+    g = torch.Generator().manual_seed(1)
+    per_view = {m: {"psnr": torch.rand(4, 5, 3, generator=g, dtype=torch.float64) * 30,
+                    "ssim": torch.rand(4, 5, 3, generator=g, dtype=torch.float64)} for m in ("no_ss", "ss", "controlgs")}
+    r = GridResult((1.0, 2.0, 4.0, 8.0), (0.0, 0.2, 0.4, 0.6, 0.8), per_view, "exact",
+                   {"test_views": 3, "test_sizes": ["48x27"]})
+    back = GridResult.from_json(json.loads(json.dumps(r.to_json())))
+    assert back == r and back.info == r.info and back.optics_mode == "exact"
+    other = GridResult.from_json(r.to_json())
+    other.per_view["ss"]["psnr"][0, 0, 0] += 1e-12
+    assert back != other
+    from controlgs_adapter.errors import InputValueError
+
+    with pytest.raises(InputValueError, match="GridResult"):
+        GridResult.from_json({"downsample": [1.0]})
 
 
 def test_grid_invariants_zero_adapter_equals_ss(tmp_path):
@@ -68,7 +87,7 @@ def test_grid_invariants_zero_adapter_equals_ss(tmp_path):
     cgs = ControlGS.wrap(model, cond_dim=4)
     path = cgs.save(tmp_path / "zero.safetensors")
     cgs.unwrap()
-    r = evaluate_grid(model, scene.test_images, scene.test_cameras, {"controlgs": path}, downsample=(1.0, 4.0),
+    r = evaluate_grid(model, scene.views("test"), {"controlgs": path}, downsample=(1.0, 4.0),
                       power_saving=(0.0, 0.6), optics_mode="fast", extra_metrics=False, progress=False)
     for k in ("psnr", "ssim"):
         assert torch.equal(r.per_view["controlgs"][k], r.per_view["ss"][k])

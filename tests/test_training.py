@@ -27,7 +27,7 @@ def tiny():
 def _trainer(tiny, tmp_path=None, **cfg):
     scene, model = tiny
     config = TrainConfig(**{"iterations": 6, "checkpoint_every": 0, "psf_fraction": 0.34, **cfg})
-    return Trainer(model, scene.train_images, scene.train_cameras, config, effects=EFFECTS,
+    return Trainer(model, scene.views("train"), config, effects=EFFECTS,
                    checkpoint=None if tmp_path is None else tmp_path / "ckpt.safetensors")
 
 
@@ -93,3 +93,36 @@ def test_checkpoint_from_another_config_is_refused(tiny, tmp_path):
     with pytest.raises(FileFormatError, match="lr"):
         other.resume()
     other.cgs.unwrap()
+
+
+def test_checkpoint_from_other_views_is_refused_and_views_are_checked(tiny, tmp_path):
+    scene, model = tiny
+    t = _trainer(tiny, tmp_path, iterations=1)
+    t.train(progress=False)
+    t.cgs.unwrap()
+    config = TrainConfig(iterations=1, checkpoint_every=0, psf_fraction=0.34)
+    other = Trainer(model, scene.views("test"), config, effects=EFFECTS, checkpoint=tmp_path / "ckpt.safetensors")
+    with pytest.raises(FileFormatError, match=r"ckpt\.safetensors.*other views"):
+        other.resume()
+    other.cgs.unwrap()
+    with pytest.raises(InputValueError, match="views must be"):
+        Trainer(model, scene.train_images, config, effects=EFFECTS)
+
+
+def test_views_of_any_size_and_a_plain_sequence(tiny):
+    """Non-square views of different sizes train; a plain list with a background is a dataset too."""
+    from controlgs_adapter.datasets.memory import tensor_frames
+    from controlgs_adapter.datasets.base import PosedImages
+
+    scene, model = tiny
+    frames = tensor_frames(scene.train_images, scene.train_cameras)
+    crops = [PosedImages(frames, resolution=12).cameras[0], scene.train_cameras[1]]
+
+    class Plain(list):
+        background = scene.background
+
+    views = Plain([(crops[0], PosedImages(frames, resolution=12).image(0)), (crops[1], scene.train_images[1])])
+    t = Trainer(model, views, TrainConfig(iterations=2, checkpoint_every=0), effects={"resample": True, "display": True})
+    t.train(progress=False)
+    t.cgs.unwrap()
+    assert len(t.history) == 2 and all(math.isfinite(v) for v in t.history)

@@ -29,6 +29,7 @@ import torch
 from tqdm.auto import tqdm
 
 from controlgs_adapter.errors import InputValueError
+from .demo import first_views
 
 DEFAULT_OUT = Path("docs") / "benchmarks.md"
 DEFAULT_ITERATIONS = 100
@@ -127,8 +128,7 @@ def phase_times(model: Any, scene: Any, modes: tuple[str, ...], steps: int, seed
     from controlgs_adapter.losses import image_loss
     from controlgs_adapter.training import TrainConfig, Trainer
 
-    trainer = Trainer(model, scene.train_images, scene.train_cameras,
-                      TrainConfig(iterations=steps + 1, checkpoint_every=0, seed=seed), background=scene.background)
+    trainer = Trainer(model, scene.views("train"), TrainConfig(iterations=steps + 1, checkpoint_every=0, seed=seed))
     pipeline, cgs = trainer.pipeline, trainer.cgs
     if "optics" not in pipeline:
         raise InputValueError(f"the training pipeline has no optics stage (stages: {pipeline.names})")
@@ -142,7 +142,7 @@ def phase_times(model: Any, scene: Any, modes: tuple[str, ...], steps: int, seed
     try:
         for it in range(steps + 1):
             view, state = trainer.sample()
-            cam, gt = trainer.cameras[view], trainer.images[view]
+            cam, gt = trainer.views[view]
             for mode in modes[it % len(modes):] + modes[:it % len(modes)]:  # rotated: no mode always runs first
                 optics.mode = mode
                 trainer.optimizer.zero_grad(set_to_none=True)
@@ -195,9 +195,9 @@ def knob_results(model: Any, scene: Any, s: BenchSettings, workdir: Path, progre
     from controlgs_adapter.training import TrainConfig, Trainer
 
     configs = _knob_configs(s)
-    trainers = [Trainer(load_builtin_backbone(s.variant), scene.train_images, scene.train_cameras,
-                        TrainConfig(iterations=s.iterations, checkpoint_every=0, seed=s.seed, **kw),
-                        background=scene.background) for _, _, kw in configs]
+    trainers = [Trainer(load_builtin_backbone(s.variant), scene.views("train"),
+                        TrainConfig(iterations=s.iterations, checkpoint_every=0, seed=s.seed, **kw))
+                for _, _, kw in configs]
     steps: list[list[float]] = [[] for _ in configs]
     adapters: dict[str, Path] = {}
     try:
@@ -212,9 +212,7 @@ def knob_results(model: Any, scene: Any, s: BenchSettings, workdir: Path, progre
         for trainer in trainers:
             trainer.cgs.unwrap()
     speed = {f"k{i}": statistics.median(times) for i, times in enumerate(steps)}
-    n = min(s.test_views, len(scene.test_cameras))
-    result = evaluate_grid(model, scene.test_images[:n], scene.test_cameras[:n], adapters, background=scene.background,
-                           downsample=s.downsample, power_saving=s.power_saving, optics_mode="exact",
+    result = evaluate_grid(model, first_views(scene.data, "test", s.test_views), adapters, downsample=s.downsample, power_saving=s.power_saving, optics_mode="exact",
                            extra_metrics=False, progress=progress)
     rows = [{"knob": knob, "setting": setting, "s_per_it": speed[f"k{i}"],
              "psnr": result.mean(f"k{i}", "psnr"), "ssim": result.mean(f"k{i}", "ssim")}

@@ -43,11 +43,12 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.set_defaults(func=run)
 
 
-def train_adapters(scene: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
+def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
                    dist: Any = None) -> dict[str, Path]:
     """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
-    names) on ``scene``; returns ``{name: adapter file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this
-    process's :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files)."""
+    names) on the training ``views`` (a :class:`~controlgs_adapter.training.Views` dataset); returns ``{name: adapter
+    file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this process's
+    :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files)."""
     from controlgs_adapter.report import ABLATIONS
     from controlgs_adapter.training import TrainConfig, Trainer
 
@@ -60,8 +61,7 @@ def train_adapters(scene: Any, model: Any, out: Path, args: argparse.Namespace, 
                              batch_size=getattr(args, "batch_size", 1))
         target = out / f"{name}.controlgs.safetensors"
         ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
-        trainer = Trainer(model, scene.train_images, scene.train_cameras, config, background=scene.background,
-                          checkpoint=ckpt, dist=dist)
+        trainer = Trainer(model, views, config, checkpoint=ckpt, dist=dist)
         main = trainer.dist.is_main
         if trainer.resume() and main:
             print(f"{name}: resuming at iteration {trainer.iteration}")
@@ -78,7 +78,7 @@ def train_adapters(scene: Any, model: Any, out: Path, args: argparse.Namespace, 
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from controlgs_adapter.evaluation import condition_response, evaluate_grid, side_by_side
+    from controlgs_adapter.evaluation import evaluate_grid
     from controlgs_adapter.report import ABLATIONS, write_report
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
@@ -92,23 +92,44 @@ def run(args: argparse.Namespace) -> int:
 
     t = time.perf_counter()
     names = ["controlgs", *(ABLATIONS if args.ablations else [])]
-    adapters = train_adapters(scene, model, out, args, names)
+    adapters = train_adapters(scene.views("train"), model, out, args, names)
     timings["train_s"] = time.perf_counter() - t
 
-    n = len(scene.test_cameras) if args.test_views is None else max(1, min(args.test_views, len(scene.test_cameras)))
     t = time.perf_counter()
-    result = evaluate_grid(model, scene.test_images[:n], scene.test_cameras[:n], adapters, background=scene.background,
-                           optics_mode=args.optics, progress=args.progress)
+    views = first_views(scene.data, "test", args.test_views)
+    result = evaluate_grid(model, views, adapters, optics_mode=args.optics, progress=args.progress)
     timings["eval_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    comparison = side_by_side(model, adapters["controlgs"], scene.test_cameras[0], scene.test_images[0],
-                              background=scene.background, optics_mode=args.optics)
-    response = condition_response(model, adapters["controlgs"], scene.test_cameras[0], background=scene.background)
+    comparison, response = report_figures(model, adapters["controlgs"], views, optics_mode=args.optics)
     timings["figures_s"] = time.perf_counter() - t
-    info = {"scene": scene.name, "resolution": args.resolution, "iterations": args.iterations, "test_views": n,
+    info = {"scene": scene.name, "resolution": args.resolution, "iterations": args.iterations, "test_views": len(views),
             "optics": args.optics, "seed": args.seed, "threads": torch.get_num_threads(),
             **{k: round(v, 1) for k, v in timings.items()}}
     paths = write_report(out, result, info=info, comparison=comparison, response=response)
     print(json.dumps({m: {k: round(result.mean(m, k), 4) for k in result.metrics} for m in result.methods}, indent=1))
     print("report: " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def first_views(data: Any, split: str, n: int | None, resolution: int | None = None) -> Any:
+    """The first ``n`` views (all when None; at least 1) of ``split`` of the :class:`SceneData` ``data`` at
+    ``resolution`` (longer side, pixels; None: full size) as :class:`PosedImages`."""
+    from controlgs_adapter.datasets.base import SceneData
+
+    frames = data.splits.get(split, [])
+    keep = frames if n is None else frames[:max(1, n)]
+    return SceneData({split: keep}, data.points, data.background, data.source, data.format).views(split, resolution=resolution)
+
+
+def report_figures(model: Any, adapter: Path, views: Any, *, optics_mode: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The report's comparison (:func:`side_by_side`) and condition strip (:func:`condition_response`) on the
+    first of ``views``, on the model's device."""
+    from controlgs_adapter.evaluation import condition_response, side_by_side
+    from controlgs_adapter.training import model_device
+
+    device = model_device(model)
+    cam, gt = views[0]
+    bg = views.background.to(device)
+    comparison = side_by_side(model, adapter, cam, gt.to(device), background=bg, optics_mode=optics_mode)
+    response = condition_response(model, adapter, cam, background=bg)
+    return comparison, response

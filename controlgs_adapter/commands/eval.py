@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .demo import add_common
+from .demo import add_common, first_views
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -32,10 +32,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputValueError(f"{run_dir}: no controlgs.controlgs.safetensors (train one with `controlgs train --out {run_dir}`)")
     scene = load_builtin_scene(args.variant, args.resolution, cache=True)
     model = load_builtin_backbone(args.variant)
-    n = len(scene.test_cameras) if args.test_views is None else max(1, min(args.test_views, len(scene.test_cameras)))
-    result = evaluate_grid(model, scene.test_images[:n], scene.test_cameras[:n], adapters, background=scene.background,
-                           optics_mode=args.optics, progress=args.progress)
-    info = {"scene": scene.name, "resolution": args.resolution, "test_views": n, "optics": args.optics}
+    views = first_views(scene.data, "test", args.test_views)
+    result = evaluate_grid(model, views, adapters, optics_mode=args.optics, progress=args.progress)
+    info = {"scene": scene.name, "resolution": args.resolution, "test_views": len(views), "optics": args.optics}
     for p in write_report(Path(args.out) if args.out else run_dir, result, info=info):
         print(p)
     return 0

@@ -29,11 +29,9 @@ def run(args: argparse.Namespace) -> int:
     names = ["controlgs", *args.ablation]
     with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
 
-        def load(variant: str):  # scene and backbone on this rank's device (cuda:<LOCAL_RANK> with NCCL)
+        def load(variant: str):  # views and backbone on this rank's device (cuda:<LOCAL_RANK> with NCCL)
             scene = load_builtin_scene(variant, args.resolution, cache=True)
-            if dist.device.type != "cpu":
-                scene.train_images, scene.background = scene.train_images.to(dist.device), scene.background.to(dist.device)
-            return scene, load_builtin_backbone(variant).to(dist.device)
+            return scene.views("train"), load_builtin_backbone(variant).to(dist.device)
 
         if args.scenes:  # many-scenes mode: this process's scenes, each trained alone
             for variant in shard_scenes(args.scenes, dist):

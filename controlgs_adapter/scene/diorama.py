@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import torch
 
+from ..datasets.base import PosedImages, SceneData
+from ..datasets.memory import tensor_frames
 from ..errors import FileFormatError, InputValueError
 from ..io import load_tensors, save_tensors
 from ..state import Camera
@@ -62,6 +65,9 @@ class BuiltinScene:
         train_cameras / test_cameras: cameras at S.
         train_images / test_images: sRGB ``[N, 3, S, S]`` float32 in [0, 1].
         background: ``[3]`` colour where no plane is hit.
+
+    As a dataset like any other: :attr:`data` (a :class:`SceneData` of in-memory frames, format
+    ``"builtin"``) and :meth:`views` (its splits as :class:`PosedImages`).
     """
 
     variant: str
@@ -76,6 +82,17 @@ class BuiltinScene:
     @property
     def name(self) -> str:
         return f"builtin-{self.variant}"
+
+    @cached_property
+    def data(self) -> SceneData:
+        """The scene as a parsed dataset: splits ``train`` / ``test`` of in-memory frames at S."""
+        return SceneData({"train": tensor_frames(self.train_images, self.train_cameras, prefix=f"{self.name}/train"),
+                          "test": tensor_frames(self.test_images, self.test_cameras, prefix=f"{self.name}/test")},
+                         background=self.background, source=self.name, format="builtin")
+
+    def views(self, split: str) -> PosedImages:
+        """Cameras and images of ``split`` (``"train"`` or ``"test"``) at S."""
+        return self.data.views(split)
 
     def points(self, spacing: float = 0.05) -> tuple[torch.Tensor, torch.Tensor]:
         """Points on every plane on a ``spacing`` grid with their texture colour, to initialise
