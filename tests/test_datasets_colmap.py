@@ -106,7 +106,8 @@ def test_cameras_poses_points_match_pycolmap(tmp_path, text):
         assert torch.allclose(k, torch.tensor([[fx, 0, cam.principal_point_x], [0, fy, cam.principal_point_y],
                                                [0, 0, 1]], dtype=torch.float64), atol=1e-5)
         assert (f.camera.width, f.camera.height) == (W, H)
-        assert f.distortion == pytest.approx(EXPECTED_DIST[im.camera_id]) if EXPECTED_DIST[im.camera_id] else f.distortion is None
+        expected_dist = EXPECTED_DIST[im.camera_id]
+        assert f.distortion is None if expected_dist is None else f.distortion == pytest.approx(expected_dist)
         w2c = torch.from_numpy(im.cam_from_world().matrix())
         assert torch.allclose(f.camera.world_to_camera[:3].double(), w2c, atol=1e-6)
         assert f.source == tmp_path / "images" / f.name

@@ -195,7 +195,8 @@ def _read_points_bin(path: Path) -> np.ndarray:
         if n == 0:
             return np.zeros((0, 3))
         raw = np.frombuffer(f.buf, dtype=np.uint8)
-        xyz = raw[(np.asarray(starts, dtype=np.int64) + 8)[:, None] + np.arange(24)].view("<f8").reshape(n, 3).astype(np.float64)
+        byte_idx = (np.asarray(starts, dtype=np.int64) + 8)[:, None] + np.arange(24)  # xyz follows the u64 id
+        xyz = raw[byte_idx].view("<f8").reshape(n, 3).astype(np.float64)
         del raw  # release the view before the map closes
     return xyz
 
@@ -341,7 +342,9 @@ def _scale_factor_ok(cam_w: int, cam_h: int, w: int, h: int) -> bool:
     return lo <= hi and hi > 0
 
 
-def _frame(name: str, img: _ColmapImage, cam: _ColmapCamera, path: Path, size: tuple[int, int], model_file: Path) -> Frame:
+def _frame(name: str, img: _ColmapImage, cam: _ColmapCamera, path: Path, size: tuple[int, int],
+           model_file: Path) -> Frame:
+    """The frame of image ``name``: pinhole camera scaled to the image file's ``size`` ``(w, h)``."""
     if not all(math.isfinite(v) for v in cam.params) or cam.width < 1 or cam.height < 1:
         raise FileFormatError(f"{model_file}: the camera of image {name!r} is invalid: {cam.model} "
                               f"{cam.width}x{cam.height} {list(cam.params)}")

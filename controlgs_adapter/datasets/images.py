@@ -147,5 +147,6 @@ def undistort_points(uv: torch.Tensor, intrinsics: torch.Tensor, distortion: Seq
         j01 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
         j11 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
         det = j00 * j11 - j01 * j01  # the Jacobian is symmetric
-        xy = xy - torch.stack([j11 * res[:, 0] - j01 * res[:, 1], j00 * res[:, 1] - j01 * res[:, 0]], dim=-1) / det[:, None]
+        step = torch.stack([j11 * res[:, 0] - j01 * res[:, 1], j00 * res[:, 1] - j01 * res[:, 0]], dim=-1)
+        xy = xy - step / det[:, None]
     return torch.stack([fx * xy[:, 0] + cx, fy * xy[:, 1] + cy], dim=-1).to(uv.dtype)
