@@ -278,3 +278,41 @@ def test_opengl_to_opencv_keeps_the_centre_and_looks_at_the_target(eye, target, 
     assert float(depth[0]) == pytest.approx(np.linalg.norm(fwd), rel=1e-4)
     np.testing.assert_allclose(uv[0].numpy(), [20.0, 15.0], atol=1e-3)
     assert float(uv[1, 1]) < 15.0 and float(uv[2, 0]) > 20.0
+
+
+def _distort(xy: np.ndarray, k1, k2, p1, p2, k3) -> np.ndarray:
+    """OpenCV radial-tangential model on normalised coordinates ``[2]``."""
+    x, y = xy
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+    return np.array([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                     y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y])
+
+
+def test_ngp_distorted_capture_is_undistorted_onto_the_pinhole_projection(tmp_path):
+    """A 3x3 marker drawn where the distorted capture shows a known point ends up, after loading,
+    where the read pinhole camera projects that point (the distortion moves it by 1.6 pixels)."""
+    fx, fy, cx, cy, dist = 30.0, 30.0, 20.0, 15.0, (0.5, 0.1, 0.004, -0.003, 0.05)
+    c2w = ring_poses(1)[0]
+    col, row = 32, 24                                  # marker centre at the pixel centre (32.5, 24.5)
+    target = np.array([(col + 0.5 - cx) / fx, (row + 0.5 - cy) / fy])
+    xy = target.copy()
+    for _ in range(200):                               # fixed point: distort(xy) = target
+        xy = xy + (target - _distort(xy, *dist))
+    np.testing.assert_allclose(_distort(xy, *dist), target, atol=1e-10)
+    point = unproject_gl(c2w, fx, fy, cx, cy, (cx + fx * xy[0], cy + fy * xy[1]), 3.0)
+    img = np.zeros((H, W, 3), dtype=np.uint8)
+    img[row - 1:row + 2, col - 1:col + 2] = 255
+    write_png(tmp_path / "images" / "a.png", img)
+    write_json(tmp_path / "transforms.json", {
+        "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": W, "h": H, **dict(zip(("k1", "k2", "p1", "p2", "k3"), dist)),
+        "frames": [{"file_path": "images/a.png", "transform_matrix": c2w.tolist()}]})
+    views = read_instant_ngp(tmp_path, holdout=0).views("train")
+    cam, image = views[0]
+    uv, _ = cam.project(torch.from_numpy(point[None]).float())
+    assert np.linalg.norm(uv[0].numpy() - (col + 0.5, row + 0.5)) > 1.5   # distortion matters here
+    weight = image[0].double()
+    jj, ii = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    centroid = np.array([float((weight * ii).sum() / weight.sum()), float((weight * jj).sum() / weight.sum())])
+    np.testing.assert_allclose(centroid, uv[0].numpy(), atol=0.3)
