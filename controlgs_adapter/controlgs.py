@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
@@ -176,8 +176,13 @@ class ControlGS:
 
     Build with :meth:`wrap` or :meth:`load`. Attributes: ``model``, ``backend``, ``injector``,
     ``targets`` (what it attached to), ``modules``, ``schedules``, ``state_blind``,
-    ``num_anchors``, ``rows_per_anchor``, ``fingerprint`` (of the backbone).
+    ``num_anchors``, ``rows_per_anchor``, ``fingerprint`` (of the backbone), ``placement``.
     """
+
+    #: where the image sits on the headset display for the per-anchor strengths (``"fit"`` or
+    #: ``"stretch"``, :mod:`controlgs_adapter.downstream.placement`); set it as the optics stage's
+    #: ``placement`` when that is not the default. A run-time setting, not saved with the adapter.
+    placement: str = "fit"
 
     def __init__(self, model: Any, backend: Backend, injector: ConditionInjector, targets: list[Target],
                  schedules: dict[str, StrengthSchedule], state_blind: bool, fingerprint: str,
@@ -362,11 +367,25 @@ class ControlGS:
                         f"(Camera.from_scaffold converts a Scaffold-GS camera), got {type(camera).__name__}"
                     )
                 positions = self.backend.anchor_positions(self.model).detach()
-                screen = camera.normalized_screen(positions.index_select(0, ids.to(positions.device)))
-            lam_t = schedule.strength(state, screen, dtype=self.injector.dtype, device=ids.device)
+                screen, display_state = self._display_positions(
+                    camera, camera.normalized_screen(positions.index_select(0, ids.to(positions.device))), state)
+            lam_t = schedule.strength(display_state, screen, dtype=self.injector.dtype, device=ids.device)
             if not skip_zero or bool(lam_t.any()):
                 out[m] = lam_t
         return out
+
+    def _display_positions(self, camera: Camera, screen: torch.Tensor,
+                           state: RuntimeState) -> tuple[torch.Tensor, RuntimeState]:
+        """Image-normalised anchor positions ``[R, 2]`` and gaze -> display-normalised ones (p_v of the
+        lens and foveation schedules): the image placed on the Cardboard display as the optics
+        places it, so a strength follows the radial distance on the display (a square image: as is)."""
+        from .downstream.placement import to_display
+
+        h, w = camera.height, camera.width
+        if state.gaze is not None:
+            gaze = to_display(torch.tensor(state.gaze, dtype=torch.float64), h, w, self.placement)
+            state = replace(state, gaze=tuple(gaze.tolist()))
+        return to_display(screen, h, w, self.placement), state
 
     @contextlib.contextmanager
     def conditioned(self, state: RuntimeState, camera: Camera | None = None, anchor_ids: torch.Tensor | None = None,

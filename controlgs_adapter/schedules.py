@@ -11,11 +11,17 @@ built-in modules:
 ============  ============================================  ==========  ============
 module        control value f_m                             per anchor  endpoints
 ============  ============================================  ==========  ============
-lens          ||p||_2, p = anchor's normalised screen pos.  yes         0 .. sqrt(2)
+lens          ||p||_2, p = anchor's display position        yes         0 .. sqrt(2)
 resample      log2(d), d = S / display sampling rate        no          0 .. 3
 display       rho = 1 - P_target / P_ref                    no          0 .. 0.8
 foveation     ||p - gaze||_2 (0 when gaze is None)          yes         0 .. e_max
 ============  ============================================  ==========  ============
+
+``p`` (and the gaze) are display-normalised positions: ``ControlGS`` places the image on the
+headset display as the optics does (``controlgs_adapter.downstream.placement``, default ``"fit"``:
+square pixels, the longer image axis spans [-1, 1], the shorter one ``short / long`` of it), so a
+strength follows the radial distance on the display; for a square image they are the normalised
+screen positions.
 
 The endpoints are configuration (``ControlGS.wrap(endpoints={"lens": (0.0, 1.2)})``); the
 foveation default ``e_max = sqrt(2)`` (gaze at the centre, anchor at a corner) is this library's
@@ -76,7 +82,7 @@ class StrengthSchedule:
 
     def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> torch.Tensor | float:
         """Control value alpha: ``[R]`` for per-anchor schedules (``screen_xy`` is ``[R, 2]``
-        normalised screen positions, +inf for anchors behind the camera), a float otherwise."""
+        display-normalised positions, +inf for anchors behind the camera), a float otherwise."""
         raise NotImplementedError
 
     def strength(self, state: RuntimeState, screen_xy: torch.Tensor | None = None, *, rows: int | None = None,
@@ -85,7 +91,7 @@ class StrengthSchedule:
 
         Args:
             state: the run-time state.
-            screen_xy: ``[R, 2]`` normalised screen positions of the rows' anchors (needed if
+            screen_xy: ``[R, 2]`` display-normalised positions of the rows' anchors (needed if
                 :attr:`per_anchor`; otherwise only its length is used).
             rows: R when ``screen_xy`` is None (global schedules only).
         """
@@ -116,7 +122,7 @@ class StrengthSchedule:
 
 
 class LensSchedule(StrengthSchedule):
-    """Lens correction: radius of the anchor's projected screen position about the optical centre."""
+    """Lens correction: radius of the anchor's display position about the optical centre."""
 
     name = "lens"
     per_anchor = True
@@ -150,7 +156,7 @@ class DisplaySchedule(StrengthSchedule):
 
 
 class FoveationSchedule(StrengthSchedule):
-    """Foveation: eccentricity ``||p - gaze||_2`` in normalised screen units; no gaze -> 0."""
+    """Foveation: eccentricity ``||p - gaze||_2`` in display-normalised units; no gaze -> 0."""
 
     name = "foveation"
     per_anchor = True
