@@ -7,13 +7,15 @@ agree) or ``"*"`` (any number of leading dims, only first).
 
 from __future__ import annotations
 
+import math
+import numbers
 from typing import Sequence
 
 import torch
 
 from .errors import InputValueError, ShapeError
 
-__all__ = ["check_tensor", "check_image", "check_finite", "check_same_device"]
+__all__ = ["check_tensor", "check_image", "check_finite", "check_same_device", "check_number"]
 
 
 def check_tensor(

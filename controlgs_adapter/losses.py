@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from .checks import check_number
 from .errors import InputValueError
 from .metrics import check_image_pair, ssim
 
@@ -33,9 +34,7 @@ class LossWeights:
 
     def __post_init__(self) -> None:
         for name in ("l1", "ssim", "mse", "lpips"):
-            v = float(getattr(self, name))
-            if not v >= 0.0:
-                raise InputValueError(f"loss weight {name} must be >= 0, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, check_number(f"loss weight {name}", getattr(self, name), low=0.0))
         if self.lpips > 0.0:
             raise InputValueError(LPIPS_UNAVAILABLE + f" (got lpips={self.lpips!r})")
 

@@ -85,9 +85,9 @@ def read_instant_ngp(root: str | Path, *, holdout: int = 8, background: torch.Te
         raise FileFormatError(f"{path}: none of the {len(entries)} images its frames list exists "
                               f"(first: {root / entries[0]['file_path']})")
     frames.sort(key=lambda f: f.name)
-    names = [f.name for f in frames]
-    if len(set(names)) != len(names):
-        raise FileFormatError(f"{path}: an image is listed twice ({next(n for n in names if names.count(n) > 1)!r})")
+    twice = [a.name for a, b in zip(frames, frames[1:]) if a.name == b.name]
+    if twice:
+        raise FileFormatError(f"{path}: an image is listed twice ({twice[0]!r})")
     test = [f for j, f in enumerate(frames) if holdout and j % holdout == 0]
     train = [f for j, f in enumerate(frames) if not (holdout and j % holdout == 0)]
     return SceneData(splits={"train": train, "test": test}, points=None, background=bg, source=str(root),
