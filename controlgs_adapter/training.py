@@ -28,9 +28,10 @@ from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 import torch
 from tqdm.auto import tqdm
 
+from .checks import check_number
 from .controlgs import ControlGS
 from .distributed import DistContext
-from .errors import FileFormatError, InputValueError
+from .errors import FileFormatError, InputValueError, NonFiniteError
 from .io import load_tensors, save_tensors
 from .losses import LossWeights, image_loss
 from .state import Camera, RuntimeState
@@ -152,22 +153,26 @@ class TrainConfig:
     batch_size: int = 1
 
     def __post_init__(self) -> None:
-        if int(self.iterations) < 0:
-            raise InputValueError(f"iterations must be >= 0, got {self.iterations!r}")
-        if not self.lr > 0:
-            raise InputValueError(f"lr must be > 0, got {self.lr!r}")
-        if not self.max_downsample >= 1.0:
-            raise InputValueError(f"max_downsample must be >= 1, got {self.max_downsample!r}")
-        if not 0.0 <= self.max_power_saving < 1.0:
-            raise InputValueError(f"max_power_saving must be in [0, 1), got {self.max_power_saving!r}")
-        if not 0.0 <= self.psf_fraction <= 1.0:
-            raise InputValueError(f"psf_fraction must be in [0, 1], got {self.psf_fraction!r}")
+        numbers = {"iterations": dict(integer=True, low=0), "lr": dict(low=0.0, low_open=True, high=1e3),
+                   "cond_dim": dict(integer=True, low=1), "max_downsample": dict(low=1.0, high=1e4),
+                   "max_power_saving": dict(low=0.0, high=1.0, high_open=True), "psf_fraction": dict(low=0.0, high=1.0),
+                   "checkpoint_every": dict(integer=True, low=0), "seed": dict(integer=True, low=0, high=2**63 - 1),
+                   "batch_size": dict(integer=True, low=1)}
+        for name, limits in numbers.items():
+            object.__setattr__(self, name, check_number(f"TrainConfig.{name}", getattr(self, name), **limits))
+        if not isinstance(self.state_blind, bool):
+            raise InputValueError(f"TrainConfig.state_blind must be a bool, got {self.state_blind!r}")
         if self.psf_mode not in ("fast", "exact"):
-            raise InputValueError(f"psf_mode must be 'fast' or 'exact', got {self.psf_mode!r}")
-        if int(self.batch_size) < 1:
-            raise InputValueError(f"batch_size must be >= 1, got {self.batch_size!r}")
-        if int(self.checkpoint_every) < 0:
-            raise InputValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every!r}")
+            raise InputValueError(f"TrainConfig.psf_mode must be 'fast' or 'exact', got {self.psf_mode!r}")
+        if not isinstance(self.loss, LossWeights):
+            raise InputValueError(f"TrainConfig.loss must be a LossWeights, got {type(self.loss).__name__}")
+        modules = self.modules
+        if isinstance(modules, str):  # one module name, not its letters
+            modules = (modules,)
+        if modules is not None:
+            if not isinstance(modules, (list, tuple)) or not all(isinstance(m, str) for m in modules):
+                raise InputValueError(f"TrainConfig.modules must be None or a sequence of module names, got {self.modules!r}")
+            object.__setattr__(self, "modules", tuple(modules))
 
     def as_header(self) -> dict[str, Any]:
         """JSON-able form (for checkpoints and reports)."""
@@ -203,6 +208,8 @@ class Trainer:
         if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
             raise InputValueError("views must be a non-empty dataset of (camera, image) with a background "
                                   f"(e.g. SceneData.views('train')), got {type(views).__name__}")
+        if not isinstance(config, TrainConfig):
+            raise InputValueError(f"config must be a TrainConfig, got {type(config).__name__}")
         self.config = config
         self.effects = dict(DEFAULT_EFFECTS if effects is None else effects)
         modules = modules_for(self.effects) if config.modules is None else tuple(config.modules)
@@ -216,11 +223,15 @@ class Trainer:
         with torch.random.fork_rng(devices=[]):  # the projections' initialisation follows the seed, not the global RNG
             torch.manual_seed(int(config.seed))
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind)
-        self.pipeline = Pipeline.from_config(self.effects).to(self.device)
-        self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)
-        self.dist = DistContext() if dist is None else dist
-        self.dist.check_batch(config.batch_size)
-        self.dist.broadcast_parameters(self.cgs.trainable_parameters())  # every replica starts as rank 0
+        try:  # a failure below leaves the user's model as it was
+            self.pipeline = Pipeline.from_config(self.effects).to(self.device)
+            self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)
+            self.dist = DistContext() if dist is None else dist
+            self.dist.check_batch(config.batch_size)
+            self.dist.broadcast_parameters(self.cgs.trainable_parameters())  # every replica starts as rank 0
+        except BaseException:
+            self.cgs.unwrap()
+            raise
         self.generator = torch.Generator().manual_seed(int(config.seed))
         self.iteration = 0
         self.history: list[float] = []
@@ -261,7 +272,14 @@ class Trainer:
             value += float(loss.detach())
         value = self.dist.sync_gradients(self.cgs.trainable_parameters(), row_sparse=(self.cgs.injector.conditions,),
                                          loss=value, step=self.iteration)
+        if not math.isfinite(value):
+            raise NonFiniteError(f"training diverged at iteration {self.iteration}: the loss is {value}; the adapter "
+                                 "was not updated and no checkpoint of this state was written")
         self.optimizer.step()
+        bad = [name for name, p in self.cgs.injector.named_parameters() if not bool(torch.isfinite(p).all())]
+        if bad:
+            raise NonFiniteError(f"training diverged at iteration {self.iteration}: parameter(s) {bad} became NaN/Inf "
+                                 f"(lr {self.config.lr:g}); the last good checkpoint was kept, this state not written")
         self.iteration += 1
         self.history.append(value)
         return value
