@@ -337,7 +337,11 @@ class Trainer:
         with the same backbone, config and effects (checked, naming what differs)."""
         tensors, header = load_tensors(path, kind=CHECKPOINT_KIND, max_version=CHECKPOINT_FORMAT_VERSION)
         mine = self.config.as_header()
-        theirs = dict(header.get("config", {}))
+        theirs = header.get("config")
+        if not isinstance(theirs, dict) or not isinstance(theirs.get("loss", {}), dict):
+            raise FileFormatError(f"{path}: checkpoint header field 'config' must be an object with a 'loss' object, "
+                                  f"got {str(theirs)[:80]}")
+        theirs = dict(theirs)
         theirs["loss"] = dict(theirs.get("loss", {}))
         diffs = [k for k in mine if k not in ("iterations", "checkpoint_every") and
                  (mine[k] if k != "loss" else dict(mine[k])) != theirs.get(k)]
@@ -350,16 +354,59 @@ class Trainer:
                                   f"trainer's views are {self.data_fingerprint}")
         if header.get("modules") != list(self.cgs.modules):
             raise FileFormatError(f"{path}: checkpoint trains modules {header.get('modules')}, this trainer {list(self.cgs.modules)}")
-        self.cgs.injector.load_state_dict({k[len("adapter."):]: v for k, v in tensors.items() if k.startswith("adapter.")})
+        adapter, state = self._checked_tensors(path, tensors)
+        iteration, history, groups = header.get("iteration"), header.get("history", []), header.get("param_groups")
+        if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
+            raise FileFormatError(f"{path}: checkpoint header field 'iteration' must be an integer >= 0, got {iteration!r}")
+        if not isinstance(history, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                    and math.isfinite(v) for v in history):
+            raise FileFormatError(f"{path}: checkpoint header field 'history' must be a list of finite losses")
+        own = self.optimizer.state_dict()["param_groups"]
+        if not isinstance(groups, list) or len(groups) != len(own) or not all(
+                isinstance(g, dict) and g.get("params") == o["params"] for g, o in zip(groups, own)):
+            raise FileFormatError(f"{path}: checkpoint header field 'param_groups' does not describe this optimizer "
+                                  f"({len(own)} Adam group(s) over parameters {[o['params'] for o in own]}), got {str(groups)[:80]}")
+        rng = tensors.get("rng")
+        want = self.generator.get_state()
+        if rng is None or rng.dtype != want.dtype or rng.shape != want.shape:
+            raise FileFormatError(f"{path}: checkpoint tensor 'rng' must be a {want.dtype} tensor of shape "
+                                  f"{list(want.shape)}, got " + ("none" if rng is None else f"{rng.dtype} {list(rng.shape)}"))
+        try:
+            self.optimizer.load_state_dict({"state": state, "param_groups": groups})
+        except (ValueError, KeyError, TypeError, IndexError, RuntimeError) as e:
+            raise FileFormatError(f"{path}: checkpoint optimizer state does not fit this optimizer: {e}") from None
+        self.cgs.injector.load_state_dict(adapter)
+        self.generator.set_state(rng)
+        self.iteration = iteration
+        self.history = list(history)
+
+    def _checked_tensors(self, path: str | Path, tensors: Mapping[str, torch.Tensor],
+                         ) -> tuple[dict[str, torch.Tensor], dict[int, dict[str, torch.Tensor]]]:
+        """Split a checkpoint's tensors into the adapter's state dict and the optimizer's state,
+        refusing NaN/Inf, missing, unexpected and mis-shaped tensors (naming the file and tensor)."""
+        bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+        if bad:
+            raise FileFormatError(f"{path}: checkpoint tensor(s) {bad} hold NaN/Inf: refusing to resume from it")
+        own = self.cgs.injector.state_dict()
+        adapter = {k[len("adapter."):]: v for k, v in tensors.items() if k.startswith("adapter.")}
+        wrong = sorted(set(own) ^ set(adapter)) + sorted(k for k in set(own) & set(adapter) if own[k].shape != adapter[k].shape)
+        if wrong:
+            raise FileFormatError(f"{path}: checkpoint adapter tensors do not fit this adapter (missing, unexpected or "
+                                  f"mis-shaped: {wrong})")
+        params = [p for g in self.optimizer.param_groups for p in g["params"]]
         state: dict[int, dict[str, torch.Tensor]] = {}
         for k, v in tensors.items():
             if k.startswith("optimizer."):
-                _, i, name = k.split(".", 2)
-                state.setdefault(int(i), {})[name] = v
-        self.optimizer.load_state_dict({"state": state, "param_groups": header["param_groups"]})
-        self.generator.set_state(tensors["rng"])
-        self.iteration = int(header["iteration"])
-        self.history = list(header.get("history", []))
+                parts = k.split(".", 2)
+                if len(parts) != 3 or not parts[1].isdigit() or int(parts[1]) >= len(params) or parts[2] not in (
+                        "step", "exp_avg", "exp_avg_sq") or (parts[2] != "step" and v.shape != params[int(parts[1])].shape):
+                    raise FileFormatError(f"{path}: checkpoint tensor {k!r} ({list(v.shape)}) is not Adam state of "
+                                          f"this adapter's {len(params)} parameters")
+                state.setdefault(int(parts[1]), {})[parts[2]] = v
+        extra = sorted(k for k in tensors if not k.startswith(("adapter.", "optimizer.")) and k != "rng")
+        if extra:
+            raise FileFormatError(f"{path}: checkpoint holds unexpected tensors {extra}")
+        return adapter, state
 
     def resume(self) -> bool:
         """Load :attr:`checkpoint_path` if it exists; True if it did."""

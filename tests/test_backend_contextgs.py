@@ -181,6 +181,7 @@ def test_lens_strength_uses_quantised_positions():
     def radius(pos: torch.Tensor) -> torch.Tensor:  # float64 pinhole projection of make_camera()
         uv = pos[:, :2] / (pos[:, 2:] + 5.0) * 40.0 + torch.tensor([32.0, 24.0], dtype=torch.float64)
         p = 2 * uv / torch.tensor([64.0, 48.0], dtype=torch.float64) - 1
+        p = p * torch.tensor([1.0, 48 / 64], dtype=torch.float64)  # on the display ("fit": the longer axis spans it)
         return (p.norm(dim=1) / 2 ** 0.5).clamp(0, 1)
 
     q = quantize_anchor(t["anchor"].double(), lo.double(), hi.double())

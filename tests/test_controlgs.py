@@ -104,7 +104,8 @@ def test_injection_matches_eq9_in_float64(kind):
     randomise(cgs)
     eager = {d: getattr(model, d) for d in DECODERS}  # rebuilt eager decoders for the script variant
     ids = visible.nonzero().squeeze(1)
-    r = torch.linalg.vector_norm(_pinhole_screen(model._anchor.detach()[ids], cam), dim=1)
+    on_display = torch.tensor([1.0, cam.height / cam.width], dtype=torch.float64)  # "fit" placement, landscape
+    r = torch.linalg.vector_norm(_pinhole_screen(model._anchor.detach()[ids], cam) * on_display, dim=1)
     lam = {"lens": ((r - 0.1) / 1.1).clamp(0, 1), "resample": torch.full_like(r, math.log2(2.5) / 3),
            "display": torch.full_like(r, 0.3 / 0.8)}
     with cgs.conditioned(state, camera=cam, anchor_ids=visible):

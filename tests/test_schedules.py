@@ -74,6 +74,10 @@ def test_controlgs_strengths_project_each_anchor_with_the_camera(state, lo, hi, 
         v = k[1, 1] * pts[:, 1] / z + k[1, 2]
         xy = torch.stack([2 * u / cam.width - 1, 2 * v / cam.height - 1], dim=1)
         assert bool((xy.abs() > 1).any())  # some anchors are off screen
+        # anchors and gaze on the display ("fit" placement: the 40 px width spans it, the height 30/40)
+        xy = xy * torch.tensor([1.0, 30 / 40], dtype=torch.float64)
+        if state.gaze is not None:
+            state = RuntimeState(state.downsample, state.power_saving, (state.gaze[0], state.gaze[1] * 30 / 40))
         for i in range(len(ids)):
             want = _reference(state, (float(xy[i, 0]), float(xy[i, 1])), (lo, hi), (lo, hi))
             for m in want:
