@@ -442,7 +442,7 @@ def _symbolic_forward(fn: ast.FunctionDef, where: str) -> tuple[Any, bool]:
                 return env[n.id]
             if n.id == "getattr":
                 return ("builtin", "getattr")
-        elif isinstance(n, ast.Constant) and (n.value is None or type(n.value) in (bool, int, float)):
+        elif isinstance(n, ast.Constant) and (n.value is None or type(n.value) in (bool, int, float, str)):
             return ("const", n.value)
         elif isinstance(n, ast.UnaryOp) and isinstance(n.op, ast.USub) and isinstance(n.operand, ast.Constant) \
                 and type(n.operand.value) in (int, float):
@@ -652,10 +652,11 @@ def eager_from_archive(path: str | Path) -> nn.Module:
     try:
         archive, root, code, zf = _open_archive(path)
         with zf:
+            module = _build(_tree(root, ""), code, "")
             code.check_names()
             if archive.prefix + "constants.pkl" in archive.entries and archive.unpickle("constants.pkl") != ():
                 raise _Refused("tensor constants used by its code (a decoder has none)")
-            return _build(_tree(root, ""), code, "")
+            return module
     except FileFormatError:
         raise
     except Exception as e:  # noqa: BLE001 - every failure of a foreign file is a format error naming it
