@@ -44,11 +44,12 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
 
 def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
-                   dist: Any = None) -> dict[str, Path]:
+                   dist: Any = None, trained: dict[str, int] | None = None) -> dict[str, Path]:
     """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
     names) on the training ``views`` (a :class:`~controlgs_adapter.training.Views` dataset); returns ``{name: adapter
     file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this process's
-    :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files)."""
+    :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files). ``trained``, if
+    given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked)."""
     from controlgs_adapter.report import ABLATIONS
     from controlgs_adapter.training import TrainConfig, Trainer
 
@@ -65,6 +66,9 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
         main = trainer.dist.is_main
         if trainer.resume() and main:
             print(f"{name}: resuming at iteration {trainer.iteration}")
+        if trainer.iteration > config.iterations and main:
+            print(f"{name}: the checkpoint is already at iteration {trainer.iteration} > --iterations "
+                  f"{config.iterations}; keeping what was trained")
         try:
             trainer.train(progress=args.progress)
             if main:
@@ -72,10 +76,20 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
         finally:
             trainer.cgs.unwrap()
         paths[name] = target
+        if trained is not None:
+            trained[name] = trainer.iteration
     return paths
 
 
 def run(args: argparse.Namespace) -> int:
+    """The demo, holding the lock of the report folder (a second run into it is refused)."""
+    from controlgs_adapter.lock import run_lock
+
+    with run_lock(Path(args.out)):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     import torch
 
     from controlgs_adapter.evaluation import evaluate_grid
@@ -92,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
 
     t = time.perf_counter()
     names = ["controlgs", *(ABLATIONS if args.ablations else [])]
-    adapters = train_adapters(scene.views("train"), model, out, args, names)
+    trained: dict[str, int] = {}
+    adapters = train_adapters(scene.views("train"), model, out, args, names, trained=trained)
     timings["train_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -102,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     comparison, response = report_figures(model, adapters["controlgs"], views, optics_mode=args.optics)
     timings["figures_s"] = time.perf_counter() - t
-    info = {"scene": scene.name, "resolution": args.resolution, "iterations": args.iterations, "test_views": len(views),
+    info = {"scene": scene.name, "resolution": args.resolution, "iterations": trained["controlgs"], "test_views": len(views),
             "optics": args.optics, "seed": args.seed, "threads": torch.get_num_threads(),
             **{k: round(v, 1) for k, v in timings.items()}}
     paths = write_report(out, result, info=info, comparison=comparison, response=response)

@@ -6,9 +6,11 @@ Under ``torchrun`` it trains data-parallel, or with ``--scenes`` one scene per p
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 
 from ..distributed import DistContext, add_distributed_arguments, init_distributed, shard_scenes
+from ..lock import run_lock
 from .demo import add_common, add_training, train_adapters
 
 
@@ -33,13 +35,15 @@ def run(args: argparse.Namespace) -> int:
             scene = load_builtin_scene(variant, args.resolution, cache=True)
             return scene.views("train"), load_builtin_backbone(variant).to(dist.device)
 
-        if args.scenes:  # many-scenes mode: this process's scenes, each trained alone
+        if args.scenes:  # many-scenes mode: this process's scenes, each trained alone (and locked) by it
             for variant in shard_scenes(args.scenes, dist):
-                paths = train_adapters(*load(variant), Path(args.out) / variant, args, names, dist=DistContext())
+                with run_lock(Path(args.out) / variant):
+                    paths = train_adapters(*load(variant), Path(args.out) / variant, args, names, dist=DistContext())
                 for name, path in paths.items():
                     print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
-        paths = train_adapters(*load(args.variant), Path(args.out), args, names, dist=dist)
+        with run_lock(Path(args.out)) if dist.is_main else contextlib.nullcontext():  # rank 0 holds the folder
+            paths = train_adapters(*load(args.variant), Path(args.out), args, names, dist=dist)
         if dist.is_main:
             for name, path in paths.items():
                 print(f"{name}: {path}")
