@@ -79,3 +79,22 @@ def check_same_device(**tensors: torch.Tensor) -> None:
     devs = {k: v.device for k, v in tensors.items() if isinstance(v, torch.Tensor)}
     if len(set(devs.values())) > 1:
         raise InputValueError("tensors must be on one device, got " + ", ".join(f"{k}={d}" for k, d in devs.items()))
+
+
+def check_number(name: str, value: object, *, integer: bool = False, low: float | None = None,
+                 high: float | None = None, low_open: bool = False, high_open: bool = False) -> float | int:
+    """A finite real number (an int if ``integer``) in the given range; bools and strings are
+    refused. Returns it as ``int``/``float``; raises :class:`InputValueError` naming ``name``."""
+    kind = "an integer" if integer else "a finite number"
+    rng = ""
+    if low is not None or high is not None:
+        rng = " in " + ("(" if low_open else "[") + ("-inf" if low is None else f"{low:g}") + ", " + \
+              ("inf" if high is None else f"{high:g}") + (")" if high_open or high is None else "]")
+    ok = not isinstance(value, bool) and isinstance(value, numbers.Integral if integer else numbers.Real)
+    if ok:
+        v = int(value) if integer else float(value)  # type: ignore[arg-type]
+        ok = math.isfinite(v) and (low is None or (v > low if low_open else v >= low)) and \
+            (high is None or (v < high if high_open else v <= high))
+    if not ok:
+        raise InputValueError(f"{name} must be {kind}{rng}, got {value!r}")
+    return v
