@@ -247,3 +247,13 @@ def test_lens_strength_follows_the_radial_distance_on_the_display():
         assert torch.allclose(cgs.strengths(RuntimeState(), cam)["lens"][:2], torch.full((2,), 1 / r2), atol=1e-6)
     finally:
         cgs.unwrap()
+
+
+def test_optics_stage_placement_argument():
+    assert optics_mod.OpticsStage().placement == "fit"
+    with pytest.warns(DeprecationWarning, match="placement"):
+        assert optics_mod.OpticsStage(stretch=True).placement == "stretch"
+    with pytest.raises(InputValueError, match="placement"):
+        optics_mod.OpticsStage(placement="crop")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="size"):
+        LensPrewarp.from_psf_bank(None, gain=torch.ones(3, 4, 4))

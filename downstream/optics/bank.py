@@ -10,8 +10,9 @@ from the chief ray (display-equivalent millimetres: virtual-image-plane distance
 reference magnification), so resampling to any pixel pitch is an exact, energy-preserving
 box-overlap (:meth:`PSFBank.resample_to`).
 
-Coordinates: display-normalised ``[-1, 1]`` about the display centre (pixel centres at
-``(2 i + 1) / W - 1``). Chief rays are given in the same normalised frame of the *output* (virtual
+Coordinates: display-normalised ``[-1, 1]`` about the display centre (for an image that spans the
+display, pixel centres at ``(2 i + 1) / W - 1``; an image of another aspect is placed by
+:mod:`controlgs_adapter.downstream.placement`). Chief rays are given in the same normalised frame of the *output* (virtual
 image) scaled by the reference magnification, so a distortion-free lens maps every point to itself.
 PSF field samples lie at cell centres of a ``Gy x Gx`` grid (paper: 30 x 30); chief rays on their own
 uniform ``Cy x Cx`` grid that includes the display edges (chief rays are cheap; the warp must hold
