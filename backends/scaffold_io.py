@@ -33,7 +33,7 @@ import torch
 from torch import nn
 
 from controlgs_adapter.errors import FileFormatError
-from controlgs_adapter.io import atomic_write
+from controlgs_adapter.io import atomic_write, folder_mode
 
 from .formats import (load_state_dict_file, load_torchscript, load_torchscript_tensors, read_cfg_args, read_ply,
                       require_fields, write_ply)
@@ -115,6 +115,7 @@ def save_scaffold_dir(model: NeuralGaussianModel, path: str | os.PathLike, itera
     parent.mkdir(parents=True, exist_ok=True)
     final = parent / f"iteration_{int(iteration)}"
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=parent))
+    os.chmod(tmp, folder_mode())  # mkdtemp makes it 0700; the model folder gets the umask's mode
     try:
         write_ply(tmp / "point_cloud.ply", _ply_fields(model))
         modules = {name: getattr(model, name) for name in MLP_FILES if getattr(model, name, None) is not None}

@@ -36,15 +36,24 @@ def as_path(path: object, what: str = "path") -> Path:
     return Path(path)
 
 
-def file_mode() -> int:
-    """Permission bits of a new file under the process's umask (0644 under the usual 022)."""
+def _umask() -> int:
     try:
         with open("/proc/self/status") as f:
-            umask = next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
+            return next(int(line.split()[1], 8) for line in f if line.startswith("Umask:"))
     except (OSError, StopIteration, ValueError):
         umask = os.umask(0o022)
         os.umask(umask)
-    return 0o666 & ~umask
+        return umask
+
+
+def file_mode() -> int:
+    """Permission bits of a new file under the process's umask (0644 under the usual 022)."""
+    return 0o666 & ~_umask()
+
+
+def folder_mode() -> int:
+    """Permission bits of a new folder under the process's umask (0755 under the usual 022)."""
+    return 0o777 & ~_umask()
 
 
 def _pid_alive(pid: int) -> bool:
