@@ -207,7 +207,7 @@ def side_by_side(model: Any, adapter: str | Path, camera: Camera, gt: torch.Tens
     """Rendered and eye images of no-SS, SS-backbone and ControlGS (adapter file) for one view at
     ``settings`` ``[(d, rho)]`` (paper Fig. 1): ``{"gt", "settings", "rows": {method: [(rendered,
     eye, psnr, ssim)]}}``."""
-    pipeline = make_pipeline(effects, optics_mode)
+    pipeline = make_pipeline(effects, optics_mode).to(model_device(model))
     rows: dict[str, list[tuple[torch.Tensor, torch.Tensor, float, float]]] = {"no_ss": [], "ss": [], "controlgs": []}
     full = render_view(None, model, camera, None, background)
 

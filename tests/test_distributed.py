@@ -160,7 +160,7 @@ def test_controlgs_train_command_under_torchrun(tmp_path, monkeypatch):
     from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    common = ["train", "--resolution", "16", "--iterations", "2", "--batch-size", "2", "--checkpoint-every", "1",
+    common = ["train", "--resolution", "16", "--iterations", "2", "--batch-size", "2", "--checkpoint-every", "1", "--no-ablations",
               "--exchange", "dense", "--no-progress"]
     assert main([*common, "--out", str(tmp_path / "one")]) == 0
     env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore",

@@ -17,7 +17,9 @@ DEFAULT_RESOLUTION = 96
 def add_common(p: argparse.ArgumentParser) -> None:
     """Options shared by demo, train and eval."""
     p.add_argument("--variant", choices=("ar", "vr"), default="ar", help="built-in scene: object-centric AR or immersive VR")
-    p.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="native resolution S (pixels, square)")
+    p.add_argument("--resolution", type=int, default=None,
+                   help=f"working resolution, longer side in pixels: the built-in scene's S x S (default {DEFAULT_RESOLUTION}); "
+                        "your data's images are downscaled to it, never upscaled (default 256)")
     p.add_argument("--test-views", type=int, default=None, help="evaluate only the first N test views")
     p.add_argument("--optics", choices=("fast", "exact"), default="fast",
                    help="PSF operator of the last training phase and of the evaluation")
@@ -98,6 +100,8 @@ def _run(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.resolution is None:
+        args.resolution = DEFAULT_RESOLUTION
     timings: dict[str, float] = {}
     t = time.perf_counter()
     scene = load_builtin_scene(args.variant, args.resolution, cache=True)

@@ -1,40 +1,68 @@
-"""``controlgs eval``: the 4 x 5 run-time grid for the backbone without and with supersampling
-and for trained adapters, on the built-in scene's test views; writes results.json and report.md."""
+"""``controlgs eval``: the 4 x 5 run-time grid for the backbone without and with supersampling and
+for every adapter a run folder holds, on the test views of a user's dataset (``--model`` /
+``--data``, by default those ``RUN/run.json`` records) or of the built-in scene (``--variant``);
+writes the report (results.json, report.md, heatmap, comparison, condition strip)."""
 
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
-from .demo import add_common, first_views
+from .common import add_data_arguments, apply_run_defaults, user_scene
+from .demo import add_common, first_views, report_figures
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
     p = sub.add_parser("eval", help="evaluate the run-time grid (no-SS, SS-backbone, adapters) and write a report")
     p.add_argument("--run", default="controlgs-run",
-                   help="folder written by `controlgs train` (its <name>.controlgs.safetensors files are evaluated)")
+                   help="folder written by `controlgs train` (every <name>.controlgs.safetensors in it is evaluated)")
     p.add_argument("--out", default=None, help="report folder (default: the run folder)")
     add_common(p)
-    p.add_argument("--ablations", action="store_true", help="also evaluate the ablation adapters found in the run folder")
+    add_data_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+
     from controlgs_adapter.errors import InputValueError
     from controlgs_adapter.evaluation import evaluate_grid
     from controlgs_adapter.report import ABLATIONS, write_report
-    from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
     run_dir = Path(args.run)
-    names = ["controlgs", *(ABLATIONS if args.ablations else [])]
+    names = ["controlgs", *ABLATIONS]
     adapters = {n: run_dir / f"{n}.controlgs.safetensors" for n in names if (run_dir / f"{n}.controlgs.safetensors").is_file()}
     if "controlgs" not in adapters:
         raise InputValueError(f"{run_dir}: no controlgs.controlgs.safetensors (train one with `controlgs train --out {run_dir}`)")
-    scene = load_builtin_scene(args.variant, args.resolution, cache=True)
-    model = load_builtin_backbone(args.variant)
-    views = first_views(scene.data, "test", args.test_views)
+    recorded = apply_run_defaults(args, run_dir)
+    t = time.perf_counter()
+    if user_scene(args):
+        from .common import load_user_scene
+
+        scene = load_user_scene(args)
+        model, data, name = scene.model, scene.data, f"{scene.family} {args.model} + {data.format} {args.data}"
+        resolution = scene.resolution
+    else:
+        from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
+
+        from .demo import DEFAULT_RESOLUTION
+
+        resolution = DEFAULT_RESOLUTION if args.resolution is None else args.resolution
+        builtin = load_builtin_scene(args.variant, resolution, cache=True)
+        model, data, name = load_builtin_backbone(args.variant).to(args.device), builtin.data, builtin.name
+        resolution = None  # the built-in views are rendered at S
+    views = first_views(data, "test", args.test_views, resolution)
+    load_s = time.perf_counter() - t
+    t = time.perf_counter()
     result = evaluate_grid(model, views, adapters, optics_mode=args.optics, progress=args.progress)
-    info = {"scene": scene.name, "resolution": args.resolution, "test_views": len(views), "optics": args.optics}
-    for p in write_report(Path(args.out) if args.out else run_dir, result, info=info):
+    eval_s = time.perf_counter() - t
+    comparison, response = report_figures(model, adapters["controlgs"], views, optics_mode=args.optics)
+    info = {"scene": name, "resolution": args.resolution, "test_views": len(views), "optics": args.optics,
+            "adapters": list(adapters), "device": str(args.device), "threads": torch.get_num_threads(),
+            "load_s": round(load_s, 1), "eval_s": round(eval_s, 1),
+            **({"iterations": recorded.get("iterations"), "seed": recorded.get("seed")} if recorded else {})}
+    for p in write_report(Path(args.out) if args.out else run_dir, result, info=info, comparison=comparison,
+                          response=response):
         print(p)
     return 0

@@ -1,49 +1,89 @@
-"""``controlgs train``: train a ControlGS adapter on the built-in scene's baked backbone
-(checkpoints resume exactly after an interruption; the adapter is saved as safetensors).
-Under ``torchrun`` it trains data-parallel, or with ``--scenes`` one scene per process
-(docs/distributed.md)."""
+"""``controlgs train``: train a ControlGS adapter (and by default the four ablations) on a frozen
+backbone: a user's trained model folder and its dataset (``--model`` / ``--data``), or the built-in
+scene's baked backbone (``--variant``). Checkpoints resume exactly after an interruption; adapters
+are saved as safetensors; ``RUN/run.json`` records what the run was trained on. Under ``torchrun``
+it trains data-parallel, or with ``--scenes`` one built-in scene per process (docs/distributed.md)."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
+import json
 from pathlib import Path
 
 from ..distributed import DistContext, add_distributed_arguments, init_distributed, shard_scenes
-from ..lock import run_lock
+from .common import RUN_FILE, add_data_arguments, anchor_positions, check_line, load_user_scene, user_scene
 from .demo import add_common, add_training, train_adapters
+
+ABLATION_NAMES = ("wo_lens", "wo_display", "wo_resample", "state_blind")
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
-    p = sub.add_parser("train", help="train a ControlGS adapter (frozen backbone) on the built-in scene")
-    p.add_argument("--out", default="controlgs-run", help="folder for the adapter file(s) and checkpoints")
+    p = sub.add_parser("train", help="train a ControlGS adapter (frozen backbone) on your model + dataset or the built-in scene")
+    p.add_argument("--out", default="controlgs-run", help="run folder: adapter file(s), checkpoints, run.json")
     add_common(p)
     add_training(p)
+    add_data_arguments(p)
     add_distributed_arguments(p, scene_choices=("ar", "vr"))
-    p.add_argument("--ablation", choices=("wo_lens", "wo_display", "wo_resample", "state_blind"), action="append",
-                   default=[], help="also train this ablation (repeatable)")
+    p.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
+                   help="also train w/o lens, display, resample and state-blind (default: on; --ablation picks some)")
+    p.add_argument("--ablation", choices=ABLATION_NAMES, action="append", default=[],
+                   help="train only these ablations besides ControlGS (repeatable)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from controlgs_adapter.errors import InputValueError
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
-    names = ["controlgs", *args.ablation]
+    from .demo import DEFAULT_RESOLUTION
+
+    names = ["controlgs", *(args.ablation or (ABLATION_NAMES if args.ablations else ()))]
+    out = Path(args.out)
+    if user_scene(args):
+        if args.scenes:
+            raise InputValueError("--scenes trains built-in scenes; it does not combine with --model/--data")
+        return _run_user(args, names, out)
+    if args.resolution is None:
+        args.resolution = DEFAULT_RESOLUTION
     with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
 
         def load(variant: str):  # views and backbone on this rank's device (cuda:<LOCAL_RANK> with NCCL)
             scene = load_builtin_scene(variant, args.resolution, cache=True)
             return scene.views("train"), load_builtin_backbone(variant).to(dist.device)
 
-        if args.scenes:  # many-scenes mode: this process's scenes, each trained alone (and locked) by it
+        if args.scenes:  # many-scenes mode: this process's scenes, each trained alone
             for variant in shard_scenes(args.scenes, dist):
-                with run_lock(Path(args.out) / variant):
-                    paths = train_adapters(*load(variant), Path(args.out) / variant, args, names, dist=DistContext())
+                paths = train_adapters(*load(variant), out / variant, args, names, dist=DistContext())
                 for name, path in paths.items():
                     print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
-        with run_lock(Path(args.out)) if dist.is_main else contextlib.nullcontext():  # rank 0 holds the folder
-            paths = train_adapters(*load(args.variant), Path(args.out), args, names, dist=dist)
+        paths = train_adapters(*load(args.variant), out, args, names, dist=dist)
+        if dist.is_main:
+            for name, path in paths.items():
+                print(f"{name}: {path}")
+    return 0
+
+
+def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
+    """Train on ``--model`` / ``--data``: load, check the scene, record ``run.json``, train."""
+    from controlgs_adapter.datasets.sanity import check_scene
+    from controlgs_adapter.io import atomic_write
+    from controlgs_adapter.training import DEFAULT_EFFECTS
+
+    scene = load_user_scene(args)
+    report = check_scene(scene.data, points=anchor_positions(scene.model))
+    with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
+        if dist.device.type != "cpu":
+            scene.model.to(dist.device)
+        views = scene.data.views("train", resolution=scene.resolution)
+        if dist.is_main:
+            print(check_line(report))
+            print(f"model: {scene.family} {args.model}; training views: {views.describe()}")
+            record = scene.record(args, effects=DEFAULT_EFFECTS, iterations=args.iterations, seed=args.seed,
+                                  adapters=names)
+            out.mkdir(parents=True, exist_ok=True)
+            atomic_write(out / RUN_FILE, lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
+        paths = train_adapters(views, scene.model, out, args, names, dist=dist)
         if dist.is_main:
             for name, path in paths.items():
                 print(f"{name}: {path}")
