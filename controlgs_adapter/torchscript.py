@@ -299,6 +299,8 @@ class _Archive:
                 and isinstance(hooks, collections.OrderedDict) and not hooks and not metadata):
             raise _Refused("a malformed tensor record")
         flat = self.storage(storage)
+        if math.prod(size) > flat.numel():  # decoder weights never alias: no tensor bigger than its storage
+            raise _Refused(f"a tensor of shape {list(size)} larger than its storage data/{storage.key}")
         if math.prod(size) and offset + sum((n - 1) * s for n, s in zip(size, stride)) >= flat.numel():
             raise _Refused(f"a tensor of shape {list(size)} that reaches past its storage data/{storage.key}")
         return _TensorRecord(torch.as_strided(flat, size, stride, offset).clone(), requires_grad)

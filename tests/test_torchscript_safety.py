@@ -375,6 +375,16 @@ def test_tensor_records_reaching_past_their_storage_are_refused(tmp_path):
     _refused(_patched(src, tmp_path / "short.pt", {"/data/0": short}), "data/0")
 
 
+def test_tensor_records_larger_than_their_storage_are_refused(tmp_path):
+    """A stride-0 record declaring 2**40 elements would allocate terabytes when made contiguous."""
+    src = _plain(tmp_path)
+    with zipfile.ZipFile(src) as z:
+        pkl = z.read("plain/data.pkl")
+    huge = pkl.replace(b"K\x20K\x23t(K\x23K\x01t", b"\x8a\x06\x00\x00\x00\x00\x00\x01t(K\x00t", 1)
+    assert huge != pkl  # weight [32, 35] with strides (35, 1) -> [2**40] with stride (0,)
+    _refused(_patched(src, tmp_path / "huge.pt", {"/data.pkl": huge}), "larger than its storage")
+
+
 def test_not_torchscript(tmp_path):
     sd = tmp_path / "state.pt"
     torch.save(DECODERS["opacity"]().state_dict(), sd)
