@@ -169,7 +169,10 @@ class Pipeline(nn.Module):
             if value is True:
                 stages.append(registered[name]())
             elif isinstance(value, Mapping):
-                stages.append(registered[name](**value))
+                try:
+                    stages.append(registered[name](**value))
+                except TypeError as e:  # an unknown or missing option
+                    raise InputValueError(f"effects[{name!r}]: {e}") from None
             else:
                 raise InputValueError(f"effects[{name!r}] must be a bool, a dict of options or a Stage, got {type(value).__name__}")
         return cls(stages)

@@ -17,7 +17,7 @@ DEFAULT_DATA_RESOLUTION = 256
 RUN_FILE = "run.json"
 #: run.json keys that ``eval`` takes as defaults for its options
 _RUN_DEFAULTS = ("model", "data", "family", "model_iteration", "format", "images", "holdout", "white_background",
-                 "resolution", "allow_unquantized")
+                 "resolution", "allow_unquantized", "effects")
 
 
 def add_data_arguments(p: argparse.ArgumentParser) -> None:

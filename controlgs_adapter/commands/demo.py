@@ -27,7 +27,26 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
 
 
+STAGES = ("lens", "resample", "display", "oled", "optics")
+
+
+def effects_from(names: str | list[str] | None) -> dict[str, Any]:
+    """Downstream effects from a comma-separated list of stages (None: all, :data:`DEFAULT_EFFECTS`)."""
+    from controlgs_adapter.errors import InputValueError
+    from controlgs_adapter.training import DEFAULT_EFFECTS
+
+    if names is None:
+        return dict(DEFAULT_EFFECTS)
+    chosen = [n.strip() for n in names.split(",") if n.strip()] if isinstance(names, str) else list(names)
+    bad = [n for n in chosen if n not in STAGES]
+    if bad or not chosen:
+        raise InputValueError(f"--effects must be a comma-separated list of {', '.join(STAGES)}, got {names!r}")
+    return {n: True for n in STAGES if n in chosen}
+
+
 def add_training(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--effects", default=None, help=f"downstream stages the adapter is trained and evaluated through, "
+                                                   f"comma-separated (default: all of {','.join(STAGES)})")
     p.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="adapter training iterations")
     p.add_argument("--psf-fraction", type=float, default=0.1, help="final fraction of iterations with the full PSF")
     p.add_argument("--lr", type=float, default=3e-3)
@@ -64,7 +83,8 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
                              batch_size=getattr(args, "batch_size", 1))
         target = out / f"{name}.controlgs.safetensors"
         ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
-        trainer = Trainer(model, views, config, checkpoint=ckpt, dist=dist)
+        trainer = Trainer(model, views, config, effects=effects_from(getattr(args, "effects", None)), checkpoint=ckpt,
+                          dist=dist)
         main = trainer.dist.is_main
         if trainer.resume() and main:
             print(f"{name}: resuming at iteration {trainer.iteration}")
@@ -116,10 +136,11 @@ def _run(args: argparse.Namespace) -> int:
 
     t = time.perf_counter()
     views = first_views(scene.data, "test", args.test_views)
-    result = evaluate_grid(model, views, adapters, optics_mode=args.optics, progress=args.progress)
+    effects = effects_from(args.effects)
+    result = evaluate_grid(model, views, adapters, effects=effects, optics_mode=args.optics, progress=args.progress)
     timings["eval_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    comparison, response = report_figures(model, adapters["controlgs"], views, optics_mode=args.optics)
+    comparison, response = report_figures(model, adapters["controlgs"], views, effects=effects, optics_mode=args.optics)
     timings["figures_s"] = time.perf_counter() - t
     info = {"scene": scene.name, "resolution": args.resolution, "iterations": trained["controlgs"], "test_views": len(views),
             "optics": args.optics, "seed": args.seed, "threads": torch.get_num_threads(),
@@ -140,7 +161,8 @@ def first_views(data: Any, split: str, n: int | None, resolution: int | None = N
     return SceneData({split: keep}, data.points, data.background, data.source, data.format).views(split, resolution=resolution)
 
 
-def report_figures(model: Any, adapter: Path, views: Any, *, optics_mode: str) -> tuple[dict[str, Any], dict[str, Any]]:
+def report_figures(model: Any, adapter: Path, views: Any, *, effects: dict[str, Any] | None = None,
+                   optics_mode: str) -> tuple[dict[str, Any], dict[str, Any]]:
     """The report's comparison (:func:`side_by_side`) and condition strip (:func:`condition_response`) on the
     first of ``views``, on the model's device."""
     from controlgs_adapter.evaluation import condition_response, side_by_side
@@ -149,6 +171,6 @@ def report_figures(model: Any, adapter: Path, views: Any, *, optics_mode: str) -
     device = model_device(model)
     cam, gt = views[0]
     bg = views.background.to(device)
-    comparison = side_by_side(model, adapter, cam, gt.to(device), background=bg, optics_mode=optics_mode)
+    comparison = side_by_side(model, adapter, cam, gt.to(device), effects=effects, background=bg, optics_mode=optics_mode)
     response = condition_response(model, adapter, cam, background=bg)
     return comparison, response

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from .common import add_data_arguments, apply_run_defaults, user_scene
-from .demo import add_common, first_views, report_figures
+from .demo import add_common, effects_from, first_views, report_figures
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -20,6 +20,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--out", default=None, help="report folder (default: the run folder)")
     add_common(p)
     add_data_arguments(p)
+    p.add_argument("--effects", default=None, help="downstream stages, comma-separated (default: the run's, else all)")
     p.set_defaults(func=run)
 
 
@@ -41,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
         from .common import load_user_scene
 
         scene = load_user_scene(args)
-        model, data, name = scene.model, scene.data, f"{scene.family} {args.model} + {data.format} {args.data}"
+        model, data, name = scene.model, scene.data, f"{scene.family} {args.model} + {scene.data.format} {args.data}"
         resolution = scene.resolution
     else:
         from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
@@ -55,11 +56,12 @@ def run(args: argparse.Namespace) -> int:
     views = first_views(data, "test", args.test_views, resolution)
     load_s = time.perf_counter() - t
     t = time.perf_counter()
-    result = evaluate_grid(model, views, adapters, optics_mode=args.optics, progress=args.progress)
+    effects = effects_from(args.effects)
+    result = evaluate_grid(model, views, adapters, effects=effects, optics_mode=args.optics, progress=args.progress)
     eval_s = time.perf_counter() - t
-    comparison, response = report_figures(model, adapters["controlgs"], views, optics_mode=args.optics)
+    comparison, response = report_figures(model, adapters["controlgs"], views, effects=effects, optics_mode=args.optics)
     info = {"scene": name, "resolution": args.resolution, "test_views": len(views), "optics": args.optics,
-            "adapters": list(adapters), "device": str(args.device), "threads": torch.get_num_threads(),
+            "adapters": list(adapters), "effects": sorted(effects), "device": str(args.device), "threads": torch.get_num_threads(),
             "load_s": round(load_s, 1), "eval_s": round(eval_s, 1),
             **({"iterations": recorded.get("iterations"), "seed": recorded.get("seed")} if recorded else {})}
     for p in write_report(Path(args.out) if args.out else run_dir, result, info=info, comparison=comparison,

@@ -68,7 +68,7 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
     """Train on ``--model`` / ``--data``: load, check the scene, record ``run.json``, train."""
     from controlgs_adapter.datasets.sanity import check_scene
     from controlgs_adapter.io import atomic_write
-    from controlgs_adapter.training import DEFAULT_EFFECTS
+    from .demo import effects_from
 
     scene = load_user_scene(args)
     report = check_scene(scene.data, points=anchor_positions(scene.model))
@@ -79,7 +79,7 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
         if dist.is_main:
             print(check_line(report))
             print(f"model: {scene.family} {args.model}; training views: {views.describe()}")
-            record = scene.record(args, effects=DEFAULT_EFFECTS, iterations=args.iterations, seed=args.seed,
+            record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
                                   adapters=names)
             out.mkdir(parents=True, exist_ok=True)
             atomic_write(out / RUN_FILE, lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
