@@ -743,3 +743,10 @@ def test_killed_writer_leaves_a_tmp_that_the_next_write_removes(tmp_path):
     assert len(list(tmp_path.glob(".x.bin.*.tmp"))) == 1
     atomic_write(tmp_path / "x.bin", lambda t: Path(t).write_bytes(b"whole"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.bin"]
+
+
+def test_train_refuses_a_locked_run_folder(tmp_path, capsys):
+    run = tmp_path / "run"
+    with run_lock(run):
+        line = _cli(["train", "--out", str(run), "--iterations", "1"], capsys)
+    assert f"pid {os.getpid()}" in line and str(run) in line

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 from ..distributed import DistContext, add_distributed_arguments, init_distributed, shard_scenes
@@ -32,7 +33,19 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Train, holding the run folder's lock so that a second run into it is refused (under torchrun
+    rank 0 holds it for the job; with ``--scenes`` each process locks its scenes' folders)."""
+    from controlgs_adapter.lock import run_lock
+
+    if args.scenes or os.environ.get("RANK", "0") != "0":
+        return _run(args)
+    with run_lock(Path(args.out)):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from controlgs_adapter.errors import InputValueError
+    from controlgs_adapter.lock import run_lock
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
     from .demo import DEFAULT_RESOLUTION
@@ -53,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
 
         if args.scenes:  # many-scenes mode: this process's scenes, each trained alone
             for variant in shard_scenes(args.scenes, dist):
-                paths = train_adapters(*load(variant), out / variant, args, names, dist=DistContext())
+                with run_lock(out / variant):
+                    paths = train_adapters(*load(variant), out / variant, args, names, dist=DistContext())
                 for name, path in paths.items():
                     print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
