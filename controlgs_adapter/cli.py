@@ -14,7 +14,7 @@ COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "train", "eval", "dem
 #: (command, action) -> (extra, import names, what for): optional dependencies checked before the work starts
 REQUIRES: dict[tuple[str, str | None], tuple[str, tuple[str, ...], str]] = {
     ("demo", None): ("demo", ("skimage", "matplotlib"), "the built-in scene and the report's plots"),
-    ("eval", None): ("demo", ("skimage", "matplotlib"), "the built-in scene and the report's plots"),
+    ("eval", None): ("demo", ("matplotlib",), "the report's plots"),
     ("optics", "bench"): ("demo", ("skimage", "matplotlib"), "the optics benchmark's test image and plot"),
     ("scene", "export"): ("demo", ("skimage", "matplotlib"), "exporting the built-in scene's views as PNG"),
 }
@@ -51,9 +51,11 @@ def main(argv: list[str] | None = None) -> int:
         message = " ".join(str(e).split()) if isinstance(e, ControlGSError) else f"{type(e).__name__}: {e}"
         print(f"controlgs {args.command}: error: {message}", file=sys.stderr)
         return 2
-    except ModuleNotFoundError as e:  # an optional dependency the table above does not know about
-        print(f"controlgs {args.command}: error: needs the Python package {e.name!r}, which is not installed "
-              "(pip install 'controlgs-adapter[demo]' installs the optional ones)", file=sys.stderr)
+    except ImportError as e:  # an optional dependency the table above does not know about
+        hint = (f"needs the Python package {e.name!r}, which is not installed" if isinstance(e, ModuleNotFoundError)
+                else " ".join(str(e).split()))
+        print(f"controlgs {args.command}: error: {hint} (pip install 'controlgs-adapter[demo]' installs the optional ones)",
+              file=sys.stderr)
         return 2
 
 

@@ -607,6 +607,7 @@ class _StandIn(types.ModuleType):
 DEP_CASES = [
     ("demo without matplotlib", ["demo", "--out", "{d}/r"], "matplotlib"),
     ("eval without matplotlib", ["eval", "--run", "{d}/r"], "matplotlib"),
+    ("eval --out without matplotlib", ["eval", "--run", "{d}/r", "--out", "{d}/r"], "matplotlib"),
     ("optics bench without matplotlib", ["optics", "bench", "--out", "{d}/r"], "matplotlib"),
     ("scene export without matplotlib", ["scene", "export", "--out", "{d}/r"], "matplotlib"),
     ("demo without scikit-image", ["demo", "--out", "{d}/r"], "scikit-image"),
