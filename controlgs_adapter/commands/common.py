@@ -14,6 +14,8 @@ from ..errors import InputValueError
 
 #: default working resolution of a user's dataset (longer side in pixels; never upscaled)
 DEFAULT_DATA_RESOLUTION = 256
+#: default budget of the decoded-image cache (MiB)
+DEFAULT_CACHE_MIB = 1024
 RUN_FILE = "run.json"
 #: run.json keys that ``eval`` takes as defaults for its options
 _RUN_DEFAULTS = ("model", "data", "family", "model_iteration", "format", "images", "holdout", "white_background",
@@ -40,6 +42,8 @@ def add_data_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--holdout", type=int, default=None, help="every N-th view is a test view (COLMAP, instant-ngp; default 8)")
     g.add_argument("--white-background", action="store_true", default=None,
                    help="composite RGBA images over white (the model was trained with --white_background)")
+    g.add_argument("--cache-mib", type=int, default=DEFAULT_CACHE_MIB,
+                   help="memory budget of the decoded-image cache (MiB; images are read lazily, never all at once)")
     g.add_argument("--device", default="cpu", help="torch device of the model and the whole pipeline (cpu, cuda, cuda:1)")
 
 
@@ -129,3 +133,11 @@ def check_line(report: dict[str, Any]) -> str:
         line += (f"; the model's {report['points']} anchors are in view of {ok}/{len(seen)} cameras "
                  f"(median {sorted(seen.values())[len(seen) // 2]:.0%} inside the image)")
     return line
+
+
+def cache_bytes(args: argparse.Namespace) -> int:
+    """``--cache-mib`` in bytes (checked: an int >= 0)."""
+    mib = getattr(args, "cache_mib", DEFAULT_CACHE_MIB)
+    if not isinstance(mib, int) or mib < 0:
+        raise InputValueError(f"--cache-mib must be an int >= 0 (MiB), got {mib!r}")
+    return mib << 20

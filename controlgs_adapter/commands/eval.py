@@ -9,7 +9,7 @@ import argparse
 import time
 from pathlib import Path
 
-from .common import add_data_arguments, apply_run_defaults, user_scene
+from .common import add_data_arguments, apply_run_defaults, cache_bytes, user_scene
 from .demo import add_common, effects_from, first_views, report_figures
 
 
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         builtin = load_builtin_scene(args.variant, resolution, cache=True)
         model, data, name = load_builtin_backbone(args.variant).to(args.device), builtin.data, builtin.name
         resolution = None  # the built-in views are rendered at S
-    views = first_views(data, "test", args.test_views, resolution)
+    views = first_views(data, "test", args.test_views, resolution, cache_bytes=cache_bytes(args))
     load_s = time.perf_counter() - t
     t = time.perf_counter()
     effects = effects_from(args.effects)

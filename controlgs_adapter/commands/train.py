@@ -12,7 +12,8 @@ import os
 from pathlib import Path
 
 from ..distributed import DistContext, add_distributed_arguments, init_distributed, shard_scenes
-from .common import RUN_FILE, add_data_arguments, anchor_positions, check_line, load_user_scene, user_scene
+from .common import (RUN_FILE, add_data_arguments, anchor_positions, cache_bytes, check_line, load_user_scene,
+                     user_scene)
 from .demo import add_common, add_training, train_adapters
 
 ABLATION_NAMES = ("wo_lens", "wo_display", "wo_resample", "state_blind")
@@ -89,7 +90,7 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
     with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
         if dist.device.type != "cpu":
             scene.model.to(dist.device)
-        views = scene.data.views("train", resolution=scene.resolution)
+        views = scene.data.views("train", resolution=scene.resolution, cache_bytes=cache_bytes(args))
         if dist.is_main:
             print(check_line(report))
             print(f"model: {scene.family} {args.model}; training views: {views.describe()}")
