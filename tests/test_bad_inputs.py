@@ -410,6 +410,7 @@ class _Evil:
         return (os.system, ("true",))
 
 
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")
 @pytest.mark.parametrize("kind", ["pickle", "list", "garbage", "missing"])
 def test_state_dict_files(tmp_path, kind):
     p = tmp_path / "checkpoint.pth"
