@@ -2,11 +2,14 @@
 
 For every test view and every setting of the 4 x 5 grid (d in {1, 2, 4, 8} x rho in {0, .2, .4,
 .6, .8}) each method's render goes through the same downstream pipeline E_s and its eye image
-is compared with the ground truth (PSNR, SSIM; FLIP / ColorVideoVDP when installed). Methods:
+is compared with the ground truth (PSNR, SSIM, LDR-FLIP; LPIPS given local weights; ColorVideoVDP
+when installed). Methods:
 
 - ``no_ss``: the backbone rendered directly at the display size round(S/d) (no supersampling);
 - ``ss``: the SS-backbone: rendered at S, area-pooled to S/d by the pipeline's resampling;
-- ``controlgs`` (and ablations): rendered at S through an adapter conditioned on the state.
+- ``controlgs`` (and ablations): rendered at S through an adapter conditioned on the state;
+- ``ideal``: the ideal-render bound, the ground truth itself through E_s (E_s(GT) vs GT): what the
+  pipeline costs a perfect render; an adapter above it pre-compensates beyond it.
 
 Eye images are clamped to [0, 1] (what a display-encoded image can hold) before the metrics.
 """
@@ -26,13 +29,15 @@ from .metrics import optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
 from .training import DEFAULT_EFFECTS, Views, model_device, render_view
 
-__all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "GridResult", "evaluate_grid", "make_pipeline",
+__all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
            "side_by_side", "condition_response"]
 
 GRID_DOWNSAMPLE: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
 GRID_POWER_SAVING: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
 #: the two backbone baselines, always evaluated
 BASELINES: tuple[str, ...] = ("no_ss", "ss")
+#: the ideal-render bound's method name: the ground truth through the pipeline
+IDEAL = "ideal"
 
 
 @dataclass(eq=False)
@@ -131,7 +136,8 @@ def _scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> di
 def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], *,
                   effects: Mapping[str, Any] | None = None, downsample: Sequence[float] = GRID_DOWNSAMPLE, power_saving: Sequence[float] = GRID_POWER_SAVING,
                   optics_mode: str = "fast", baselines: Sequence[str] = BASELINES,
-                  extra_metrics: bool = True, progress: bool = True) -> GridResult:
+                  extra_metrics: bool = True, ideal: bool = True, lpips: Any = None,
+                  progress: bool = True) -> GridResult:
     """Evaluate the baselines and every adapter file in ``adapters`` (``{method name: path}``,
     each saved by :meth:`ControlGS.save` for ``model``) on the test ``views`` (a
     :class:`~controlgs_adapter.training.Views` dataset: ``(camera, image [3, H, W])`` per view, any
@@ -140,7 +146,9 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
 
     The renders that do not depend on the state are made once per view (``ss``) or once per d
     (``no_ss``); the pipeline runs for every (method, view, d, rho). ``result.info`` holds the
-    number of views and their sizes.
+    number of views and their sizes. ``ideal``: also score the ground truth through the pipeline
+    (method :data:`IDEAL`, once per view and state). ``extra_metrics``: FLIP, ColorVideoVDP when
+    installed, and LPIPS with ``lpips`` (an :class:`~controlgs_adapter.perceptual.LPIPS`).
     """
     if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
         raise InputValueError("views must be a non-empty dataset of (camera, image) with a background "
@@ -148,15 +156,15 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
     unknown = [b for b in baselines if b not in BASELINES]
     if unknown:
         raise InputValueError(f"baselines must be among {BASELINES}, got {unknown}")
-    clash = [a for a in adapters if a in BASELINES]
+    clash = [a for a in adapters if a in (*BASELINES, IDEAL)]
     if clash:
-        raise InputValueError(f"adapter names {clash} clash with the baselines {BASELINES}")
+        raise InputValueError(f"adapter names {clash} clash with the baselines {(*BASELINES, IDEAL)}")
     device = model_device(model)
     pipeline = make_pipeline(effects, optics_mode).to(device)
     bg = getattr(views, "background", None)
     background = None if bg is None else bg.to(device)
-    extra = optional_metrics() if extra_metrics else {}
-    names = list(baselines) + list(adapters)
+    extra = optional_metrics(None if lpips is None else lpips.to(device)) if extra_metrics else {}
+    names = list(baselines) + ([IDEAL] if ideal else []) + list(adapters)
     nd, npow, nv = len(downsample), len(power_saving), len(views)
     metric_names = ["psnr", "ssim", *extra]
     result = {m: {k: torch.zeros(nd, npow, nv, dtype=torch.float64) for k in metric_names} for m in names}
@@ -181,6 +189,8 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
                 state = RuntimeState(downsample=d, power_saving=rho)
                 for name in baselines:
                     score(name, i, j, v, full if name == "ss" else small, state, gt)
+                if ideal:
+                    score(IDEAL, i, j, v, gt, state, gt)
     for name, path in adapters.items():
         cgs = ControlGS.load(path, model)
         try:

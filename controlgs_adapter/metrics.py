@@ -1,15 +1,17 @@
-"""Image-quality metrics in plain torch (differentiable): PSNR and SSIM.
+"""Image-quality metrics: PSNR and SSIM in plain torch (differentiable), LDR-FLIP through NVIDIA's
+``flip-evaluator`` (a dependency), and the report's per-image metric set.
 
 SSIM follows Wang et al. 2004 as 3DGS and pytorch-msssim use it: an 11-tap Gaussian window with
 sigma 1.5 (separable, normalised), constants ``C1 = (0.01 L)^2``, ``C2 = (0.03 L)^2``, population
 (co)variances, per-channel maps averaged over the valid window positions (no padding) and the
-channels. ``data_range`` L is always explicit. Optional perceptual metrics (FLIP, ColorVideoVDP)
-are in :func:`optional_metrics` and run only when their packages are installed.
+channels. ``data_range`` L is always explicit. LPIPS (local weights only) is in
+:mod:`controlgs_adapter.perceptual`; ColorVideoVDP runs when its package is installed.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+import math
+from typing import Any, Callable
 
 import torch
 import torch.nn.functional as F
@@ -17,7 +19,10 @@ import torch.nn.functional as F
 from .checks import check_image
 from .errors import InputValueError, ShapeError
 
-__all__ = ["psnr", "ssim", "gaussian_window", "check_image_pair", "optional_metrics"]
+__all__ = ["psnr", "ssim", "flip", "FLIP_PPD", "gaussian_window", "check_image_pair", "optional_metrics"]
+
+#: FLIP's default observer: pixels per degree of a 0.7 m wide 4K display seen from 0.7 m
+FLIP_PPD = 67.0
 
 
 def check_image_pair(x: torch.Tensor, y: torch.Tensor) -> None:
@@ -73,25 +78,46 @@ def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_si
     return smap.mean(dim=(-3, -2, -1)).reshape(lead)
 
 
-def optional_metrics() -> dict[str, Callable[[torch.Tensor, torch.Tensor], float]]:
-    """Perceptual metrics whose packages are installed, as ``{name: f(eye, gt) -> float}`` on one
-    sRGB image pair ``[3, H, W]`` in [0, 1]: ``"flip"`` (LDR-FLIP, lower is better; package
-    ``flip-evaluator``) and ``"cvvdp"`` (ColorVideoVDP JOD, higher is better; package ``cvvdp``,
-    installed with ``--no-deps`` so that it keeps the CPU torch, see docs/demo.md). Empty when
-    neither is installed: nothing is ever downloaded."""
-    found: dict[str, Callable[[torch.Tensor, torch.Tensor], float]] = {}
+def flip(test: torch.Tensor, reference: torch.Tensor, *, ppd: float = FLIP_PPD) -> float:
+    """Mean LDR-FLIP error of ``test`` against ``reference`` (NVIDIA's ``flip-evaluator``; lower is
+    better, 0 for identical images): one sRGB image pair ``[3, H, W]`` with values in [0, 1], passed
+    to the package as the ``H x W x 3`` float64 sRGB arrays it expects. Not differentiable."""
+    check_image_pair(test, reference)
+    if test.dim() != 3:
+        raise ShapeError(f"flip takes one image pair [3, H, W], got {list(test.shape)}")
+    # the package calls sys.exit() on bad arguments: check them here
+    if isinstance(ppd, bool) or not isinstance(ppd, (int, float)) or not math.isfinite(ppd) or ppd <= 0:
+        raise InputValueError(f"flip: ppd must be a finite number > 0 (pixels per degree), got {ppd!r}")
+    for name, img in (("test", test), ("reference", reference)):
+        lo, hi = float(img.min()), float(img.max())
+        if lo < 0.0 or hi > 1.0:
+            raise InputValueError(f"flip: {name} must hold sRGB values in [0, 1] (LDR-FLIP), got [{lo:.4g}, {hi:.4g}]")
     try:
         import flip_evaluator  # type: ignore[import-not-found]
     except ImportError:
-        pass
-    else:
-        def flip(eye: torch.Tensor, gt: torch.Tensor) -> float:
-            check_image_pair(eye, gt)
-            a = gt.detach().clamp(0, 1).permute(1, 2, 0).double().cpu().numpy().copy()
-            b = eye.detach().clamp(0, 1).permute(1, 2, 0).double().cpu().numpy().copy()
-            return float(flip_evaluator.evaluate(a, b, "LDR")[1])
+        raise InputValueError("FLIP needs the flip-evaluator package (a dependency of controlgs-adapter): "
+                              "pip install flip-evaluator") from None
 
-        found["flip"] = flip
+    def hwc(img: torch.Tensor) -> Any:
+        return img.detach().permute(1, 2, 0).to("cpu", torch.float64).contiguous().numpy()
+
+    return float(flip_evaluator.evaluate(hwc(reference), hwc(test), "LDR", applyMagma=False,
+                                         parameters={"ppd": float(ppd)})[1])
+
+
+def optional_metrics(lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+                     ) -> dict[str, Callable[[torch.Tensor, torch.Tensor], float]]:
+    """The report's metrics beyond PSNR and SSIM, as ``{name: f(eye, gt) -> float}`` on one sRGB
+    image pair ``[3, H, W]`` in [0, 1]: ``"flip"`` (LDR-FLIP, lower is better; always),
+    ``"lpips"`` (lower is better) when an LPIPS network is given (:func:`~controlgs_adapter.perceptual.load_lpips`),
+    and ``"cvvdp"`` (ColorVideoVDP JOD, higher is better) when the ``cvvdp`` package is installed
+    (``--no-deps``, so that it keeps the CPU torch, see docs/demo.md). Nothing is ever downloaded."""
+    found: dict[str, Callable[[torch.Tensor, torch.Tensor], float]] = {"flip": flip}
+    if lpips is not None:
+        def lpips_metric(eye: torch.Tensor, gt: torch.Tensor) -> float:
+            return float(lpips(eye, gt))
+
+        found["lpips"] = lpips_metric
     try:
         import pycvvdp  # type: ignore[import-not-found]
     except ImportError:

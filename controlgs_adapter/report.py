@@ -1,10 +1,14 @@
 """The evaluation report: every number as JSON, the paper's tables in Markdown, and plots.
 
 Files written by :func:`write_report` into a folder:
-- ``results.json``: every per-view, per-setting value, grid means, overall means, run info;
-- ``report.md``: Tbl. 1 (end-to-end quality averaged over views and the 20 settings), the
-  ablation table (when ablations ran), the per-setting grids and what the numbers show;
-- ``heatmap.png``: ControlGS minus SS-backbone per setting (paper Fig. 4);
+- ``results.json``: every per-view, per-setting value, grid means, overall means, run info; with
+  several seeds, each seed's run and the mean / std over seeds (read back by :func:`read_results`);
+- ``report.md``: Tbl. 1 (end-to-end quality averaged over views and the 20 settings; mean ± std
+  over seeds when there are several), the ablation table (when ablations ran), the ideal-render
+  bound (the ground truth through the same pipeline), which differences exceed the seed spread,
+  the per-setting grids and what the numbers show;
+- ``heatmap.png``: ControlGS minus SS-backbone per setting (paper Fig. 4) and ControlGS minus the
+  ideal render;
 - ``comparison.png``: rendered and eye-space images of the three methods at two settings (Fig. 1);
 - ``condition_response.png``: raw renders while one condition varies and the others are off (Fig. 8).
 """
@@ -12,16 +16,19 @@ Files written by :func:`write_report` into a folder:
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import torch
 
-from .evaluation import GridResult
+from .errors import InputValueError
+from .evaluation import IDEAL, GridResult
 from .io import atomic_write
+from .metrics import FLIP_PPD
 
-__all__ = ["METHOD_LABELS", "ABLATIONS", "markdown_tables", "plot_heatmaps", "plot_comparison",
-           "plot_condition_response", "write_report"]
+__all__ = ["METHOD_LABELS", "ABLATIONS", "SPREAD_FACTOR", "markdown_tables", "plot_heatmaps", "plot_comparison",
+           "plot_condition_response", "write_report", "read_results", "seed_summary", "LPIPS_NOT_COMPUTED"]
 
 METHOD_LABELS: dict[str, str] = {
     "no_ss": "Backbone (no SS)",
@@ -31,6 +38,7 @@ METHOD_LABELS: dict[str, str] = {
     "wo_display": "w/o Display Mapping",
     "wo_resample": "w/o Resampling",
     "state_blind": "w/o State-Aware",
+    IDEAL: "Ideal render (GT through E_s)",
 }
 #: ablation name -> (modules trained, state_blind), paper Tbl. 4
 ABLATIONS: dict[str, tuple[tuple[str, ...], bool]] = {
@@ -39,8 +47,14 @@ ABLATIONS: dict[str, tuple[tuple[str, ...], bool]] = {
     "wo_resample": (("lens", "display"), False),
     "state_blind": (("lens", "resample", "display"), True),
 }
-_HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "flip": False, "cvvdp": True}
-_FMT = {"psnr": "{:.2f}", "ssim": "{:.4f}", "flip": "{:.4f}", "cvvdp": "{:.3f}"}
+#: a difference of seed means "exceeds the spread" when larger than this many pooled std over seeds
+SPREAD_FACTOR = 2.0
+_HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "flip": False, "lpips": False, "cvvdp": True}
+_FMT = {"psnr": "{:.2f}", "ssim": "{:.4f}", "flip": "{:.4f}", "lpips": "{:.4f}", "cvvdp": "{:.3f}"}
+LPIPS_NOT_COMPUTED = ("LPIPS was not computed: it needs the AlexNet backbone weights, which no package ships and "
+                      "which are never downloaded; give local files with `--lpips-weights PATH` (torchvision's "
+                      "alexnet-owt-7be5be79.pth, plus the lpips package's weights/v0.1/alex.pth head unless "
+                      "`pip install --no-deps lpips` provides it).")
 
 
 def _label(method: str) -> str:
@@ -51,20 +65,59 @@ def _arrow(metric: str) -> str:
     return "↑" if _HIGHER_IS_BETTER.get(metric, True) else "↓"
 
 
-def _table(result: GridResult, methods: Sequence[str]) -> list[str]:
-    metrics = result.metrics
+def _runs(results: GridResult | Sequence[GridResult]) -> list[GridResult]:
+    """The seeds' results as a list, checked to share grid, methods and metrics."""
+    runs = [results] if isinstance(results, GridResult) else list(results)
+    if not runs:
+        raise InputValueError("no results to report")
+    first = runs[0]
+    for r in runs[1:]:
+        if (r.downsample, r.power_saving, r.methods, r.metrics) != (first.downsample, first.power_saving, first.methods,
+                                                                    first.metrics):
+            raise InputValueError("the seeds' results differ in grid, methods or metrics; they cannot be pooled")
+    return runs
+
+
+def _pooled(runs: Sequence[GridResult]) -> GridResult:
+    """One result whose per-view values are the mean over the seeds (the per-setting grids, findings, plots)."""
+    if len(runs) == 1:
+        return runs[0]
+    first = runs[0]
+    per_view = {m: {k: torch.stack([r.per_view[m][k] for r in runs]).mean(dim=0) for k in first.metrics}
+                for m in first.methods}
+    return GridResult(first.downsample, first.power_saving, per_view, first.optics_mode, dict(first.info))
+
+
+def seed_summary(results: GridResult | Sequence[GridResult]) -> dict[str, dict[str, dict[str, Any]]]:
+    """``{method: {metric: {"mean", "std", "per_seed"}}}`` of the overall means (views x grid) over
+    the seeds; ``std`` is the sample standard deviation (ddof 1), 0 for one seed."""
+    runs = _runs(results)
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for m in runs[0].methods:
+        out[m] = {}
+        for k in runs[0].metrics:
+            vals = torch.tensor([r.mean(m, k) for r in runs], dtype=torch.float64)
+            out[m][k] = {"mean": float(vals.mean()), "std": float(vals.std()) if len(vals) > 1 else 0.0,
+                         "per_seed": vals.tolist()}
+    return out
+
+
+def _table(summary: Mapping[str, Mapping[str, Mapping[str, Any]]], methods: Sequence[str], metrics: Sequence[str],
+           seeds: int) -> list[str]:
+    """Rows ``method | metric...``: the mean (± std over seeds when several); the best non-ideal mean in bold."""
     lines = ["| Method | " + " | ".join(f"{m.upper()}{_arrow(m)}" for m in metrics) + " |",
              "|---|" + "---:|" * len(metrics)]
     best = {}
     for k in metrics:
-        vals = [result.mean(m, k) for m in methods]
-        best[k] = max(vals) if _HIGHER_IS_BETTER.get(k, True) else min(vals)
+        vals = [summary[m][k]["mean"] for m in methods if m != IDEAL]
+        best[k] = (max(vals) if _HIGHER_IS_BETTER.get(k, True) else min(vals)) if vals else None
     for m in methods:
         cells = []
         for k in metrics:
-            v = result.mean(m, k)
-            s = _FMT.get(k, "{:.4f}").format(v)
-            cells.append(f"**{s}**" if v == best[k] else s)
+            fmt = _FMT.get(k, "{:.4f}")
+            v = summary[m][k]["mean"]
+            s = fmt.format(v) + (f" ± {fmt.format(summary[m][k]['std'])}" if seeds > 1 else "")
+            cells.append(f"**{s}**" if m != IDEAL and v == best[k] else s)
         lines.append(f"| {_label(m)} | " + " | ".join(cells) + " |")
     return lines
 
@@ -75,6 +128,30 @@ def _grid_table(result: GridResult, values: torch.Tensor, fmt: str) -> list[str]
     for i, d in enumerate(result.downsample):
         lines.append(f"| {d:g}× | " + " | ".join(fmt.format(float(v)) for v in values[i]) + " |")
     return lines
+
+
+def _spread(summary: Mapping[str, Mapping[str, Mapping[str, Any]]], metrics: Sequence[str], methods: Sequence[str],
+            seeds: int) -> list[str]:
+    """Which differences of seed means (ControlGS vs SS-backbone, each ablation vs ControlGS) exceed
+    :data:`SPREAD_FACTOR` pooled std over seeds, sqrt((s_a² + s_b²) / 2)."""
+    pairs = [("controlgs", "ss")] if {"controlgs", "ss"} <= set(methods) else []
+    pairs += [(a, "controlgs") for a in ABLATIONS if a in methods and "controlgs" in methods]
+    if not pairs:
+        return []
+    if seeds < 2:
+        return ["- One seed: no spread was measured, so no difference is shown to exceed it (`--seeds K`)."]
+    out = []
+    for a, b in pairs:
+        parts = []
+        for k in metrics:
+            fmt = _FMT.get(k, "{:.4f}")
+            diff = summary[a][k]["mean"] - summary[b][k]["mean"]
+            pooled = math.sqrt((summary[a][k]["std"] ** 2 + summary[b][k]["std"] ** 2) / 2.0)
+            exceeds = abs(diff) > SPREAD_FACTOR * pooled
+            parts.append(f"{k.upper()} {fmt.replace('{:', '{:+').format(diff)} "
+                         f"({'exceeds' if exceeds else 'within'} the spread, pooled std {fmt.format(pooled)})")
+        out.append(f"- {_label(a)} minus {_label(b)}: " + "; ".join(parts) + ".")
+    return out
 
 
 def _findings(result: GridResult) -> list[str]:
@@ -94,6 +171,12 @@ def _findings(result: GridResult) -> list[str]:
             out.append(f"- {k.upper()}: SS-backbone better than no-SS in {int((d2 > 0).sum())}/{d2.numel()} settings"
                        + (f", equal in {ties} (at d = 1 both render at S)" if ties else "")
                        + f" (mean difference {sign * float(d2.mean()):+.4g}).")
+        if IDEAL in result.methods:
+            d3 = sign * (result.grid("controlgs", k) - result.grid(IDEAL, k))
+            out.append(f"- {k.upper()}: the ideal render (ground truth through the pipeline) scores "
+                       f"{result.mean(IDEAL, k):.4g}, the pipeline's own cost to a perfect render; ControlGS is above "
+                       f"that bound in {int((d3 > 0).sum())}/{d3.numel()} settings (pre-compensating beyond it; mean "
+                       f"ControlGS minus ideal {sign * float(d3.mean()):+.4g}).")
     ablations = [a for a in ABLATIONS if a in result.methods]
     if ablations:
         drop = {a: result.mean("controlgs", "psnr") - result.mean(a, "psnr") for a in ablations}
@@ -102,29 +185,49 @@ def _findings(result: GridResult) -> list[str]:
     return out
 
 
-def markdown_tables(result: GridResult, info: Mapping[str, Any] | None = None) -> str:
-    """The report's Markdown: Tbl. 1, the ablation table, per-setting grids, findings."""
+def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[str, Any] | None = None) -> str:
+    """The report's Markdown from one result or one per seed: Tbl. 1 (mean ± std over seeds), the
+    ablation table, the ideal-render bound, the spread test, per-setting grids (means over seeds),
+    findings."""
+    runs = _runs(results)
+    result = _pooled(runs)
+    summary = seed_summary(runs)
+    seeds, metrics = len(runs), result.metrics
     main = [m for m in ("no_ss", "ss", "controlgs") if m in result.methods]
     lines = ["# ControlGS evaluation report", ""]
     if info:
         lines += ["Run: " + ", ".join(f"{k} = {v}" for k, v in info.items() if not isinstance(v, (dict, list))), ""]
+    over = f" and over {seeds} seeds (mean ± sample std of the seeds' means)" if seeds > 1 else ""
     lines += [f"End-to-end quality after the XR pipeline (optics `{result.optics_mode}`), averaged over the "
-              f"{result.per_view[main[0]]['psnr'].shape[-1]} test views and the {len(result.downsample) * len(result.power_saving)} "
-              "run-time settings (paper Tbl. 1):", ""]
-    lines += _table(result, main) + [""]
+              f"{result.per_view[result.methods[0]]['psnr'].shape[-1]} test views and the "
+              f"{len(result.downsample) * len(result.power_saving)} run-time settings{over} (paper Tbl. 1); the last row "
+              "is the ideal-render bound, the ground truth itself through the same pipeline:", ""]
+    lines += _table(summary, main + ([IDEAL] if IDEAL in result.methods else []), metrics, seeds) + [""]
+    notes = []
+    if "flip" in metrics:
+        notes.append(f"FLIP is NVIDIA's LDR-FLIP (flip-evaluator) at {FLIP_PPD:g} pixels per degree, mean error per image.")
+    notes.append(f"LPIPS (AlexNet) from {info['lpips_weights']}." if info and info.get("lpips_weights") and "lpips" in metrics
+                 else LPIPS_NOT_COMPUTED)
+    lines += notes + [""]
     ablations = [a for a in ABLATIONS if a in result.methods]
     if ablations:
         lines += ["Ablations (paper Tbl. 4):", ""]
-        lines += _table(result, ["controlgs", *ablations, *(["ss"] if "ss" in result.methods else [])]) + [""]
+        lines += _table(summary, ["controlgs", *ablations, *(["ss"] if "ss" in result.methods else [])], metrics, seeds) + [""]
+    spread = _spread(summary, metrics, result.methods, seeds)
+    if spread:
+        lines += ["## Differences against the seed spread", "",
+                  f"A difference of seed means exceeds the spread when it is larger than {SPREAD_FACTOR:g} x the pooled "
+                  "std over seeds, sqrt((s_a² + s_b²) / 2):", ""] + spread + [""]
     lines += ["## What the numbers show", ""] + (_findings(result) or ["- (needs ss and controlgs)"]) + [""]
-    lines += ["## Per setting", ""]
-    for k in result.metrics:
+    lines += ["## Per setting" + (f" (means over {seeds} seeds)" if seeds > 1 else ""), ""]
+    for k in metrics:
         fmt = _FMT.get(k, "{:.4f}")
         for m in result.methods:
             lines += [f"{k.upper()} of {_label(m)}:", ""] + _grid_table(result, result.grid(m, k), fmt) + [""]
-        if {"ss", "controlgs"} <= set(result.methods):
-            delta = result.grid("controlgs", k) - result.grid("ss", k)
-            lines += [f"{k.upper()} of ControlGS minus SS-backbone:", ""] + _grid_table(result, delta, "{:+." + fmt[-3:]) + [""]
+        for base in ("ss", IDEAL):
+            if {base, "controlgs"} <= set(result.methods):
+                delta = result.grid("controlgs", k) - result.grid(base, k)
+                lines += [f"{k.upper()} of ControlGS minus {_label(base)}:", ""] + _grid_table(result, delta, "{:+." + fmt[-3:]) + [""]
     return "\n".join(lines)
 
 
@@ -137,25 +240,31 @@ def _pyplot():
     return plt
 
 
-def plot_heatmaps(result: GridResult, path: str | Path, *, method: str = "controlgs", baseline: str = "ss") -> Path:
-    """Heatmaps of ``method`` minus ``baseline`` per setting, one panel per metric (paper Fig. 4)."""
+def plot_heatmaps(results: GridResult | Sequence[GridResult], path: str | Path, *, method: str = "controlgs",
+                  baselines: Sequence[str] = ("ss", IDEAL)) -> Path:
+    """Heatmaps of ``method`` minus each of ``baselines`` that was evaluated (one row each: SS-backbone,
+    paper Fig. 4, and the ideal render), one panel per metric; means over the seeds."""
     plt = _pyplot()
+    result = _pooled(_runs(results))
     metrics = result.metrics
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.6), squeeze=False)
-    for ax, k in zip(axes[0], metrics):
-        delta = (result.grid(method, k) - result.grid(baseline, k)).numpy()
-        lim = max(float(abs(delta).max()), 1e-12)
-        good_positive = _HIGHER_IS_BETTER.get(k, True)
-        im = ax.imshow(delta, cmap="RdBu" if good_positive else "RdBu_r", vmin=-lim, vmax=lim)
-        for i in range(delta.shape[0]):
-            for j in range(delta.shape[1]):
-                ax.text(j, i, _FMT.get(k, "{:.3f}").replace("{:", "{:+").format(delta[i, j]), ha="center", va="center", fontsize=8)
-        ax.set_xticks(range(len(result.power_saving)), [f"{p:.0%}" for p in result.power_saving])
-        ax.set_yticks(range(len(result.downsample)), [f"{d:g}×" for d in result.downsample])
-        ax.set_xlabel("display power saving ρ")
-        ax.set_ylabel("downsample d")
-        ax.set_title(f"Δ{k.upper()} ({_label(method)} − {_label(baseline)})", fontsize=9)
-        fig.colorbar(im, ax=ax, fraction=0.046)
+    rows = [b for b in baselines if b in result.methods]
+    fig, axes = plt.subplots(len(rows), len(metrics), figsize=(4.2 * len(metrics), 3.6 * len(rows)), squeeze=False)
+    for r, baseline in enumerate(rows):
+        for ax, k in zip(axes[r], metrics):
+            delta = (result.grid(method, k) - result.grid(baseline, k)).numpy()
+            lim = max(float(abs(delta).max()), 1e-12)
+            good_positive = _HIGHER_IS_BETTER.get(k, True)
+            im = ax.imshow(delta, cmap="RdBu" if good_positive else "RdBu_r", vmin=-lim, vmax=lim)
+            for i in range(delta.shape[0]):
+                for j in range(delta.shape[1]):
+                    ax.text(j, i, _FMT.get(k, "{:.3f}").replace("{:", "{:+").format(delta[i, j]), ha="center", va="center",
+                            fontsize=8)
+            ax.set_xticks(range(len(result.power_saving)), [f"{p:.0%}" for p in result.power_saving])
+            ax.set_yticks(range(len(result.downsample)), [f"{d:g}×" for d in result.downsample])
+            ax.set_xlabel("display power saving ρ")
+            ax.set_ylabel("downsample d")
+            ax.set_title(f"Δ{k.upper()} ({_label(method)} − {'ideal' if baseline == IDEAL else _label(baseline)})", fontsize=9)
+            fig.colorbar(im, ax=ax, fraction=0.046)
     fig.tight_layout()
     path = Path(path)
     atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=120))
@@ -209,20 +318,41 @@ def plot_condition_response(strips: Mapping[str, Sequence[tuple[str, torch.Tenso
     return path
 
 
-def write_report(out: str | Path, result: GridResult, *, info: Mapping[str, Any] | None = None,
+def _results_json(runs: Sequence[GridResult], info: Mapping[str, Any]) -> dict[str, Any]:
+    """One run: :meth:`GridResult.to_json` with ``info`` merged in. Several seeds: ``info``, ``seeds``,
+    ``summary`` (:func:`seed_summary`) and each seed's ``to_json()`` in ``runs``."""
+    if len(runs) == 1:
+        data = runs[0].to_json()
+        return {"info": {**data.pop("info"), **dict(info)}, **data}
+    return {"info": {**{k: v for k, v in runs[0].info.items() if k != "seed"}, **dict(info)},
+            "seeds": [r.info.get("seed") for r in runs], "summary": seed_summary(runs), "runs": [r.to_json() for r in runs]}
+
+
+def read_results(data: Mapping[str, Any]) -> list[GridResult]:
+    """The results a report's ``results.json`` holds: one :class:`GridResult` per seed (one for a
+    single run)."""
+    if "runs" in data:
+        if not isinstance(data["runs"], list) or not data["runs"]:
+            raise InputValueError("results.json: 'runs' must be a non-empty list of GridResult JSON")
+        return _runs([GridResult.from_json(r) for r in data["runs"]])
+    return [GridResult.from_json(data)]
+
+
+def write_report(out: str | Path, results: GridResult | Sequence[GridResult], *, info: Mapping[str, Any] | None = None,
                  comparison: Mapping[str, Any] | None = None,
                  response: Mapping[str, Sequence[tuple[str, torch.Tensor]]] | None = None) -> list[Path]:
-    """Write ``results.json``, ``report.md`` and the plots into folder ``out``; returns the paths."""
+    """Write ``results.json``, ``report.md`` and the plots into folder ``out`` from one result or one
+    per seed (each with its ``info["seed"]``); returns the paths."""
+    runs = _runs(results)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    data = result.to_json()
-    data = {"info": {**data.pop("info"), **dict(info or {})}, **data}
+    data = _results_json(runs, info or {})
     paths = [atomic_write(out / "results.json", lambda tmp: Path(tmp).write_text(json.dumps(data, indent=1)))]
-    md = markdown_tables(result, data["info"])
+    md = markdown_tables(runs, data["info"])
     figures = []
-    if {"ss", "controlgs"} <= set(result.methods):
-        paths.append(plot_heatmaps(result, out / "heatmap.png"))
-        figures.append("![ControlGS minus SS-backbone per setting](heatmap.png)")
+    if {"ss", "controlgs"} <= set(runs[0].methods):
+        paths.append(plot_heatmaps(runs, out / "heatmap.png"))
+        figures.append("![ControlGS minus SS-backbone and minus the ideal render per setting](heatmap.png)")
     if comparison:
         paths.append(plot_comparison(comparison, out / "comparison.png"))
         figures.append("![rendered and eye-space images at two settings](comparison.png)")

@@ -69,7 +69,7 @@ def test_three_formats_train_eval_and_agree(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.count("scene check: ") == 3 and "anchors are in view of 8/8 cameras" in out
     ref = results["colmap"]
-    assert ref["info"]["test_sizes"] == ["32x32"] and set(ref["methods"]) == {"no_ss", "ss", "controlgs"}
+    assert ref["info"]["test_sizes"] == ["32x32"] and set(ref["methods"]) == {"no_ss", "ss", "ideal", "controlgs"}
     for fmt, r in results.items():
         assert r["info"]["test_views"] == 1, fmt
         for m, metrics in ref["methods"].items():

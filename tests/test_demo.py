@@ -26,7 +26,7 @@ def test_tiny_demo_writes_the_report(tmp_path, monkeypatch):
                  "controlgs.controlgs.safetensors"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     data = json.loads((out / "results.json").read_text())
-    assert set(data["methods"]) == {"no_ss", "ss", "controlgs"}
+    assert set(data["methods"]) == {"no_ss", "ss", "ideal", "controlgs"}
     for m in data["methods"].values():
         grid = torch.tensor(m["psnr"]["grid"], dtype=torch.float64)
         assert grid.shape == (4, 5) and bool(torch.isfinite(grid).all())
