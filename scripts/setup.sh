@@ -7,3 +7,6 @@ PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt torch==2.13.0
 .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e ".[demo,test]"
+# lpips only for its LPIPS head weights and as the tests' reference; --no-deps: its torchvision
+# requirement would replace the CPU torch (controlgs-adapter never imports torchvision)
+.venv/bin/python -m pip install -q --disable-pip-version-check --no-deps lpips==0.1.4
