@@ -144,12 +144,10 @@ def _spread(summary: Mapping[str, Mapping[str, Mapping[str, Any]]], metrics: Seq
     for a, b in pairs:
         parts = []
         for k in metrics:
-            fmt = _FMT.get(k, "{:.4f}")
             diff = summary[a][k]["mean"] - summary[b][k]["mean"]
             pooled = math.sqrt((summary[a][k]["std"] ** 2 + summary[b][k]["std"] ** 2) / 2.0)
             exceeds = abs(diff) > SPREAD_FACTOR * pooled
-            parts.append(f"{k.upper()} {fmt.replace('{:', '{:+').format(diff)} "
-                         f"({'exceeds' if exceeds else 'within'} the spread, pooled std {fmt.format(pooled)})")
+            parts.append(f"{k.upper()} {diff:+.3g} ({'exceeds' if exceeds else 'within'} the spread, pooled std {pooled:.2g})")
         out.append(f"- {_label(a)} minus {_label(b)}: " + "; ".join(parts) + ".")
     return out
 

@@ -1,6 +1,6 @@
 """``controlgs demo``: the main job. Loads the built-in scene and its baked backbone, trains the
-ControlGS adapter (and with ``--ablations`` the four ablations), evaluates the 4 x 5 run-time grid
-and writes the report (tables, heatmaps, images) to a folder."""
+ControlGS adapter (and with ``--ablations`` the four ablations) for one or ``--seeds K`` seeds,
+evaluates the 4 x 5 run-time grid and writes the report (tables, heatmaps, images) to a folder."""
 
 from __future__ import annotations
 
@@ -24,7 +24,55 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--optics", choices=("fast", "exact"), default="fast",
                    help="PSF operator of the last training phase and of the evaluation")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, default=None,
+                   help="train / evaluate K seeds: --seed, --seed + 1, ... (adapters in seed-<s>/ when K > 1; "
+                        "the report shows mean ± std over seeds; default 1, eval: the seed-<s>/ folders found)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+
+
+def add_lpips(p: argparse.ArgumentParser) -> None:
+    """``--lpips-weights``: local LPIPS weight files (never downloaded)."""
+    p.add_argument("--lpips-weights", nargs="+", default=None, metavar="PATH",
+                   help="compute LPIPS (AlexNet) from local files: torchvision's alexnet-owt-7be5be79.pth and the lpips "
+                        "package's weights/v0.1/alex.pth head (found by itself when lpips is installed), or one "
+                        "file with both; torch weights_only or safetensors. Nothing is downloaded")
+
+
+def load_lpips_arg(args: argparse.Namespace) -> Any:
+    """The LPIPS network of ``--lpips-weights`` (None without it)."""
+    from controlgs_adapter.perceptual import load_lpips
+
+    return load_lpips(args.lpips_weights) if getattr(args, "lpips_weights", None) else None
+
+
+def seed_runs(out: Path, seed: int, seeds: int | None) -> list[tuple[int, Path]]:
+    """``(seed, folder)`` of each of ``seeds`` seeds from ``seed`` (None: 1): ``out`` itself for one
+    seed, ``out/seed-<s>`` for several."""
+    from controlgs_adapter.errors import InputValueError
+
+    k = 1 if seeds is None else seeds
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise InputValueError(f"--seeds must be an int >= 1, got {seeds!r}")
+    return [(seed, out)] if k == 1 else [(seed + i, out / f"seed-{seed + i}") for i in range(k)]
+
+
+def evaluate_seeds(model: Any, views: Any, adapters: dict[int, dict[str, Path]], **kwargs: Any) -> list[Any]:
+    """:func:`~controlgs_adapter.evaluation.evaluate_grid` of each seed's adapters ``{seed: {name:
+    file}}``; the baselines and the ideal render do not depend on the seed and are evaluated once
+    (copied into every seed's result). Each result's ``info["seed"]`` is its seed."""
+    from controlgs_adapter.evaluation import evaluate_grid
+
+    results = []
+    for seed, paths in adapters.items():
+        first = results[0] if results else None
+        r = evaluate_grid(model, views, paths, **kwargs) if first is None else \
+            evaluate_grid(model, views, paths, baselines=(), ideal=False, **kwargs)
+        if first is not None:
+            shared = [m for m in first.methods if m not in paths]
+            r.per_view = {**{m: first.per_view[m] for m in shared}, **r.per_view}
+        r.info["seed"] = seed
+        results.append(r)
+    return results
 
 
 STAGES = ("lens", "resample", "display", "oled", "optics")
@@ -59,18 +107,20 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--out", default="report", help="report folder")
     add_common(p)
     add_training(p)
+    add_lpips(p)
     p.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
                    help="also train and evaluate w/o lens, display, resample, state-blind (default: on)")
     p.set_defaults(func=run)
 
 
 def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
-                   dist: Any = None, trained: dict[str, int] | None = None) -> dict[str, Path]:
+                   dist: Any = None, trained: dict[str, int] | None = None, seed: int | None = None) -> dict[str, Path]:
     """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
     names) on the training ``views`` (a :class:`~controlgs_adapter.training.Views` dataset); returns ``{name: adapter
     file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this process's
     :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files). ``trained``, if
-    given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked)."""
+    given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked).
+    ``seed``: the training seed (default ``args.seed``)."""
     from controlgs_adapter.report import ABLATIONS
     from controlgs_adapter.training import TrainConfig, Trainer
 
@@ -79,7 +129,7 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
         modules, blind = ABLATIONS.get(name, (None, False))
         config = TrainConfig(iterations=args.iterations, lr=args.lr, modules=modules, cond_dim=args.cond_dim,
                              state_blind=blind, psf_fraction=args.psf_fraction, psf_mode=args.optics,
-                             checkpoint_every=args.checkpoint_every, seed=args.seed,
+                             checkpoint_every=args.checkpoint_every, seed=args.seed if seed is None else seed,
                              batch_size=getattr(args, "batch_size", 1))
         target = out / f"{name}.controlgs.safetensors"
         ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
@@ -114,14 +164,15 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     import torch
 
-    from controlgs_adapter.evaluation import evaluate_grid
-    from controlgs_adapter.report import ABLATIONS, write_report
+    from controlgs_adapter.report import ABLATIONS, seed_summary, write_report
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.resolution is None:
         args.resolution = DEFAULT_RESOLUTION
+    lpips = load_lpips_arg(args)
+    runs = seed_runs(out, args.seed, args.seeds)
     timings: dict[str, float] = {}
     t = time.perf_counter()
     scene = load_builtin_scene(args.variant, args.resolution, cache=True)
@@ -131,22 +182,27 @@ def _run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     names = ["controlgs", *(ABLATIONS if args.ablations else [])]
     trained: dict[str, int] = {}
-    adapters = train_adapters(scene.views("train"), model, out, args, names, trained=trained)
+    adapters = {s: train_adapters(scene.views("train"), model, folder, args, names, trained=trained, seed=s)
+                for s, folder in runs}
     timings["train_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     views = first_views(scene.data, "test", args.test_views)
     effects = effects_from(args.effects)
-    result = evaluate_grid(model, views, adapters, effects=effects, optics_mode=args.optics, progress=args.progress)
+    results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
+                             progress=args.progress)
     timings["eval_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    comparison, response = report_figures(model, adapters["controlgs"], views, effects=effects, optics_mode=args.optics)
+    comparison, response = report_figures(model, adapters[runs[0][0]]["controlgs"], views, effects=effects,
+                                          optics_mode=args.optics)
     timings["figures_s"] = time.perf_counter() - t
     info = {"scene": scene.name, "resolution": args.resolution, "iterations": trained["controlgs"], "test_views": len(views),
-            "optics": args.optics, "seed": args.seed, "threads": torch.get_num_threads(),
+            "optics": args.optics, "seed": args.seed, "seeds": len(runs), "threads": torch.get_num_threads(),
+            **({"lpips_weights": lpips.source} if lpips is not None else {}),
             **{k: round(v, 1) for k, v in timings.items()}}
-    paths = write_report(out, result, info=info, comparison=comparison, response=response)
-    print(json.dumps({m: {k: round(result.mean(m, k), 4) for k in result.metrics} for m in result.methods}, indent=1))
+    paths = write_report(out, results, info=info, comparison=comparison, response=response)
+    summary = seed_summary(results)
+    print(json.dumps({m: {k: round(v["mean"], 4) for k, v in metrics.items()} for m, metrics in summary.items()}, indent=1))
     print("report: " + ", ".join(str(p) for p in paths))
     return 0
 
@@ -170,7 +226,7 @@ def report_figures(model: Any, adapter: Path, views: Any, *, effects: dict[str, 
     """The report's comparison (:func:`side_by_side`) and condition strip (:func:`condition_response`) on the
     first of ``views``, on the model's device."""
     from controlgs_adapter.evaluation import condition_response, side_by_side
-    from controlgs_adapter.training import model_device
+    from controlgs_adapter.rendering import model_device
 
     device = model_device(model)
     cam, gt = views[0]

@@ -1,7 +1,9 @@
 """``controlgs eval``: the 4 x 5 run-time grid for the backbone without and with supersampling and
 for every adapter a run folder holds, on the test views of a user's dataset (``--model`` /
 ``--data``, by default those ``RUN/run.json`` records) or of the built-in scene (``--variant``);
-writes the report (results.json, report.md, heatmap, comparison, condition strip)."""
+writes the report (results.json, report.md, heatmap, comparison, condition strip). A run trained
+with ``--seeds K`` holds one folder ``seed-<s>`` per seed; each is evaluated and the report shows
+mean ± std over them."""
 
 from __future__ import annotations
 
@@ -10,7 +12,7 @@ import time
 from pathlib import Path
 
 from .common import add_data_arguments, apply_run_defaults, cache_bytes, user_scene
-from .demo import add_common, effects_from, first_views, report_figures
+from .demo import add_common, add_lpips, effects_from, evaluate_seeds, first_views, load_lpips_arg, report_figures, seed_runs
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -21,6 +23,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     add_common(p)
     add_data_arguments(p)
     p.add_argument("--effects", default=None, help="downstream stages, comma-separated (default: the run's, else all)")
+    add_lpips(p)
     p.set_defaults(func=run)
 
 
@@ -28,14 +31,21 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from controlgs_adapter.errors import InputValueError
-    from controlgs_adapter.evaluation import evaluate_grid
     from controlgs_adapter.report import ABLATIONS, write_report
 
     run_dir = Path(args.run)
-    names = ["controlgs", *ABLATIONS]
-    adapters = {n: run_dir / f"{n}.controlgs.safetensors" for n in names if (run_dir / f"{n}.controlgs.safetensors").is_file()}
-    if "controlgs" not in adapters:
-        raise InputValueError(f"{run_dir}: no controlgs.controlgs.safetensors (train one with `controlgs train --out {run_dir}`)")
+    adapters = {seed: {n: folder / f"{n}.controlgs.safetensors" for n in ("controlgs", *ABLATIONS)
+                       if (folder / f"{n}.controlgs.safetensors").is_file()}
+                for seed, folder in seed_folders(run_dir, args.seed, args.seeds)}
+    for seed, found in adapters.items():
+        if "controlgs" not in found:
+            where = run_dir if len(adapters) == 1 else run_dir / f"seed-{seed}"
+            raise InputValueError(f"{where}: no controlgs.controlgs.safetensors (train one with `controlgs train --out {run_dir}`)")
+    if len({tuple(found) for found in adapters.values()}) > 1:
+        raise InputValueError(f"{run_dir}: the seed folders hold different adapters ("
+                              + "; ".join(f"seed-{s}: {', '.join(found)}" for s, found in adapters.items())
+                              + "); train every seed with the same ablations")
+    lpips = load_lpips_arg(args)
     recorded = apply_run_defaults(args, run_dir)
     t = time.perf_counter()
     if user_scene(args):
@@ -57,14 +67,27 @@ def run(args: argparse.Namespace) -> int:
     load_s = time.perf_counter() - t
     t = time.perf_counter()
     effects = effects_from(args.effects)
-    result = evaluate_grid(model, views, adapters, effects=effects, optics_mode=args.optics, progress=args.progress)
+    results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
+                             progress=args.progress)
     eval_s = time.perf_counter() - t
-    comparison, response = report_figures(model, adapters["controlgs"], views, effects=effects, optics_mode=args.optics)
+    first = next(iter(adapters.values()))
+    comparison, response = report_figures(model, first["controlgs"], views, effects=effects, optics_mode=args.optics)
     info = {"scene": name, "resolution": args.resolution, "test_views": len(views), "optics": args.optics,
-            "adapters": list(adapters), "effects": sorted(effects), "device": str(args.device), "threads": torch.get_num_threads(),
+            "adapters": list(first), "seeds": len(results), "effects": sorted(effects), "device": str(args.device),
+            "threads": torch.get_num_threads(),
             "load_s": round(load_s, 1), "eval_s": round(eval_s, 1),
+            **({"lpips_weights": lpips.source} if lpips is not None else {}),
             **({"iterations": recorded.get("iterations"), "seed": recorded.get("seed")} if recorded else {})}
-    for p in write_report(Path(args.out) if args.out else run_dir, result, info=info, comparison=comparison,
+    for p in write_report(Path(args.out) if args.out else run_dir, results, info=info, comparison=comparison,
                           response=response):
         print(p)
     return 0
+
+
+def seed_folders(run_dir: Path, seed: int, seeds: int | None) -> list[tuple[int, Path]]:
+    """``(seed, folder)`` to evaluate: ``--seeds K`` picks ``seed-<s>`` for s = seed .. seed + K - 1
+    (``run_dir`` itself for K = 1); without it every ``seed-<s>`` folder of ``run_dir``, else ``run_dir``."""
+    if seeds is not None:
+        return seed_runs(run_dir, seed, seeds)
+    found = sorted((int(f.name[5:]), f) for f in run_dir.glob("seed-*") if f.is_dir() and f.name[5:].lstrip("-").isdigit())
+    return found or [(seed, run_dir)]

@@ -1,7 +1,8 @@
 """``controlgs train``: train a ControlGS adapter (and by default the four ablations) on a frozen
 backbone: a user's trained model folder and its dataset (``--model`` / ``--data``), or the built-in
 scene's baked backbone (``--variant``). Checkpoints resume exactly after an interruption; adapters
-are saved as safetensors; ``RUN/run.json`` records what the run was trained on. Under ``torchrun``
+are saved as safetensors (with ``--seeds K``, one folder ``RUN/seed-<s>`` per seed); ``RUN/run.json``
+records what the run was trained on. Under ``torchrun``
 it trains data-parallel, or with ``--scenes`` one built-in scene per process (docs/distributed.md)."""
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 from ..distributed import DistContext, add_distributed_arguments, init_distributed, shard_scenes
 from .common import (RUN_FILE, add_data_arguments, anchor_positions, cache_bytes, check_line, load_user_scene,
                      user_scene)
-from .demo import add_common, add_training, train_adapters
+from .demo import add_common, add_training, seed_runs, train_adapters
 
 ABLATION_NAMES = ("wo_lens", "wo_display", "wo_resample", "state_blind")
 
@@ -68,14 +69,18 @@ def _run(args: argparse.Namespace) -> int:
         if args.scenes:  # many-scenes mode: this process's scenes, each trained alone
             for variant in shard_scenes(args.scenes, dist):
                 with run_lock(out / variant):
-                    paths = train_adapters(*load(variant), out / variant, args, names, dist=DistContext())
-                for name, path in paths.items():
-                    print(f"[rank {dist.rank}] {variant} {name}: {path}")
+                    views, model = load(variant)
+                    for seed, folder in seed_runs(out / variant, args.seed, args.seeds):
+                        paths = train_adapters(views, model, folder, args, names, dist=DistContext(), seed=seed)
+                        for name, path in paths.items():
+                            print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
-        paths = train_adapters(*load(args.variant), out, args, names, dist=dist)
-        if dist.is_main:
-            for name, path in paths.items():
-                print(f"{name}: {path}")
+        views, model = load(args.variant)
+        for seed, folder in seed_runs(out, args.seed, args.seeds):
+            paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed)
+            if dist.is_main:
+                for name, path in paths.items():
+                    print(f"{name}: {path}")
     return 0
 
 
@@ -85,6 +90,7 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
     from controlgs_adapter.io import atomic_write
     from .demo import effects_from
 
+    runs = seed_runs(out, args.seed, args.seeds)
     scene = load_user_scene(args)
     report = check_scene(scene.data, points=anchor_positions(scene.model))
     with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
@@ -95,11 +101,12 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
             print(check_line(report))
             print(f"model: {scene.family} {args.model}; training views: {views.describe()}")
             record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
-                                  adapters=names)
+                                  seeds=len(runs), adapters=names)
             out.mkdir(parents=True, exist_ok=True)
             atomic_write(out / RUN_FILE, lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
-        paths = train_adapters(views, scene.model, out, args, names, dist=dist)
-        if dist.is_main:
-            for name, path in paths.items():
-                print(f"{name}: {path}")
+        for seed, folder in runs:
+            paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed)
+            if dist.is_main:
+                for name, path in paths.items():
+                    print(f"{name}: {path}")
     return 0
