@@ -20,10 +20,11 @@ from torch import nn
 
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.rasterizers import rasterize_gaussians
 from controlgs_adapter.state import Camera
 
 from .reference_model import NeuralGaussianModel, NeuralGaussians
-from .splatter import RasterOutput, rasterize
+from .splatter import RasterOutput
 
 __all__ = [
     "anchor_ids_from_mask", "iteration_dir", "ply_columns", "ply_offsets", "mlp_from_state_dict", "check_first_width",
@@ -213,5 +214,6 @@ def assemble_gaussians(ids: torch.Tensor, k: int, anchor: torch.Tensor, offsets:
 
 
 def render_gaussians(g: NeuralGaussians, camera: Camera, background: torch.Tensor | None = None) -> RasterOutput:
-    """Splat decoded Gaussians with the library's splatter (``RasterOutput``)."""
-    return rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, camera, background)
+    """Splat decoded Gaussians with the rasterizer chosen for their device
+    (:func:`~controlgs_adapter.rasterizers.rasterize_gaussians`; ``RasterOutput``)."""
+    return rasterize_gaussians(g.means, g.scales, g.rotations, g.opacities, g.colors, camera, background)

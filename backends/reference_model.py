@@ -27,9 +27,10 @@ from torch import nn
 
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import InputValueError, ShapeError
+from controlgs_adapter.rasterizers import rasterize_gaussians
 from controlgs_adapter.state import Camera
 
-from .splatter import NEAR_PLANE, RasterOutput, project_gaussians, rasterize
+from .splatter import NEAR_PLANE, RasterOutput, project_gaussians
 
 __all__ = ["NeuralGaussianModel", "NeuralGaussians", "AppearanceEmbedding", "median_spacing"]
 
@@ -316,12 +317,13 @@ class NeuralGaussianModel(nn.Module):
 
     def render(self, camera: Camera, visible_mask: torch.Tensor | None = None,
                background: torch.Tensor | None = None) -> RasterOutput:
-        """Prefilter (``visible_mask=None`` -> :meth:`visible_anchors`), decode and splat with
-        :func:`controlgs_adapter.backends.splatter.rasterize`. Returns its ``RasterOutput``."""
+        """Prefilter (``visible_mask=None`` -> :meth:`visible_anchors`), decode and splat with the
+        rasterizer chosen for the model's device (:func:`controlgs_adapter.rasterizers.rasterize_gaussians`:
+        the pure-torch splatter, gsplat on CUDA when installed). Returns its ``RasterOutput``."""
         if visible_mask is None:
             visible_mask = self.visible_anchors(camera)
         g = self.decode(camera, visible_mask)
-        return rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, camera, background)
+        return rasterize_gaussians(g.means, g.scales, g.rotations, g.opacities, g.colors, camera, background)
 
     def extra_repr(self) -> str:
         return (f"anchors={self.num_anchors}, feat_dim={self.feat_dim}, n_offsets={self.n_offsets}, "

@@ -100,6 +100,15 @@ class Backend:
             raise TargetError(f"{self.name}: first layer of {decoder_path!r} must be a Linear, got {type(fc1).__name__}")
         return fc1
 
+    def renderer(self, model: Any) -> Any:
+        """The :class:`~controlgs_adapter.rendering.Renderer` of this family for ``model``, or None
+        when the model cannot render itself (the user passes one). Default: a
+        :class:`~controlgs_adapter.rendering.ModelRenderer` when the model has ``visible_anchors``
+        and ``render`` (every family the library loads)."""
+        from .rendering import ModelRenderer  # local: rendering imports this module's users
+
+        return ModelRenderer() if ModelRenderer.fits(model) else None
+
     def fingerprint(self, model: Any) -> str:
         """SHA-256 (hex, 16 chars) over anchor positions and every decoder's weights: identifies the
         backbone an adapter was trained on."""

@@ -3,19 +3,44 @@ what was expected and what came.
 
 Shapes are given as sequences whose items are ints (exact), strings (symbolic: equal names must
 agree) or ``"*"`` (any number of leading dims, only first).
+
+Checks of tensor *values* (NaN/Inf, ranges) read the tensor on the host: one device sync each.
+:func:`value_checks` turns them off for a block (the training step does, and checks its loss and
+parameters once instead); shape, dtype and device checks always run.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import numbers
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import torch
 
 from .errors import InputValueError, ShapeError
 
-__all__ = ["check_tensor", "check_image", "check_finite", "check_same_device", "check_number"]
+__all__ = ["check_tensor", "check_image", "check_finite", "check_same_device", "check_number", "value_checks",
+           "value_checks_enabled"]
+
+_VALUE_CHECKS: contextvars.ContextVar[bool] = contextvars.ContextVar("controlgs_value_checks", default=True)
+
+
+@contextlib.contextmanager
+def value_checks(enabled: bool) -> Iterator[None]:
+    """Turn the value checks (:func:`check_finite` and the range checks that consult
+    :func:`value_checks_enabled`) on or off inside the block (per thread / task)."""
+    token = _VALUE_CHECKS.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _VALUE_CHECKS.reset(token)
+
+
+def value_checks_enabled() -> bool:
+    """False inside ``value_checks(False)``: skip checks that would read tensor values on the host."""
+    return _VALUE_CHECKS.get()
 
 
 def check_tensor(
@@ -59,8 +84,8 @@ def check_tensor(
 
 
 def check_finite(name: str, x: torch.Tensor) -> None:
-    """Raise if ``x`` holds NaN or Inf, saying how many."""
-    if x.is_floating_point() or x.is_complex():
+    """Raise if ``x`` holds NaN or Inf, saying how many (skipped inside ``value_checks(False)``)."""
+    if (x.is_floating_point() or x.is_complex()) and _VALUE_CHECKS.get():
         bad = ~torch.isfinite(x)
         if bool(bad.any()):
             raise InputValueError(f"{name} contains {int(bad.sum())} non-finite value(s) (NaN/Inf) out of {x.numel()}")

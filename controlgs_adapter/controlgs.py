@@ -13,6 +13,7 @@ before it changes anything on the model, and ``unwrap`` puts back exactly what w
 from __future__ import annotations
 
 import contextlib
+import warnings
 import weakref
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -23,7 +24,7 @@ from torch import nn
 
 from . import plugins
 from .backend import Backend, get_attr_path, set_attr_path
-from .errors import (FileFormatError, IncompatibleAdapterError, InputValueError, NoMatchingBackendError,
+from .errors import (FileFormatError, IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
                      NonFiniteError, ShapeError, StateError, TargetError)
 from .injector import ConditionInjector, InjectionContext
 from .io import load_tensors, read_header, save_tensors
@@ -369,9 +370,8 @@ class ControlGS:
                 positions = self.backend.anchor_positions(self.model).detach()
                 screen, display_state = self._display_positions(
                     camera, camera.normalized_screen(positions.index_select(0, ids.to(positions.device))), state)
-            lam_t = schedule.strength(display_state, screen, dtype=self.injector.dtype, device=ids.device)
-            if not skip_zero or bool(lam_t.any()):
-                out[m] = lam_t
+            # per-anchor strengths stay even where all zero (they add exact zeros): testing would sync the device
+            out[m] = schedule.strength(display_state, screen, dtype=self.injector.dtype, device=ids.device)
         return out
 
     def _display_positions(self, camera: Camera, screen: torch.Tensor,
@@ -389,7 +389,7 @@ class ControlGS:
 
     @contextlib.contextmanager
     def conditioned(self, state: RuntimeState, camera: Camera | None = None, anchor_ids: torch.Tensor | None = None,
-                    *, modules: Sequence[str] | None = None) -> Iterator["ControlGS"]:
+                    *, modules: Sequence[str] | None = None, on_miss: str = "warn") -> Iterator["ControlGS"]:
         """Inject the conditions into every target decoder called inside the block.
 
         Args:
@@ -401,8 +401,14 @@ class ControlGS:
                 ``anchor_ids[r // K]``. A decoder called with another row count raises ShapeError.
             modules: restrict the injection to these wrapped modules (others are off, not computed);
                 a single name (``"lens"``) is one module.
+            on_miss: what happens when the block ends without any wrapped decoder having run (the
+                render used another object than the wrapped model, e.g. a copy or a forwarding
+                wrapper holding the original decoders): ``"warn"`` (RuntimeWarning), ``"raise"``
+                (:class:`InjectionMissedError`) or ``"ignore"``.
         """
         self._check_live()
+        if on_miss not in ("warn", "raise", "ignore"):
+            raise InputValueError(f"on_miss must be 'warn', 'raise' or 'ignore', got {on_miss!r}")
         ids = self.anchor_ids(anchor_ids)
         if modules is None:
             active = self.modules
@@ -416,11 +422,27 @@ class ControlGS:
             if unknown:
                 raise InputValueError(f"modules {unknown} are not wrapped; wrapped modules: {list(self.modules)}")
         strengths = self._strengths(state, camera, ids, active, skip_zero=True)
-        self.injector.activate(InjectionContext(ids, strengths, self.rows_per_anchor))
+        ctx = InjectionContext(ids, strengths, self.rows_per_anchor)
+        self.injector.activate(ctx)
         try:
             yield self
         finally:
             self.injector.deactivate()
+        if on_miss != "ignore" and not ctx.calls and ctx.rows:
+            self._missed(on_miss)
+
+    def _missed(self, on_miss: str) -> None:
+        """Report a conditioned block in which no wrapped decoder ran."""
+        fc1s = ", ".join(t.fc1 for t in self.targets)
+        rebuilt = [t.decoder for t in self.targets if t.from_torchscript]
+        msg = (f"no wrapped decoder ran inside this conditioned block: the injected first layers ({fc1s}) of "
+               f"{type(self.model).__name__} object at {id(self.model):#x} were never called, so the render did not "
+               "see the adapter. The renderer must call the decoders of that very object (ControlGS.wrap changed it in "
+               "place), not of a copy, a forwarding wrapper or decoders fetched before wrapping"
+               + (f"; the TorchScript decoders {rebuilt} were replaced there by eager copies" if rebuilt else ""))
+        if on_miss == "raise":
+            raise InjectionMissedError(msg)
+        warnings.warn(msg, RuntimeWarning, stacklevel=4)
 
     # ------------------------------------------------------------------ files
     def header(self) -> dict[str, Any]:

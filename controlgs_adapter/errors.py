@@ -53,3 +53,8 @@ class MissingDependencyError(ControlGSError, ImportError):
 
 class FileWriteError(ControlGSError, OSError):
     """A file could not be written (unwritable folder, disk full, a folder in the way)."""
+
+
+class InjectionMissedError(ControlGSError, RuntimeError):
+    """A render inside ``ControlGS.conditioned`` never called the wrapped decoders (the renderer
+    uses another object than the one ``ControlGS.wrap`` changed)."""

@@ -27,7 +27,8 @@ from .controlgs import ControlGS
 from .errors import InputValueError
 from .metrics import optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
-from .training import DEFAULT_EFFECTS, Views, model_device, render_view
+from .rendering import Renderer, as_renderer, model_device, render_view
+from .training import DEFAULT_EFFECTS, Views
 
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
            "side_by_side", "condition_response"]
@@ -137,12 +138,13 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
                   effects: Mapping[str, Any] | None = None, downsample: Sequence[float] = GRID_DOWNSAMPLE, power_saving: Sequence[float] = GRID_POWER_SAVING,
                   optics_mode: str = "fast", baselines: Sequence[str] = BASELINES,
                   extra_metrics: bool = True, ideal: bool = True, lpips: Any = None,
-                  progress: bool = True) -> GridResult:
+                  progress: bool = True, renderer: Renderer | Any = None) -> GridResult:
     """Evaluate the baselines and every adapter file in ``adapters`` (``{method name: path}``,
     each saved by :meth:`ControlGS.save` for ``model``) on the test ``views`` (a
     :class:`~controlgs_adapter.training.Views` dataset: ``(camera, image [3, H, W])`` per view, any
     size; its ``background`` is the renders'). ``model`` must not be wrapped; each adapter is loaded
-    onto it in turn and removed afterwards. Everything runs on the model's device.
+    onto it in turn and removed afterwards. Everything runs on the model's device. ``renderer``:
+    how views are rendered (:mod:`controlgs_adapter.rendering`; default the model's own).
 
     The renders that do not depend on the state are made once per view (``ss``) or once per d
     (``no_ss``); the pipeline runs for every (method, view, d, rho). ``result.info`` holds the
@@ -159,6 +161,7 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
     clash = [a for a in adapters if a in (*BASELINES, IDEAL)]
     if clash:
         raise InputValueError(f"adapter names {clash} clash with the baselines {(*BASELINES, IDEAL)}")
+    renderer = as_renderer(renderer, model)
     device = model_device(model)
     pipeline = make_pipeline(effects, optics_mode).to(device)
     bg = getattr(views, "background", None)
@@ -182,9 +185,9 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
 
     for v in range(nv):
         cam, gt = view(v)
-        full = render_view(None, model, cam, None, background) if "ss" in names else None
+        full = render_view(None, model, cam, None, background, renderer=renderer) if "ss" in names else None
         for i, d in enumerate(downsample):
-            small = render_view(None, model, cam.scaled(d), None, background) if "no_ss" in names else None
+            small = render_view(None, model, cam.scaled(d), None, background, renderer=renderer) if "no_ss" in names else None
             for j, rho in enumerate(power_saving):
                 state = RuntimeState(downsample=d, power_saving=rho)
                 for name in baselines:
@@ -199,7 +202,7 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
                 for i, d in enumerate(downsample):
                     for j, rho in enumerate(power_saving):
                         state = RuntimeState(downsample=d, power_saving=rho)
-                        score(name, i, j, v, render_view(cgs, model, cam, state, background), state, gt)
+                        score(name, i, j, v, render_view(cgs, model, cam, state, background, renderer=renderer), state, gt)
         finally:
             cgs.unwrap()
     bar.close()
@@ -213,13 +216,15 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
 @torch.no_grad()
 def side_by_side(model: Any, adapter: str | Path, camera: Camera, gt: torch.Tensor, *,
                  settings: Sequence[tuple[float, float]] = ((1.0, 0.0), (8.0, 0.8)), effects: Mapping[str, Any] | None = None,
-                 background: torch.Tensor | None = None, optics_mode: str = "fast") -> dict[str, Any]:
+                 background: torch.Tensor | None = None, optics_mode: str = "fast",
+                 renderer: Renderer | Any = None) -> dict[str, Any]:
     """Rendered and eye images of no-SS, SS-backbone and ControlGS (adapter file) for one view at
     ``settings`` ``[(d, rho)]`` (paper Fig. 1): ``{"gt", "settings", "rows": {method: [(rendered,
     eye, psnr, ssim)]}}``."""
+    renderer = as_renderer(renderer, model)
     pipeline = make_pipeline(effects, optics_mode).to(model_device(model))
     rows: dict[str, list[tuple[torch.Tensor, torch.Tensor, float, float]]] = {"no_ss": [], "ss": [], "controlgs": []}
-    full = render_view(None, model, camera, None, background)
+    full = render_view(None, model, camera, None, background, renderer=renderer)
 
     def add(name: str, rendered: torch.Tensor, state: RuntimeState) -> None:
         eye = pipeline(rendered, state, reference=gt).clamp(0.0, 1.0)
@@ -228,13 +233,13 @@ def side_by_side(model: Any, adapter: str | Path, camera: Camera, gt: torch.Tens
 
     for d, rho in settings:
         state = RuntimeState(downsample=d, power_saving=rho)
-        add("no_ss", render_view(None, model, camera.scaled(d), None, background), state)
+        add("no_ss", render_view(None, model, camera.scaled(d), None, background, renderer=renderer), state)
         add("ss", full, state)
     cgs = ControlGS.load(adapter, model)
     try:
         for d, rho in settings:
             state = RuntimeState(downsample=d, power_saving=rho)
-            add("controlgs", render_view(cgs, model, camera, state, background), state)
+            add("controlgs", render_view(cgs, model, camera, state, background, renderer=renderer), state)
     finally:
         cgs.unwrap()
     return {"gt": gt, "settings": [(float(d), float(r)) for d, r in settings], "rows": rows}
@@ -242,22 +247,24 @@ def side_by_side(model: Any, adapter: str | Path, camera: Camera, gt: torch.Tens
 
 @torch.no_grad()
 def condition_response(model: Any, adapter: str | Path, camera: Camera, *,
-                       background: torch.Tensor | None = None) -> dict[str, list[tuple[str, torch.Tensor]]]:
+                       background: torch.Tensor | None = None,
+                       renderer: Renderer | Any = None) -> dict[str, list[tuple[str, torch.Tensor]]]:
     """Raw renders before the pipeline while one condition varies and the others are off (paper
     Fig. 8): resample over d in {1, 2, 4, 8}, display over rho in {0, .2, .4, .6, .8}, lens off /
     on / ten times the difference. Only the adapter's modules appear."""
+    renderer = as_renderer(renderer, model)
     cgs = ControlGS.load(adapter, model)
     strips: dict[str, list[tuple[str, torch.Tensor]]] = {}
     try:
         if "resample" in cgs.modules:
             strips["resample"] = [(f"d={d:g}", render_view(cgs, model, camera, RuntimeState(downsample=d), background,
-                                                           modules=("resample",))) for d in GRID_DOWNSAMPLE]
+                                                           modules=("resample",), renderer=renderer)) for d in GRID_DOWNSAMPLE]
         if "display" in cgs.modules:
             strips["display"] = [(f"ρ={r:.0%}", render_view(cgs, model, camera, RuntimeState(power_saving=r), background,
-                                                            modules=("display",))) for r in GRID_POWER_SAVING]
+                                                            modules=("display",), renderer=renderer)) for r in GRID_POWER_SAVING]
         if "lens" in cgs.modules:
-            off = render_view(None, model, camera, None, background)
-            on = render_view(cgs, model, camera, RuntimeState(), background, modules=("lens",))
+            off = render_view(None, model, camera, None, background, renderer=renderer)
+            on = render_view(cgs, model, camera, RuntimeState(), background, modules=("lens",), renderer=renderer)
             strips["lens"] = [("off", off), ("on", on), ("|on - off| x 10", ((on - off).abs() * 10.0).clamp(0, 1))]
     finally:
         cgs.unwrap()

@@ -14,6 +14,7 @@ import pluggy
 
 if TYPE_CHECKING:  # pragma: no cover
     from .backend import Backend
+    from .rasterizers import Rasterizer
     from .schedules import StrengthSchedule
     from controlgs_adapter.downstream.stage import Stage
 
@@ -48,4 +49,17 @@ def controlgs_register_schedules() -> "list[StrengthSchedule]":
     """Return strength schedules (one per condition module name: ``lens``, ``resample``, ...).
 
     :return: a list of :class:`controlgs_adapter.schedules.StrengthSchedule` instances.
+    """
+
+
+@hookspec
+def controlgs_register_rasterizers() -> "list[Rasterizer]":
+    """Return rasterizers: what splats decoded Gaussians into an image (names unique; a plug-in's
+    rasterizer with a built-in's name replaces it, with a warning).
+
+    ``rasterize_gaussians`` takes the first (plug-ins before built-ins) whose
+    ``unavailable(device, dtype)`` is None, unless one is named (``use_rasterizer``,
+    ``CONTROLGS_RASTERIZER``).
+
+    :return: a list of :class:`controlgs_adapter.rasterizers.Rasterizer` instances.
     """

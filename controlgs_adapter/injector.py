@@ -8,7 +8,7 @@ For every target decoder with first linear layer ``FC1`` (output width ``D1``)::
 ``A_m: R^N -> R^D1`` is a bias-free Linear shared by all anchors, one per module and distinct
 ``D1``. The sum is one gather and one matmul per :meth:`ConditionInjector.activate` context and
 width, reused by every decoder of that width and added in place to FC1's output; modules whose
-strength is zero for every row are left out, and outside a context the hooks return at once
+shared (not per-anchor) strength is zero are left out, and outside a context the hooks return at once
 (outputs bit-identical to the backbone).
 """
 
@@ -33,14 +33,16 @@ class InjectionContext:
     Attributes:
         anchor_ids: ``[R_a]`` long, the anchor of each group of ``rows_per_anchor`` decoder rows.
         strengths: module -> ``[R_a]`` per-anchor strength tensor or a float shared by all rows;
-            only modules with some non-zero strength are listed.
+            modules with a shared strength of zero are not listed.
         rows_per_anchor: decoder rows per anchor (row r belongs to ``anchor_ids[r // K]``).
+        calls: target name -> how many times its hooked first layer ran in this context.
     """
 
     anchor_ids: torch.Tensor
     strengths: dict[str, torch.Tensor | float]
     rows_per_anchor: int = 1
     cache: dict[tuple[int, bool], tuple[tuple[int, ...], torch.Tensor]] = field(default_factory=dict)
+    calls: dict[str, int] = field(default_factory=dict)
 
     @property
     def rows(self) -> int:
@@ -150,6 +152,7 @@ class ConditionInjector(nn.Module):
             ctx = self._ctx
             if ctx is None:
                 return
+            ctx.calls[name] = ctx.calls.get(name, 0) + 1
             if out.dim() != 2 or out.shape[0] != ctx.rows:
                 raise ShapeError(
                     f"decoder {name!r} was called with {out.shape[0] if out.dim() else 0} rows "

@@ -1,6 +1,6 @@
 """The plug-in manager (pluggy), following pytest's model.
 
-Built-in backends, stages and schedules are plug-in modules listed in :data:`BUILTIN_PLUGINS`,
+Built-in backends, stages, schedules and rasterizers are plug-in modules listed in :data:`BUILTIN_PLUGINS`,
 registered through the same hooks a third party uses. Installed plug-ins come from the
 entry-point group ``controlgs_adapter``; one that fails to load is reported (name and
 distribution) and skipped, unless strict mode is on (``strict=True`` or
@@ -24,7 +24,7 @@ from .errors import PluginLoadError
 
 __all__ = [
     "BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "PluginInfo", "get_plugin_manager", "register_plugin",
-    "unregister_plugin", "backends", "stages", "schedules", "plugin_report", "load_failures", "reset_plugin_manager",
+    "unregister_plugin", "backends", "stages", "schedules", "rasterizers", "plugin_report", "load_failures", "reset_plugin_manager",
 ]
 
 ENTRY_POINT_GROUP = "controlgs_adapter"
@@ -35,6 +35,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "controlgs_adapter.schedules",
     "controlgs_adapter.backends.builtin",
     "controlgs_adapter.downstream.builtin",
+    "controlgs_adapter.rasterizers",
 )
 
 
@@ -42,7 +43,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
 class PluginInfo:
     """What one registered item is and where it comes from."""
 
-    kind: str  # "backend" | "stage" | "schedule"
+    kind: str  # "backend" | "stage" | "schedule" | "rasterizer"
     name: str
     plugin: str  # the plug-in's registered name
     source: str  # distribution "name version", "controlgs-adapter (built-in)" or "runtime"
@@ -172,6 +173,11 @@ def schedules() -> dict[str, PluginInfo]:
     return _collect("schedule", "controlgs_register_schedules", lambda s: s.name)
 
 
+def rasterizers() -> dict[str, PluginInfo]:
+    """Registered rasterizers by name, in the order the automatic choice tries them."""
+    return _collect("rasterizer", "controlgs_register_rasterizers", lambda r: r.name)
+
+
 def plugin_report() -> list[PluginInfo]:
     """Everything registered, for ``controlgs plugins``."""
-    return [*backends().values(), *stages().values(), *schedules().values()]
+    return [*backends().values(), *stages().values(), *schedules().values(), *rasterizers().values()]

@@ -28,16 +28,16 @@ from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 import torch
 from tqdm.auto import tqdm
 
-from .checks import check_number
+from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
 from .errors import FileFormatError, InputValueError, NonFiniteError
 from .io import load_tensors, save_tensors
 from .losses import LossWeights, image_loss
+from .rendering import Renderer, as_renderer, model_device, render_view
 from .state import Camera, RuntimeState
 
-__all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "render_view", "views_fingerprint",
-           "model_device", "CHECKPOINT_KIND"]
+__all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "views_fingerprint", "CHECKPOINT_KIND"]
 
 CHECKPOINT_KIND = "controlgs_training_checkpoint"
 CHECKPOINT_FORMAT_VERSION = 1
@@ -92,28 +92,6 @@ def views_fingerprint(views: Views) -> str:
         h.update(c.world_to_camera.double().cpu().numpy().round(6).tobytes())
         h.update(c.intrinsics.double().cpu().numpy().round(4).tobytes())
     return h.hexdigest()[:16]
-
-
-def model_device(model: Any) -> torch.device:
-    """Device of the first parameter (or buffer) of ``model``; CPU when it has none."""
-    for attr in ("parameters", "buffers"):
-        fn = getattr(model, attr, None)
-        if callable(fn):
-            for t in fn():
-                return t.device
-    return torch.device("cpu")
-
-
-def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: RuntimeState | None,
-                background: torch.Tensor | None = None, *, modules: Sequence[str] | None = None) -> torch.Tensor:
-    """Render ``camera`` with the reference model (``visible_anchors`` + ``render``): through the
-    adapter ``cgs`` at ``state`` (restricted to ``modules`` if given), or the bare backbone when
-    ``cgs`` or ``state`` is None. Returns sRGB ``[3, H, W]``."""
-    visible = model.visible_anchors(camera)
-    if cgs is None or state is None:
-        return model.render(camera, visible, background).color
-    with cgs.conditioned(state, camera, visible, modules=modules):
-        return model.render(camera, visible, background).color
 
 
 @dataclass(frozen=True)
@@ -185,8 +163,8 @@ class Trainer:
     """Train a ControlGS adapter on a frozen backbone.
 
     Args:
-        model: the backbone (the reference :class:`NeuralGaussianModel` or anything with its
-            ``visible_anchors(camera)`` / ``render(camera, visible, background)``); frozen.
+        model: the backbone (any model ``ControlGS.wrap`` takes; the user's object, wrapped in
+            place); frozen.
         views: the training views (:class:`Views`, e.g. ``SceneData.views("train", resolution=...)``);
             its ``background`` is the renders' background.
         config: :class:`TrainConfig`.
@@ -195,14 +173,21 @@ class Trainer:
         checkpoint: path of the checkpoint file to write (and to resume from, see :meth:`resume`).
         dist: this process's place in a data-parallel run (:func:`~controlgs_adapter.distributed.init_distributed`);
             default a single process.
+        renderer: how a view is rendered (:mod:`controlgs_adapter.rendering`: a ``Renderer`` or a
+            render function); default the model's own (:func:`~controlgs_adapter.rendering.renderer_for`).
 
-    Attributes: ``cgs`` (the :class:`ControlGS`), ``views``, ``device`` (the model's), ``pipeline``, ``optimizer``, ``generator``,
+    Everything runs on the model's device; inside a step the per-tensor value checks (NaN/Inf,
+    ranges: host syncs) are off, and the loss and the updated parameters are checked once instead.
+
+    Attributes: ``cgs`` (the :class:`ControlGS`), ``views``, ``renderer``, ``device`` (the model's), ``pipeline``,
+    ``optimizer``, ``generator`` (CPU: view and state sampling stays on the host),
     ``iteration``, ``history`` (loss of every iteration, kept across resumes), ``seconds``.
     """
 
     def __init__(self, model: Any, views: Views, config: TrainConfig = TrainConfig(),
                  *, effects: Mapping[str, Any] | None = None,
-                 checkpoint: str | Path | None = None, dist: DistContext | None = None) -> None:
+                 checkpoint: str | Path | None = None, dist: DistContext | None = None,
+                 renderer: Renderer | Any = None) -> None:
         from .downstream.pipeline import Pipeline
 
         if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
@@ -216,6 +201,7 @@ class Trainer:
         if not modules:
             raise InputValueError(f"no condition module to train: the effects {sorted(self.effects)} call for none")
         self.model, self.views = model, views
+        self.renderer = as_renderer(renderer, model)
         self.device = model_device(model)
         bg = getattr(views, "background", None)
         self.background = None if bg is None else bg.to(self.device)
@@ -262,22 +248,25 @@ class Trainer:
         value = 0.0
         for view, state in self.dist.shard(batch):  # this process's share
             cam, gt = self.views[view]
-            image = render_view(self.cgs, self.model, cam, state, self.background)
-            if tuple(gt.shape) != tuple(image.shape):
-                raise InputValueError(f"view {view}: image is {list(gt.shape)}, its camera renders {list(image.shape)}")
-            gt = gt.to(image.device, non_blocking=True)
-            eye = self.pipeline(image, state, reference=gt)
-            loss = image_loss(eye, gt, self.config.loss) / len(batch)
+            with value_checks(False):  # no host syncs in the forward; the loss is checked below
+                image = render_view(self.cgs, self.model, cam, state, self.background, renderer=self.renderer)
+                if tuple(gt.shape) != tuple(image.shape):
+                    raise InputValueError(f"view {view}: image is {list(gt.shape)}, its camera renders {list(image.shape)}")
+                gt = gt.to(image.device, non_blocking=True)
+                eye = self.pipeline(image, state, reference=gt)
+                loss = image_loss(eye, gt, self.config.loss) / len(batch)
             loss.backward()
-            value += float(loss.detach())
+            value += float(loss.detach())  # the loss log: the step's one device sync besides the check below
         value = self.dist.sync_gradients(self.cgs.trainable_parameters(), row_sparse=(self.cgs.injector.conditions,),
                                          loss=value, step=self.iteration)
         if not math.isfinite(value):
             raise NonFiniteError(f"training diverged at iteration {self.iteration}: the loss is {value}; the adapter "
                                  "was not updated and no checkpoint of this state was written")
         self.optimizer.step()
-        bad = [name for name, p in self.cgs.injector.named_parameters() if not bool(torch.isfinite(p).all())]
-        if bad:
+        params = dict(self.cgs.injector.named_parameters())
+        finite = torch.stack([torch.isfinite(p).all() for p in params.values()])
+        if not bool(finite.all()):  # one sync for all parameters
+            bad = [name for name, ok in zip(params, finite.tolist()) if not ok]
             raise NonFiniteError(f"training diverged at iteration {self.iteration}: parameter(s) {bad} became NaN/Inf "
                                  f"(lr {self.config.lr:g}); the last good checkpoint was kept, this state not written")
         self.iteration += 1

@@ -32,7 +32,7 @@ from typing import Sequence
 
 import torch
 
-from controlgs_adapter.checks import check_image, check_same_device
+from controlgs_adapter.checks import check_image, check_same_device, value_checks_enabled
 from controlgs_adapter.errors import InputValueError, StateError
 from controlgs_adapter.state import RuntimeState
 
@@ -145,7 +145,7 @@ def display_mapping(
         power_ref = _power(reference.detach().to(image.dtype), c)
     elif reference_power is not None:
         power_ref = torch.as_tensor(reference_power, dtype=image.dtype, device=image.device).detach()
-        if not bool(torch.isfinite(power_ref).all()) or bool((power_ref < 0).any()):
+        if value_checks_enabled() and (not bool(torch.isfinite(power_ref).all()) or bool((power_ref < 0).any())):
             raise InputValueError(f"reference_power must be finite and >= 0, got {reference_power!r}")
     else:
         power_ref = power.detach()

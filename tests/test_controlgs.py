@@ -61,7 +61,9 @@ def test_bit_identical_when_every_strength_is_zero(kind):
     cgs = ControlGS.wrap(model, endpoints={"lens": (5.0, 6.0)})
     randomise(cgs)
     with cgs.conditioned(RuntimeState(downsample=1.0, power_saving=0.0), camera=cam):
-        assert cgs.injector.context.strengths == {}  # nothing to compute
+        # shared strengths of zero are not computed; a per-anchor one stays (testing it would sync the device)
+        assert list(cgs.injector.context.strengths) == ["lens"]
+        assert not bool(cgs.injector.context.strengths["lens"].any())
         assert_equal_outputs(ref, outputs(model, x))
     assert_equal_outputs(ref, outputs(model, x))  # outside the block after a randomised adapter
 

@@ -1,4 +1,4 @@
-"""``controlgs plugins``: list registered backends, stages and schedules with their source."""
+"""``controlgs plugins``: list registered backends, stages, schedules and rasterizers with their source."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from controlgs_adapter.errors import PluginLoadError
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
-    p = sub.add_parser("plugins", help="list registered backends, stages and schedules with their source distribution")
+    p = sub.add_parser("plugins", help="list registered backends, stages, schedules and rasterizers with their source distribution")
     p.add_argument("--strict", action="store_true", help="fail if an installed plug-in does not load")
     p.set_defaults(func=run)
 
@@ -51,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
         if k and r[0] != rows[k - 1][0]:
             print()
         print(line(r))
-    print("\nbackends are tried in the order listed (plug-ins first); a plug-in item replaces a built-in of the same name")
+    print("\nbackends and rasterizers are tried in the order listed (plug-ins first); a plug-in item replaces a "
+          "built-in of the same name")
     for msg in plugins.load_failures():
         print(f"FAILED: {msg}")
     return 0

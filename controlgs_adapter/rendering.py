@@ -1,0 +1,177 @@
+"""The render protocol: how training and evaluation get an image out of a (wrapped) backbone.
+
+A :class:`Renderer` answers two questions for a camera:
+
+* ``visible(model, camera)``: which anchors the render decodes, as the decoders see their rows:
+  a ``BoolTensor[A]`` mask (rows = the visible anchors, ascending), a ``LongTensor[R]`` of anchor
+  ids (row ``i`` = anchor ``ids[i]``), or None (all anchors);
+* ``render(model, camera, visible, background)``: the sRGB image ``[3, H, W]`` (float, the
+  camera's size) of those anchors over ``background`` (``[3]`` or None: the renderer's default).
+
+``model`` is the user's own model object. :meth:`ControlGS.wrap` changes it in place (hooks on the
+decoders' first layers; TorchScript decoders replaced by eager copies on that same object), so a
+renderer that calls the model's decoders gets the injection inside a ``conditioned`` block. A
+render that never reaches the hooked layers (a copy of the model, a forwarding wrapper, decoders
+cached before wrapping) raises :class:`~controlgs_adapter.errors.InjectionMissedError` naming them.
+
+Every family the library loads (the reference :class:`NeuralGaussianModel`, Octree-GS, HAC/HAC++,
+ContextGS, CompGS) renders through :class:`ModelRenderer` (its ``visible_anchors`` and ``render``);
+:func:`renderer_for` picks it. Your own code (the Scaffold-GS CUDA renderer, say) plugs in as any
+object with the two methods, or as a function (:class:`FunctionRenderer`)::
+
+    trainer = Trainer(gaussians, views, renderer=FunctionRenderer(my_render, visible=my_prefilter))
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Protocol, Sequence, runtime_checkable
+
+import torch
+from torch import nn
+
+from .controlgs import ControlGS, _select_backend
+from .errors import InputValueError, NoMatchingBackendError, ShapeError
+from .state import Camera, RuntimeState
+
+__all__ = ["Renderer", "ModelRenderer", "FunctionRenderer", "renderer_for", "as_renderer", "render_view",
+           "model_device"]
+
+
+@runtime_checkable
+class Renderer(Protocol):
+    """What :class:`~controlgs_adapter.training.Trainer` and
+    :func:`~controlgs_adapter.evaluation.evaluate_grid` render with (module docstring)."""
+
+    def visible(self, model: Any, camera: Camera) -> torch.Tensor | None:
+        """``BoolTensor[A]`` mask, ``LongTensor[R]`` anchor ids in decoder-row order, or None (all)."""
+        ...
+
+    def render(self, model: Any, camera: Camera, visible: torch.Tensor | None,
+               background: torch.Tensor | None) -> torch.Tensor:
+        """sRGB ``[3, camera.height, camera.width]`` of the ``visible`` anchors over ``background``."""
+        ...
+
+
+class ModelRenderer:
+    """Renders models that bring their own ``visible_anchors(camera)`` and ``render(camera,
+    visible, background)`` (returning a ``RasterOutput`` or an image): every family the library loads."""
+
+    @staticmethod
+    def fits(model: Any) -> bool:
+        """True if ``model`` has callable ``visible_anchors`` and ``render``."""
+        return callable(getattr(model, "visible_anchors", None)) and callable(getattr(model, "render", None))
+
+    def visible(self, model: Any, camera: Camera) -> torch.Tensor | None:
+        return model.visible_anchors(camera)
+
+    def render(self, model: Any, camera: Camera, visible: torch.Tensor | None,
+               background: torch.Tensor | None) -> torch.Tensor:
+        out = model.render(camera, visible, background)
+        return getattr(out, "color", out)
+
+    def __repr__(self) -> str:
+        return "ModelRenderer()"
+
+
+class FunctionRenderer:
+    """A render function as a :class:`Renderer`.
+
+    Args:
+        render: ``render(model, camera, visible, background)`` -> sRGB ``[3, H, W]`` (or an object
+            with ``.color``; a dict with ``"render"``, as Scaffold-GS's renderer returns, works too).
+        visible: ``visible(model, camera)`` -> mask / ids / None; None: every anchor is decoded.
+    """
+
+    def __init__(self, render: Callable[..., Any],
+                 visible: Callable[[Any, Camera], torch.Tensor | None] | None = None) -> None:
+        if not callable(render) or (visible is not None and not callable(visible)):
+            raise InputValueError(f"FunctionRenderer takes callables, got render={render!r}, visible={visible!r}")
+        self._render, self._visible = render, visible
+
+    def visible(self, model: Any, camera: Camera) -> torch.Tensor | None:
+        return None if self._visible is None else self._visible(model, camera)
+
+    def render(self, model: Any, camera: Camera, visible: torch.Tensor | None,
+               background: torch.Tensor | None) -> torch.Tensor:
+        out = self._render(model, camera, visible, background)
+        if isinstance(out, dict) and "render" in out:
+            out = out["render"]
+        return getattr(out, "color", out)
+
+    def __repr__(self) -> str:
+        name = getattr(self._render, "__qualname__", repr(self._render))
+        return f"FunctionRenderer({name})"
+
+
+def renderer_for(model: Any) -> Renderer:
+    """The renderer of a loaded model: its backend's (``Backend.renderer``), else
+    :class:`ModelRenderer` when the model has ``visible_anchors`` and ``render``.
+
+    Raises:
+        InputValueError: the model cannot render itself (pass ``renderer=``).
+    """
+    try:
+        found = _select_backend(model, None).renderer(model)
+    except NoMatchingBackendError:
+        found = ModelRenderer() if ModelRenderer.fits(model) else None
+    if found is None:
+        raise InputValueError(
+            f"a {type(model).__name__} has no visible_anchors(camera) / render(camera, visible, background) of its "
+            "own: pass renderer= (an object with visible(model, camera) and render(model, camera, visible, "
+            "background), or FunctionRenderer(your_render_function)); see docs/rendering.md")
+    return found
+
+
+def as_renderer(renderer: Renderer | Callable[..., Any] | None, model: Any) -> Renderer:
+    """``renderer`` as a :class:`Renderer`: None -> :func:`renderer_for` ``(model)``; an object with
+    ``visible`` and ``render`` as is; a function -> ``FunctionRenderer(renderer)`` (all anchors)."""
+    if renderer is None:
+        return renderer_for(model)
+    if isinstance(renderer, Renderer) and callable(renderer.visible) and callable(renderer.render):
+        return renderer
+    if callable(renderer):
+        return FunctionRenderer(renderer)
+    raise InputValueError(f"renderer must be None, a Renderer (visible + render) or a render function, "
+                          f"got {type(renderer).__name__}")
+
+
+def model_device(model: Any) -> torch.device:
+    """Device of ``model``'s first parameter or buffer; for a plain Python model (Scaffold-GS's
+    ``GaussianModel``) of its first module or tensor attribute; CPU when it has none."""
+    for attr in ("parameters", "buffers"):
+        fn = getattr(model, attr, None)
+        if callable(fn):
+            for t in fn():
+                return t.device
+    for value in getattr(model, "__dict__", {}).values():
+        if isinstance(value, torch.Tensor):
+            return value.device
+        if isinstance(value, nn.Module):
+            for t in value.parameters():
+                return t.device
+    return torch.device("cpu")
+
+
+def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: RuntimeState | None,
+                background: torch.Tensor | None = None, *, modules: Sequence[str] | None = None,
+                renderer: Renderer | Callable[..., Any] | None = None) -> torch.Tensor:
+    """Render ``camera`` with ``renderer`` (default :func:`renderer_for` ``(model)``): through the
+    adapter ``cgs`` at ``state`` (restricted to ``modules`` if given), or the bare backbone when
+    ``cgs`` or ``state`` is None. Returns sRGB ``[3, H, W]`` at the camera's size.
+
+    Raises:
+        InjectionMissedError: a conditioned render never called the wrapped decoders.
+        ShapeError: the renderer returned something else than ``[3, H, W]``.
+    """
+    r = as_renderer(renderer, model)
+    visible = r.visible(model, camera)
+    if cgs is None or state is None:
+        image = r.render(model, camera, visible, background)
+    else:
+        with cgs.conditioned(state, camera, visible, modules=modules, on_miss="raise"):
+            image = r.render(model, camera, visible, background)
+    if not isinstance(image, torch.Tensor) or tuple(image.shape) != (3, camera.height, camera.width):
+        got = list(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
+        raise ShapeError(f"renderer {r!r} returned {got} for a {camera.width}x{camera.height} camera; "
+                         f"expected an sRGB image [3, {camera.height}, {camera.width}]")
+    return image
