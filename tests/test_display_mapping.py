@@ -75,23 +75,32 @@ def test_square_images_are_bit_identical_to_the_stretched_display(n):
 
 
 def test_fit_samples_the_bank_at_the_pixels_display_positions():
-    """16:9 under "fit": row 13 of a 27 x 48 image lies on the display's horizontal axis (y = 0);
-    its pixels' footprints are the chief-ray images of their edges (x = -1 .. 1 in 48 steps),
-    computed here by hand from the bank's chief rays; the PSFs use the square pixel pitch."""
+    """16:9 under "fit": a 27 x 48 image's pixel corners sit at display-normalised
+    ``(x, 9/16 y)``; each pixel's footprint is the quad of its corners' chief-ray images, computed
+    here by hand from the bank's chief rays (the 48 x 48 image's map, landing points divided by
+    the half-extents): its overlap areas add up to the quad's area and sit on the quad;
+    the PSFs use the square pixel pitch."""
     bank = PSFBank.default()
     wide, square = bank.resample_to(27, 48, dtype=torch.float64), bank.resample_to(48, 48, dtype=torch.float64)
-    u = torch.linspace(-1, 1, 49, dtype=torch.float64)
-    cx = (square._chief_at(u, torch.zeros_like(u))[..., 0] + 1) * 24 + wide.m   # [L, 49] canvas x of the edges
-    ax, bx = cx[:, :-1], cx[:, 1:]
-    L, J, _ = wide.splat_index.shape
-    idx = wide.splat_index.reshape(L, J, 27, 48)[:, :, 13]
-    wts = wide.splat_weight.reshape(L, J, 27, 48)[:, :, 13]
-    got = torch.zeros(L, 48, wide.Wc + 1, dtype=torch.float64)        # x marginal of each footprint
-    col = torch.where(idx < wide.Hc * wide.Wc, idx % wide.Wc, torch.full_like(idx, wide.Wc))
-    got.scatter_add_(2, col.transpose(1, 2), wts.transpose(1, 2))
-    c = torch.arange(wide.Wc + 1, dtype=torch.float64)
-    want = (torch.minimum(bx[..., None], c + 1) - torch.maximum(ax[..., None], c)).clamp_min(0) / (bx - ax)[..., None]
-    assert torch.allclose(got[..., :-1], want[..., :-1], atol=1e-12)
+    ue = torch.linspace(-1, 1, 49, dtype=torch.float64)
+    ve = torch.linspace(-1, 1, 28, dtype=torch.float64)
+    V, U = torch.meshgrid(ve, ue, indexing="ij")
+    ch = square._chief_at(U, V * 27 / 48)                                    # [L, 28, 49, 2]
+    X = (ch[..., 0] + 1) * 24 + wide.m
+    Y = (ch[..., 1] * 48 / 27 + 1) * 13.5 + wide.m
+    qx = torch.stack([X[:, :-1, :-1], X[:, :-1, 1:], X[:, 1:, 1:], X[:, 1:, :-1]]).reshape(4, 3, -1)
+    qy = torch.stack([Y[:, :-1, :-1], Y[:, :-1, 1:], Y[:, 1:, 1:], Y[:, 1:, :-1]]).reshape(4, 3, -1)
+    cross = [qx[e] * qy[(e + 1) % 4] - qx[(e + 1) % 4] * qy[e] for e in range(4)]
+    area = 0.5 * sum(cross)
+    cx = sum((qx[e] + qx[(e + 1) % 4]) * cross[e] for e in range(4)) / (6 * area)
+    cy = sum((qy[e] + qy[(e + 1) % 4]) * cross[e] for e in range(4)) / (6 * area)
+    idx, w = wide.splat_index, wide.splat_weight                             # [L, J, N] (radiance: areas)
+    col, row = (idx % wide.Wc).double() + 0.5, (idx // wide.Wc).double() + 0.5
+    assert torch.allclose(w.sum(1), area, atol=1e-12)
+    assert torch.allclose(wide.area, area, atol=1e-12)
+    # first moments by pixel-centre quadrature of the overlaps: within a tenth of a pixel
+    assert ((w * col).sum(1) / area - cx).abs().max() < 0.1
+    assert ((w * row).sum(1) / area - cy).abs().max() < 0.1
     assert torch.equal(wide.kernels, square.kernels)       # pitch 0.5 mm in both
 
 

@@ -1,5 +1,7 @@
 """PSF operators: exactness vs a brute-force splat and vs convolution, adjointness, gradients,
-linearity, energy, seams, point sources, convergence of the fast mode; the optics stage."""
+linearity, energy, seams, point sources, convergence of the fast mode; the optics stage. Both
+radiometries where a property holds for both; the paper's energy-conserving form where the test
+is about energy (the radiance default's own targets: tests/test_optics_fidelity.py)."""
 
 import pytest
 import torch
@@ -35,9 +37,13 @@ def cardboard():
     return PSFBank.default()
 
 
-def test_uniform_psf_field_is_a_single_convolution():
+RADIOMETRIES = ("radiance", "energy")
+
+
+@pytest.mark.parametrize("radiometry", RADIOMETRIES)
+def test_uniform_psf_field_is_a_single_convolution(radiometry):
     bank = synthetic_bank()
-    rb = bank.resample_to(16, 16, dtype=D64)
+    rb = bank.resample_to(16, 16, dtype=D64, radiometry=radiometry)
     x = torch.rand(3, 2, 16, 16, dtype=D64)
     k = bank.psf[0, 0, 0].double()
     ref = F.conv2d(F.pad(x.reshape(-1, 1, 16, 16), (3, 3, 3, 3)), k.flip(0, 1)[None, None]).reshape(3, 2, 16, 16)
@@ -45,15 +51,17 @@ def test_uniform_psf_field_is_a_single_convolution():
         assert (op(x, rb) - ref).abs().max() < 1e-6
 
 
-def test_exact_equals_brute_force_splat_on_the_cardboard_bank(cardboard):
-    rb = cardboard.resample_to(24, 24, dtype=D64)
+@pytest.mark.parametrize("radiometry", RADIOMETRIES)
+def test_exact_equals_brute_force_splat_on_the_cardboard_bank(cardboard, radiometry):
+    rb = cardboard.resample_to(24, 24, dtype=D64, radiometry=radiometry)
     x = torch.rand(3, 24, 24, dtype=D64)
     assert torch.allclose(psf_exact(x, rb), psf_reference(x, rb), atol=1e-12, rtol=0)
 
 
-def test_adjointness_and_gradcheck():
+@pytest.mark.parametrize("radiometry", RADIOMETRIES)
+def test_adjointness_and_gradcheck(radiometry):
     bank = synthetic_bank(uniform=False, identity=False, K=5)
-    rb = bank.resample_to(8, 8, dtype=D64)
+    rb = bank.resample_to(8, 8, dtype=D64, radiometry=radiometry)
     x = torch.rand(1, 2, 8, 8, dtype=D64, requires_grad=True)
     y = torch.rand(1, 2, 8, 8, dtype=D64)
     for op in (psf_reference, psf_exact, psf_distortion, lambda a, r: psf_fast(a, r, tol=0.05, zone=2)):
@@ -61,15 +69,15 @@ def test_adjointness_and_gradcheck():
         (g,) = torch.autograd.grad((out * y).sum(), x)
         assert (out * y).sum().item() == pytest.approx((x * g).sum().item(), rel=1e-12)
     small = torch.rand(1, 2, 8, 8, dtype=D64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda a: psf_reference(a, rb), (small,))
-    assert torch.autograd.gradcheck(lambda a: psf_fast(a, rb, tol=0.05, zone=2), (small,))
+    for op in (psf_reference, psf_exact, psf_distortion, lambda a, r: psf_fast(a, r, tol=0.05, zone=2)):
+        assert torch.autograd.gradcheck(lambda a: op(a, rb), (small,))
 
 
 @settings(max_examples=10, deadline=None)
-@given(a=st.floats(-3, 3), b=st.floats(-3, 3), seed=st.integers(0, 100))
-def test_linearity(a, b, seed):
+@given(a=st.floats(-3, 3), b=st.floats(-3, 3), seed=st.integers(0, 100), radiometry=st.sampled_from(RADIOMETRIES))
+def test_linearity(a, b, seed, radiometry):
     bank = synthetic_bank(uniform=False, identity=False, seed=seed % 3)
-    rb = bank.resample_to(12, 12, dtype=D64)
+    rb = bank.resample_to(12, 12, dtype=D64, radiometry=radiometry)
     g = torch.Generator().manual_seed(seed)
     x, y = torch.rand(2, 12, 12, generator=g, dtype=D64), torch.rand(2, 12, 12, generator=g, dtype=D64)
     for op in (psf_exact, psf_distortion, lambda v, r: psf_fast(v, r, tol=0.1, zone=2)):
@@ -77,23 +85,28 @@ def test_linearity(a, b, seed):
 
 
 def test_light_is_conserved_where_none_leaves(cardboard):
-    rb = cardboard.resample_to(64, 64, dtype=D64)
+    """Energy form: every display pixel's light is kept. Radiance form: each pixel's light is
+    multiplied by its area magnification (its image is that much larger at the same radiance)."""
     x = torch.zeros(3, 64, 64, dtype=D64)
     x[:, 20:44, 20:44] = torch.rand(3, 24, 24, dtype=D64)
+    rb = cardboard.resample_to(64, 64, dtype=D64, radiometry="energy")
     for op in (psf_exact, psf_distortion):
         out = op(x, rb)
         assert ((out.sum((-1, -2)) - x.sum((-1, -2))).abs() / x.sum((-1, -2))).max() < 1e-5
+    rb = cardboard.resample_to(64, 64, dtype=D64)
+    want = (x.reshape(3, -1) * rb.area).sum(-1)
+    assert torch.allclose(psf_distortion(x, rb).sum((-1, -2)), want, rtol=1e-12, atol=0)
 
 
-def _flat_field_d2(rb):
+def _flat_field_d2(rb):  # energy form: the paper's scatter of bilinearly blended PSFs
     o = psf_exact(torch.ones(2, rb.H, rb.W, dtype=D64), rb)[:, 8:-8, 8:-8]
     return max((o[:, :, 2:] - 2 * o[:, :, 1:-1] + o[:, :, :-2]).abs().max().item(),
                (o[:, 2:] - 2 * o[:, 1:-1] + o[:, :-2]).abs().max().item())
 
 
 def test_no_seams_in_a_flat_field():
-    """Gaussian PSFs widening from 0.6 to 2 px across a 6 x 6 field grid, on a flat field: no step
-    at field-cell borders. The remaining smooth curvature (1/2 laplacian of the PSF variance, a
+    """Energy form (the paper's scatter). Gaussian PSFs widening from 0.6 to 2 px across a 6 x 6
+    field grid, on a flat field: no step at field-cell borders. The remaining smooth curvature (1/2 laplacian of the PSF variance, a
     property of any shift-variant scatter) stays < 3e-3, while blending with the nearest field
     instead (patch-wise PSFs, DeepLens-style) makes steps of ~0.17."""
     G, K, S = 6, 15, 96
@@ -105,7 +118,7 @@ def test_no_seams_in_a_flat_field():
     bank = synthetic_bank(K=K, G=G, pitch_px=1.0, width_px=S)
     bank.psf = (g / g.sum((-1, -2), keepdim=True)).expand(2, G, G, K, K).clone()
     bank.validate()
-    rb = bank.resample_to(S, S, dtype=D64)
+    rb = bank.resample_to(S, S, dtype=D64, radiometry="energy")
     assert _flat_field_d2(rb) < 3e-3
     rb.field_weight = (rb.field_weight == rb.field_weight.max(0, keepdim=True).values).double()
     rb._zones.clear()
@@ -113,8 +126,10 @@ def test_no_seams_in_a_flat_field():
 
 
 def test_point_source_lands_at_its_chief_ray_with_the_bank_psf(cardboard):
+    """Energy form: unit energy, centroid at the chief ray plus the blended bank PSF's centroid
+    (the radiance form: tests/test_optics_fidelity.py)."""
     S = 48
-    rb = cardboard.resample_to(S, S, dtype=D64)
+    rb = cardboard.resample_to(S, S, dtype=D64, radiometry="energy")
     iy, ix = 30, 17                                   # off-axis pixel
     x = torch.zeros(3, S, S, dtype=D64)
     x[:, iy, ix] = 1
@@ -140,8 +155,9 @@ def test_point_source_lands_at_its_chief_ray_with_the_bank_psf(cardboard):
     assert abs(chief[2, 0]) > abs(chief[0, 0])
 
 
-def test_fast_operator_converges_to_exact(cardboard):
-    rb = cardboard.resample_to(48, 48, dtype=D64)
+@pytest.mark.parametrize("radiometry", RADIOMETRIES)
+def test_fast_operator_converges_to_exact(cardboard, radiometry):
+    rb = cardboard.resample_to(48, 48, dtype=D64, radiometry=radiometry)
     g = torch.Generator().manual_seed(1)
     x = F.avg_pool2d(torch.rand(3, 96, 96, generator=g, dtype=D64)[None], 2)[0]
     ref = psf_exact(x, rb)
@@ -150,8 +166,9 @@ def test_fast_operator_converges_to_exact(cardboard):
     assert ((psf_distortion(x, rb) - ref).norm() / ref.norm()).item() > errs[2]
 
 
-def test_empty_regions_are_skipped_without_changing_the_result(cardboard):
-    rb = cardboard.resample_to(32, 32, dtype=D64)
+@pytest.mark.parametrize("radiometry", RADIOMETRIES)
+def test_empty_regions_are_skipped_without_changing_the_result(cardboard, radiometry):
+    rb = cardboard.resample_to(32, 32, dtype=D64, radiometry=radiometry)
     x = torch.zeros(1, 3, 32, 32, dtype=D64)
     x[..., 10:14, 5:9] = 1.0
     with torch.no_grad():

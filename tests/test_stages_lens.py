@@ -236,8 +236,9 @@ def test_bank_prewarp_undoes_the_optics_distortion():
     assert torch.allclose(LensPrewarp.from_psf_bank(bank, (n, n), gain="jacobian").map.gain, prewarp.map.gain)
     target = rgb_to_primaries(img)  # the optics is separable per primary: warp in that domain
     shown = primaries_to_rgb(prewarp(target, STATE, StageContext((n, n))))
-    eye = rgb_to_primaries(optics_stage.optics(shown, bank, mode="distortion"))
-    plain = rgb_to_primaries(optics_stage.optics(img, bank, mode="distortion"))
+    # the Jacobian gain undoes the energy-conserving form's 1 / area magnification
+    eye = rgb_to_primaries(optics_stage.optics(shown, bank, mode="distortion", radiometry="energy"))
+    plain = rgb_to_primaries(optics_stage.optics(img, bank, mode="distortion", radiometry="energy"))
     centre = (slice(None), slice(8, -8), slice(8, -8))
     assert float((eye - target)[centre].abs().max()) < 0.01
     assert float((plain - target)[centre].abs().max()) > 0.1

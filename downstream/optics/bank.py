@@ -25,7 +25,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -33,6 +33,9 @@ from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.io import load_tensors, save_tensors
 
 from ..placement import Placement, image_region
+
+if TYPE_CHECKING:
+    from .resampled import Radiometry, ResampledBank
 
 __all__ = ["PSFBank", "BANK_KIND", "BANK_FORMAT_VERSION", "DEFAULT_BANK_FILE"]
 
@@ -120,6 +123,7 @@ class PSFBank:
                 raise InputValueError(f"PSF bank: {name} must be uniform from -1 to 1 (linspace(-1, 1, {n}))")
         if len(self.display_mm) != 2 or min(self.display_mm) <= 0:
             raise InputValueError(f"PSF bank: display_mm must be (width, height) > 0, got {self.display_mm}")
+        self.transmission                                     # noqa: B018  (raises on a malformed meta.transmission)
         self.psf = (psf.float() / sums.float()[..., None, None]).contiguous()
         self.psf_pitch_mm = pitch.float()
         self.chief = chief.float()
@@ -176,23 +180,48 @@ class PSFBank:
     def num_wavelengths(self) -> int:
         return len(self.wavelengths_nm)
 
+    @property
+    def transmission(self) -> torch.Tensor:
+        """``[L, Gy, Gx]`` traced pupil transmission per field sample (fraction of the eye pupil's
+        area whose rays pass every lens aperture: ``meta["transmission"]``; ones if the bank has none)."""
+        shape = tuple(self.psf.shape[:3])
+        t = self.meta.get("transmission")
+        if t is None:
+            return torch.ones(shape, dtype=torch.float64)
+        try:
+            t = torch.as_tensor(t, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as e:
+            raise InputValueError(f"PSF bank: meta.transmission must be numbers of shape {list(shape)}") from e
+        if tuple(t.shape) != shape or not torch.isfinite(t).all() or t.min() < 0 or t.max() > 1:
+            raise InputValueError(f"PSF bank: meta.transmission must be {list(shape)} numbers in [0, 1], "
+                                  f"got shape {list(t.shape)}")
+        return t
+
     def resample_to(self, height: int, width: int, *, device: torch.device | str = "cpu",
-                    dtype: torch.dtype = torch.float32, placement: Placement = "fit") -> "ResampledBank":
-        """The bank at a simulation resolution (cached per size/placement/device/dtype; no ray tracing).
+                    dtype: torch.dtype = torch.float32, placement: Placement = "fit",
+                    radiometry: "Radiometry" = "radiance") -> "ResampledBank":
+        """The bank at a simulation resolution (cached per size/placement/radiometry/device/dtype;
+        no ray tracing).
 
         ``placement`` says where the ``height x width`` image sits on the display
         (:mod:`controlgs_adapter.downstream.placement`): ``"fit"`` (square pixels, scaled to fit,
         centred; only the image's region is simulated, the rest of the display is black) or
         ``"stretch"`` (the display stretched onto the image, anisotropic pixels).
+        ``radiometry``: ``"radiance"`` (default: a lossless lens conserves radiance, a uniform display
+        stays uniform up to the pupil transmission) or ``"energy"`` (paper Eq. S3: each display
+        pixel's energy kept, a flat field falls as 1 / area magnification); :mod:`.resampled`.
         """
         if not (isinstance(height, int) and isinstance(width, int)) or height < 2 or width < 2:
             raise InputValueError(f"resample_to: height and width must be ints >= 2, got {height!r}, {width!r}")
-        region = image_region(height, width, self.display_mm, placement)
-        key = (height, width, placement, str(torch.device(device)), dtype)
-        if key not in self._cache:
-            from .resampled import ResampledBank
+        from .resampled import RADIOMETRIES, ResampledBank
 
-            self._cache[key] = ResampledBank(self, height, width, region, device=torch.device(device), dtype=dtype)
+        if radiometry not in RADIOMETRIES:
+            raise InputValueError(f"radiometry must be one of {RADIOMETRIES}, got {radiometry!r}")
+        region = image_region(height, width, self.display_mm, placement)
+        key = (height, width, placement, radiometry, str(torch.device(device)), dtype)
+        if key not in self._cache:
+            self._cache[key] = ResampledBank(self, height, width, region, device=torch.device(device), dtype=dtype,
+                                             radiometry=radiometry)
         return self._cache[key]
 
 

@@ -2,20 +2,23 @@
 
 Every operator maps ``[..., L, H, W]`` primary intensities (L = the bank's wavelengths, linear
 light) on the display grid to the virtual image on the same grid (scaled by the reference
-magnification), and implements the discretisation in :mod:`.resampled`:
+magnification), and implements the discretisation in :mod:`.resampled` in the resampled bank's
+radiometry (``rb.radiometry``: ``"radiance"``, the default, or the paper's ``"energy"``):
 
-- :func:`psf_reference`: the literal reference. Every display pixel splats its intensity through
-  its own bilinearly blended PSF at its chief-ray footprint. Linear; its backward is the exact
-  adjoint (a hand-written gather). Cost ``N k^2`` per wavelength: for tests at small sizes.
+- :func:`psf_reference`: the literal reference, for tests at small sizes. Energy: every display
+  pixel splats its intensity through its own blended PSF at its footprint (hand-written gather as
+  the exact adjoint). Radiance: every output pixel's own blended PSF applied to the warped canvas
+  as a dense per-pixel dot product (autograd). Cost ``N k^2`` per wavelength.
 - :func:`psf_exact`: the same operator, exactly, as one FFT convolution per field sample (each
   pixel's PSF is a bilinear blend of 4 field PSFs, so the operator is a sum of field-weighted
   shift-invariant convolutions). The ground truth of the benchmark.
 - :func:`psf_distortion`: the chief-ray warp alone (the PSF taken as a delta): the paper's
-  approximation for the first 90 % of training. Cost ``O(N)``.
-- :func:`psf_fast`: per group of ``zone x zone`` field samples, ``sum_r E_r * S(a_r . x)`` with the
-  eigen-PSFs ``E_r`` of the group (truncated SVD to relative residual ``tol``) applied as FFT
-  convolutions after splatting the coefficient-weighted image to its chief rays. Converges to
-  :func:`psf_exact` as ``tol -> 0`` (exact at 0); cost independent of the kernel size.
+  approximation for the first 90 % of training, with the same radiometry. Cost ``O(N)``.
+- :func:`psf_fast`: per group of ``zone x zone`` field samples, the eigen-PSFs ``E_r`` of the
+  group (truncated SVD to relative residual ``tol``) as FFT convolutions, their coefficients
+  applied per pixel (energy: ``sum_r E_r * S(a_r . x)``; radiance: ``sum_r a_r . (E_r * S x)``).
+  Converges to :func:`psf_exact` as ``tol -> 0`` (exact at 0). Its cost grows with the rank and
+  with the group's box plus the kernel margin (docs/optics.md: 2.9x for k = 129 vs 33).
 
 Pixels that are zero in every channel are skipped in the splats when no gradient is needed
 (object scenes on black). With a gradient they cannot be skipped: the gradient there is not zero.
@@ -68,17 +71,26 @@ def _crop(canvas: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
     return canvas[..., :-1].reshape(*canvas.shape[:-1], rb.Hc, rb.Wc)[..., m:m + rb.H, m:m + rb.W]
 
 
-def psf_distortion(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
-    """Chief-ray warp per wavelength (display-pixel footprints splatted at their chief rays)."""
-    x, lead = _prepare(primaries, rb)
+def _canvas(x: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
+    """``x [B, L, N]`` -> the chief-ray warp on the canvas ``[B, L, Hc Wc + 1]`` (last slot = dump)."""
     act = _active(x)
     outs = []
     for li in range(rb.L):
         idx, w, v = rb.splat_index[li], rb.splat_weight[li], x[:, li]
         if act is not None:
             idx, w, v = idx[:, act], w[:, act], v[:, act]
-        outs.append(_crop(_splat(v, idx, w, rb.Hc * rb.Wc), rb))
-    return torch.stack(outs, 1).reshape(*lead, rb.L, rb.H, rb.W)
+        outs.append(_splat(v, idx, w, rb.Hc * rb.Wc))
+    return torch.stack(outs, 1)
+
+
+def psf_distortion(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
+    """Chief-ray warp per wavelength (display-pixel footprints splatted at their chief rays; for
+    radiance times the pupil transmission at each output pixel)."""
+    x, lead = _prepare(primaries, rb)
+    out = _crop(_canvas(x, rb), rb)
+    if rb.radiometry == "radiance":
+        out = out * rb.vignetting.reshape(rb.L, rb.H, rb.W)
+    return out.reshape(*lead, rb.L, rb.H, rb.W)
 
 
 def _skip_mask(x: torch.Tensor) -> torch.Tensor | None:
@@ -135,7 +147,53 @@ class _ZonesFn(torch.autograd.Function):
         return gx, None, None, None
 
 
+class _GatherFn(torch.autograd.Function):
+    """``sum_r a_r . (E_r * C)`` per bucket of field groups on the warped canvas ``C`` (radiance),
+    forward and its exact adjoint (FFT correlation of the weighted gradient, then a scatter back
+    to the canvas)."""
+
+    @staticmethod
+    def forward(ctx, C: torch.Tensor, rb: ResampledBank, buckets: list, skip: bool) -> torch.Tensor:
+        ctx.rb, ctx.buckets, ctx.size = rb, buckets, C.shape[-1]               # C [B, L, Hc Wc + 1]
+        B = C.shape[0]
+        out = C.new_zeros(B, rb.L, rb.H * rb.W)
+        for li in range(rb.L):
+            for bk in buckets[li]:
+                R, Z = bk.kernel_fft.shape[:2]
+                fh, fw = bk.fft_size
+                vals = C[:, li, bk.in_canvas]
+                if skip and not bool(vals.any()):
+                    continue
+                arr = C.new_zeros(B, Z * fh * fw)
+                arr[:, bk.in_slot] = vals
+                res = torch.fft.irfft2(torch.fft.rfft2(arr.view(B, 1, Z, fh, fw)) * bk.kernel_fft, s=(fh, fw))
+                res = res.reshape(B, R, -1)[..., bk.out_slot]                      # [B, R, M]
+                out[:, li].index_add_(1, bk.out_index, (res * bk.out_weight).sum(1) if R > 1 else res[:, 0] * bk.out_weight[0])
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g: torch.Tensor):  # g [B, L, N]
+        rb, buckets = ctx.rb, ctx.buckets
+        B = g.shape[0]
+        gC = g.new_zeros(B, rb.L, ctx.size)
+        for li in range(rb.L):
+            for bk in buckets[li]:
+                R, Z = bk.kernel_fft.shape[:2]
+                fh, fw = bk.fft_size
+                garr = g.new_zeros(B, R, Z * fh * fw)
+                garr[..., bk.out_slot] = g[:, li, bk.out_index][:, None, :] * bk.out_weight
+                spec = torch.fft.rfft2(garr.view(B, R, Z, fh, fw)) * bk.kernel_fft.conj()
+                G = torch.fft.irfft2(spec.sum(1) if R > 1 else spec[:, 0], s=(fh, fw)).reshape(B, -1)
+                gC[:, li].index_add_(1, bk.in_canvas, G[:, bk.in_slot])
+        return gC, None, None, None
+
+
 def _apply_zones(x: torch.Tensor, rb: ResampledBank, buckets: list) -> torch.Tensor:
+    if rb.radiometry == "radiance":
+        C = _canvas(x, rb)
+        skip = not (torch.is_grad_enabled() and C.requires_grad)
+        return _GatherFn.apply(C, rb, buckets, skip).reshape(x.shape[0], rb.L, rb.H, rb.W)
     return _ZonesFn.apply(x, rb, buckets, _skip_mask(x)).reshape(x.shape[0], rb.L, rb.H, rb.W)
 
 
@@ -144,7 +202,7 @@ def psf_fast(primaries: torch.Tensor, rb: ResampledBank, tol: float = 0.02, zone
     """Shift-variant PSF as a sum of FFT convolutions: the field grid is split into ``zone x zone``
     groups; in each, the field PSFs are replaced by their truncated SVD (eigen-PSFs) with relative
     Frobenius residual <= ``tol`` (the accuracy knob; ``tol=0`` is exact). Cost grows with the
-    number of eigen-PSFs, not with the kernel size."""
+    number of eigen-PSFs and with each group's FFT box (its pixels plus the kernel margin)."""
     if not (isinstance(tol, (int, float)) and 0 <= tol < 1):
         raise InputValueError(f"tol must be in [0, 1), got {tol!r}")
     if not isinstance(zone, int) or zone < 1:
@@ -154,9 +212,10 @@ def psf_fast(primaries: torch.Tensor, rb: ResampledBank, tol: float = 0.02, zone
 
 
 def psf_exact(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
-    """Paper Eq. S3, exactly: since each pixel's PSF is a bilinear blend of field PSFs,
-    ``out = sum_f H_f * S(w_f . x)`` (one FFT convolution per field over the pixels that use it).
-    Equal to :func:`psf_reference` to rounding; hand-written backward (the exact adjoint)."""
+    """The operator of :mod:`.resampled`, exactly: since each pixel's PSF is a bilinear blend of
+    field PSFs, ``out = sum_f H_f * S(w_f . x)`` (energy) or ``sum_f V_f . (H_f * S x)`` (radiance),
+    one FFT convolution per field over the pixels that use it. Equal to :func:`psf_reference` to
+    rounding; hand-written backward (the exact adjoint)."""
     x, lead = _prepare(primaries, rb)
     return _apply_zones(x, rb, rb.zones(1, 0.0)).reshape(*lead, rb.L, rb.H, rb.W)
 
@@ -217,9 +276,24 @@ def _crop_full(canvas: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
     return canvas[..., :-1].reshape(*canvas.shape[:-1], rb.Hc, rb.Wc)
 
 
+def _gather_reference(x: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
+    """Radiance, literally: ``out[q] = sum_t h_q[t] C[q - t]`` with every output pixel's own blended
+    PSF ``h_q`` (dense ``[N, k^2]``) and the warped canvas ``C``; autograd backward."""
+    C = _crop_full(_canvas(x, rb), rb)                                         # [B, L, Hc, Wc]
+    taps = torch.arange(rb.k * rb.k, device=rb.device)
+    outs = []
+    for li in range(rb.L):
+        patches = torch.nn.functional.unfold(C[:, li, None], rb.k)            # [B, k^2, N]: C[q + a - m]
+        outs.append((patches * rb.pixel_kernels(li, taps).flip(0)).sum(1))  # tap t = m - a
+    return torch.stack(outs, 1)
+
+
 def psf_reference(primaries: torch.Tensor, rb: ResampledBank) -> torch.Tensor:
-    """Brute-force per-pixel splat of paper Eq. S3: every pixel's blended PSF, tap by tap, through
-    its footprint. Very slow (``N k^2 J``); the independent reference for tests. Its backward is a
-    hand-written gather: the exact adjoint."""
+    """Brute-force form of the operator, the independent reference for tests (``N k^2``). Energy:
+    every display pixel's blended PSF splatted tap by tap through its footprint, hand-written
+    gather backward (the exact adjoint). Radiance: every output pixel's blended PSF dotted with
+    its window of the warped canvas (autograd)."""
     x, lead = _prepare(primaries, rb)
+    if rb.radiometry == "radiance":
+        return _gather_reference(x, rb).reshape(*lead, rb.L, rb.H, rb.W)
     return _ExactPSF.apply(x, rb).reshape(*lead, rb.L, rb.H, rb.W)

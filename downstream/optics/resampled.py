@@ -1,16 +1,26 @@
 """A :class:`PSFBank` at one simulation resolution: everything the operators need, computed once.
 
-Discretisation of paper Eq. S3 used by every operator (so they converge to the same thing):
+Two radiometries (``radiometry``), one geometry. Display pixel ``p`` is a square; its image under
+the chief-ray map (per wavelength) is the quadrilateral ``Q_p`` spanned by the chief-ray images of
+its four corners (adjacent pixels share edges, so the quads tile the virtual image exactly).
+``a_p(q)`` is the exact area of ``Q_p`` inside output pixel ``q`` (in output-pixel units) and
+``A_p = sum_q a_p(q)`` its area, the local area magnification of the chief-ray map.
 
-    out[q] = sum_p x[p] * sum_t h_p[t] * B_p(q - t)
+- ``"radiance"`` (default): a lossless lens conserves radiance, so the eye sees a uniform display
+  as uniform, whatever the distortion and aberrations; only rays the lens aperture blocks are lost
+  (the bank's traced pupil transmission ``T``). Discretised as a gather over output pixels:
 
-- ``h_p`` ``[k, k]`` is the PSF of display pixel p on the output pixel grid: the four surrounding
-  field PSFs, each box-resampled to the output pitch (energy-exact), blended bilinearly;
-- ``B_p`` is the footprint of display pixel p (a box whose edges are the chief-ray images of the
-  pixel's edges, per wavelength) integrated over output pixels: the display pixel's box filter
-  (paper S2) and the output pixel's box, with the local magnification of the distortion. Footprints
-  of neighbouring pixels tile, so a flat field stays seam-free; for a distortion-free bank B_p is a
-  single output pixel and the operator is exactly a convolution.
+      C[q]   = sum_p x[p] a_p(q)                                  (the chief-ray warp, radiance)
+      out[q] = sum_f V_f(q) (H_f * C)[q],  V_f(q) = T_f b_f(d(q))
+
+  ``H_f`` the field PSFs on the output grid, ``d(q)`` the display point whose chief ray lands on
+  output pixel ``q`` (the inverse chief-ray map) and ``b_f`` the bilinear weights of the field
+  samples there. Each output pixel sees a bilinear blend of field PSFs, as in the paper, but the
+  blend is indexed by where the light arrives, so a flat field gives ``sum_f V_f(q) = T(q)``
+  exactly: no seams on the field-sample lines, whatever the interpolant.
+- ``"energy"`` (paper Eq. S3 as written): every display pixel's energy is kept and scattered
+  through its own blended PSF, ``out[q] = sum_p x[p] sum_t h_p[t] a_p(q - t) / A_p``; a flat
+  display falls off as ``1 / A_p`` (0.80 at mid-edge, 0.60 in the corner of the Cardboard lens).
 
 Placement (``region``, :func:`controlgs_adapter.downstream.placement.image_region`): image pixel
 centre ``u`` (image-normalised) sits at display-normalised ``u * (half_x, half_y)``, where the bank's
@@ -27,7 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import torch
 import torch.nn.functional as F
@@ -38,7 +48,11 @@ if TYPE_CHECKING:
     from ..placement import ImageRegion
     from .bank import PSFBank
 
-__all__ = ["ResampledBank", "Zone", "Bucket", "fast_len", "ladder_len"]
+__all__ = ["ResampledBank", "Zone", "Bucket", "GatherBucket", "fast_len", "ladder_len", "RADIOMETRIES",
+           "Radiometry"]
+
+Radiometry = Literal["radiance", "energy"]
+RADIOMETRIES: tuple[str, ...] = ("radiance", "energy")
 
 
 def fast_len(n: int) -> int:
@@ -85,13 +99,111 @@ def _box_matrix(pitch_px: torch.Tensor, K: int, m: int) -> torch.Tensor:
     return (hi - lo).clamp_min(0) / pitch_px[:, None, None]
 
 
+def _mean_relu(g0: torch.Tensor, g1: torch.Tensor) -> torch.Tensor:
+    """Mean of ``max(g, 0)`` over a linear ``g`` from ``g0`` to ``g1`` (elementwise, stable)."""
+    lo, hi = torch.minimum(g0, g1), torch.maximum(g0, g1)
+    mixed = hi * hi / (2 * (hi - lo)).clamp_min(1e-300)
+    return torch.where(lo >= 0, 0.5 * (lo + hi), torch.where(hi <= 0, torch.zeros_like(hi), mixed))
+
+
+def quad_overlap(qx: torch.Tensor, qy: torch.Tensor, a: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """Exact area of polygons inside unit pixels ``[a, a + 1] x [c, c + 1]``.
+
+    ``qx, qy [V, ...]``: vertices in order, positive shoelace orientation (the order (x0,y0),
+    (x1,y0), (x1,y1), (x0,y1) of a box with x1 > x0, y1 > y0); ``a, c [...]``. Green's theorem:
+    ``-sum_edges int clamp(y - c, 0, 1) dx`` over each edge's x clipped to ``[a, a + 1]`` (the
+    clipping's vertical edges add nothing). Neighbouring polygons share edges, so their overlaps
+    with any pixel add up to the area of their union inside it."""
+    total = torch.zeros_like(qx[0])
+    V = qx.shape[0]
+    for e in range(V):
+        x0, y0, x1, y1 = qx[e], qy[e], qx[(e + 1) % V], qy[(e + 1) % V]
+        dx = x1 - x0
+        u0 = torch.maximum(torch.minimum(x0, x1), a)
+        u1 = torch.minimum(torch.maximum(x0, x1), a + 1)
+        slope = (y1 - y0) / torch.where(dx == 0, torch.ones_like(dx), dx)
+        g0, g1 = y0 + slope * (u0 - x0) - c, y0 + slope * (u1 - x0) - c
+        inner = _mean_relu(g0, g1) - _mean_relu(g0 - 1, g1 - 1)
+        total = total - torch.sign(dx) * (u1 - u0).clamp_min(0) * inner
+    return total
+
+
+def _bilinear_axis(f: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Lower/upper sample index and fraction of ``u`` on the increasing samples ``f`` (constant beyond)."""
+    f = f.double().to(u.device)
+    if len(f) == 1:
+        z = torch.zeros_like(u, dtype=torch.long)
+        return z, z, torch.zeros_like(u)
+    j = torch.searchsorted(f, u.contiguous()).clamp(1, len(f) - 1)
+    a = ((u - f[j - 1]) / (f[j] - f[j - 1])).clamp(0, 1)
+    return j - 1, j, a
+
+
+def _bilinear_fields(fx: torch.Tensor, fy: torch.Tensor, x: torch.Tensor, y: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``[4, *x.shape]`` flat field indices and bilinear weights at display points ``(x, y)``."""
+    x0, x1, ax = _bilinear_axis(fx, x)
+    y0, y1, ay = _bilinear_axis(fy, y)
+    Gx = len(fx)
+    idx = torch.stack([y0 * Gx + x0, y0 * Gx + x1, y1 * Gx + x0, y1 * Gx + x1])
+    w = torch.stack([(1 - ay) * (1 - ax), (1 - ay) * ax, ay * (1 - ax), ay * ax])
+    return idx, w
+
+
+#: landing-point grid (per side) on which the inverse chief-ray map is solved before interpolation
+INVERSE_GRID = 129
+
+
+def _keys(f: torch.Tensor) -> torch.Tensor:
+    """``[..., 4]`` Keys cubic convolution weights (a = -1/2) of the samples ``i - 1 .. i + 2`` at fraction ``f``."""
+    return torch.stack([((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0,
+                        ((-1.5 * f + 2.0) * f + 0.5) * f, (0.5 * f - 0.5) * f * f], -1)
+
+
+def _pad_quadratic(g: torch.Tensor) -> torch.Tensor:
+    """Extend a grid ``[L, n, m, C]`` by one sample each side (dims 1, 2) by quadratic extrapolation."""
+    g = torch.cat([3 * g[:, :1] - 3 * g[:, 1:2] + g[:, 2:3], g, 3 * g[:, -1:] - 3 * g[:, -2:-1] + g[:, -3:-2]], 1)
+    return torch.cat([3 * g[:, :, :1] - 3 * g[:, :, 1:2] + g[:, :, 2:3], g,
+                      3 * g[:, :, -1:] - 3 * g[:, :, -2:-1] + g[:, :, -3:-2]], 2)
+
+
+def _keys_matrix(t: torch.Tensor, n: int) -> torch.Tensor:
+    """``[len(t), n + 2]``: Keys cubic interpolation at ``t`` in [-1, 1] (and a little beyond) from
+    ``n`` uniform samples ``linspace(-1, 1, n)`` padded by one each side (:func:`_pad_quadratic`)."""
+    g = (t.double() + 1) / 2 * (n - 1)
+    i = torch.floor(g).clamp(0, n - 2)
+    M = torch.zeros(len(t), n + 2, dtype=torch.float64)
+    M.scatter_add_(1, i.long()[:, None] + torch.arange(4), _keys(g - i))
+    return M
+
+
+def _keys_eval(grid: torch.Tensor, my: torch.Tensor, mx: torch.Tensor) -> torch.Tensor:
+    """Separable Keys cubic of a padded grid ``[L, n + 2, m + 2, C]`` on the tensor grid of
+    ``my [H, n + 2]`` x ``mx [W, m + 2]``: ``[L, H, W, C]``."""
+    return torch.einsum("ia,labc,jb->lijc", my, grid, mx)
+
+
 class ResampledBank:
-    """Per-resolution tables (see module docstring). Build through :meth:`PSFBank.resample_to`."""
+    """Per-resolution tables (see module docstring). Build through :meth:`PSFBank.resample_to`.
+
+    Attributes (``L`` wavelengths, ``N = H W``, ``G`` field samples, ``J`` footprint taps):
+        splat_index, splat_weight: ``[L, J, N]`` canvas index (dump slot ``Hc Wc``) and weight of
+            each display pixel's footprint: the overlap area ``a_p(q)`` (radiance) or ``a_p(q) / A_p``
+            (energy).
+        area: ``[L, N]`` area magnification ``A_p`` of the chief-ray map (output px per display px).
+        field_index, field_weight: ``[4, N]`` bilinear field blend at each display pixel (energy).
+        out_field_index, out_field_weight: ``[L, 4, N]`` bilinear field blend at the display point
+            whose chief ray lands on each output pixel (radiance).
+        transmission: ``[L, G]`` traced pupil transmission per field sample (1 where the bank has none).
+        vignetting: ``[L, N]`` ``T`` blended at each output pixel (radiance; ones for energy).
+    """
 
     def __init__(self, bank: "PSFBank", height: int, width: int, region: "ImageRegion", *, device: torch.device,
-                 dtype: torch.dtype):
+                 dtype: torch.dtype, radiometry: Radiometry = "radiance"):
+        if radiometry not in RADIOMETRIES:
+            raise InputValueError(f"radiometry must be one of {RADIOMETRIES}, got {radiometry!r}")
         self.bank, self.H, self.W, self.device, self.dtype = bank, height, width, device, dtype
-        self.region = region
+        self.region, self.radiometry = region, radiometry
         self.L = bank.num_wavelengths
         px_x, px_y = region.pitch_mm
         K = bank.psf.shape[-1]
@@ -102,95 +214,137 @@ class ResampledBank:
         self._px = (px_x, px_y)
         self._kernels: torch.Tensor | None = None
         self._zones: dict = {}
+        self.transmission = bank.transmission.reshape(self.L, -1).to(device, torch.float64)
         self.field_index, self.field_weight = self._field_weights()   # [4, N] long, [4, N]
-        self.splat_index, self.splat_weight = self._footprints()     # [L, J, N] long, [L, J, N]
+        self.splat_index, self.splat_weight, self.area = self._footprints()   # [L, J, N] x2, [L, N]
+        if radiometry == "radiance":
+            self.out_field_index, self.out_field_weight = self._output_field_weights()   # [L, 4, N]
+            t = torch.stack([self.transmission[li][self.out_field_index[li]] for li in range(self.L)])
+            self.vignetting = (t * self.out_field_weight.double()).sum(1).to(dtype)     # [L, N]
+        else:
+            self.vignetting = torch.ones(self.L, height * width, device=device, dtype=dtype)
 
     # ----------------------------------------------------------------- per-pixel field blending
+    def _pixel_centres(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[H, W]`` display-normalised x and y of the image pixel centres."""
+        u = ((2 * torch.arange(self.W, dtype=torch.float64) + 1) / self.W - 1) * self.region.half_x
+        v = ((2 * torch.arange(self.H, dtype=torch.float64) + 1) / self.H - 1) * self.region.half_y
+        V, U = torch.meshgrid(v, u, indexing="ij")
+        return U, V
+
     def _field_weights(self) -> tuple[torch.Tensor, torch.Tensor]:
-        b = self.bank
-        Gy, Gx = b.psf.shape[1:3]
+        U, V = self._pixel_centres()
+        idx, w = _bilinear_fields(self.bank.field_x, self.bank.field_y, U, V)
+        return idx.reshape(4, -1).to(self.device), w.reshape(4, -1).to(self.device, self.dtype)
 
-        def axis(n_px: int, f: torch.Tensor, half: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-            u = ((2 * torch.arange(n_px, dtype=torch.float64) + 1) / n_px - 1) * half   # display-normalised
-            f = f.double()
-            j = torch.searchsorted(f, u).clamp(1, len(f) - 1) if len(f) > 1 else torch.zeros_like(u, dtype=torch.long)
-            if len(f) == 1:
-                return j, j, torch.zeros_like(u)
-            a = ((u - f[j - 1]) / (f[j] - f[j - 1])).clamp(0, 1)   # constant beyond the outer samples
-            return j - 1, j, a
-
-        y0, y1, ay = axis(self.H, b.field_y, self.region.half_y)
-        x0, x1, ax = axis(self.W, b.field_x, self.region.half_x)
-        Y0, X0 = torch.meshgrid(y0, x0, indexing="ij")
-        Y1, X1 = torch.meshgrid(y1, x1, indexing="ij")
-        AY, AX = torch.meshgrid(ay, ax, indexing="ij")
-        idx = torch.stack([Y0 * Gx + X0, Y0 * Gx + X1, Y1 * Gx + X0, Y1 * Gx + X1]).reshape(4, -1)
-        w = torch.stack([(1 - AY) * (1 - AX), (1 - AY) * AX, AY * (1 - AX), AY * AX]).reshape(4, -1)
-        return idx.to(self.device), w.to(self.device, self.dtype)
+    def _output_field_weights(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Field blend of each output pixel: bilinear weights at the display point ``d(q)`` whose
+        chief ray lands on the pixel's centre. The inverse chief-ray map is solved by Newton on the
+        cubic interpolant at the nodes of a uniform ``INVERSE_GRID``-square grid of landing points
+        and interpolated from there with the same cubic (error < 1e-6 of the half-width: tested)."""
+        n = INVERSE_GRID
+        t = torch.linspace(-1, 1, n, dtype=torch.float64)
+        ty, tx = (g.expand(self.L, -1, -1) for g in torch.meshgrid(t, t, indexing="ij"))
+        dx, dy = tx.clone(), ty.clone()
+        for _ in range(8):
+            c, (j11, j12, j21, j22) = self._chief_at(dx, dy, per_wavelength=True, jacobian=True)
+            rx, ry = tx - c[..., 0], ty - c[..., 1]
+            det = j11 * j22 - j12 * j21
+            dx, dy = dx + (j22 * rx - j12 * ry) / det, dy + (j11 * ry - j21 * rx) / det
+        c = self._chief_at(dx, dy, per_wavelength=True)
+        err = torch.maximum((c[..., 0] - tx).abs(), (c[..., 1] - ty).abs()).max().item()
+        if not err < 1e-10:
+            raise InputValueError(f"PSF bank: the chief-ray map cannot be inverted (residual {err:.3g})")
+        U, V = self._pixel_centres()
+        my, mx = _keys_matrix(V[:, 0], n), _keys_matrix(U[0], n)
+        d = _keys_eval(_pad_quadratic(torch.stack([dx, dy], -1)), my, mx)          # [L, H, W, 2]
+        idx, w = _bilinear_fields(self.bank.field_x, self.bank.field_y, d[..., 0], d[..., 1])   # [4, L, H, W]
+        return (idx.transpose(0, 1).reshape(self.L, 4, -1).to(self.device),
+                w.transpose(0, 1).reshape(self.L, 4, -1).to(self.device, self.dtype))
 
     # ----------------------------------------------------------------- chief-ray footprints
-    def _chief_at(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """Chief-ray landing ``[L, *u.shape, 2]`` (normalised) at normalised display points.
+    def _chief_at(self, u: torch.Tensor, v: torch.Tensor, per_wavelength: bool = False, jacobian: bool = False):
+        """Chief-ray landing ``[L, *u.shape, 2]`` (normalised) at normalised display points ``u, v``
+        (the same for every wavelength, or ``[L, ...]`` with ``per_wavelength``; then ``[*u.shape, 2]``).
+        With ``jacobian``, also its derivatives ``(dX/du, dX/dv, dY/du, dY/dv)``.
 
         Separable Keys cubic convolution (a = -1/2: reproduces quadratics, C1), so the derivative,
         the local magnification, is continuous and a flat field shows no steps at grid lines.
         The grid is extended by one sample each side by quadratic extrapolation."""
-        ch = self.bank.chief.double()                                           # [L, Cy, Cx, 2]
+        ch = self.bank.chief.double().to(u.device)                              # [L, Cy, Cx, 2]
         ch = torch.cat([3 * ch[:, :1] - 3 * ch[:, 1:2] + ch[:, 2:3], ch, 3 * ch[:, -1:] - 3 * ch[:, -2:-1] + ch[:, -3:-2]], 1)
         ch = torch.cat([3 * ch[:, :, :1] - 3 * ch[:, :, 1:2] + ch[:, :, 2:3], ch,
                         3 * ch[:, :, -1:] - 3 * ch[:, :, -2:-1] + ch[:, :, -3:-2]], 2)
         Cy, Cx = self.bank.chief.shape[1:3]
+        L, shape = self.L, u.shape
+        ch = ch.reshape(L, -1, 2)
 
-        def taps(t: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        def taps(t: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             g = (t.double() + 1) / 2 * (n - 1)                                 # grid units, 0..n-1
             i = torch.floor(g).clamp(0, n - 2)
             f = g - i
             w = torch.stack([((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0,
                              ((-1.5 * f + 2.0) * f + 0.5) * f, (0.5 * f - 0.5) * f * f], -1)
-            idx = i.long()[..., None] + torch.arange(4)                         # padded grid index
-            return idx, w
+            dw = torch.stack([(-1.5 * f + 2.0) * f - 0.5, (4.5 * f - 5.0) * f, (-4.5 * f + 4.0) * f + 0.5,
+                              (1.5 * f - 1.0) * f], -1) * ((n - 1) / 2)
+            return i.long()[..., None] + torch.arange(4, device=t.device), w, dw   # padded grid index
 
-        iy, wy = taps(v, Cy)
-        ix, wx = taps(u, Cx)
-        out = 0
-        for a in range(4):
-            for b in range(4):
-                out = out + ch[:, iy[..., a], ix[..., b]] * (wy[..., a] * wx[..., b])[None, ..., None]
-        return out
+        u, v = u.reshape(L, -1) if per_wavelength else u.reshape(-1), v.reshape(L, -1) if per_wavelength else v.reshape(-1)
+        outs: list[list[torch.Tensor]] = []
+        step = 1 << 16
+        for s in range(0, u.shape[-1], step):
+            iy, wy, dwy = taps(v[..., s:s + step], Cy)
+            ix, wx, dwx = taps(u[..., s:s + step], Cx)
+            flat = (iy[..., :, None] * (Cx + 2) + ix[..., None, :]).flatten(-2)     # [(L,) P, 16]
+            vals = torch.stack([ch[li, flat[li] if per_wavelength else flat] for li in range(L)])   # [L, P, 16, 2]
+            parts = [(wy[..., :, None] * wx[..., None, :])]
+            if jacobian:
+                parts += [wy[..., :, None] * dwx[..., None, :], dwy[..., :, None] * wx[..., None, :]]
+            outs.append([torch.einsum("...k,l...kc->l...c" if not per_wavelength else "l...k,l...kc->l...c",
+                                      p.flatten(-2), vals) for p in parts])
+        res = [torch.cat([o[i] for o in outs], -2) for i in range(len(outs[0]))]
+        lead = shape[1:] if per_wavelength else shape
+        val = res[0].reshape(L, *lead, 2)
+        if not jacobian:
+            return val
+        du, dv = res[1].reshape(L, *lead, 2), res[2].reshape(L, *lead, 2)
+        return val, (du[..., 0], dv[..., 0], du[..., 1], dv[..., 1])
 
-    def _footprints(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Chief rays at the image pixels' display positions (image-normalised ``u`` times the
-        region's half-extent), landing points back in the image's frame (divided by it: the virtual
-        image at the reference magnification, on the image's own pixel grid)."""
+    def corners(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[L, H + 1, W + 1]`` canvas x and y (output px) of the chief-ray images of the pixel corners."""
         H, W, m = self.H, self.W, self.m
         sx, sy = self.region.half_x, self.region.half_y
-        ue = 2 * torch.arange(W + 1, dtype=torch.float64) / W - 1     # pixel edges
-        uc = (2 * torch.arange(W, dtype=torch.float64) + 1) / W - 1   # pixel centres
+        ue = 2 * torch.arange(W + 1, dtype=torch.float64) / W - 1
         ve = 2 * torch.arange(H + 1, dtype=torch.float64) / H - 1
-        vc = (2 * torch.arange(H, dtype=torch.float64) + 1) / H - 1
-        Vc, Ue = torch.meshgrid(vc, ue, indexing="ij")                # [H, W+1]
-        Ve, Uc = torch.meshgrid(ve, uc, indexing="ij")                # [H+1, W]
-        cx = (self._chief_at(Ue * sx, Vc * sy)[..., 0] / sx + 1) * W / 2 + m   # [L, H, W+1] canvas px (edge units)
-        cy = (self._chief_at(Uc * sx, Ve * sy)[..., 1] / sy + 1) * H / 2 + m   # [L, H+1, W]
-        ax, bx = cx[..., :-1], cx[..., 1:]
-        ay, by = cy[:, :-1, :], cy[:, 1:, :]
-        if (bx <= ax).any() or (by <= ay).any():
+        ch = _keys_eval(_pad_quadratic(self.bank.chief.double()), _keys_matrix(ve * sy, self.bank.chief.shape[1]),
+                        _keys_matrix(ue * sx, self.bank.chief.shape[2]))
+        return (ch[..., 0] / sx + 1) * W / 2 + m, (ch[..., 1] / sy + 1) * H / 2 + m
+
+    def _footprints(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Exact footprints: each display pixel's quad (chief-ray images of its corners; the image
+        pixel's display position is ``u`` times the region's half-extent, landing points divided by
+        it) intersected with the output pixels of the canvas."""
+        X, Y = self.corners()
+        qx = torch.stack([X[:, :-1, :-1], X[:, :-1, 1:], X[:, 1:, 1:], X[:, 1:, :-1]]).reshape(4, self.L, -1)
+        qy = torch.stack([Y[:, :-1, :-1], Y[:, :-1, 1:], Y[:, 1:, 1:], Y[:, 1:, :-1]]).reshape(4, self.L, -1)
+        area = 0.5 * sum(qx[e] * qy[(e + 1) % 4] - qx[(e + 1) % 4] * qy[e] for e in range(4))   # [L, N]
+        if not (area > 0).all():
             raise InputValueError("PSF bank: the chief-ray map folds over (not monotonic) at this resolution")
-        jx = int(torch.ceil((bx - ax).max()).item()) + 1
-        jy = int(torch.ceil((by - ay).max()).item()) + 1
+        x0, y0 = torch.floor(qx.min(0).values), torch.floor(qy.min(0).values)
+        jx = int((torch.ceil(qx.max(0).values) - x0).max().item())
+        jy = int((torch.ceil(qy.max(0).values) - y0).max().item())
         idx, wts = [], []
-        x0, y0 = torch.floor(ax), torch.floor(ay)
         for oy in range(jy):
-            py = y0 + oy
-            wy = (torch.minimum(by, py + 1) - torch.maximum(ay, py)).clamp_min(0) / (by - ay)
             for ox in range(jx):
-                pxl = x0 + ox
-                wx = (torch.minimum(bx, pxl + 1) - torch.maximum(ax, pxl)).clamp_min(0) / (bx - ax)
-                inside = (pxl >= 0) & (pxl < self.Wc) & (py >= 0) & (py < self.Hc)
-                flat = torch.where(inside, py * self.Wc + pxl, torch.full_like(pxl, self.Hc * self.Wc))
-                idx.append(flat.long().reshape(self.L, -1))
-                wts.append(torch.where(inside, wx * wy, torch.zeros_like(wx)).reshape(self.L, -1))
-        return torch.stack(idx, 1).to(self.device), torch.stack(wts, 1).to(self.device, self.dtype)
+                px, py = x0 + ox, y0 + oy
+                w = quad_overlap(qx, qy, px, py).clamp_min(0)
+                if self.radiometry == "energy":
+                    w = w / area
+                inside = (px >= 0) & (px < self.Wc) & (py >= 0) & (py < self.Hc)
+                idx.append(torch.where(inside, py * self.Wc + px, torch.full_like(px, self.Hc * self.Wc)).long())
+                wts.append(torch.where(inside, w, torch.zeros_like(w)))
+        return (torch.stack(idx, 1).to(self.device), torch.stack(wts, 1).to(self.device, self.dtype),
+                area.to(self.device, self.dtype))
 
     # ----------------------------------------------------------------- kernels
     @property
@@ -209,28 +363,136 @@ class ResampledBank:
         return self._kernels
 
     def pixel_kernels(self, li: int, taps: torch.Tensor) -> torch.Tensor:
-        """``[T, N]``: value of tap ``taps`` (flat index into ``k x k``) of every pixel's blended PSF."""
+        """``[T, N]``: value of tap ``taps`` (flat index into ``k x k``) of every display pixel's
+        blended PSF (energy) or of every output pixel's (radiance, transmission included)."""
         kf = self.kernels[li].reshape(self.kernels.shape[1], -1)[:, taps]   # [G, T]
-        out = kf[self.field_index[0]] * self.field_weight[0, :, None]
+        if self.radiometry == "radiance":
+            idx = self.out_field_index[li]
+            w = self.out_field_weight[li] * self.transmission[li][idx].to(self.dtype)
+        else:
+            idx, w = self.field_index, self.field_weight
+        out = kf[idx[0]] * w[0, :, None]
         for i in range(1, 4):
-            out = out + kf[self.field_index[i]] * self.field_weight[i, :, None]
+            out = out + kf[idx[i]] * w[i, :, None]
         return out.T
 
-    def zones(self, zone: int, tol: float, max_rank: int | None = None) -> list["Zone"]:
-        """Field-group decomposition of the operator (cached): the fields are split into groups of
-        ``zone x zone``; within a group, the kernels are replaced by their truncated SVD with the
-        smallest rank whose relative Frobenius residual is <= ``tol`` (capped by ``max_rank``).
-        Because each pixel's PSF is a bilinear blend of field PSFs, ``zone=1`` (any tol) and
-        ``tol=0`` are exact."""
+    def zones(self, zone: int, tol: float, max_rank: int | None = None) -> list[list]:
+        """Field-group decomposition of the operator (cached), per wavelength a list of buckets: the
+        fields are split into groups of ``zone x zone``; within a group, the kernels are replaced
+        by their truncated SVD with the smallest rank whose relative Frobenius residual is <= ``tol``
+        (capped by ``max_rank``). Because each pixel's PSF is a bilinear blend of field PSFs,
+        ``zone=1`` (any tol) and ``tol=0`` are exact. Radiance: :class:`GatherBucket` (the field
+        blend applied where the light arrives); energy: :class:`Bucket` (where it leaves)."""
         key = (zone, float(tol), max_rank)
         if key not in self._zones:
-            self._zones[key] = _build_zones(self, zone, float(tol), max_rank)
+            build = _build_gather if self.radiometry == "radiance" else _build_zones
+            self._zones[key] = build(self, zone, float(tol), max_rank)
         return self._zones[key]
+
+
+def _eigen(K: torch.Tensor, m: int, tol: float, max_rank: int | None) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Truncated SVD of a group's kernels ``K [nf, k, k]`` (tap ``m`` central): eigen-PSFs
+    ``[R, 2 mz + 1, 2 mz + 1]`` cropped to the group's support ``mz``, coefficients ``[nf, R]``
+    scaled so that each field's truncated kernel keeps its sum."""
+    nzr = K.abs().sum(0) > 0
+    rows, cols = nzr.any(1).nonzero().squeeze(1), nzr.any(0).nonzero().squeeze(1)
+    mz = int(max((rows - m).abs().max(), (cols - m).abs().max()))
+    nf = K.shape[0]
+    K = K[:, m - mz:m + mz + 1, m - mz:m + mz + 1].reshape(nf, -1)
+    evals, U = torch.linalg.eigh(K @ K.T)
+    order = torch.argsort(evals, descending=True)
+    evals, U = evals[order].clamp_min(0), U[:, order]
+    total = evals.sum()
+    resid = (total - torch.cumsum(evals, 0)).clamp_min(0)
+    R = int((resid > (tol * tol) * total).sum().item()) + 1
+    R = min(R, nf, max_rank or R)
+    s = evals[:R].clamp_min(1e-300).sqrt()
+    E = (U[:, :R].T @ K) / s[:, None]
+    A = U[:, :R] * s
+    # keep every field's light: rescale its coefficients so the truncated kernel has its sum
+    # (a flat field stays flat in the fast mode too; the factor is exactly 1 at tol = 0)
+    have, want = A @ E.sum(1), K.sum(1)
+    A = A * torch.where(have.abs() > 1e-12 * want.abs(), want / have, torch.ones_like(have))[:, None]
+    return E.reshape(R, 2 * mz + 1, 2 * mz + 1), A, mz
+
+
+def _rolled(E: torch.Tensor, fh: int, fw: int) -> torch.Tensor:
+    """Kernels ``[R, 2mz+1, 2mz+1]`` in an ``fh x fw`` FFT array, tap ``t`` at index ``t mod size``."""
+    mz = E.shape[-1] // 2
+    Ek = E.new_zeros(E.shape[0], fh, fw)
+    Ek[:, :2 * mz + 1, :2 * mz + 1] = E
+    return torch.roll(Ek, shifts=(-mz, -mz), dims=(1, 2))
+
+
+@dataclass
+class GatherBucket:
+    """Field groups with the same FFT size and rank (radiance): ``out[box] += sum_r a_r . (E_r * C)``,
+    ``C`` the warped canvas, transformed in one batched call."""
+
+    in_slot: torch.Tensor       # [P] flat index into [Z, fh, fw] of the canvas patch cells
+    in_canvas: torch.Tensor     # [P] canvas flat index each of them reads
+    kernel_fft: torch.Tensor    # [R, Z, fh, fw // 2 + 1]
+    fft_size: tuple[int, int]
+    out_slot: torch.Tensor      # [M] flat index into [Z, fh, fw] of the result cells used ...
+    out_index: torch.Tensor     # [M] ... the flat frame index each adds to
+    out_weight: torch.Tensor    # [R, M] coefficient map a_r there (field weights x transmission x A)
+
+
+def _build_gather(rb: "ResampledBank", zone: int, tol: float, max_rank: int | None) -> list[list[GatherBucket]]:
+    Gy, Gx = rb.bank.psf.shape[1:3]
+    kern = rb.kernels.double()
+    H, W, m, N = rb.H, rb.W, rb.m, rb.H * rb.W
+    nzx, nzy = (Gx + zone - 1) // zone, (Gy + zone - 1) // zone
+    cdt = torch.complex64 if rb.dtype == torch.float32 else torch.complex128
+    dev = rb.device
+    out = []
+    for li in range(rb.L):
+        fidx = rb.out_field_index[li]
+        fw_ = rb.out_field_weight[li].double() * rb.transmission[li][fidx]
+        live = fw_ > 0
+        f_all, v_all = fidx[live], fw_[live]
+        q_all = torch.arange(N, device=dev).expand(4, N)[live]
+        z_all = (f_all // Gx // zone) * nzx + (f_all % Gx) // zone
+        order = torch.argsort(z_all * (Gy * Gx) + f_all)
+        f_all, v_all, q_all = f_all[order], v_all[order], q_all[order]
+        counts = torch.bincount(z_all, minlength=nzx * nzy).tolist()
+        groups: dict[tuple[int, int, int], list] = {}
+        for f_g, v_g, q_g in zip(f_all.split(counts), v_all.split(counts), q_all.split(counts)):
+            if f_g.numel() == 0:
+                continue
+            fields, pos = torch.unique(f_g, return_inverse=True)
+            E, A, mz = _eigen(kern[li, fields], m, tol, max_rank)
+            r, c = q_g // W, q_g % W
+            r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
+            bh, bw = r1 - r0, c1 - c0
+            Vd = torch.zeros(len(fields), bh * bw, dtype=torch.float64, device=dev)
+            Vd.index_put_((pos, (r - r0) * bw + (c - c0)), v_g, accumulate=True)
+            used = (Vd > 0).any(0).nonzero().squeeze(1)
+            coeff = A.T @ Vd[:, used]                                            # [R, M]
+            fh, fwid = ladder_len(bh + 2 * mz), ladder_len(bw + 2 * mz)
+            pi, pj = torch.meshgrid(torch.arange(bh + 2 * mz, device=dev), torch.arange(bw + 2 * mz, device=dev),
+                                    indexing="ij")
+            ur, uc = used // bw, used % bw
+            groups.setdefault((fh, fwid, E.shape[0]), []).append((
+                (pi * fwid + pj).reshape(-1), ((r0 + m - mz + pi) * rb.Wc + (c0 + m - mz + pj)).reshape(-1),
+                _rolled(E, fh, fwid), (ur + mz) * fwid + (uc + mz), (ur + r0) * W + (uc + c0), coeff))
+        buckets = []
+        for (fh, fwid, R), zs in sorted(groups.items()):
+            area = fh * fwid
+            buckets.append(GatherBucket(
+                in_slot=torch.cat([z[0] + s * area for s, z in enumerate(zs)]),
+                in_canvas=torch.cat([z[1] for z in zs]),
+                kernel_fft=torch.fft.rfft2(torch.stack([z[2] for z in zs], 1)).to(cdt), fft_size=(fh, fwid),
+                out_slot=torch.cat([z[3] + s * area for s, z in enumerate(zs)]),
+                out_index=torch.cat([z[4] for z in zs]),
+                out_weight=torch.cat([z[5] for z in zs], 1).to(rb.dtype)))
+        out.append(buckets)
+    return out
 
 
 @dataclass
 class Zone:
-    """One field group at one wavelength: ``out[box] += sum_r E_r * splat(coeff_r . x[pixels])``."""
+    """One field group at one wavelength (energy): ``out[box] += sum_r E_r * splat(coeff_r . x[pixels])``."""
 
     pixels: torch.Tensor        # [n] flat display-pixel indices whose PSF uses a field of the group
     splat_index: torch.Tensor   # [J, n] flat index into the zone's FFT array (fh * fw = dump slot)
@@ -267,21 +529,8 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
                 pix = pixels_of[z]
                 if pix.numel() == 0:
                     continue
-                K = kern[li, fields]                                           # [nf, k, k]
-                nzr = (K.abs().sum(0) > 0)
-                rows, cols = nzr.any(1).nonzero().squeeze(1), nzr.any(0).nonzero().squeeze(1)
-                mz = int(max((rows - rb.m).abs().max(), (cols - rb.m).abs().max()))
-                K = K[:, rb.m - mz:rb.m + mz + 1, rb.m - mz:rb.m + mz + 1].reshape(len(fields), -1)
-                evals, U = torch.linalg.eigh(K @ K.T)
-                order = torch.argsort(evals, descending=True)
-                evals, U = evals[order].clamp_min(0), U[:, order]
-                total = evals.sum()
-                resid = (total - torch.cumsum(evals, 0)).clamp_min(0)
-                R = int((resid > (tol * tol) * total).sum().item()) + 1
-                R = min(R, len(fields), max_rank or R)
-                s = evals[:R].clamp_min(1e-300).sqrt()
-                E = (U[:, :R].T @ K) / s[:, None]                                # [R, kz*kz]
-                A = U[:, :R] * s                                                 # [nf, R] per-field coefficients
+                E, A, mz = _eigen(kern[li, fields], rb.m, tol, max_rank)             # [R, kz, kz], [nf, R]
+                R = E.shape[0]
                 # per-pixel coefficients: sum of the pixel's bilinear weights on this group's fields
                 pos = torch.full((Gy * Gx,), -1, dtype=torch.long, device=fidx.device)
                 pos[fields] = torch.arange(len(fields), device=fidx.device)
@@ -301,9 +550,7 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
                 fh, fwid = ladder_len(r1 - r0 + 2 * mz), ladder_len(c1 - c0 + 2 * mz)
                 lr, lc = idx // rb.Wc - r0 + mz, idx % rb.Wc - c0 + mz
                 local = torch.where(live, lr * fwid + lc, torch.full_like(idx, fh * fwid))
-                Ek = torch.zeros(R, fh, fwid, dtype=torch.float64, device=fidx.device)
-                Ek[:, :2 * mz + 1, :2 * mz + 1] = E.reshape(R, 2 * mz + 1, 2 * mz + 1)
-                Ek = torch.roll(Ek, shifts=(-mz, -mz), dims=(1, 2))
+                Ek = _rolled(E, fh, fwid)
                 # array (i, j) is canvas (i - mz + r0, j - mz + c0); frame = canvas - m
                 fr0, fc0 = r0 - mz - rb.m, c0 - mz - rb.m
                 a0, b0 = max(0, -fr0), max(0, -fc0)
@@ -319,7 +566,7 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
 
 @dataclass
 class Bucket:
-    """Field groups with the same FFT size and rank, transformed in one batched call."""
+    """Field groups with the same FFT size and rank (energy), transformed in one batched call."""
 
     tap_pixel: torch.Tensor     # [M] display pixel of each splat tap (non-zero footprint entries only)
     tap_index: torch.Tensor     # [M] flat index into [Z, fh, fw] where the tap lands

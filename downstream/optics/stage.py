@@ -17,6 +17,7 @@ from ..placement import PLACEMENTS, Placement
 from ..stage import Stage, StageContext
 from .bank import PSFBank
 from .operators import psf_distortion, psf_exact, psf_fast
+from .resampled import RADIOMETRIES, Radiometry
 
 __all__ = ["OpticsStage", "optics", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
 
@@ -29,13 +30,16 @@ DEFAULT_ZONE = 5
 
 
 def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
-           zone: int = DEFAULT_ZONE, placement: Placement = "fit") -> torch.Tensor:
+           zone: int = DEFAULT_ZONE, placement: Placement = "fit", radiometry: Radiometry = "radiance") -> torch.Tensor:
     """Functional O_phys. ``image [..., 3, H, W]`` linear RGB on the display -> linear RGB of the
     virtual image on the same grid (reference magnification). ``bank`` defaults to the shipped
     Cardboard bank; it is resampled once per (H, W, placement, device, dtype) and cached.
     ``placement``: where the image sits on the display (``"fit"``: square pixels, scaled to fit,
     centred; ``"stretch"``: the display stretched onto the image), see
-    :mod:`controlgs_adapter.downstream.placement`."""
+    :mod:`controlgs_adapter.downstream.placement`. ``radiometry``: ``"radiance"`` (a lossless lens
+    conserves radiance: a uniform display stays uniform up to the pupil transmission) or
+    ``"energy"`` (the paper's Eq. S3: each display pixel's energy kept; a flat field falls as 1 / area
+    magnification), docs/optics.md "Radiometry"."""
     check_image("image", image)
     if mode not in MODES:
         raise InputValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -44,7 +48,7 @@ def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact
         raise InputValueError(f"the optics stage needs a bank with 3 wavelengths (656/550/486 nm primaries), "
                               f"got {bank.wavelengths_nm}")
     H, W = image.shape[-2:]
-    rb = bank.resample_to(H, W, device=image.device, dtype=image.dtype, placement=placement)
+    rb = bank.resample_to(H, W, device=image.device, dtype=image.dtype, placement=placement, radiometry=radiometry)
     prim = rgb_to_primaries(image)
     if mode == "distortion":
         out = psf_distortion(prim, rb)
@@ -68,6 +72,10 @@ class OpticsStage(Stage):
         placement: where the image sits on the display: ``"fit"`` (default; square pixels, scaled
             to fit and centred, the rest of the display black) or ``"stretch"`` (the display
             stretched onto the image, anisotropic pixels); :mod:`controlgs_adapter.downstream.placement`.
+        radiometry: ``"radiance"`` (default; a lossless lens conserves radiance, so a uniform display
+            is seen uniform up to the bank's pupil transmission) or ``"energy"`` (paper-faithful Eq. S3:
+            each display pixel's energy kept, a flat field dims as 1 / area magnification: 0.80 at
+            mid-edge and 0.60 in the corner of the Cardboard lens). All modes use the same one.
         stretch: deprecated; ``stretch=True`` is ``placement="stretch"``.
     """
 
@@ -77,7 +85,8 @@ class OpticsStage(Stage):
     order = 50.0
 
     def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
-                 zone: int = DEFAULT_ZONE, placement: Placement = "fit", stretch: bool | None = None) -> None:
+                 zone: int = DEFAULT_ZONE, placement: Placement = "fit", stretch: bool | None = None,
+                 radiometry: Radiometry = "radiance") -> None:
         super().__init__()
         self.bank = PSFBank.load(bank) if isinstance(bank, (str, os.PathLike)) else (bank or PSFBank.default())
         if not (isinstance(tol, (int, float)) and 0 <= tol < 1):
@@ -90,7 +99,9 @@ class OpticsStage(Stage):
             placement = "stretch" if stretch else "fit"
         if placement not in PLACEMENTS:
             raise InputValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
-        self.tol, self.zone, self.placement = float(tol), zone, placement
+        if radiometry not in RADIOMETRIES:
+            raise InputValueError(f"radiometry must be one of {RADIOMETRIES}, got {radiometry!r}")
+        self.tol, self.zone, self.placement, self.radiometry = float(tol), zone, placement, radiometry
         self.mode = mode
 
     @property
@@ -104,8 +115,8 @@ class OpticsStage(Stage):
         self._mode = value
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        return optics(image, self.bank, self.mode, self.tol, self.zone, self.placement)
+        return optics(image, self.bank, self.mode, self.tol, self.zone, self.placement, self.radiometry)
 
     def extra_repr(self) -> str:
-        return (f"mode={self.mode!r}, placement={self.placement!r}, tol={self.tol}, zone={self.zone}, "
+        return (f"mode={self.mode!r}, placement={self.placement!r}, radiometry={self.radiometry!r}, tol={self.tol}, zone={self.zone}, "
                 f"wavelengths={self.bank.wavelengths_nm}")
