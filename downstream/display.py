@@ -8,7 +8,8 @@ reference at S are comparable (a sum would scale with the pixel count). Negative
 light and count as 0. :func:`display_power_watts` gives watts as ``3/1000 * P`` (the scale used by
 the same group's PowerGS: full white = 3.0055 W).
 
-Uniform dimming: with ``P_ref = P(reference)`` (the ground-truth image) and
+Uniform dimming: with ``P_ref = P(reference)`` (the ground-truth image; in the pipeline, the
+ground truth as the display would show it, :class:`DisplayStage`) and
 ``P_target = (1 - rho) P_ref``, the image is scaled by ``P_target / P(image)`` so that its power
 equals the target (the paper's equal-power comparison; this brightens an image darker than the
 target unless ``brighten=False``), then clipped to the display range [0, 1]. The power after
@@ -28,7 +29,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from typing import Sequence
+from typing import Literal, Sequence
 
 import torch
 
@@ -167,16 +168,22 @@ def display_mapping(
 
 
 class DisplayStage(Stage):
-    """P_disp: uniform dimming to ``(1 - state.power_saving) * P(reference)``, then clipping.
+    """P_disp: uniform dimming to ``(1 - state.power_saving) * P_ref``, then clipping.
 
-    ``ctx.reference`` is the sRGB ground truth at S (decoded here; its power is cached while the
-    same, unmodified tensor comes back, e.g. across the states of an evaluation grid); without it
-    the image's own power is the reference. Records ``display.scale``, ``display.power_target``, ``display.power``
-    and ``display.clipped_fraction`` into ``ctx.record``.
+    ``P_ref`` is the power the display consumes showing the ground truth (paper Supp. "Display
+    Mapping"): with ``p_ref="displayed"`` (default) that of the ground truth *as displayed*, i.e.
+    ``ctx.reference`` through the same post-processing stages that ran before this one (pre-warp
+    with its black corners, resampling), which the pipeline puts in
+    ``ctx.extras["displayed_reference"]``, so a perfect render gets scale 1 at every rho;
+    ``p_ref="ground_truth"``: that of the sRGB ground truth at S as given (cached while the same,
+    unmodified tensor comes back; the former rule). Without a reference the image's own power is
+    the reference. Records ``display.scale``, ``display.power_ref``, ``display.power_target``,
+    ``display.power`` and ``display.clipped_fraction`` into ``ctx.record``.
 
     Args:
         coefficients: panel coefficients (alpha, beta, gamma) of the power model.
         brighten: see :func:`display_mapping`.
+        p_ref: ``"displayed"`` or ``"ground_truth"`` (above).
     """
 
     name = "display"
@@ -184,11 +191,20 @@ class DisplayStage(Stage):
     resolution = "keep"
     order = 30.0
 
-    def __init__(self, coefficients: Sequence[float] = PANEL_COEFFICIENTS, brighten: bool = True) -> None:
+    def __init__(self, coefficients: Sequence[float] = PANEL_COEFFICIENTS, brighten: bool = True,
+                 p_ref: Literal["displayed", "ground_truth"] = "displayed") -> None:
         super().__init__()
+        if p_ref not in ("displayed", "ground_truth"):
+            raise InputValueError(f"p_ref must be 'displayed' or 'ground_truth', got {p_ref!r}")
         self.coefficients = _check_coefficients(coefficients)
         self.brighten = bool(brighten)
+        self.p_ref = p_ref
         self._reference_power: tuple[weakref.ref, int, torch.dtype, torch.Tensor] | None = None
+
+    @property
+    def wants_displayed_reference(self) -> bool:
+        """True if the pipeline should pass the ground truth as displayed (``p_ref="displayed"``)."""
+        return self.p_ref == "displayed"
 
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:
         """Identity only at rho = 0 without a reference: with one, rho = 0 still maps the image to
@@ -206,9 +222,15 @@ class DisplayStage(Stage):
         return power
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        power_ref = None if ctx.reference is None else self.reference_power(ctx.reference, image.dtype)
+        shown = ctx.extras.get("displayed_reference") if self.wants_displayed_reference else None
+        if shown is not None:
+            power_ref = _power(shown.detach().to(image.dtype), self.coefficients)
+        else:
+            power_ref = None if ctx.reference is None else self.reference_power(ctx.reference, image.dtype)
         out, stats = display_mapping(image, state.power_saving, reference_power=power_ref, coefficients=self.coefficients,
                                      brighten=self.brighten, return_stats=True)
+        if power_ref is not None:
+            stats["power_ref"] = power_ref.detach()
         if ctx.record is not None:
             ctx.record.update({f"display.{k}": v for k, v in stats.items()})
         return out

@@ -29,9 +29,13 @@ sRGB texture).
 
 from __future__ import annotations
 
+import hashlib
 import os
+import warnings
+import weakref
+from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, Sequence
+from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -42,6 +46,7 @@ from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeErro
 from controlgs_adapter.io import load_tensors, save_tensors
 from controlgs_adapter.state import RuntimeState
 
+from .color import primaries_to_rgb, rgb_to_primaries
 from .placement import CARDBOARD_DISPLAY_MM, PLACEMENTS, Placement, image_region
 from .stage import Stage, StageContext
 
@@ -50,7 +55,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "CARDBOARD_RADIAL", "pixel_grid", "lens_prewarp", "invert_map", "chief_ray_grid", "PrewarpMap", "RadialMap",
-    "LUTMap", "BankMap", "MLPMap", "LensPrewarp",
+    "LUTMap", "BankMap", "DisplayLUTMap", "MLPMap", "LensPrewarp", "bank_fingerprint", "BASES", "DEFAULT_PREWARP_FILE",
 ]
 
 #: Radial coefficients k1 per channel (R, G, B) fitted to the Cardboard lens's chief rays (the
@@ -61,8 +66,16 @@ CARDBOARD_RADIAL: tuple[tuple[float], tuple[float], tuple[float]] = (
 )
 
 _FLOATS = (torch.float32, torch.float64)
+Basis = Literal["primaries", "rgb"]
+#: colour bases of the warp: the display primaries (default) or the RGB channels (the paper's)
+BASES: tuple[str, ...] = ("primaries", "rgb")
 LUT_KIND = "controlgs-prewarp-lut"
 LUT_FORMAT_VERSION = 1
+DISPLAY_LUT_KIND = "controlgs-prewarp-display-lut"
+DISPLAY_LUT_FORMAT_VERSION = 1
+_LUT_MODES = ("distortion", "exact", "fast")
+#: the fitted pre-warp shipped for the shipped Cardboard bank (``controlgs optics fit-prewarp``)
+DEFAULT_PREWARP_FILE = "cardboard_prewarp_lut.safetensors"
 
 
 def pixel_grid(size: tuple[int, int], dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -73,7 +86,8 @@ def pixel_grid(size: tuple[int, int], dtype: torch.dtype = torch.float32, device
     return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), dim=-1)
 
 
-def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | None = None) -> torch.Tensor:
+def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | None = None,
+                 basis: Basis = "rgb") -> torch.Tensor:
     """Per-channel bilinear warp and gain.
 
     Args:
@@ -81,8 +95,12 @@ def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | N
         grid: ``[3, Ho, Wo, 2]`` per channel, for every output pixel, the normalised (x, y)
             position in ``image`` to sample (``align_corners=False``; outside -> 0).
         gain: ``[3, Ho, Wo]`` per-pixel, per-channel factor, or None (1).
+        basis: ``"rgb"``: the channels are the RGB channels (the paper's per-channel warp);
+            ``"primaries"``: the image is converted to the display primaries (656 / 550 / 486 nm,
+            :func:`.color.rgb_to_primaries`), each primary is warped with its own grid and gain,
+            and the result converted back to linear RGB (what the panel's subpixels emit).
     Returns:
-        ``[..., 3, Ho, Wo]``, ``out_c = gain_c * image_c(grid_c)``.
+        ``[..., 3, Ho, Wo]``, ``out_c = gain_c * image_c(grid_c)`` in the chosen basis.
     """
     check_image("image", image, finite=False)
     b = check_tensor("grid", grid, [3, "Ho", "Wo", 2], dtypes=(image.dtype,))
@@ -90,13 +108,18 @@ def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | N
     if gain is not None:
         check_tensor("gain", gain, [3, "Ho", "Wo"], dtypes=(image.dtype,), dims=b)
         check_same_device(image=image, gain=gain)
+    if basis not in BASES:
+        raise InputValueError(f"basis must be one of {BASES}, got {basis!r}")
+    if basis == "primaries":
+        image = rgb_to_primaries(image)
     h, w = image.shape[-2:]
     lead = image.shape[:-3]
     per_channel = image.reshape(-1, 3, h, w).transpose(0, 1)  # [3, B, H, W]: channels as the batch
     warped = F.grid_sample(per_channel, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     if gain is not None:
         warped = warped * gain[:, None]
-    return warped.transpose(0, 1).reshape(*lead, 3, b["Ho"], b["Wo"])
+    out = warped.transpose(0, 1).reshape(*lead, 3, b["Ho"], b["Wo"])
+    return primaries_to_rgb(out) if basis == "primaries" else out
 
 
 Span = tuple[float, float]
@@ -371,6 +394,127 @@ class BankMap(PrewarpMap):
         return f"placement={self.placement!r}, gain={self.gain!r}"
 
 
+def bank_fingerprint(bank: "PSFBank") -> str:
+    """A short hash of a bank's optics (PSFs, pitches, chief rays, wavelengths, display size): a
+    fitted LUT names the bank it was fitted for."""
+    h = hashlib.sha256()
+    for t in (bank.psf, bank.psf_pitch_mm, bank.field_x, bank.field_y, bank.chief, bank.chief_x, bank.chief_y):
+        h.update(t.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
+    h.update(repr((tuple(float(w) for w in bank.wavelengths_nm), tuple(float(d) for d in bank.display_mm))).encode())
+    return h.hexdigest()[:16]
+
+
+class DisplayLUTMap(PrewarpMap):
+    """A fitted pre-warp tabulated in display coordinates over the whole display (one table per
+    optics mode), sampled for the region an image occupies on the display (:mod:`.placement`), so
+    one table serves images of any aspect.
+
+    A table holds, at the pixel centres of an ``Hd x Wd`` grid over the display (display-normalised
+    coordinates, ``align_corners=False``), per primary: ``displacement`` ``[3, Hd, Wd, 2]``, the
+    display-normalised eye position of the display point minus the point (what the pre-warp samples
+    there), and ``gain`` ``[3, Hd, Wd]``. For an ``H x W`` image with half-extents
+    ``(hx, hy)`` the grid at image point ``u`` is ``(u h + displacement(u h)) / h`` (bilinear in the
+    table, linear extrapolation at its border).
+
+    Args:
+        tables: optics mode (``"distortion"``, ``"exact"``; ``"fast"`` uses ``"exact"``) ->
+            ``(displacement, gain)``.
+        display_mm: ``(width, height)`` of the display the tables cover.
+        placement: where images sit on the display (``"fit"`` or ``"stretch"``).
+        mode: the table to use; None: the mode of the optics stage given to :meth:`follow`, else
+            the first table.
+        meta: provenance (bank fingerprint, fit settings, residuals), saved with the tables.
+    """
+
+    def __init__(self, tables: Mapping[str, tuple[torch.Tensor, torch.Tensor]], display_mm: tuple[float, float] = CARDBOARD_DISPLAY_MM,
+                 placement: Placement = "fit", mode: str | None = None, meta: Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        if not tables:
+            raise InputValueError("tables must hold at least one optics mode")
+        if placement not in PLACEMENTS:
+            raise InputValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
+        self.modes = tuple(tables)
+        for m, (disp, gain) in tables.items():
+            if m not in _LUT_MODES:
+                raise InputValueError(f"table modes must be among {_LUT_MODES}, got {m!r}")
+            b = check_tensor(f"displacement[{m!r}]", disp, [3, "H", "W", 2], dtypes=_FLOATS, finite=True)
+            check_tensor(f"gain[{m!r}]", gain, [3, "H", "W"], dtypes=_FLOATS, dims=b, finite=True)
+            if min(b["H"], b["W"]) < 2:
+                raise ShapeError(f"table {m!r} needs at least 2x2 samples, got {list(disp.shape)}")
+            self.register_buffer(f"displacement_{m}", disp.detach().float())
+            self.register_buffer(f"gain_{m}", gain.detach().float())
+        self.display_mm = (float(display_mm[0]), float(display_mm[1]))
+        self.placement = placement
+        self.mode = mode
+        self.meta = dict(meta or {})
+        self._optics: weakref.ref | None = None
+        self._evaluated: tuple[tuple, tuple[torch.Tensor, torch.Tensor]] | None = None
+
+    def follow(self, optics: nn.Module) -> "DisplayLUTMap":
+        """Use the table of ``optics.mode`` at every call (weakly referenced, not a submodule)."""
+        self._optics = weakref.ref(optics)
+        return self
+
+    def table_mode(self) -> str:
+        """The table in use (see the class docstring)."""
+        optics = self._optics() if self._optics is not None else None
+        want = self.mode if self.mode is not None else getattr(optics, "mode", None)
+        if want is None:
+            return self.modes[0]
+        if want not in self.modes and want == "fast" and "exact" in self.modes:
+            return "exact"
+        if want not in self.modes:
+            raise InputValueError(f"this pre-warp LUT has tables for {self.modes}, not for optics mode {want!r}")
+        return want
+
+    def is_identity(self) -> bool:  # noqa: D102
+        return False
+
+    def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: D102
+        m = self.table_mode()
+        disp, gain = getattr(self, f"displacement_{m}"), getattr(self, f"gain_{m}")
+        key = (tuple(size), dtype, torch.device(device), m, disp.data_ptr(), disp._version, gain._version)
+        if self._evaluated is None or self._evaluated[0] != key:
+            region = image_region(int(size[0]), int(size[1]), self.display_mm, self.placement)
+            half = torch.tensor([region.half_x, region.half_y], dtype=dtype, device=device)
+            p = pixel_grid(size, dtype, device) * half  # [H, W, 2] display-normalised
+            table = torch.cat([disp, gain[..., None]], dim=-1).to(device=device, dtype=dtype)  # [3, Hd, Wd, 3]
+            val = _interp_regular(table, p.expand(3, -1, -1, -1))
+            self._evaluated = (key, ((p + val[..., :2]) / half, val[..., 2]))
+        return self._evaluated[1]
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the tables (safetensors, atomic; kind ``controlgs-prewarp-display-lut``)."""
+        tensors = {}
+        for m in self.modes:
+            tensors[f"displacement_{m}"] = getattr(self, f"displacement_{m}")
+            tensors[f"gain_{m}"] = getattr(self, f"gain_{m}")
+        header = {"modes": list(self.modes), "display_mm": list(self.display_mm), "meta": self.meta,
+                  "units": {"displacement": "display-normalised (x, y) eye position minus display position",
+                            "gain": "factor per primary (656, 550, 486 nm)"}}
+        return save_tensors(path, tensors, header, kind=DISPLAY_LUT_KIND, format_version=DISPLAY_LUT_FORMAT_VERSION)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, placement: Placement = "fit") -> "DisplayLUTMap":
+        """Read a file written by :meth:`save`."""
+        tensors, header = load_tensors(path, kind=DISPLAY_LUT_KIND, max_version=DISPLAY_LUT_FORMAT_VERSION)
+        modes = header.get("modes")
+        if not isinstance(modes, list) or not modes:
+            raise FileFormatError(f"{path}: display LUT header lacks its modes")
+        missing = [k for m in modes for k in (f"displacement_{m}", f"gain_{m}") if k not in tensors]
+        if missing:
+            raise FileFormatError(f"{path}: display LUT lacks {missing}")
+        display_mm = header.get("display_mm", list(CARDBOARD_DISPLAY_MM))
+        try:
+            return cls({m: (tensors[f"displacement_{m}"], tensors[f"gain_{m}"]) for m in modes},
+                       (float(display_mm[0]), float(display_mm[1])), placement, meta=header.get("meta") or {})
+        except (InputValueError, ShapeError) as e:
+            raise FileFormatError(f"{path}: {e}") from None
+
+    def extra_repr(self) -> str:
+        return f"modes={self.modes}, placement={self.placement!r}, display_mm={self.display_mm}"
+
+
 class MLPMap(PrewarpMap):
     """Learned map: an MLP from normalised (x, y) to 3 x (dx, dy, log gain), zero-initialised last
     layer (identity at init); :meth:`LensPrewarp.bake` tabulates it.
@@ -423,6 +567,8 @@ class LensPrewarp(Stage):
     Args:
         prewarp_map: the map; default ``RadialMap(coefficients)``.
         coefficients: ``[3, K]`` radial coefficients, only when ``prewarp_map`` is None.
+        basis: ``"primaries"`` (default: each display primary warped with its own map, see
+            :func:`lens_prewarp`) or ``"rgb"`` (the paper's per-RGB-channel warp).
     """
 
     name = "lens"
@@ -430,11 +576,61 @@ class LensPrewarp(Stage):
     resolution = "keep"
     order = 10.0
 
-    def __init__(self, prewarp_map: PrewarpMap | None = None, *, coefficients: Sequence[Sequence[float]] | torch.Tensor | None = None) -> None:
+    def __init__(self, prewarp_map: PrewarpMap | None = None, *, coefficients: Sequence[Sequence[float]] | torch.Tensor | None = None,
+                 basis: Basis = "primaries") -> None:
         super().__init__()
         if prewarp_map is not None and coefficients is not None:
             raise InputValueError("give either prewarp_map or coefficients, not both")
+        if basis not in BASES:
+            raise InputValueError(f"basis must be one of {BASES}, got {basis!r}")
         self.map = prewarp_map if prewarp_map is not None else RadialMap(CARDBOARD_RADIAL if coefficients is None else coefficients)
+        self.basis = basis
+
+    @classmethod
+    def for_optics(
+        cls, optics: nn.Module, *, source: Literal["fitted", "chief_rays"] = "fitted", basis: Basis = "primaries",
+        lut: str | os.PathLike | None = None, gain: Literal["jacobian"] | None = None,
+    ) -> "LensPrewarp":
+        """The pre-warp that compensates an optics stage (its ``bank``, ``placement`` and, for a
+        fitted LUT, its current ``mode``).
+
+        Args:
+            optics: the pipeline's optics stage (:class:`~.optics.stage.OpticsStage`).
+            source: ``"fitted"``: map and gain fitted through the optics
+                (:func:`.prewarp_fit.fit_bank_prewarp`), read from ``lut`` (default: the LUT shipped
+                for the shipped Cardboard bank; for another bank without a LUT this falls back to
+                ``"chief_rays"`` with a warning); ``"chief_rays"``: the bank's chief rays
+                (:class:`BankMap`, gain ``gain``).
+            basis: see :class:`LensPrewarp`.
+            lut: a file written by :meth:`DisplayLUTMap.save` (``controlgs optics fit-prewarp``).
+        """
+        bank = optics.bank
+        placement = getattr(optics, "placement", "fit")
+        if source == "chief_rays":
+            return cls(BankMap(bank, placement, gain), basis=basis)
+        if source != "fitted":
+            raise InputValueError(f"source must be 'fitted' or 'chief_rays', got {source!r}")
+        if gain is not None:
+            raise InputValueError("gain applies to source='chief_rays'; a fitted LUT brings its own gain")
+        if lut is None:
+            with resources.as_file(resources.files("controlgs_adapter.data").joinpath(DEFAULT_PREWARP_FILE)) as path:
+                fitted = DisplayLUTMap.load(path, placement) if path.is_file() else None
+            radiometry = getattr(optics, "radiometry", None)
+            if fitted is None or fitted.meta.get("bank") != bank_fingerprint(bank) or fitted.meta.get("radiometry") != radiometry:
+                fallback = "jacobian" if radiometry == "energy" else None
+                warnings.warn(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
+                              f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "
+                              "and pass it as {'lens': {'lut': LUT}}", stacklevel=2)
+                return cls(BankMap(bank, placement, fallback), basis=basis)
+        else:
+            fitted = DisplayLUTMap.load(lut, placement)
+            if fitted.meta.get("bank") != bank_fingerprint(bank):
+                raise InputValueError(f"{lut}: this pre-warp LUT was fitted for another PSF bank "
+                                      f"({fitted.meta.get('bank')!r}, the optics' bank is {bank_fingerprint(bank)!r})")
+            if fitted.meta.get("radiometry") != getattr(optics, "radiometry", None):
+                raise InputValueError(f"{lut}: this pre-warp LUT was fitted for radiometry {fitted.meta.get('radiometry')!r}, "
+                                      f"the optics use {getattr(optics, 'radiometry', None)!r}")
+        return cls(fitted.follow(optics), basis=basis)
 
     @classmethod
     def radial(cls, coefficients: Sequence[Sequence[float]] | torch.Tensor, learnable: bool = False) -> "LensPrewarp":
@@ -542,7 +738,7 @@ class LensPrewarp(Stage):
         device = tensors[0].device if tensors else torch.device("cpu")
         with torch.no_grad():
             grid, gain = self.map(size, torch.float32, device)
-            return LensPrewarp(LUTMap(grid, gain))
+            return LensPrewarp(LUTMap(grid, gain), basis=self.basis)
 
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         if self.training and any(p.requires_grad for p in self.map.parameters()):
@@ -551,4 +747,7 @@ class LensPrewarp(Stage):
 
     def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         grid, gain = self.map(tuple(image.shape[-2:]), image.dtype, image.device)
-        return lens_prewarp(image, grid, gain)
+        return lens_prewarp(image, grid, gain, self.basis)
+
+    def extra_repr(self) -> str:
+        return f"basis={self.basis!r}"

@@ -34,11 +34,16 @@ from controlgs_adapter.state import RuntimeState
 from .color import convert_domain
 from .stage import Stage, StageContext
 
-__all__ = ["Pipeline", "PHYSICAL_STAGES"]
+__all__ = ["Pipeline", "PHYSICAL_STAGES", "DISPLAYED_REFERENCE"]
 
 #: Names of the stages that model the physical display-optics path (paper Eq. 5); everything
 #: ordered before the first of them is post-processing.
 PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
+#: key of ``StageContext.extras`` holding the ground truth as displayed (the stages before a stage
+#: with ``wants_displayed_reference``, applied to the reference), in that stage's domain
+DISPLAYED_REFERENCE = "displayed_reference"
+#: options of ``{"lens": {...}}`` that build the lens from the optics (:meth:`LensPrewarp.for_optics`)
+_LENS_FOR_OPTICS = frozenset({"source", "basis", "lut", "gain"})
 
 
 def _registered_stages() -> dict[str, type[Stage]]:
@@ -134,17 +139,22 @@ class Pipeline(nn.Module):
                 (:func:`controlgs_adapter.plugins.stages`), e.g. ``lens``, ``resample``,
                 ``display`` (power saving), ``foveation``, ``optics`` (needs the optics plug-in).
                 The physical display ``oled`` is always included unless set to False. With
-                ``"lens": True`` and an optics stage, the lens pre-warp compensates that optics:
-                its PSF bank's chief rays for the image placed on the display as the optics places it
-                (:meth:`LensPrewarp.from_psf_bank`, evaluated at each image size); without
-                optics it is the analytic Cardboard radial map.
+                ``"lens": True`` and an optics stage, the lens pre-warp compensates that optics
+                (:meth:`LensPrewarp.for_optics`): the map and gain fitted through it, per display
+                primary, shipped for the Cardboard bank (:func:`.prewarp_fit.fit_bank_prewarp`),
+                following the optics' mode; ``"lens": {"lut": path}`` reads a LUT fitted for another
+                bank, ``{"source": "chief_rays"}`` uses the bank's chief rays, ``{"basis": "rgb"}``
+                warps the RGB channels (the paper's per-channel warp). Without optics the lens is
+                the analytic Cardboard radial map.
         """
         spec: dict[str, Any] = dict(effects) if isinstance(effects, Mapping) else {n: True for n in effects}
         spec.setdefault("oled", True)
         registered = _registered_stages()
         stages: list[Stage] = []
-        # the default lens correction compensates the configured optics (its PSF bank's chief rays)
-        lens_from_optics = spec.get("lens") is True and spec.get("optics") not in (None, False)
+        # the default lens correction compensates the configured optics (fitted through it)
+        lens_spec = spec.get("lens")
+        lens_from_optics = spec.get("optics") not in (None, False) and (
+            lens_spec is True or (isinstance(lens_spec, Mapping) and set(lens_spec) <= _LENS_FOR_OPTICS))
         for name, value in sorted(spec.items(), key=lambda kv: kv[0] == "lens"):  # lens last: it may need the optics
             if name == "lens" and lens_from_optics:
                 optics = next(s for s in stages if s.name == "optics")
@@ -152,7 +162,11 @@ class Pipeline(nn.Module):
                 if bank is not None and hasattr(bank, "chief"):
                     from .lens import LensPrewarp
 
-                    stages.append(LensPrewarp.from_psf_bank(bank, placement=getattr(optics, "placement", "fit")))
+                    options = dict(value) if isinstance(value, Mapping) else {}
+                    try:
+                        stages.append(LensPrewarp.for_optics(optics, **options))
+                    except TypeError as e:
+                        raise InputValueError(f"effects['lens']: {e}") from None
                     continue
             if value is None or value is False:
                 continue
@@ -191,9 +205,25 @@ class Pipeline(nn.Module):
     def __contains__(self, name: object) -> bool:
         return any(s.name == name for s in self.stages)
 
-    def active(self, state: RuntimeState) -> list[str]:
-        """Names of the stages that run at ``state`` (the others are the identity there)."""
-        return [s.name for s in self.stages if not s.is_identity(state)]
+    def active(self, state: RuntimeState, reference: torch.Tensor | None = None,
+               native_size: tuple[int, int] | None = None) -> list[str]:
+        """Names of the stages that run at ``state`` for a call with (or without) a ``reference``
+        (the others are the identity there; e.g. ``display`` runs at rho = 0 with a reference)."""
+        size = native_size or (tuple(reference.shape[-2:]) if reference is not None else (0, 0))
+        ctx = StageContext(native_size=size, reference=reference)
+        return [s.name for s in self.stages if not s.is_identity(state, ctx)]
+
+    @staticmethod
+    def _displayed_reference(ran: Sequence[Stage], state: RuntimeState, ctx: StageContext, domain: str) -> torch.Tensor:
+        """The ground truth through the stages that ran so far (no gradient, nothing recorded), in
+        ``domain``: the frame the display would show for it (the display's P_ref)."""
+        quiet = StageContext(native_size=ctx.native_size, reference=ctx.reference)
+        with torch.no_grad():
+            r, dom = ctx.reference.detach(), "srgb"
+            for stage in ran:
+                r = stage(convert_domain(r, dom, stage.domain), state, quiet)
+                dom = stage.domain
+            return convert_domain(r, dom, domain)
 
     def forward(
         self,
@@ -240,14 +270,18 @@ class Pipeline(nn.Module):
         post_image: torch.Tensor | None = None
         displayed: torch.Tensor | None = None
         ran: list[str] = []
+        ran_stages: list[Stage] = []
         for stage in self.stages:
             if record and post_image is None and stage.name in PHYSICAL_STAGES:
                 post_image = convert_domain(x, domain, "srgb").detach()
             if stage.is_identity(state, ctx):
                 continue
+            if reference is not None and getattr(stage, "wants_displayed_reference", False):
+                ctx.extras[DISPLAYED_REFERENCE] = self._displayed_reference(ran_stages, state, ctx, stage.domain)
             x = stage(convert_domain(x, domain, stage.domain), state, ctx)
             domain = stage.domain
             ran.append(stage.name)
+            ran_stages.append(stage)
             if record and stage.name == "oled":
                 displayed = convert_domain(x, domain, "srgb").detach()
         eye = convert_domain(x, domain, "srgb")

@@ -8,20 +8,47 @@ loss (10,000 iterations, learning rate 1e-3) and then bakes it into a lookup tab
     pipe.stages[pipe.names.index("lens")] = pipe["lens"].bake((H, W))   # or save_lut(...)
 
 Only the lens stage's parameters are optimised; everything else in the pipeline is fixed.
+
+:func:`fit_bank_prewarp` makes the default correction for a PSF bank: per display primary a map
+and a gain over the whole display, fitted through the optics operator itself (any mode and
+radiometry the optics stage has), and stored as a :class:`~.lens.DisplayLUTMap`:
+
+- map: each display pixel shows the image at the *centroid* of its light in the eye, measured
+  through the operator by its adjoint, ``c(p) = (A^T x)(p) / (A^T 1)(p)`` (``x`` the eye
+  coordinate images). In ``"distortion"`` mode this is the chief ray; with PSFs it includes each
+  PSF's centroid offset (coma: 0.55-0.60 px at (0.85, 0.85) at 256 px).
+- gain: the per-pixel, per-primary scale ``g`` with ``(A g)(c(p)) = 1``: a flat field comes back
+  flat. Solved by the fixed-point iteration ``g <- g / (A g)(c(p))``.
+
+For an image that varies slowly on the scale of the PSFs, these two conditions are where the
+image loss (L1, L2, SSIM) between eye and ground truth has its minimum (to first order in the
+image's gradient: the eye sees ``I(c(p)) (A g)``), which is what the paper's MLP is trained to
+approach with the 3DGS loss; here they are met directly, per display pixel, with no MLP.
 """
 
 from __future__ import annotations
 
+import copy
+import time
+from typing import TYPE_CHECKING, Callable, Sequence
+
 import torch
+import torch.nn.functional as F
 
 from controlgs_adapter.checks import check_image, check_tensor
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.losses import LossWeights, image_loss
 from controlgs_adapter.state import RuntimeState
 
+from .color import primaries_to_rgb_matrix, rgb_to_primaries_matrix
+from .lens import DisplayLUTMap, _interp_regular, bank_fingerprint, chief_ray_grid, pixel_grid
 from .pipeline import Pipeline
+from .stage import StageContext
 
-__all__ = ["fit_prewarp", "PREWARP_LOSS"]
+if TYPE_CHECKING:  # pragma: no cover
+    from .optics.bank import PSFBank
+
+__all__ = ["fit_prewarp", "fit_bank_prewarp", "PREWARP_LOSS"]
 
 #: The 3DGS loss the paper names for the pre-warp: 0.8 L1 + 0.2 (1 - SSIM).
 PREWARP_LOSS = LossWeights(l1=0.8, ssim=0.2, mse=0.0)
@@ -81,3 +108,153 @@ def fit_prewarp(
     finally:
         pipeline.train(was_training)
     return losses
+
+
+def _primaries_operator(optics: torch.nn.Module, size: tuple[int, int], dtype: torch.dtype) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The optics stage as a linear operator on primary intensities ``[B, 3, H, W]`` -> ``[B, 3, H, W]``
+    (the stage works on linear RGB and converts to the primaries itself; converting around it is
+    exact to rounding)."""
+    to_p, to_rgb = rgb_to_primaries_matrix(dtype), primaries_to_rgb_matrix(dtype)
+    ctx = StageContext(native_size=size)
+
+    def op(s: torch.Tensor) -> torch.Tensor:
+        rgb = torch.einsum("ij,bjhw->bihw", to_rgb, s)
+        return torch.einsum("ij,bjhw->bihw", to_p, optics(rgb, RuntimeState(), ctx))
+
+    return op
+
+
+def _fill_invalid(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Extend ``values`` ``[C, H, W, D]`` from the ``valid`` ``[C, H, W]`` pixels into the others by
+    repeated 3x3 averaging of valid neighbours (a smooth nearest-valid continuation)."""
+    c, h, w, d = values.shape
+    v = torch.where(valid[..., None], values, torch.zeros_like(values)).permute(0, 3, 1, 2).reshape(1, c * d, h, w)
+    m = valid[:, None].expand(c, d, h, w).reshape(1, c * d, h, w).to(values.dtype)
+    kernel = torch.ones(c * d, 1, 3, 3, dtype=values.dtype)
+    while not bool(m.all()):
+        if not bool(m.any()):
+            raise InputValueError("no display pixel could be measured through the optics")
+        s = F.conv2d(v, kernel, padding=1, groups=c * d)
+        n = F.conv2d(m, kernel, padding=1, groups=c * d)
+        grow = (m == 0) & (n > 0)
+        v = torch.where(grow, s / n.clamp(min=1), v)
+        m = torch.where(grow, torch.ones_like(m), m)
+    return v.reshape(c, d, h, w).permute(0, 2, 3, 1)
+
+
+def _psf_centroids(bank: "PSFBank", p: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Centroid offsets from the chief ray ``[3, H, W, 2]`` (display-normalised) of the bank's PSFs at
+    display points ``p`` ``[H, W, 2]``: the field PSFs' first moments, bilinear over the field grid
+    and constant beyond its outer samples (as the operators blend the PSFs)."""
+    psf = bank.psf.to(dtype)  # [L, Gy, Gx, K, K]
+    k = psf.shape[-1]
+    taps = torch.arange(k, dtype=dtype) - k // 2
+    pitch = bank.psf_pitch_mm.to(dtype)
+    mx = (psf.sum(-2) * taps).sum(-1) * pitch / (bank.display_mm[0] / 2)  # [L, Gy, Gx] x moment
+    my = (psf.sum(-1) * taps).sum(-1) * pitch / (bank.display_mm[1] / 2)
+    moments = torch.stack([mx, my], -1)  # [L, Gy, Gx, 2]
+    fx, fy = bank.field_x.to(dtype), bank.field_y.to(dtype)
+    q = torch.stack([p[..., 0].clamp(float(fx[0]), float(fx[-1])), p[..., 1].clamp(float(fy[0]), float(fy[-1]))], -1)
+    if min(moments.shape[1:3]) < 2:
+        return moments.mean((1, 2))[:, None, None].expand(-1, *p.shape[:2], -1)
+    return _interp_regular(moments, q.expand(3, -1, -1, -1), (float(fx[0]), float(fx[-1])), (float(fy[0]), float(fy[-1])))
+
+
+def _fit_mode(optics: torch.nn.Module, bank: "PSFBank", size: tuple[int, int], gain_iterations: int,
+              dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    """One optics mode: ``(displacement [3, H, W, 2], gain [3, H, W], residuals)`` over the display."""
+    h, w = size
+    op = _primaries_operator(optics, size, dtype)
+    p = pixel_grid(size, dtype)  # [H, W, 2] display-normalised (the fit image spans the display)
+    # centroids through the adjoint: A^T applied to the eye images x, y and 1
+    x = torch.zeros(3, 3, h, w, dtype=dtype, requires_grad=True)
+    probes = torch.stack([p[..., 0].expand(3, h, w), p[..., 1].expand(3, h, w), torch.ones(3, h, w, dtype=dtype)])
+    (adj,) = torch.autograd.grad(op(x), x, probes)  # [3 probes, 3 primaries, H, W]
+    chief, _ = chief_ray_grid(bank.chief.to(dtype), size, sample_x=bank.chief_x, sample_y=bank.chief_y)  # [3, H, W, 2]
+    if optics.mode == "distortion":
+        reach = torch.full((3, h, w), 3.0 / min(h, w), dtype=dtype)  # a footprint: a few pixels
+    else:  # the PSF window of the nearest fields, with room for the blend of neighbours
+        pitch = bank.psf_pitch_mm.to(dtype)[..., None]  # [3, Gy, Gx, 1]
+        spans = ((float(bank.field_x[0]), float(bank.field_x[-1])), (float(bank.field_y[0]), float(bank.field_y[-1])))
+        pitch = _interp_regular(pitch, p.expand(3, -1, -1, -1), *spans)[..., 0] if min(pitch.shape[1:3]) > 1 else pitch.amax()
+        half_mm = min(bank.display_mm) / 2
+        reach = 1.5 * pitch * (bank.psf.shape[-1] // 2 + 0.5) / half_mm
+    throughput = adj[2]
+    centroid = torch.stack([adj[0], adj[1]], -1) / throughput.clamp(min=1e-12)[..., None]
+    limit = 1.0 - 1.0 / min(h, w)
+    valid = (throughput > 1e-6) & ((chief.abs() + reach[..., None]) < limit).all(-1)
+    # where the frame cuts a pixel's light, continue the measured discretisation residual beyond
+    # the bank's own centroid offsets (the PSFs' first moments, blended as the operator blends them)
+    model = chief if optics.mode == "distortion" else chief + _psf_centroids(bank, p, dtype)
+    target = (model + _fill_invalid(centroid - model, valid)).detach()  # [3, H, W, 2] eye position of every display pixel
+    # gain: a flat field comes back flat, (A g)(c(p)) = 1
+    seen = (target.abs() < limit).all(-1)  # display pixels seen inside the frame
+    gain = torch.ones(3, h, w, dtype=dtype)
+    with torch.no_grad():
+        for _ in range(gain_iterations + 1):
+            eye = op(gain[None])[0]  # [3, H, W]
+            at = F.grid_sample(eye[:, None], target, mode="bilinear", padding_mode="border", align_corners=False)[:, 0]
+            update = torch.where(seen, 1.0 / at.clamp(min=1e-6), torch.ones_like(at)).clamp(0.5, 2.0)
+            residual = float((at - 1.0)[seen].abs().max()) if bool(seen.any()) else 0.0
+            if _ == gain_iterations:
+                break
+            gain = _fill_invalid((gain * update)[..., None], seen)[..., 0]
+    residuals = {"flat_max_abs": residual, "measured_fraction": float(valid.double().mean())}
+    return (target - p).float(), gain.float(), residuals
+
+
+def fit_bank_prewarp(
+    optics: "torch.nn.Module | PSFBank | None" = None,
+    size: int = 256,
+    *,
+    modes: Sequence[str] = ("distortion", "exact"),
+    gain_iterations: int = 4,
+    pool: int = 2,
+    dtype: torch.dtype = torch.float64,
+) -> DisplayLUTMap:
+    """Fit the default pre-warp (map + gain per primary, see the module docstring) for an optics.
+
+    Args:
+        optics: an optics stage (its bank and options, e.g. radiometry, are used; its mode is
+            replaced by each of ``modes``), a :class:`PSFBank` (default optics options) or None (the
+            shipped Cardboard bank).
+        size: display pixels along the display's shorter side (the tables' resolution; the fit is
+            exact for the operator at this pixel pitch).
+        modes: optics modes to fit a table for (``"fast"`` uses the ``"exact"`` table).
+        gain_iterations: fixed-point iterations of the gain.
+        pool: the tables are stored at ``size / pool`` (``pool x pool`` averages: the fitted tables
+            resampled bilinearly at the coarser pixel centres; 2 places dots within 0.1 px at 128-512 px).
+        dtype: working precision.
+    Returns:
+        A :class:`DisplayLUTMap` over the whole display (``meta`` holds the bank's fingerprint,
+        the settings and the residuals); ``.save(path)`` writes it.
+    """
+    from .optics.bank import PSFBank
+    from .optics.stage import OpticsStage
+
+    if optics is None or isinstance(optics, PSFBank):
+        optics = OpticsStage(optics)
+    if not hasattr(optics, "bank") or not hasattr(optics, "mode"):
+        raise InputValueError(f"optics must be an optics stage or a PSFBank, got {type(optics).__name__}")
+    if not isinstance(size, int) or size < 8:
+        raise InputValueError(f"size must be an int >= 8, got {size!r}")
+    if not isinstance(pool, int) or pool < 1 or size % pool or size // pool < 4:
+        raise InputValueError(f"pool must be an int >= 1 dividing size into >= 4 samples, got {pool!r}")
+    if not modes or any(m not in ("distortion", "exact", "fast") for m in modes):
+        raise InputValueError(f"modes must be a non-empty subset of ('distortion', 'exact', 'fast'), got {modes!r}")
+    bank = optics.bank
+    dw, dh = bank.display_mm
+    long = pool * max(1, round(size * max(dw, dh) / min(dw, dh) / pool))
+    fit_size = (size, long) if dw >= dh else (long, size)
+    tables, residuals = {}, {}
+    start = time.perf_counter()
+    for m in modes:
+        stage = copy.copy(optics)  # the caller's options, with the display spanned by the fit image
+        stage.mode, stage.placement = m, "stretch"
+        disp, gain, res = _fit_mode(stage, bank, fit_size, gain_iterations, dtype)
+        disp = F.avg_pool2d(disp.permute(0, 3, 1, 2), pool).permute(0, 2, 3, 1)
+        tables[m], residuals[m] = (disp, F.avg_pool2d(gain[:, None], pool)[:, 0]), res
+    meta = {"bank": bank_fingerprint(bank), "radiometry": getattr(optics, "radiometry", None), "size": list(fit_size),
+            "pool": pool, "gain_iterations": gain_iterations, "optics": repr(optics), "residuals": residuals,
+            "seconds": round(time.perf_counter() - start, 2)}
+    return DisplayLUTMap(tables, bank.display_mm, getattr(optics, "placement", "fit"), meta=meta)

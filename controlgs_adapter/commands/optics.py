@@ -1,5 +1,5 @@
 """``controlgs optics``: build a PSF bank from a lens prescription, print lens figures, benchmark
-the PSF operators (``controlgs optics bench``)."""
+the PSF operators (``controlgs optics bench``), fit the lens pre-warp for a bank (``fit-prewarp``)."""
 
 from __future__ import annotations
 
@@ -36,6 +36,14 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     c.add_argument("--threads", type=int, default=2)
     c.add_argument("--out", type=Path, default=Path("docs"), help="folder for optics_bench.md / optics_bench.png")
     c.set_defaults(func=run_bench)
+
+    w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a bank's optics")
+    w.add_argument("--bank", type=Path, default=None, help="PSF bank .safetensors (default: the shipped Cardboard bank)")
+    w.add_argument("--out", type=Path, required=True, help="output LUT .safetensors ({'lens': {'lut': OUT}})")
+    w.add_argument("--size", type=int, default=256, help="display pixels along its shorter side for the fit")
+    w.add_argument("--modes", nargs="+", default=["distortion", "exact"], choices=["distortion", "exact", "fast"])
+    w.add_argument("--radiometry", choices=["radiance", "energy"], default="radiance", help="the optics' radiometry")
+    w.set_defaults(func=run_fit_prewarp)
 
 
 def _prescription(path: Path | None):
@@ -98,3 +106,19 @@ def run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+
+
+def run_fit_prewarp(args: argparse.Namespace) -> int:
+    from controlgs_adapter.downstream.optics.stage import OpticsStage
+    from controlgs_adapter.downstream.prewarp_fit import fit_bank_prewarp
+    from controlgs_adapter.errors import InputValueError
+
+    if args.out.is_dir():
+        raise InputValueError(f"--out {args.out}: is a folder; expected the path of the .safetensors file to write")
+    if args.size < 8 or args.size % 2:
+        raise InputValueError(f"--size must be an even integer >= 8, got {args.size}")
+    lut = fit_bank_prewarp(OpticsStage(args.bank, radiometry=args.radiometry), args.size, modes=tuple(args.modes))
+    lut.save(args.out)
+    print(json.dumps(lut.meta, indent=2))
+    print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.2f} MB)")
+    return 0
