@@ -22,7 +22,7 @@ from .errors import InputValueError, ShapeError
 __all__ = ["psnr", "ssim", "flip", "FLIP_PPD", "gaussian_window", "check_image_pair", "optional_metrics"]
 
 #: FLIP's default observer: pixels per degree of a 0.7 m wide 4K display seen from 0.7 m
-FLIP_PPD = 67.0
+FLIP_PPD = 0.7 * (3840 / 0.7) * math.pi / 180.0
 
 
 def check_image_pair(x: torch.Tensor, y: torch.Tensor) -> None:

@@ -203,7 +203,7 @@ def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[st
     lines += _table(summary, main + ([IDEAL] if IDEAL in result.methods else []), metrics, seeds) + [""]
     notes = []
     if "flip" in metrics:
-        notes.append(f"FLIP is NVIDIA's LDR-FLIP (flip-evaluator) at {FLIP_PPD:g} pixels per degree, mean error per image.")
+        notes.append(f"FLIP is NVIDIA's LDR-FLIP (flip-evaluator) at {FLIP_PPD:.2f} pixels per degree (its default observer), mean error per image.")
     notes.append(f"LPIPS (AlexNet) from {info['lpips_weights']}." if info and info.get("lpips_weights") and "lpips" in metrics
                  else LPIPS_NOT_COMPUTED)
     lines += notes + [""]
