@@ -9,7 +9,7 @@ import sys
 
 from ._version import __version__
 
-COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "train", "eval", "demo", "bench")
+COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "train", "eval", "demo", "bench", "view")
 
 #: (command, action) -> (extra, import names, what for): optional dependencies checked before the work starts
 REQUIRES: dict[tuple[str, str | None], tuple[str, tuple[str, ...], str]] = {

@@ -1,0 +1,390 @@
+"""What the viewer renders for one state: every method's rendered frame and eye image, the ground
+truth, difference images, metrics and the adapters' condition strengths.
+
+:class:`ViewerSession` owns the model, the test views and the adapters (each loaded once onto its
+own shallow copy of the model, sharing the backbone's tensors, so no adapter is loaded per request).
+Renders that do not depend on the state are cached: the ground truth and the SS-backbone per camera,
+the backbone without supersampling per display size. The pipeline runs once per method (with
+``record``), and the metrics are :func:`~controlgs_adapter.evaluation.evaluate_grid`'s own.
+"""
+
+from __future__ import annotations
+
+import base64
+import copy
+import io
+import math
+import time
+from collections import OrderedDict
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable, Hashable, Mapping
+
+import torch
+import torch.nn.functional as F
+
+from ..checks import check_number
+from ..controlgs import ControlGS
+from ..downstream.oled import box_emission
+from ..errors import InputValueError
+from ..evaluation import BASELINES, _scores, make_pipeline
+from ..metrics import optional_metrics
+from ..rendering import Renderer, model_device, render_view, renderer_for
+from ..state import Camera, RuntimeState
+
+__all__ = ["STAGES", "OPTICS_MODES", "ViewState", "parse_state", "ViewerSession", "Superseded", "orbit_camera",
+           "scene_centre", "encode_png"]
+
+#: downstream stages the page can switch on and off (pipeline order)
+STAGES: tuple[str, ...] = ("lens", "resample", "display", "oled", "optics")
+OPTICS_MODES: tuple[str, ...] = ("distortion", "fast", "exact")
+#: the sliders' ranges (the paper's training ranges)
+DOWNSAMPLE_RANGE = (1.0, 8.0)
+POWER_SAVING_RANGE = (0.0, 0.8)
+AZIMUTH_RANGE = (-180.0, 180.0)
+ELEVATION_RANGE = (-80.0, 80.0)
+#: difference images show |eye - ground truth| times this
+DIFF_GAIN = 4.0
+LABELS = {"no_ss": "Backbone (no SS)", "ss": "SS-backbone", "controlgs": "ControlGS", "wo_lens": "w/o Lens",
+          "wo_display": "w/o Display Mapping", "wo_resample": "w/o Resampling", "state_blind": "w/o State-Aware"}
+_FIELDS = ("view", "azimuth", "elevation", "downsample", "power_saving", "optics", "stages", "gaze")
+
+
+class Superseded(Exception):
+    """A newer request arrived; this one's work was dropped."""
+
+
+@dataclass(frozen=True)
+class ViewState:
+    """Everything a page request asks for (see :func:`parse_state`)."""
+
+    view: int = 0
+    azimuth: float = 0.0
+    elevation: float = 0.0
+    downsample: float = 2.0
+    power_saving: float = 0.4
+    optics: str = "fast"
+    stages: tuple[str, ...] = STAGES
+    gaze: tuple[float, float] | None = None
+
+    @property
+    def runtime(self) -> RuntimeState:
+        return RuntimeState(downsample=self.downsample, power_saving=self.power_saving, gaze=self.gaze)
+
+    @property
+    def effects(self) -> dict[str, bool]:
+        """The pipeline's effects: every stage named, off ones False (``oled`` is on unless named off)."""
+        return {name: name in self.stages for name in STAGES}
+
+    @property
+    def orbit(self) -> bool:
+        """True when the camera is rotated away from the dataset view."""
+        return self.azimuth != 0.0 or self.elevation != 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["stages"], out["gaze"] = list(self.stages), None if self.gaze is None else list(self.gaze)
+        return out
+
+
+def parse_state(data: Any, views: int) -> ViewState:
+    """A :class:`ViewState` from a request's JSON object; fields left out take the defaults.
+
+    Raises:
+        InputValueError: naming the field, its allowed values and what was given.
+    """
+    if not isinstance(data, Mapping):
+        raise InputValueError(f"the state must be a JSON object with fields {', '.join(_FIELDS)}, got {type(data).__name__}")
+    unknown = sorted(str(k) for k in data if k not in _FIELDS)
+    if unknown:
+        raise InputValueError(f"unknown state field(s) {unknown}; fields: {', '.join(_FIELDS)}")
+    d = ViewState()
+    view = check_number("view", data.get("view", d.view), integer=True, low=0, high=views - 1)
+    values = {k: check_number(k, data.get(k, getattr(d, k)), low=lo, high=hi)
+              for k, (lo, hi) in (("azimuth", AZIMUTH_RANGE), ("elevation", ELEVATION_RANGE),
+                                  ("downsample", DOWNSAMPLE_RANGE), ("power_saving", POWER_SAVING_RANGE))}
+    optics = data.get("optics", d.optics)
+    if optics not in OPTICS_MODES:
+        raise InputValueError(f"optics must be one of {', '.join(OPTICS_MODES)}, got {optics!r}")
+    stages = data.get("stages", list(d.stages))
+    if not isinstance(stages, list) or not all(isinstance(s, str) for s in stages):
+        raise InputValueError(f"stages must be a list of stage names among {', '.join(STAGES)}, got {stages!r}")
+    bad = [s for s in stages if s not in STAGES]
+    if bad:
+        raise InputValueError(f"stages: unknown {bad}; stages are {', '.join(STAGES)}")
+    gaze = data.get("gaze")
+    if gaze is not None:
+        if not isinstance(gaze, list) or len(gaze) != 2:
+            raise InputValueError(f"gaze must be null or [x, y] in [-1, 1] (normalised image coordinates), got {gaze!r}")
+        gaze = (check_number("gaze x", gaze[0], low=-1, high=1), check_number("gaze y", gaze[1], low=-1, high=1))
+    return ViewState(int(view), values["azimuth"], values["elevation"], values["downsample"], values["power_saving"],
+                     optics, tuple(s for s in STAGES if s in stages), gaze)
+
+
+def _rotation(axis: torch.Tensor, degrees: float) -> torch.Tensor:
+    """Rodrigues: ``[3, 3]`` rotation by ``degrees`` about the unit ``axis`` (right-handed)."""
+    k = axis / axis.norm()
+    kx = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], dtype=k.dtype)
+    t = math.radians(degrees)
+    return torch.eye(3, dtype=k.dtype) + math.sin(t) * kx + (1.0 - math.cos(t)) * (kx @ kx)
+
+
+def orbit_camera(camera: Camera, centre: torch.Tensor, azimuth: float, elevation: float) -> Camera:
+    """``camera`` moved on a sphere about ``centre``: ``azimuth`` degrees about its own up axis (positive:
+    to the right of the scene), then ``elevation`` degrees about its right axis (positive: up); its
+    orientation turns with it, so a camera looking at the centre keeps looking at it."""
+    w2c = camera.world_to_camera.detach().double().cpu()
+    r, c = w2c[:3, :3], camera.center.detach().double().cpu()
+    right, up = r[0], -r[1]  # OpenCV: x right, y down
+    q = _rotation(up, azimuth) @ _rotation(right, -elevation)
+    o = centre.detach().double().cpu()
+    new_c, new_r = o + q @ (c - o), r @ q.T
+    out = torch.eye(4, dtype=torch.float64)
+    out[:3, :3], out[:3, 3] = new_r, -(new_r @ new_c)
+    return Camera(out.to(camera.world_to_camera.dtype), camera.intrinsics, camera.width, camera.height,
+                  dict(camera.extra))
+
+
+def scene_centre(cameras: list[Camera], points: torch.Tensor | None) -> torch.Tensor:
+    """The point nearest to every camera's optical axis (least squares) when the axes converge in front
+    of the cameras, else the median of ``points`` (the anchors), else the origin. ``[3]`` float64."""
+    if len(cameras) >= 2:
+        a, b = torch.zeros(3, 3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
+        for cam in cameras:
+            d = cam.world_to_camera.detach().double().cpu()[2, :3]
+            p = torch.eye(3, dtype=torch.float64) - torch.outer(d, d)
+            a, b = a + p, b + p @ cam.center.detach().double().cpu()
+        if float(torch.linalg.cond(a)) < 1e4:
+            x = torch.linalg.solve(a, b)
+            if all(float(cam.to_camera(x[None].to(cam.world_to_camera))[0, 2]) > 0 for cam in cameras):
+                return x
+    if points is not None and len(points):
+        return points.detach().double().cpu().median(dim=0).values
+    return torch.zeros(3, dtype=torch.float64)
+
+
+def encode_png(image: torch.Tensor, level: int = 1) -> str:
+    """``[3 or 4, H, W]`` in [0, 1] -> base64 PNG (Pillow, low compression: fast)."""
+    from PIL import Image
+
+    arr = (image.detach().clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+    buf = io.BytesIO()
+    Image.fromarray(arr, "RGBA" if arr.shape[2] == 4 else "RGB").save(buf, "PNG", compress_level=level)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+#: heat colour map (black -> purple -> orange -> yellow), strength 0..1
+_HEAT = torch.tensor([[0.0, 0.0, 0.2], [0.45, 0.05, 0.55], [0.9, 0.35, 0.1], [1.0, 0.95, 0.3]])
+
+
+def heat_overlay(positions: torch.Tensor, strength: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """RGBA ``[4, H, W]``: per-anchor ``strength`` (``[R]``) splatted at the anchors' pixels
+    (``positions`` ``[R, 3]`` world), smoothed, as a heat map; transparent where no anchor lands."""
+    h, w = camera.height, camera.width
+    uv, z = camera.project(positions.float())
+    x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+    ok = (z > 0) & (x >= 0) & (x < w) & (y >= 0) & (y < h) & torch.isfinite(strength)
+    idx = (y * w + x)[ok].cpu()
+    num = torch.zeros(h * w).index_add_(0, idx, strength[ok].float().cpu()).view(1, 1, h, w)
+    cnt = torch.zeros(h * w).index_add_(0, idx, torch.ones(idx.numel())).view(1, 1, h, w)
+    k = 2 * max(1, round(max(h, w) / 48)) + 1
+    num, cnt = (F.avg_pool2d(t, k, 1, k // 2, count_include_pad=False) for t in (num, cnt))
+    lam = (num / cnt.clamp_min(1e-12)).clamp(0.0, 1.0)[0, 0]
+    t = lam * (len(_HEAT) - 1)
+    i0 = t.floor().long().clamp(max=len(_HEAT) - 2)
+    rgb = torch.lerp(_HEAT[i0], _HEAT[i0 + 1], (t - i0).unsqueeze(-1)).permute(2, 0, 1)
+    alpha = (cnt[0] * k * k * 4.0).clamp(0.0, 1.0) * 0.75
+    return torch.cat([rgb, alpha])
+
+
+def _shared_copy(model: Any) -> Any:
+    """A copy of ``model``'s module tree that shares every parameter, buffer and tensor attribute
+    (no tensor memory is duplicated): an adapter wraps the copy without touching ``model``."""
+    memo: dict[int, Any] = {}
+    modules = model.modules() if isinstance(model, torch.nn.Module) else [model]
+    for m in modules:
+        for v in vars(m).values():
+            if isinstance(v, torch.Tensor):
+                memo[id(v)] = v
+        if isinstance(m, torch.nn.Module):
+            for t in (*m.parameters(recurse=False), *m.buffers(recurse=False)):
+                memo[id(t)] = t
+    return copy.deepcopy(model, memo)
+
+
+class _Cache(OrderedDict):
+    """A small least-recently-used dict."""
+
+    def __init__(self, size: int) -> None:
+        super().__init__()
+        self.size = size
+
+    def get_or(self, key: Hashable, make: Callable[[], Any]) -> Any:
+        if key in self:
+            self.move_to_end(key)
+            return self[key]
+        value = self[key] = make()
+        while len(self) > self.size:
+            self.popitem(last=False)
+        return value
+
+
+class ViewerSession:
+    """The renders behind the viewer page.
+
+    Args:
+        model: the backbone (not wrapped), on the device everything runs on.
+        views: the test views (a :class:`~controlgs_adapter.training.Views` dataset with ``background``).
+        adapters: ``{method name: adapter file}`` (``controlgs`` and any ablations of a run).
+        truth: ground truth of any camera (the built-in scene renders it exactly), used for orbit
+            views; None: orbit views have no ground truth (the SS-backbone stands in as the display's
+            power reference and no metrics are shown).
+        renderer: how the model renders (default :func:`~controlgs_adapter.rendering.renderer_for`).
+        name: the scene's name, shown on the page.
+    """
+
+    def __init__(self, model: Any, views: Any, adapters: Mapping[str, str | Path], *,
+                 truth: Callable[[Camera], torch.Tensor] | None = None, renderer: Renderer | None = None,
+                 name: str = "") -> None:
+        clash = [a for a in adapters if a in BASELINES]
+        if clash:
+            raise InputValueError(f"adapter names {clash} clash with the baselines {BASELINES}")
+        if not len(views):
+            raise InputValueError("the viewer needs at least one view")
+        self.model, self.views, self.truth, self.name = model, views, truth, name
+        self.device = model_device(model)
+        self.renderer = renderer or renderer_for(model)
+        bg = getattr(views, "background", None)
+        self.background = None if bg is None else bg.to(self.device)
+        self.adapter_files = {m: Path(p) for m, p in adapters.items()}
+        self.adapters: dict[str, tuple[Any, ControlGS]] = {}
+        for method, path in adapters.items():
+            copy_ = _shared_copy(model)
+            self.adapters[method] = (copy_, ControlGS.load(path, copy_))
+        self.methods = [*BASELINES, *self.adapters]
+        self.cameras = [views[i][0] for i in range(len(views))]
+        points = None
+        if self.adapters:
+            cgs = next(iter(self.adapters.values()))[1]
+            points = cgs.backend.anchor_positions(cgs.model)
+        self.centre = scene_centre(self.cameras, points)
+        self.extra_metrics = optional_metrics()
+        self._pipelines: dict[tuple[str, ...], Any] = {}
+        self._frames = _Cache(16)    # (camera key) -> (camera, gt or None, ss render, png of both)
+        self._small = _Cache(32)     # (camera key, w, h) -> no-SS render
+        self._last: tuple[int, dict[str, torch.Tensor], torch.Tensor | None] | None = None
+
+    def info(self) -> dict[str, Any]:
+        """What the page needs to build its controls."""
+        return {"name": self.name, "views": [f"test view {i} ({c.width}x{c.height})" for i, c in enumerate(self.cameras)],
+                "methods": [{"name": m, "label": LABELS.get(m, m)} for m in self.methods],
+                "stages": list(STAGES), "optics_modes": list(OPTICS_MODES), "defaults": ViewState().to_json(),
+                "ranges": {"downsample": DOWNSAMPLE_RANGE, "power_saving": POWER_SAVING_RANGE,
+                           "azimuth": AZIMUTH_RANGE, "elevation": ELEVATION_RANGE},
+                "orbit_truth": self.truth is not None, "extra_metrics": list(self.extra_metrics),
+                "diff_gain": DIFF_GAIN, "device": str(self.device)}
+
+    def _pipeline(self, state: ViewState) -> Any:
+        if state.stages not in self._pipelines:
+            self._pipelines[state.stages] = make_pipeline(state.effects, "fast").to(self.device)
+        pipeline = self._pipelines[state.stages]
+        if "optics" in pipeline:
+            pipeline["optics"].mode = state.optics
+        return pipeline
+
+    def _frame(self, state: ViewState) -> tuple[Camera, torch.Tensor | None, torch.Tensor, dict[str, str]]:
+        def make() -> tuple[Camera, torch.Tensor | None, torch.Tensor, dict[str, str]]:
+            cam, gt = self.views[state.view]
+            if state.orbit:
+                cam = orbit_camera(cam, self.centre, state.azimuth, state.elevation)
+                gt = None if self.truth is None else self.truth(cam)
+            gt = None if gt is None else gt.to(self.device)
+            full = render_view(None, self.model, cam, None, self.background, renderer=self.renderer)
+            pngs = {"ss": encode_png(full), **({"gt": encode_png(gt)} if gt is not None else {})}
+            return cam, gt, full, pngs
+
+        return self._frames.get_or((state.view, state.azimuth, state.elevation), make)
+
+    def render(self, state: ViewState, check: Callable[[], None] = lambda: None, tag: int = 0) -> dict[str, Any]:
+        """Every method at ``state``: base64 PNGs (``rendered``, ``eye``, ``diff``, lens ``overlay``),
+        PSNR / SSIM against the ground truth (as :func:`evaluate_grid` computes them) and the
+        condition strengths. ``check`` is called between methods and raises :class:`Superseded` to
+        drop the work when a newer request arrived; ``tag`` names this render for :meth:`extra`."""
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            cam, gt, full, pngs = self._frame(state)
+            check()
+            pipeline, rs = self._pipeline(state), state.runtime
+            reference = full if gt is None else gt
+            out: dict[str, Any] = {"state": state.to_json(), "size": [cam.width, cam.height], "has_truth": gt is not None,
+                                   "gt": pngs.get("gt"), "methods": []}
+            eyes: dict[str, torch.Tensor] = {}
+            for method in self.methods:
+                strengths: dict[str, Any] = {}
+                overlay = None
+                if method == "ss":
+                    rendered, png = full, pngs["ss"]
+                elif method == "no_ss":
+                    small = cam.scaled(state.downsample)
+                    rendered = self._small.get_or((state.view, state.azimuth, state.elevation, small.width, small.height),
+                                                  lambda: render_view(None, self.model, small, None, self.background,
+                                                                      renderer=self.renderer))
+                    png = encode_png(rendered)
+                else:
+                    copy_, cgs = self.adapters[method]
+                    rendered = render_view(cgs, copy_, cam, rs, self.background, renderer=self.renderer)
+                    png = encode_png(rendered)
+                    strengths, overlay = self._strengths(cgs, copy_, cam, rs)
+                eye, record = pipeline(rendered, rs, reference=reference, record=True)
+                if eye.shape[-2:] != reference.shape[-2:]:  # oled off: the display's pixels as boxes at S
+                    eye = box_emission(eye, tuple(reference.shape[-2:]))
+                eye = eye.clamp(0.0, 1.0)
+                eyes[method] = eye
+                entry = {"name": method, "label": LABELS.get(method, method), "rendered": png, "eye": encode_png(eye),
+                         "rendered_size": [rendered.shape[-1], rendered.shape[-2]], "strengths": strengths,
+                         "overlay": overlay, "stages_run": record["stages_run"], "metrics": None, "diff": None}
+                if gt is not None:
+                    entry["metrics"] = _scores(eye, gt, {})
+                    entry["diff"] = encode_png(((eye - gt).abs() * DIFF_GAIN).clamp(0.0, 1.0))
+                out["methods"].append(entry)
+                check()
+        self._last = (tag, eyes, gt)
+        out["server_ms"] = round(1000.0 * (time.perf_counter() - t0), 1)
+        return out
+
+    def _strengths(self, cgs: ControlGS, model: Any, cam: Camera, rs: RuntimeState) -> tuple[dict[str, Any], str | None]:
+        """The adapter's strengths at ``rs``: global ones as numbers, per-anchor ones as mean / min / max
+        over the visible anchors, and the lens (else foveation) strength as a heat overlay (base64 PNG)."""
+        visible = self.renderer.visible(model, cam)
+        ids = cgs.anchor_ids(visible)
+        lam = cgs.strengths(rs, cam, ids)
+        out: dict[str, Any] = {}
+        overlay = None
+        for m, v in lam.items():
+            if cgs.schedules[m].per_anchor and not cgs.state_blind:
+                out[m] = {"mean": float(v.mean()) if v.numel() else 0.0, "min": float(v.min()) if v.numel() else 0.0,
+                          "max": float(v.max()) if v.numel() else 0.0}
+            else:
+                out[m] = float(v[0]) if v.numel() else float(cgs.state_blind)
+        shown = next((m for m in ("lens", "foveation") if m in lam), None)
+        if shown is not None:
+            positions = cgs.backend.anchor_positions(cgs.model).detach()
+            overlay = encode_png(heat_overlay(positions.index_select(0, ids.to(positions.device)), lam[shown], cam))
+        return out, overlay
+
+    def extra(self, tag: int, check: Callable[[], None] = lambda: None) -> dict[str, dict[str, float]]:
+        """The slower metrics (FLIP, ...) of the eye images of render ``tag``, per method (empty without
+        ground truth); ``check`` between methods as in :meth:`render`.
+
+        Raises:
+            Superseded: ``tag`` is not the last completed render."""
+        if self._last is None or self._last[0] != tag:
+            raise Superseded(f"render {tag} is not the last one")
+        if self._last[2] is None or not self.extra_metrics:
+            return {}
+        _, eyes, gt = self._last
+        out = {}
+        for method, eye in eyes.items():
+            out[method] = {k: fn(eye.double(), gt.double()) for k, fn in self.extra_metrics.items()}
+            check()
+        return out
