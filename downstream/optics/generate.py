@@ -3,9 +3,12 @@
 PSF model per field point and wavelength (documented in ``docs/optics.md``):
 
 1. the chief ray (through the pupil centre) gives the landing point on the virtual image plane;
-2. a ``N x N`` grid over the pupil (aimed through the local slope -> pupil Jacobian of the chief ray)
-   is traced; rays that miss the 4 mm pupil, a lens aperture or refract totally are dropped; the
-   rest cross the virtual image plane at the geometric spot (eye accommodated to that plane);
+2. a ``N x N`` grid of launch slopes (aimed through the chief ray's slope -> pupil Jacobian) is
+   traced; each ray stands for the pupil area of its grid cell (the determinant of the traced
+   slope -> pupil map times the cell, so the pupil is sampled uniformly in area, not in slope);
+   rays that miss the 4 mm pupil, a lens aperture or refract totally are dropped; the rest cross
+   the virtual image plane at the geometric spot (eye accommodated to that plane); the pupil
+   transmission is the area of the passing rays over the area of all rays inside the pupil;
 3. the spot, binned into the ``K x K`` box cells, is convolved with the diffraction-limited Airy
    pattern of the pupil (exact in both limits: Airy at the diffraction-limited centre, geometric
    spot where aberrations dominate; approximate in between).
@@ -37,7 +40,8 @@ ASSUMPTIONS = [
     "PSF = geometric spot (pupil grid) convolved with the Airy pattern of the pupil (scalar, monochromatic)",
     "only the primary image branch is modelled: near the lens rim the display corner is also seen a second "
     "time through a fold of the rim zone; those rays are outside the local pupil grid and are not in the bank",
-    "PSFs are normalised to unit sum; vignetting (transmission) is recorded in meta but not applied",
+    "PSFs are normalised to unit sum; the pupil transmission per field (rays blocked by a lens aperture, "
+    "uniform pupil-area weighting) is recorded in meta.transmission and applied by the radiance radiometry",
     "each display primary is one wavelength (656 / 550 / 486 nm)",
 ]
 
@@ -50,8 +54,8 @@ def _airy(r_norm: np.ndarray) -> np.ndarray:
     return out.numpy()
 
 
-def _bin(dx: np.ndarray, dy: np.ndarray, pitch: float, K: int) -> np.ndarray:
-    """Box-cell histogram (bilinear) of unit-weight points, centred on sample K // 2."""
+def _bin(dx: np.ndarray, dy: np.ndarray, pitch: float, K: int, weight: np.ndarray) -> np.ndarray:
+    """Box-cell histogram (bilinear) of weighted points, centred on sample K // 2."""
     c = K // 2
     fx, fy = dx / pitch + c, dy / pitch + c
     x0, y0 = np.floor(fx).astype(np.int64), np.floor(fy).astype(np.int64)
@@ -60,8 +64,46 @@ def _bin(dx: np.ndarray, dy: np.ndarray, pitch: float, K: int) -> np.ndarray:
     for ox, wx in ((0, 1 - ax), (1, ax)):
         for oy, wy in ((0, 1 - ay), (1, ay)):
             xi, yi = np.clip(x0 + ox, 0, K - 1), np.clip(y0 + oy, 0, K - 1)
-            out += np.bincount(yi * K + xi, weights=wx * wy, minlength=K * K)
+            out += np.bincount(yi * K + xi, weights=wx * wy * weight, minlength=K * K)
     return out.reshape(K, K)
+
+
+def _pupil_area(xp: np.ndarray, yp: np.ndarray, hu: float, hv: float) -> np.ndarray:
+    """Pupil area (mm^2) each ray of an ``n x n`` launch-slope grid (steps ``hu`` along axis 1,
+    ``hv`` along axis 0) stands for: ``|det d(xp, yp) / d(u, v)| hu hv`` by central differences
+    (one-sided at the grid's edge); NaN where a neighbour is not finite."""
+    with np.errstate(invalid="ignore"):
+        xu, xv = np.gradient(xp, axis=1) / hu, np.gradient(xp, axis=0) / hv
+        yu, yv = np.gradient(yp, axis=1) / hu, np.gradient(yp, axis=0) / hv
+        return np.abs(xu * yv - xv * yu) * hu * hv
+
+
+def _spot(rx: Prescription, lam: float, r: float, v0: float, Y0: float, n: int
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Geometric spot of display height ``r`` (mm, meridional: field on +y) on the virtual image plane.
+
+    A square grid of launch slopes, aimed through the chief ray's slope -> pupil Jacobian, is
+    widened (and refined to keep ~``n`` rays across the pupil) until it covers the pupil disc
+    (>= 99.9 % of its area; the aim is linear, the map is not at the field's edge). Returns the
+    kept rays' offsets from the chief ray ``(x, y)`` (mm on the image plane), their pupil areas
+    (the weights: uniform in pupil area), the transmission (passing over all in-pupil area) and
+    the covered fraction of the pupil."""
+    pr, eps = rx.pupil_radius, 1e-6
+    xp_a, yp_a, _, _, _ = trace(rx, lam, 0.0, r, np.array([0.0, eps, 0.0]), v0 + np.array([0.0, 0.0, eps]))
+    jx, jy = (xp_a[1] - xp_a[0]) / eps, (yp_a[2] - yp_a[0]) / eps
+    for span in (1.02, 1.2, 1.45, 1.75, 2.1):
+        m = int(round(n * span / 1.02))
+        g = ((np.arange(m) + 0.5) / m * 2 - 1) * span * pr
+        PX, PY = np.meshgrid(g / jx, v0 + g / jy)
+        xp, yp, Xs, Ys, ok = trace(rx, lam, 0.0, r, PX, PY)
+        area = _pupil_area(xp, yp, 2 * span * pr / m / jx, 2 * span * pr / m / jy)
+        disc = np.isfinite(area) & (xp ** 2 + yp ** 2 <= pr * pr)
+        covered = float(area[disc].sum() / (math.pi * pr * pr))
+        if covered >= 0.999:
+            break
+    keep = ok & disc
+    transmission = float(area[keep].sum() / max(area[disc].sum(), 1e-300))
+    return Xs[keep], Ys[keep] - Y0, area[keep], min(transmission, 1.0), covered
 
 
 def _airy_kernel(pitch: float, r_airy: float, K: int, supersample: int = 5) -> np.ndarray:
@@ -147,8 +189,7 @@ def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, 
     CX, CY = np.meshgrid(cx * W_mm / 2, cy * H_mm / 2)
     CR = np.hypot(CX, CY)
     n = pupil_samples
-    g = (np.arange(n) + 0.5) / n * 2 - 1                   # pupil grid in [-1, 1]
-    PX, PY = np.meshgrid(g, g)
+    coverage = 1.0
     pr = rx.pupil_radius
     for li, lam in enumerate(rx.wavelengths):
         # chief rays on the warp grid
@@ -161,38 +202,32 @@ def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, 
         # spots per distinct radius, in the meridional frame (field on +y)
         v0, Y0, ok0 = chief_ray(rx, lam, radii)
         r_airy = 1.21967 * lam * 1e-6 * rx.image_distance / (2 * pr) / m_ref   # display-equivalent mm
-        eps = 1e-6
         spots = []
         for ri, r in enumerate(radii):
-            xp_a, yp_a, _, _, _ = trace(rx, lam, 0.0, r, np.array([0.0, eps, 0.0]), v0[ri] + np.array([0.0, 0.0, eps]))
-            jx, jy = (xp_a[1] - xp_a[0]) / eps, (yp_a[2] - yp_a[0]) / eps
-            u = PX * pr * 1.02 / jx
-            v = v0[ri] + PY * pr * 1.02 / jy
-            xp, yp, Xs, Ys, ok = trace(rx, lam, 0.0, r, u, v)
-            inside = PX ** 2 + PY ** 2 <= 1.0 / 1.02 ** 2                  # the nominal pupil disc
-            keep = ok & (xp ** 2 + yp ** 2 <= pr * pr)
-            transmission_r = keep.sum() / max(inside.sum(), 1)
-            spots.append((Xs[keep] / m_ref, (Ys[keep] - Y0[ri]) / m_ref, min(transmission_r, 1.0)))
+            sx, sy, wt, tr, cov = _spot(rx, lam, r, v0[ri], Y0[ri], n)
+            coverage = min(coverage, cov)
+            spots.append((sx / m_ref, sy / m_ref, wt, tr))
         for iy in range(Gy):
             for ix in range(Gx):
-                sx, sy, tr = spots[inv[iy, ix]]
+                sx, sy, wt, tr = spots[inv[iy, ix]]
                 r = math.hypot(X_mm[iy, ix], Y_mm[iy, ix])
                 ex, ey = (X_mm[iy, ix] / r, Y_mm[iy, ix] / r) if r > 0 else (0.0, 1.0)
                 dx, dy = sx * ey + sy * ex, -sx * ex + sy * ey              # rotate (0, 1) -> (ex, ey)
                 extent = max(np.abs(dx).max(initial=0.0), np.abs(dy).max(initial=0.0)) + 3 * r_airy
                 p = max(min_pitch, extent / (K // 2 - 0.5))
-                spot = _bin(dx, dy, p, K)
+                spot = _bin(dx, dy, p, K, wt)
                 spot /= spot.sum()
                 img = _conv_same(spot, _airy_kernel(p, r_airy, K))
                 psf[li, iy, ix] = img / img.sum()
                 pitch[li, iy, ix] = p
                 transmission[li, iy, ix] = tr
         if progress:
-            print(f"  traced {lam:g} nm: {len(radii)} field radii x {int(inside.sum())} pupil rays")
+            print(f"  traced {lam:g} nm: {len(radii)} field radii x >= {n * n} launch slopes")
     meta = {"prescription": rx.spec, "assumptions": ASSUMPTIONS,
             "generator": {"tool": "controlgs_adapter.downstream.optics.generate.build_bank", "grid": list(grid),
                           "psf_size": K, "pupil_samples": n, "chief_grid": list(chief_grid),
-                          "min_pitch_px": min_pitch_px, "reference_width_px": reference_width_px},
+                          "min_pitch_px": min_pitch_px, "reference_width_px": reference_width_px,
+                          "pupil_weighting": "uniform in pupil area", "min_pupil_coverage": round(coverage, 5)},
             "figures": lens_figures(rx), "transmission": transmission.round(4).tolist()}
     return PSFBank(psf=torch.from_numpy(psf), psf_pitch_mm=torch.from_numpy(pitch), field_x=torch.from_numpy(fx),
                    field_y=torch.from_numpy(fy), chief=torch.from_numpy(chief), chief_x=torch.from_numpy(cx),
