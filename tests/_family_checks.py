@@ -11,6 +11,7 @@ import torch
 from controlgs_adapter import RuntimeState
 from controlgs_adapter.backend import get_attr_path
 from controlgs_adapter.controlgs import ControlGS
+from controlgs_adapter.rendering import ModelRenderer, renderer_for
 
 STATE = RuntimeState(downsample=1, power_saving=0.4)  # display strength 0.5 for every anchor
 
@@ -30,6 +31,7 @@ def check_wrap_identity_and_rows(model, inputs: dict[str, torch.Tensor], ids: to
     """``inputs``: decoder path -> input rows for anchors ``ids`` (``rows_per_anchor`` rows each).
     ``reload()`` returns a fresh copy of the same backbone (to load the saved adapter onto)."""
     before = outputs(model, inputs)
+    assert type(renderer_for(model)) is ModelRenderer  # the family renders through the protocol by itself
     cgs = ControlGS.wrap(model, modules=("display",), cond_dim=4)
     assert cgs.backend.name == backend
     assert {t.decoder for t in cgs.targets} == set(inputs)
