@@ -152,7 +152,7 @@ def _centroids(img: torch.Tensor, where: list[tuple[int, int]], r: int = 4) -> t
 def test_prewarp_then_optics_lands_dots_where_they_started(h, w):
     """The pipeline's lens (built from the optics' bank for the same region), then the optics'
     chief-ray warp: each white dot is seen where it was rendered, to a fraction of a pixel."""
-    p = Pipeline.from_config({"lens": True, "optics": {"mode": "distortion"}}).double()
+    p = Pipeline.from_config({"lens": {"source": "chief_rays", "basis": "rgb"}, "optics": {"mode": "distortion"}}).double()
     target, where = _dots(h, w)
     prim = rgb_to_primaries(target)                 # the optics is separable per primary: warp in that domain
     shown = primaries_to_rgb(p["lens"](prim, STATE, StageContext((h, w))))
@@ -172,6 +172,7 @@ def test_a_prewarp_for_the_wrong_region_misses():
     target, where = _dots(27, 48)
     prim = rgb_to_primaries(target)
     wrong = LensPrewarp.from_psf_bank(bank, placement="stretch").double()
+    wrong.basis = "rgb"  # applied to primaries below
     eye = rgb_to_primaries(optics_mod.optics(primaries_to_rgb(wrong(prim, STATE, StageContext((27, 48)))), bank,
                                              mode="distortion"))
     err = (_centroids(eye, where) - torch.tensor(where, dtype=torch.float64)[:, None, :]).norm(dim=-1)
@@ -183,7 +184,8 @@ def test_the_pipeline_lens_follows_the_optics_placement():
     assert p["optics"].placement == "stretch" and p["lens"].map.placement == "stretch"
     bank = p["optics"].bank
     for size in ((27, 48), (48, 27), (40, 40)):
-        grid, gain = Pipeline.from_config({"lens": True, "optics": True})["lens"].map(size, torch.float32, torch.device("cpu"))
+        grid, gain = Pipeline.from_config({"lens": {"source": "chief_rays"}, "optics": True})["lens"].map(
+            size, torch.float32, torch.device("cpu"))
         lut = LensPrewarp.from_psf_bank(bank, size).map(size, torch.float32, torch.device("cpu"))[0]
         assert gain is None and torch.allclose(grid, lut, atol=1e-6)
 

@@ -28,11 +28,12 @@ ALL = {"lens": {"coefficients": K}, "resample": True, "display": True, "foveatio
 
 def _manual(image, state, gt, k=K):
     """E_s written out with the functionals (the reference the pipeline must equal)."""
-    x = srgb_to_linear(image)
     grid, _ = RadialMap(k).double()(tuple(image.shape[-2:]), image.dtype, image.device)
-    x = lens_prewarp(x, grid)
-    x = area_resample(x, state.downsample)
-    x = display_mapping(x, state.power_saving, srgb_to_linear(gt))
+
+    def post(img):  # the stages before the display: pre-warp (per primary) and resampling
+        return area_resample(lens_prewarp(srgb_to_linear(img), grid, basis="primaries"), state.downsample)
+
+    x = display_mapping(post(image), state.power_saving, post(gt))  # P_ref: the ground truth as displayed
     x = box_emission(x, tuple(gt.shape[-2:]))
     return linear_to_srgb(x)
 
@@ -157,7 +158,8 @@ def test_third_party_stages_are_inserted_and_get_their_domain():
         image = torch.rand(3, 8, 8, dtype=torch.float64)
         state = RuntimeState(2.0, 0.0)
         out = p(image, state)
-        x = area_resample(lens_prewarp(srgb_to_linear(image), RadialMap(K).double()((8, 8), torch.float64, "cpu")[0]), 2.0)
+        x = area_resample(lens_prewarp(srgb_to_linear(image), RadialMap(K).double()((8, 8), torch.float64, "cpu")[0],
+                                       basis="primaries"), 2.0)
         assert torch.allclose(_Sharpen.seen[-1], linear_to_srgb(x), atol=1e-12)  # it received sRGB
         x = srgb_to_linear(linear_to_srgb(x) * 1.1) * torch.tensor([1.0, 0.9, 0.8], dtype=torch.float64)[:, None, None]
         assert torch.allclose(out, linear_to_srgb(box_emission(x, (8, 8))), atol=1e-12)
@@ -245,7 +247,7 @@ def test_pipeline_with_the_optics_stage():
 
     p = Pipeline.from_config({**ALL, "optics": {"mode": "distortion"}})
     assert p.names[-2:] == ["oled", "optics"]
-    default_lens = Pipeline.from_config({"lens": True, "optics": {"mode": "distortion"}})["lens"]
+    default_lens = Pipeline.from_config({"lens": {"source": "chief_rays"}, "optics": {"mode": "distortion"}})["lens"]
     bank_lens = LensPrewarp.from_psf_bank(p["optics"].bank, (40, 40))
     grid, _ = default_lens.map((40, 40), torch.float32, torch.device("cpu"))
     assert torch.allclose(grid, bank_lens.map((40, 40), torch.float32, torch.device("cpu"))[0], atol=1e-4)

@@ -83,6 +83,7 @@ def test_radial_map_formula_on_a_non_square_image():
 def test_channels_are_warped_independently():
     img = torch.rand(3, 10, 10, dtype=torch.float64)
     stage = LensPrewarp.radial(torch.tensor(CARDBOARD_RADIAL) * 2)
+    stage.basis = "rgb"  # the paper's per-RGB-channel warp (the default warps the display primaries)
     out = stage(img, STATE, StageContext((10, 10)))
     for c in range(3):
         only = torch.zeros_like(img)
@@ -233,6 +234,7 @@ def test_bank_prewarp_undoes_the_optics_distortion():
     img = torch.stack([torch.cos(3 * xx + yy) * 0.2 + 0.3, torch.sin(2 * yy) * 0.2 + 0.3, xx * yy * 0.2 + 0.3])
     bank = PSFBank.default()
     prewarp = LensPrewarp.from_chief_ray_map(bank.chief, (n, n), sample_x=bank.chief_x, sample_y=bank.chief_y, gain="jacobian")
+    prewarp.basis = "rgb"  # applied to primaries below
     assert torch.allclose(LensPrewarp.from_psf_bank(bank, (n, n), gain="jacobian").map.gain, prewarp.map.gain)
     target = rgb_to_primaries(img)  # the optics is separable per primary: warp in that domain
     shown = primaries_to_rgb(prewarp(target, STATE, StageContext((n, n))))
