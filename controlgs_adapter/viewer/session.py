@@ -44,7 +44,7 @@ POWER_SAVING_RANGE = (0.0, 0.8)
 AZIMUTH_RANGE = (-180.0, 180.0)
 ELEVATION_RANGE = (-80.0, 80.0)
 #: difference images show |eye - ground truth| times this
-DIFF_GAIN = 4.0
+DIFF_GAIN = 2.0
 LABELS = {"no_ss": "Backbone (no SS)", "ss": "SS-backbone", "controlgs": "ControlGS", "wo_lens": "w/o Lens",
           "wo_display": "w/o Display Mapping", "wo_resample": "w/o Resampling", "state_blind": "w/o State-Aware"}
 _FIELDS = ("view", "azimuth", "elevation", "downsample", "power_saving", "optics", "stages", "gaze")
@@ -193,7 +193,7 @@ def heat_overlay(positions: torch.Tensor, strength: torch.Tensor, camera: Camera
     t = lam * (len(_HEAT) - 1)
     i0 = t.floor().long().clamp(max=len(_HEAT) - 2)
     rgb = torch.lerp(_HEAT[i0], _HEAT[i0 + 1], (t - i0).unsqueeze(-1)).permute(2, 0, 1)
-    alpha = (cnt[0] * k * k * 4.0).clamp(0.0, 1.0) * 0.75
+    alpha = (cnt[0] * k * k * 4.0).clamp(0.0, 1.0) * 0.55
     return torch.cat([rgb, alpha])
 
 
