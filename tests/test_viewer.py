@@ -306,3 +306,14 @@ def test_cli_view_registered() -> None:
 
     args = build_parser().parse_args(["view", "--port", "0", "--run", "somewhere"])
     assert args.command == "view" and args.port == 0 and args.run == "somewhere"
+
+
+def test_cli_view_user_errors(tmp_path: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    from controlgs_adapter.cli import main
+
+    assert main(["view", "--run", str(tmp_path / "nope")]) == 2
+    assert "--run" in capsys.readouterr().err
+    assert main(["view", "--run", str(tmp_path), "--test-views", "1"]) == 2
+    assert "no controlgs.controlgs.safetensors" in capsys.readouterr().err
+    assert main(["view", "--port", "70000"]) == 2
+    assert "--port must be an integer in [0, 65535]" in capsys.readouterr().err

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from .common import add_data_arguments, apply_run_defaults, cache_bytes, user_scene
 
@@ -57,6 +57,14 @@ def _quick_adapter(model: Any, views: Any, folder: Path, iterations: int) -> dic
     return {"controlgs": Path(path)}
 
 
+def _exact_truth(builtin: Any) -> Callable[[Any], Any]:
+    """The built-in scene's exact ground truth of any camera (ray cast, as its dataset's images)."""
+    from controlgs_adapter.scene import render_planes
+
+    background = tuple(builtin.background.tolist())
+    return lambda camera: render_planes(builtin.planes, camera, background=background)[0].float()
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -70,8 +78,9 @@ def run(args: argparse.Namespace) -> int:
         if not run_dir.is_dir():
             raise InputValueError(f"--run {run_dir}: no such folder")
         apply_run_defaults(args, run_dir)
+        adapters = _adapters(run_dir)
     with tempfile.TemporaryDirectory(prefix="controlgs-view-") as tmp:
-        truth = None
+        truth: Callable[[Any], Any] | None = None
         if user_scene(args):
             from .common import load_user_scene
             from .demo import first_views
@@ -82,26 +91,26 @@ def run(args: argparse.Namespace) -> int:
             model, name = scene.model, f"{scene.family} {args.model}"
             views = first_views(scene.data, "test", args.test_views, scene.resolution, cache_bytes=cache_bytes(args))
         else:
-            from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene, render_planes
+            from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
-            from .demo import first_views
+            from .demo import DEFAULT_RESOLUTION, first_views
 
-            device = torch.device(args.device)
+            try:
+                device = torch.device(args.device)
+            except RuntimeError as e:
+                raise InputValueError(f"--device {args.device!r}: {e}") from None
+            if device.type == "cuda" and not torch.cuda.is_available():
+                raise InputValueError(f"--device {args.device}: CUDA is not available on this machine")
             builtin = load_builtin_scene(args.variant, args.resolution or VIEW_RESOLUTION, cache=True)
             model, name = load_builtin_backbone(args.variant).to(device), builtin.name
             views = first_views(builtin.data, "test", args.test_views)
-            planes, bg = builtin.planes, tuple(builtin.background.tolist())
-
-            def truth(camera: Any) -> torch.Tensor:  # the built-in scene's exact ground truth of any camera
-                return render_planes(planes, camera, background=bg)[0].float()
-
+            truth = _exact_truth(builtin)
             if run_dir is None:
                 check_number("--iterations", args.iterations, integer=True, low=1)
                 print(f"no --run: training a quick ControlGS adapter ({args.iterations} iterations) on {name}; "
                       "`controlgs demo --out report` then `controlgs view --run report` shows a fully trained one")
-                adapters = _quick_adapter(model, builtin.views("train"), Path(tmp), args.iterations)
-        if run_dir is not None:
-            adapters = _adapters(run_dir)
+                train = load_builtin_scene(args.variant, DEFAULT_RESOLUTION, cache=True).views("train")  # the demo's size
+                adapters = _quick_adapter(model, train, Path(tmp), args.iterations)
         session = ViewerSession(model, views, adapters, truth=truth, name=name)
         server = make_server(session, args.port)
         print(f"controlgs view: {name}, methods {', '.join(session.methods)} on {session.device}", flush=True)
