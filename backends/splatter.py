@@ -185,24 +185,37 @@ def _footprints(
 
 @dataclass
 class _Tiling:
-    """(tile, Gaussian) records sorted by (tile, depth), each clipped to its tile, and the chunks."""
+    """(tile, Gaussian) records sorted by (tile, depth), each clipped to its tile, and the chunks.
+
+    Pixels are numbered tile-major: pixel ``(x, y)`` of tile ``t`` is ``t * ts^2 + (y % ts) * ts + x % ts``
+    (``ts`` the tile size); a chunk is a run of whole tiles ``[t0, t1)``, its pairs' keys
+    ``(t - t0) * ts^2 + ...`` fit in int16 (fast stable sort) whenever ``(t1 - t0) ts^2 <= 2^15``.
+    """
 
     gauss: torch.Tensor  # [R] int64 Gaussian (index into depth-sorted arrays)
     x0: torch.Tensor  # [R] int64 first pixel column of the clipped rectangle
+    x1: torch.Tensor  # [R] int64 last pixel column
     y0: torch.Tensor  # [R] int64 first pixel row
-    wx: torch.Tensor  # [R] int64 rectangle width
-    count: torch.Tensor  # [R] int64 pixels in the rectangle
-    chunks: list[tuple[int, int, int]]  # (first record, end record, number of pairs)
+    rows: torch.Tensor  # [R] int64 pixel rows of the rectangle
+    key_base: torch.Tensor  # [R] int64 key of pixel (x, y) in its chunk = key_base + y * ts + x
+    chunks: list[tuple[int, int, int, int]]  # (first record, end record, first tile, end tile)
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
 
 
-def _bin_tiles(rect: torch.Tensor, width: int, tile_size: int) -> _Tiling:
+_KEY_LIMIT = 1 << 15  # pixels per chunk for int16 sort keys
+
+
+def _bin_tiles(rect: torch.Tensor, width: int, height: int, tile_size: int) -> _Tiling:
     """Bin rectangles ``rect`` ``[M, 4]`` (Gaussians already in depth order) into tiles."""
     dev = rect.device
+    ts, tp = tile_size, tile_size * tile_size
+    tiles_x, tiles_y = (width + ts - 1) // ts, (height + ts - 1) // ts
     ids = ((rect[:, 0] <= rect[:, 1]) & (rect[:, 2] <= rect[:, 3])).nonzero().squeeze(1)  # non-empty
     rect = rect.index_select(0, ids)
     x0, x1, y0, y1 = rect.unbind(-1)
-    tiles_x = (width + tile_size - 1) // tile_size
-    tx0, tx1, ty0, ty1 = x0 // tile_size, x1 // tile_size, y0 // tile_size, y1 // tile_size
+    tx0, tx1, ty0, ty1 = x0 // ts, x1 // ts, y0 // ts, y1 // ts
     ntx = tx1 - tx0 + 1
     n_rec = ntx * (ty1 - ty0 + 1)  # [M']
     owner = torch.repeat_interleave(torch.arange(rect.shape[0], device=dev), n_rec)  # [R] in depth order
@@ -211,100 +224,142 @@ def _bin_tiles(rect: torch.Tensor, width: int, tile_size: int) -> _Tiling:
     tx = tx0[owner] + local % ntx_r
     ty = ty0[owner] + local // ntx_r
     tile, order = torch.sort((ty * tiles_x + tx).int(), stable=True)  # stable: depth order kept per tile
+    tile = tile.long()
     owner, tx, ty = owner[order], tx[order], ty[order]
-    rx0 = torch.maximum(x0[owner], tx * tile_size)
-    rx1 = torch.minimum(x1[owner], tx * tile_size + tile_size - 1)
-    ry0 = torch.maximum(y0[owner], ty * tile_size)
-    ry1 = torch.minimum(y1[owner], ty * tile_size + tile_size - 1)
-    wx = rx1 - rx0 + 1
-    count = wx * (ry1 - ry0 + 1)
-    # chunks: runs of whole tiles with about _PAIR_BUDGET pairs each
-    ends = torch.cumsum(count, 0)
+    rx0 = torch.maximum(x0[owner], tx * ts)
+    rx1 = torch.minimum(x1[owner], tx * ts + ts - 1)
+    ry0 = torch.maximum(y0[owner], ty * ts)
+    ry1 = torch.minimum(y1[owner], ty * ts + ts - 1)
+    count = (rx1 - rx0 + 1) * (ry1 - ry0 + 1)  # candidate pixels, the chunks' cost estimate
+    # chunks: runs of whole tiles with about _PAIR_BUDGET candidate pairs and at most max_span tiles each
     tile_first = torch.ones_like(tile, dtype=torch.bool)
     tile_first[1:] = tile[1:] != tile[:-1]
     first_idx = tile_first.nonzero().squeeze(1)  # record index where each tile begins
-    bucket = ((ends - count)[first_idx] // _PAIR_BUDGET).tolist()
-    first_idx_l, ends_l = first_idx.tolist(), ends.tolist()
-    chunks: list[tuple[int, int, int]] = []
-    r_begin = 0
-    for i in range(1, len(first_idx_l) + 1):
-        if i == len(first_idx_l) or bucket[i] != bucket[i - 1]:
-            r_end = first_idx_l[i] if i < len(first_idx_l) else owner.numel()
-            chunks.append((r_begin, r_end, ends_l[r_end - 1] - (ends_l[r_begin - 1] if r_begin else 0)))
-            r_begin = r_end
-    return _Tiling(ids.index_select(0, owner), rx0, ry0, wx, count, chunks)
+    before = (torch.cumsum(count, 0) - count)[first_idx]
+    starts, tiles, before = first_idx.tolist(), tile.index_select(0, first_idx).tolist(), before.tolist()
+    n_tiles, total = len(starts), int(count.sum()) if count.numel() else 0
+    starts.append(owner.numel())
+    before.append(total)
+    max_span = max(1, _KEY_LIMIT // tp)
+    chunks: list[tuple[int, int, int, int]] = []
+    c = 0
+    for i in range(1, n_tiles + 1):
+        if i == n_tiles or tiles[i] - tiles[c] >= max_span or before[i + 1] - before[c] > _PAIR_BUDGET:
+            chunks.append((starts[c], starts[i], tiles[c], tiles[i - 1] + 1))
+            c = i
+    # key of (x, y) in its chunk: (tile - t0) * tp + (y - ty * ts) * ts + (x - tx * ts)
+    t0_rec = torch.zeros_like(tile)
+    if chunks:
+        bounds = torch.tensor([ch[0] for ch in chunks], device=dev)
+        t0s = torch.tensor([ch[2] for ch in chunks], device=dev)
+        t0_rec = t0s.index_select(0, torch.searchsorted(bounds, torch.arange(tile.numel(), device=dev), right=True) - 1)
+    key_base = (tile - t0_rec) * tp - ty * ts * ts - tx * ts
+    return _Tiling(ids.index_select(0, owner), rx0, rx1, ry0, ry1 - ry0 + 1, key_base, chunks, ts, tiles_x, tiles_y)
 
 
 @dataclass
 class _Pairs:
-    """The candidate (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by
-    (pixel, depth)."""
+    """The (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by (pixel, depth).
+
+    Pairs that are not drawn (``T`` below ``TRANSMITTANCE_MIN``) keep ``w = 0``; a few candidates at
+    the edge of the alpha ellipse with alpha < ALPHA_MIN are kept with ``alpha = w = 0`` and
+    ``frozen`` (no gradient), which changes nothing."""
 
     gauss: torch.Tensor  # [P] int32
-    pix: torch.Tensor  # [P] int32 flat pixel index y * W + x
-    dx: torch.Tensor  # [P] pixel centre - mean, x
-    dy: torch.Tensor  # [P]
-    alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G), all >= ALPHA_MIN
-    clamped: torch.Tensor  # [P] bool, alpha hit ALPHA_MAX
-    t_before: torch.Tensor  # [P] transmittance in front of the splat
-    drawn: torch.Tensor  # [P] bool, T after the splat stays >= TRANSMITTANCE_MIN
-    seg_end: torch.Tensor  # [P] int32 index of the last pair of the same pixel
+    key: torch.Tensor  # [P] int32 chunk-local tile-major pixel
+    alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G), or 0
+    w: torch.Tensor  # [P] alpha T_before if drawn, else 0
+    frozen: torch.Tensor  # [P] bool: alpha clamped at ALPHA_MAX or below ALPHA_MIN (no gradient)
+    crow: torch.Tensor  # [B + 1] int32 first pair of each of the chunk's B pixels (CSR row pointers)
 
     def nbytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in vars(self).values())
 
 
+# widening of the alpha >= ALPHA_MIN ellipse used to enumerate each row's candidate span (in units of
+# the exponent): a pixel is tested exactly (o G >= ALPHA_MIN) only after it is enumerated, so the
+# span must contain every pixel that passes the test despite the round-off of the working dtype
+_SPAN_SLACK = 1e-3
+
+
 def _expand_pairs(
-    tiling: _Tiling, chunk: tuple[int, int, int], means2d: torch.Tensor, conic: torch.Tensor,
-    opacity: torch.Tensor, width: int,
+    tiling: _Tiling, chunk: tuple[int, int, int, int], means2d: torch.Tensor, conic: torch.Tensor,
+    opacity: torch.Tensor,
 ) -> _Pairs:
-    r0, r1, n = chunk
+    """Enumerate one chunk's pairs (exact alpha-ellipse span per pixel row), sort them by pixel and get
+    every pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix sums)."""
+    r0, r1, t0, t1 = chunk
     dev, dtype = means2d.device, means2d.dtype
-    count = tiling.count[r0:r1].int()
+    n_keys = (t1 - t0) * tiling.tile_size**2
     g_rec = tiling.gauss[r0:r1]
-    # per record: offsets of its first pixel centre from the mean, first pixel id
-    ox = tiling.x0[r0:r1].to(dtype) + 0.5 - means2d[:, 0].index_select(0, g_rec)
-    oy = tiling.y0[r0:r1].to(dtype) + 0.5 - means2d[:, 1].index_select(0, g_rec)
-    pix0 = (tiling.y0[r0:r1] * width + tiling.x0[r0:r1]).int()
-    # expand to pairs, int32 and temporaries freed early to keep the peak low (gathers by the record
-    # index are monotone, hence cache-friendly)
-    rec = torch.repeat_interleave(torch.arange(r1 - r0, device=dev, dtype=torch.int32), count)  # [n]
-    first_of_rec = torch.cumsum(count, 0, dtype=torch.int32) - count
-    local = torch.arange(n, device=dev, dtype=torch.int32) - first_of_rec.index_select(0, rec)
-    wx = tiling.wx[r0:r1].int().index_select(0, rec)
-    ly = local // wx
-    lx = local - ly * wx
-    del local, wx
-    pix = pix0.index_select(0, rec) + ly * width + lx  # [n] int32
-    dx = ox.index_select(0, rec) + lx.to(dtype)
-    dy = oy.index_select(0, rec) + ly.to(dtype)
-    del lx, ly
-    ca, cb, cc = (row.index_select(0, g_rec).index_select(0, rec) for row in conic.t())
-    o = opacity.index_select(0, g_rec).index_select(0, rec)
-    raw = o * torch.exp(-0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy)
-    del ca, cb, cc, o
-    keep = (raw >= ALPHA_MIN).nonzero().squeeze(1)
-    pix = pix.index_select(0, keep)
-    pix, order = torch.sort(pix, stable=True)  # runs per pixel, depth order kept inside each run
-    sel = keep.index_select(0, order)
-    gauss = g_rec.index_select(0, rec.index_select(0, sel)).int()
-    dx, dy, raw = dx.index_select(0, sel), dy.index_select(0, sel), raw.index_select(0, sel)
-    del rec, keep, order, sel
-    clamped = raw > ALPHA_MAX
-    alpha = torch.where(clamped, torch.full_like(raw, ALPHA_MAX), raw)
+    # rows: (record, pixel row y); the alpha ellipse dx^T conic dx / 2 <= ln(o / ALPHA_MIN) cut by the row is
+    # the span A dx^2 + B dx + C <= L (float64: rows are few, the span must be robust)
+    rows = tiling.rows[r0:r1]
+    rrow = torch.repeat_interleave(torch.arange(r1 - r0, device=dev), rows)  # [Nr]
+    y = tiling.y0[r0:r1].index_select(0, rrow) + (
+        torch.arange(rrow.numel(), device=dev) - (torch.cumsum(rows, 0) - rows).index_select(0, rrow))
+    g_row = g_rec.index_select(0, rrow)
+    u, v, ca, cb, cc = (t.index_select(0, g_row).double() for t in (*means2d.t(), *conic.t()))
+    o = opacity.index_select(0, g_row).double()
+    dy = y.double() + 0.5 - v
+    a_q, b_q, c_q = 0.5 * ca, cb * dy, 0.5 * cc * dy * dy
+    level = torch.log(o / ALPHA_MIN)
+    disc = b_q * b_q - 4 * a_q * (c_q - level - _SPAN_SLACK * (1 + level))
+    half = torch.sqrt(disc.clamp(min=0)) / (2 * a_q)
+    centre = u - 0.5 - b_q / (2 * a_q)  # x of the span's centre, in pixel indices
+    lo_rec, hi_rec = tiling.x0[r0:r1].index_select(0, rrow), tiling.x1[r0:r1].index_select(0, rrow)
+    x_lo = torch.maximum(torch.ceil(centre - half).clamp(-1, 1 << 30).long(), lo_rec)
+    x_hi = torch.minimum(torch.floor(centre + half).clamp(-1, 1 << 30).long(), hi_rec)
+    width = torch.where(disc >= 0, (x_hi - x_lo + 1).clamp(min=0), torch.zeros_like(x_lo))
+    # per row, in the working dtype: dx of the first pixel and the exponent's coefficients
+    dx0 = (x_lo.double() + 0.5 - u).to(dtype)
+    a_w, b_w, c_w = a_q.to(dtype), b_q.to(dtype), (c_q - torch.log(o)).to(dtype)
+    key0 = (tiling.key_base[r0:r1].index_select(0, rrow) + y * tiling.tile_size + x_lo).int()
+    g_row = g_row.int()
+    del rrow, y, u, v, ca, cb, cc, o, dy, a_q, b_q, c_q, level, disc, half, centre, lo_rec, hi_rec, x_hi
+    # pairs (row-major): alpha = o exp(-0.5 dx^T conic dx) = exp(-(dx (A dx + B) + C - ln o))
+    n = int(width.sum())
+    rp = torch.repeat_interleave(torch.arange(width.numel(), device=dev, dtype=torch.int32), width, output_size=n)
+    lx = torch.arange(n, device=dev, dtype=torch.int32) - (torch.cumsum(width, 0) - width).int().index_select(0, rp)
+    dx = dx0.index_select(0, rp).add_(lx)
+    raw = torch.exp_(dx.mul(a_w.index_select(0, rp)).add_(b_w.index_select(0, rp)).mul_(dx).add_(c_w.index_select(0, rp)).neg_())
+    del dx
+    key = key0.index_select(0, rp).add_(lx)
+    del lx
+    key, order = torch.sort(key.to(torch.int16) if n_keys <= _KEY_LIMIT else key, stable=True)  # depth order kept
+    key = key.int()
+    gauss = g_row.index_select(0, rp.index_select(0, order))
+    raw = raw.index_select(0, order)
+    del rp, order
+    below = raw < ALPHA_MIN
+    frozen = below | (raw > ALPHA_MAX)
+    alpha = raw.clamp_(max=ALPHA_MAX).masked_fill_(below, 0.0)
     # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
+    crow = torch.zeros(n_keys + 1, dtype=torch.int32, device=dev)
+    torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=crow[1:])
     log_t = torch.log1p(-alpha).double()  # transcendentals in the working dtype (float64 ones are slow)
-    first = torch.ones_like(pix, dtype=torch.bool)
-    first[1:] = pix[1:] != pix[:-1]
-    starts = first.nonzero().squeeze(1)
-    seg = torch.cumsum(first, 0) - 1
     excl = torch.cumsum(log_t, 0).sub_(log_t)
-    log_before = excl.index_select(0, starts).index_select(0, seg).neg_().add_(excl)
-    del excl
-    t_before = torch.exp(log_before.to(dtype))
-    drawn = (log_before + log_t) >= torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=torch.float64))
-    seg_end = torch.cat([starts[1:] - 1, starts.new_tensor([pix.numel() - 1])]).index_select(0, seg).int()
-    return _Pairs(gauss, pix, dx, dy, alpha, clamped, t_before, drawn, seg_end)
+    log_before = excl.sub_(excl.index_select(0, crow.index_select(0, key)))
+    drawn = (log_before + log_t) >= _LOG_T_MIN
+    w = torch.exp(log_before.to(dtype)).mul_(alpha).mul_(drawn)
+    return _Pairs(gauss, key, alpha, w, frozen, crow)
+
+
+_LOG_T_MIN = float(torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=torch.float64)))
+
+
+def _to_tiles(img: torch.Tensor, tiling: _Tiling, width: int, height: int) -> torch.Tensor:
+    """``[C, H * W]`` row-major pixels -> ``[C, tiles * ts^2]`` tile-major (padding pixels zero)."""
+    ts, nx, ny = tiling.tile_size, tiling.tiles_x, tiling.tiles_y
+    padded = torch.nn.functional.pad(img.reshape(-1, height, width), (0, nx * ts - width, 0, ny * ts - height))
+    return padded.reshape(-1, ny, ts, nx, ts).permute(0, 1, 3, 2, 4).reshape(img.shape[0], -1).contiguous()
+
+
+def _from_tiles(tm: torch.Tensor, tiling: _Tiling, width: int, height: int) -> torch.Tensor:
+    """``[tiles * ts^2, C]`` tile-major -> ``[C, H * W]`` row-major."""
+    ts, nx, ny = tiling.tile_size, tiling.tiles_x, tiling.tiles_y
+    img = tm.reshape(ny, nx, ts, ts, -1).permute(4, 0, 2, 1, 3).reshape(-1, ny * ts, nx * ts)
+    return img[:, :height, :width].reshape(tm.shape[1], -1)
 
 
 class _Composite(torch.autograd.Function):
@@ -312,72 +367,79 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conic, opacity, feats, tiling, width, height):  # type: ignore[override]
-        hw, nf = width * height, feats.shape[1]
-        out = feats.new_zeros(nf, hw)
+        tp = tiling.tile_size**2
+        out = feats.new_zeros(tiling.tiles_x * tiling.tiles_y * tp, feats.shape[1])  # tile-major [T ts^2, F]
         cached: list[_Pairs | None] = []
         cache_left = _CACHE_BYTES if any(ctx.needs_input_grad[:4]) else 0
         for chunk in tiling.chunks:
             with torch.profiler.record_function("splatter.expand_pairs"):
-                p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
+                p = _expand_pairs(tiling, chunk, means2d, conic, opacity)
             with torch.profiler.record_function("splatter.accumulate"):
-                w = p.alpha * p.t_before * p.drawn
-                # out[pix] += w feats[gauss]: the pairs are sorted by pixel, i.e. a CSR matrix [HW, M]
-                crow = torch.zeros(hw + 1, dtype=p.pix.dtype, device=w.device)
-                crow[1:] = torch.cumsum(torch.bincount(p.pix, minlength=hw), 0)
+                # out[pixel] += w feats[gauss]: the pairs are sorted by pixel, i.e. a CSR matrix [B, M]
+                n_keys = p.crow.numel() - 1
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-                    weights = torch.sparse_csr_tensor(crow, p.gauss, w, (hw, feats.shape[0]), check_invariants=False)
-                    out += (weights @ feats).t()
+                    weights = torch.sparse_csr_tensor(p.crow, p.gauss, p.w, (n_keys, feats.shape[0]), check_invariants=False)
+                    out[chunk[2] * tp:chunk[3] * tp] = weights @ feats
             keep = p.nbytes() <= cache_left
             cache_left -= p.nbytes() if keep else 0
             cached.append(p if keep else None)
-        ctx.tiling, ctx.width, ctx.cached = tiling, width, cached
+        ctx.tiling, ctx.width, ctx.height, ctx.cached = tiling, width, height, cached
         ctx.save_for_backward(means2d, conic, opacity, feats)
-        return out
+        return _from_tiles(out, tiling, width, height)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out):  # type: ignore[override]
         means2d, conic, opacity, feats = ctx.saved_tensors
-        tiling, width = ctx.tiling, ctx.width
-        grad_out = grad_out.contiguous()
+        tiling, width, height = ctx.tiling, ctx.width, ctx.height
+        tp, ts = tiling.tile_size**2, tiling.tile_size
         nf = feats.shape[1]
+        grad_tm = _to_tiles(grad_out, tiling, width, height)  # [F, T ts^2]
         feats_t = feats.t().contiguous()
         g_feats = torch.zeros_like(feats_t)  # [F, M]
+        need_uv = ctx.needs_input_grad[0]
         g_geo = means2d.new_zeros(6, means2d.shape[0])  # u, v, conic a, b, c, opacity
-        conic_t = conic.t().contiguous()  # [3, M]
+        geo_t = torch.cat([means2d.t(), conic.t()]).contiguous()  # [5, M]
         for i, chunk in enumerate(tiling.chunks):
             p = ctx.cached[i]
             if p is None:
                 with torch.profiler.record_function("splatter.expand_pairs"):
-                    p = _expand_pairs(tiling, chunk, means2d, conic, opacity, width)
+                    p = _expand_pairs(tiling, chunk, means2d, conic, opacity)
             with torch.profiler.record_function("splatter.backward_pairs"):
-                w = p.alpha * p.t_before * p.drawn
+                t0, t1 = chunk[2], chunk[3]
+                grad_c = grad_tm[:, t0 * tp:t1 * tp]
+                gauss, key, w = p.gauss, p.key, p.w
                 f = torch.zeros_like(w)  # dL/dw per pair: feats . grad_out at the pixel
                 for k in range(nf):
-                    g_pix = grad_out[k].index_select(0, p.pix)
-                    f += feats_t[k].index_select(0, p.gauss) * g_pix
-                    g_feats[k].index_add_(0, p.gauss, w * g_pix)
-                # dL/dalpha_k = T_k f_k - (sum_{j > k} w_j f_j) / (1 - alpha_k): reverse segmented scan
-                wf = (w * f).double()
-                csum = torch.cumsum(wf, 0)
-                behind = (csum.index_select(0, p.seg_end) - csum).to(w.dtype)
-                g_alpha = (p.t_before * f - behind / (1 - p.alpha)) * p.drawn
-                g_pow = torch.where(p.clamped, torch.zeros_like(g_alpha), g_alpha * p.alpha)  # dalpha/dpower = alpha
-                ca, cb, cc = (row.index_select(0, p.gauss) for row in conic_t)
-                o = opacity.index_select(0, p.gauss)
-                dx, dy = p.dx, p.dy
-                per_pair = (
-                    g_pow * (ca * dx + cb * dy),  # d power / d u = -d power / d dx
-                    g_pow * (cb * dx + cc * dy),
-                    -0.5 * g_pow * dx * dx,
-                    -g_pow * dx * dy,
-                    -0.5 * g_pow * dy * dy,
-                    g_pow / o,  # alpha = o G  ->  d alpha / d o = G = alpha / o (o > 0 since alpha >= 1/255)
-                )
-                for k, val in enumerate(per_pair):
-                    g_geo[k].index_add_(0, p.gauss, val)
-        g_means2d = g_geo[:2].t()
+                    g_pix = grad_c[k].index_select(0, key)
+                    f.addcmul_(feats_t[k].index_select(0, gauss), g_pix)
+                    g_feats[k].index_add_(0, gauss, g_pix.mul_(w))
+                # dL/dalpha_k = T_k f_k - (sum_{j > k} w_j f_j) / (1 - alpha_k): reverse segmented scan; then
+                # dL/dpower = alpha dL/dalpha = w f - alpha / (1 - alpha) sum_{j > k} w_j f_j (0 where frozen)
+                wf = f.mul_(w)
+                csum = torch.cumsum(wf.double(), 0)
+                csum_end = csum.index_select(0, (p.crow[1:] - 1).clamp_(min=0))  # [B] per pixel
+                behind = csum_end.index_select(0, key).sub_(csum).to(w.dtype)
+                g_pow = wf.sub_(behind.mul_(p.alpha).div_(1 - p.alpha)).masked_fill_(p.frozen, 0.0)
+                del f, csum, csum_end, behind
+                # pixel centre - mean, the centres from a table over the chunk's pixels
+                cells = torch.arange(t0 * tp, t1 * tp, device=key.device)
+                tile, in_tile = cells // tp, cells % tp
+                xc = ((tile % tiling.tiles_x) * ts + in_tile % ts).to(w.dtype).add_(0.5)
+                yc = ((tile // tiling.tiles_x) * ts + in_tile // ts).to(w.dtype).add_(0.5)
+                gu, gv, ca, cb, cc = (row.index_select(0, gauss) for row in geo_t)
+                dx, dy = xc.index_select(0, key).sub_(gu), yc.index_select(0, key).sub_(gv)
+                del cells, tile, in_tile, xc, yc, gu, gv
+                if need_uv:  # d power / d u = -d power / d dx
+                    g_geo[0].index_add_(0, gauss, (ca * dx).addcmul_(cb, dy).mul_(g_pow))
+                    g_geo[1].index_add_(0, gauss, (cc * dy).addcmul_(cb, dx).mul_(g_pow))
+                g_geo[2].index_add_(0, gauss, dx * dx * g_pow, alpha=-0.5)
+                g_geo[3].index_add_(0, gauss, dx * dy * g_pow, alpha=-1.0)
+                g_geo[4].index_add_(0, gauss, dy * dy * g_pow, alpha=-0.5)
+                # alpha = o G  ->  d alpha / d o = G = alpha / o (o > 0 where alpha >= 1/255)
+                g_geo[5].index_add_(0, gauss, g_pow.div_(opacity.index_select(0, gauss)))
+        g_means2d = g_geo[:2].t() if need_uv else None
         g_conic = g_geo[2:5].t()
         return g_means2d, g_conic, g_geo[5], g_feats.t(), None, None, None
 
@@ -497,7 +559,7 @@ def rasterize(
         sel, idx = on_screen[order], idx[order]
         z = z[order]
         feats = torch.cat([colors[idx], z.unsqueeze(-1), torch.ones_like(z).unsqueeze(-1)], dim=-1)  # [M, 5]
-        tiling = _bin_tiles(candidates[sel], width, tile_size)
+        tiling = _bin_tiles(candidates[sel], width, height, tile_size)
     out = _Composite.apply(means2d[sel], conic[sel], opacities[idx], feats, tiling, width, height)
     out = out.reshape(5, height, width)
     alpha = out[4:5]
