@@ -39,6 +39,14 @@ def _positive_int(name: str, value: Any) -> int:
     return int(value)
 
 
+def _nonnegative_int(name: str, value: Any) -> int:
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 0:
+        raise InputValueError(f"{name} must be an int >= 0, got {value!r}")
+    return int(value)
+
+
 @dataclass(frozen=True)
 class RuntimeState:
     """What the headset does to the image at run time.
@@ -146,7 +154,9 @@ class Camera:
     @classmethod
     def from_scaffold(cls, viewpoint_camera: Any) -> "Camera":
         """Convert a Scaffold-GS / 3DGS ``Camera`` (``world_view_transform`` is the transposed
-        world-to-camera, ``FoVx``/``FoVy`` in radians, ``image_width``/``image_height``)."""
+        world-to-camera, ``FoVx``/``FoVy`` in radians, ``image_width``/``image_height``; principal
+        point at the image centre ``(w/2, h/2)`` as its projection matrix puts it). Its ``uid`` (the
+        training-camera index that picks the appearance code) goes to ``extra["uid"]``."""
         w2c = viewpoint_camera.world_view_transform.detach().transpose(0, 1).float().cpu()
         w = _positive_int("image_width", viewpoint_camera.image_width)
         h = _positive_int("image_height", viewpoint_camera.image_height)
@@ -156,7 +166,8 @@ class Camera:
                 raise InputValueError(f"{name} must be a field of view in (0, pi) radians, got {fov!r}")
         fx, fy = (n / (2.0 * math.tan(f / 2.0)) for n, f in zip((w, h), fovs))
         k = torch.tensor([[fx, 0.0, w / 2.0], [0.0, fy, h / 2.0], [0.0, 0.0, 1.0]])
-        return cls(w2c, k, w, h)
+        uid = getattr(viewpoint_camera, "uid", None)
+        return cls(w2c, k, w, h, {} if uid is None else {"uid": _nonnegative_int("uid", uid)})
 
 
 def _check_intrinsics(k: torch.Tensor) -> None:
