@@ -18,7 +18,7 @@ import torch
 
 from controlgs_adapter.errors import FileFormatError
 
-__all__ = ["read_ply", "write_ply", "parse_cfg_args", "read_cfg_args", "load_state_dict_file", "load_torchscript",
+__all__ = ["read_ply", "ply_field_names", "write_ply", "parse_cfg_args", "read_cfg_args", "load_state_dict_file", "load_torchscript",
            "load_torchscript_tensors", "require_fields"]
 
 _PLY_TYPES = {
@@ -94,6 +94,13 @@ def _ply_header(f: Any, path: Path) -> tuple[str, int, list[tuple[str, str]], li
     if not props and count:
         raise FileFormatError(f"{path}: the 'vertex' element declares {count} vertices but no properties")
     return fmt, count, props, comments
+
+
+def ply_field_names(path: str | os.PathLike) -> list[str]:
+    """Vertex property names from a PLY header (the data is not read)."""
+    with open(path, "rb") as f:
+        _, _, props, _ = _ply_header(f, Path(path))
+    return [name for name, _ in props]
 
 
 def read_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], list[str]]:

@@ -20,7 +20,7 @@ from typing import Any
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
 
-from .formats import _ply_header
+from .formats import ply_field_names
 
 __all__ = ["FAMILIES", "detect_family", "load_model_dir"]
 
@@ -50,13 +50,6 @@ def _iteration_folder(root: Path, iteration: int | None) -> Path | None:
     return found[max(found)] if found else None
 
 
-def _ply_fields(ply: Path) -> list[str]:
-    """Vertex property names from the PLY header (the data is not read)."""
-    with open(ply, "rb") as f:
-        _, _, props, _ = _ply_header(f, ply)
-    return [name for name, _ in props]
-
-
 def _unrecognised(root: Path, found: str) -> FileFormatError:
     needs = "; ".join(f"{name}: {what}" for name, what in FAMILIES.items())
     return FileFormatError(f"{root}: not a trained model folder of a supported family ({found}). Each family needs: {needs}")
@@ -76,7 +69,7 @@ def detect_family(path: str | Path, *, iteration: int | None = None) -> str:
     ply = folder / "point_cloud.ply"
     if not ply.is_file():
         raise _unrecognised(root, f"no {ply.relative_to(root)}")
-    fields = _ply_fields(ply)
+    fields = ply_field_names(ply)
     files = [n for n in _FILES if (folder / n).is_file()]
 
     def has(prefix: str) -> bool:

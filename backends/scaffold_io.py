@@ -35,8 +35,8 @@ from torch import nn
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.io import atomic_write, folder_mode
 
-from .formats import (load_state_dict_file, load_torchscript, load_torchscript_tensors, read_cfg_args, read_ply,
-                      require_fields, write_ply)
+from .formats import (load_state_dict_file, load_torchscript, load_torchscript_tensors, ply_field_names, read_cfg_args,
+                      read_ply, require_fields, write_ply)
 from .family_common import iteration_dir
 from .reference_model import NeuralGaussianModel, median_spacing
 
@@ -292,6 +292,20 @@ def _infer_options(anchors: dict[str, np.ndarray], dec: _Decoders, cfg: dict[str
     return opts
 
 
+def _refuse_octree(root: Path, ply: Path, cfg: dict[str, Any]) -> None:
+    """An Octree-GS / Octree-AnyGS folder has Scaffold-GS's files plus levels of detail: loading it
+    flat would decode every level at once, so it is refused naming its loader."""
+    fields = set(ply_field_names(ply)) if ply.is_file() else set()
+    signs = sorted(fields & {"level", "extra_level", "info"})
+    signs += [f"cfg_args {k}" for k in ("fork", "dist2level", "add_level") if k in cfg]
+    if (root / "config.yaml").is_file():
+        signs.append("config.yaml")
+    if signs:
+        raise FileFormatError(f"{root}: an Octree-GS / Octree-AnyGS output folder ({', '.join(signs)}), not a flat "
+                              "Scaffold-GS one: load it with controlgs_adapter.backends.octree_gs.load_octree_gs_dir "
+                              "or controlgs_adapter.backends.load_model_dir (levels of detail selected per view)")
+
+
 def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
                       device: str | torch.device = "cpu", trust_code: bool = False) -> NeuralGaussianModel:
     """Load a Scaffold-GS output directory as a :class:`NeuralGaussianModel` (eager decoders).
@@ -321,6 +335,7 @@ def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
     folder = iteration_dir(root, None if iteration is None else int(iteration), family="Scaffold-GS")
     cfg_path = root / "cfg_args"
     cfg = read_cfg_args(cfg_path) if cfg_path.is_file() else {}
+    _refuse_octree(root, folder / "point_cloud.ply", cfg)
     anchors = _read_anchors(folder / "point_cloud.ply")
     dec = _Decoders(folder, trust_code)
     opts = _infer_options(anchors, dec, cfg, str(cfg_path))

@@ -18,6 +18,7 @@ from controlgs_adapter.backends.contextgs import ContextGSBackend
 from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend, OctreeGSModel, load_octree_gs_dir, lod_anchor_ids
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
+from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
 from controlgs_adapter.errors import FileFormatError, ShapeError, TargetError
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace/load: the format under test
@@ -168,6 +169,14 @@ def test_loading_errors(tmp_path):
     write_cfg_args(root2 / "cfg_args", **{**CFG, "add_level": False})  # widths no longer fit the configuration
     with pytest.raises(FileFormatError, match="mlp_opacity takes 37 inputs"):
         load_octree_gs_dir(root2)
+
+
+def test_scaffold_loader_refuses_an_octree_folder(tmp_path):
+    """load_scaffold_dir would decode every level of detail at once: it names the Octree-GS loader."""
+    gen = torch.Generator().manual_seed(4)
+    root = _write_dir(tmp_path / "s", _arrays(4), _decoders(gen))
+    with pytest.raises(FileFormatError, match=r"level, .*load_octree_gs_dir.*load_model_dir"):
+        load_scaffold_dir(root)
 
 
 def test_decode_matches_reference_scaffold_and_renders():
