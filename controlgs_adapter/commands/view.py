@@ -29,6 +29,8 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--test-views", type=int, default=None, help="offer only the first N test views")
     p.add_argument("--iterations", type=int, default=QUICK_ITERATIONS,
                    help="built-in scene without --run: iterations of the quick adapter trained before serving")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch intra-op threads on the CPU (default: torch's; 1 can be faster on a busy machine)")
     add_data_arguments(p)
     p.set_defaults(func=run)
 
@@ -73,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     from controlgs_adapter.viewer import ViewerSession, make_server
 
     check_number("--port", args.port, integer=True, low=0, high=65535)
+    if args.threads is not None:
+        torch.set_num_threads(int(check_number("--threads", args.threads, integer=True, low=1)))
     run_dir = None if args.run is None else Path(args.run)
     if run_dir is not None:
         if not run_dir.is_dir():
