@@ -317,3 +317,40 @@ def test_cli_view_user_errors(tmp_path: Any, capsys: pytest.CaptureFixture[str])
     assert "no controlgs.controlgs.safetensors" in capsys.readouterr().err
     assert main(["view", "--port", "70000"]) == 2
     assert "--port must be an integer in [0, 65535]" in capsys.readouterr().err
+
+
+def test_cli_view_on_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``controlgs view --run RUN`` on a COLMAP capture of non-square views and the built-in backbone's
+    Scaffold-GS folder (model and data from RUN/run.json); the server's loop is replaced by two renders."""
+    from _scene_writers import write_colmap
+    from controlgs_adapter.backends import load_model_dir
+    from controlgs_adapter.cli import main
+    from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
+    from controlgs_adapter.state import Camera
+    from controlgs_adapter.viewer.server import ViewerServer
+
+    scene = load_builtin_scene("ar", 32, views=8, test_every=8, samples=1)
+    cams, images = [], []
+    for c, img in zip(scene.test_cameras + scene.train_cameras, torch.cat([scene.test_images, scene.train_images])):
+        k = c.intrinsics.clone()
+        k[1, 2] -= 4
+        cams.append(Camera(c.world_to_camera, k, 32, 24))
+        images.append(img[:, 4:28].contiguous())
+    data, run, model_dir = write_colmap(tmp_path / "colmap", cams, images), tmp_path / "run", builtin_backbone_dir("ar")
+    run.mkdir()
+    random_adapter(load_model_dir(model_dir), run / "controlgs.controlgs.safetensors")
+    (run / "run.json").write_text(json.dumps({"model": str(model_dir), "data": str(data), "resolution": 32}))
+    seen: list[dict[str, Any]] = []
+
+    def two_renders(self: ViewerServer, poll_interval: float = 0.5) -> None:
+        seen.append(self.session.render(parse_state({"downsample": 2.0}, len(self.session.cameras))))
+        seen.append(self.session.render(parse_state({"azimuth": 15.0}, len(self.session.cameras))))
+
+    monkeypatch.setattr(ViewerServer, "serve_forever", two_renders)
+    assert main(["view", "--run", str(run), "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "serving on http://127.0.0.1:" in out and "methods no_ss, ss, controlgs" in out
+    dataset, orbit = seen
+    assert dataset["size"] == [32, 24] and dataset["has_truth"] and dataset["methods"][2]["metrics"]["psnr"] > 10
+    assert decode(dataset["methods"][2]["eye"]).shape == (24, 32, 3)
+    assert not orbit["has_truth"] and orbit["methods"][2]["metrics"] is None  # your data: no ground truth off the views
