@@ -195,7 +195,12 @@ class CompGSModel(nn.Module):
 
     @torch.no_grad()
     def visible_anchors(self, camera: Camera) -> torch.Tensor:
-        """``[A]`` bool: CompGS's prefilter (anchors as Gaussians with scales ``exp(scale[:, :3])``)."""
+        """``[A]`` bool: CompGS's prefilter (anchors as Gaussians with scales ``exp(scale[:, :3])``).
+
+        As its ``render_inference`` on decoded values: the training-time ``render`` first quantises
+        the scales with the hyper-prior entropy model (``anchor_primitive_scales``), which is not
+        reimplemented (as for the features, :meth:`decode`); on the stored values that step can only
+        change the visibility of anchors whose footprint touches the image border."""
         p = self.gaussian_params
         return anchor_visibility(camera, p.means, torch.exp(p.scales_before_exp[:, :3]), p.rotations_before_norm)
 

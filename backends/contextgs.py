@@ -31,12 +31,13 @@ import torch
 
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.state import Camera
 
-from .family_common import as_param, check_first_width, has_attrs, iteration_dir
+from .family_common import anchor_visibility, as_param, check_first_width, has_attrs, iteration_dir
 from .formats import load_state_dict_file, read_cfg_args
 from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, anchor_tensors, decoders_from_checkpoint,
                   drop_invalid, read_masked_anchor_ply, resolve_decoded)
-from .scaffold_gs import ScaffoldGSBackend
+from .scaffold_gs import ATTRIBUTE_DECODERS, ScaffoldGSBackend
 
 __all__ = ["ContextGSBackend", "ContextGSModel", "load_contextgs_dir", "quantize_anchor"]
 
@@ -61,6 +62,10 @@ class ContextGSBackend(HACBackend):
     def matches(self, model: Any) -> bool:
         return ScaffoldGSBackend.matches(self, model) and has_attrs(model, ("_mask", *CONTEXTGS_MARKERS))
 
+    def decoder_paths(self, model: Any) -> list[str]:
+        """The three attribute decoders: ContextGS's renderer never calls ``mlp_feature_bank``."""
+        return list(ATTRIBUTE_DECODERS)
+
 
 class ContextGSModel(MaskedAnchorModel):
     """Stand-in for ContextGS's ``GaussianModel`` at evaluation (see :class:`MaskedAnchorModel`),
@@ -80,6 +85,16 @@ class ContextGSModel(MaskedAnchorModel):
         self.register_buffer("x_bound_max", None if x_bound_max is None else x_bound_max.float().reshape(1, 3).clone())
         self.latent_codec = None
         self.mlp_grid = None
+        # ContextGS's prefilter gives every anchor the rotation of the model's anchor 0 (row 0 of the
+        # file: kept here before invalid anchors are dropped)
+        self.register_buffer("prefilter_rotation", self._rotation[:1].detach().clone())
+
+    @torch.no_grad()
+    def visible_anchors(self, camera: Camera) -> torch.Tensor:
+        """``[A]`` bool: ContextGS's ``prefilter_voxel``: anchors as Gaussians as in HAC, but with the
+        rotation of its anchor 0 (``rotations[[0], :].repeat(...)``) for every anchor."""
+        rot = self.prefilter_rotation.to(self._rotation).expand(self._anchor.shape[0], 4)
+        return anchor_visibility(camera, self.get_anchor, self.get_scaling[:, :3], rot)
 
     @property
     def get_anchor(self) -> torch.Tensor:
@@ -111,7 +126,7 @@ def load_contextgs_dir(path: str | Path, iteration: int | None = None, *, decode
                                  why="with its anchor-level context model (latent_codec entropy bottleneck + mlp_grid)")
     ckpt = folder / "checkpoint.pth"
     sd = load_state_dict_file(ckpt)
-    decoders = decoders_from_checkpoint(sd, ckpt, feature_bank=bool(cfg.get("use_feat_bank", False)))
+    decoders = decoders_from_checkpoint(sd, ckpt, feature_bank=False)  # its renderer never applies the bank
     bound = sd.get("bound")
     lo = hi = None
     if bound is not None:

@@ -207,16 +207,21 @@ class HACModel(MaskedAnchorModel):
         return self._anchor if self.decoded_version else voxel_snap(self._anchor, self.voxel_size)
 
 
-def infer_decoded(scales: np.ndarray, masks: np.ndarray, *, extra_mask_column: bool) -> bool:
-    """Whether a HAC/ContextGS PLY holds the decoded model: its scales are linear (all > 0, which
-    log-scales of a trained scene are not) and its masks are 0/1 (HAC++: the extra column all 0).
+def infer_decoded(scales: np.ndarray, masks: np.ndarray, *, extra_mask_column: bool) -> bool | None:
+    """Whether a HAC/ContextGS PLY holds the decoded model, from what their codecs write: offset masks
+    exactly 0/1 (a binary arithmetic coder; HAC++'s extra column is filled with 0) and linear scales
+    ``round(s / Q) * Q`` with a step Q of about 1e-3, hence >= 0 and exactly 0 where a scale is
+    below Q / 2. A raw model holds mask logits and log scales. Returns True (decoded), False (raw:
+    some mask is not 0/1) or None (0/1 masks with negative scales: the file does not tell).
     All-zero rows (the zero padding of decoded HAC/ContextGS models) are left out of the test."""
     padding = (masks == 0).all(axis=1) & (scales == 0).all(axis=1)
     masks, scales = masks[~padding], scales[~padding]
     binary = bool(np.isin(masks, (0.0, 1.0)).all())
     if extra_mask_column:
         binary = binary and bool((masks[:, -1] == 0).all())
-    return bool((scales > 0).all()) and binary
+    if not binary:
+        return False
+    return True if bool((scales >= 0).all()) else None
 
 
 def decoders_from_checkpoint(sd: dict[str, Any], path: Path, *, feature_bank: bool) -> dict[str, nn.Module]:
@@ -265,15 +270,25 @@ def read_masked_anchor_ply(ply: Path, *, n_offsets: int, feat_dim: int,
 
 def resolve_decoded(decoded: bool | None, arrays: dict[str, np.ndarray], *, extra_mask_column: bool, allow_unquantized: bool,
                     source: str, family: str, why: str) -> bool:
-    """Resolve decoded-vs-raw (explicit, else inferred) and refuse a raw model unless allowed."""
+    """Resolve decoded-vs-raw (explicit, else inferred by :func:`infer_decoded`) and refuse a raw
+    model unless allowed. A file that does not tell is refused whatever ``allow_unquantized`` says:
+    reading decoded linear scales as log scales (or the reverse) would be silently wrong."""
     if decoded is None:
         decoded = infer_decoded(arrays["scaling"], arrays["mask"][:, :, 0], extra_mask_column=extra_mask_column)
+        if decoded is None:
+            negative = int((arrays["scaling"] < 0).sum())
+            raise FileFormatError(
+                f"{source}: cannot tell whether this {family} model is decoded: its masks are 0/1 as the codec writes "
+                f"them, but {negative} scale_* value(s) are negative (decoded scales are linear, >= 0). Pass "
+                f"decoded=True if training wrote it with run_codec=True (linear scales), decoded=False for a raw "
+                f"checkpoint (log scales; also needs allow_unquantized=True)")
     if not decoded and not allow_unquantized:
         raise FileFormatError(
-            f"{source}: holds the raw (not decoded) {family} model (log scales / mask logits). Its evaluation "
-            f"quantises features {why}, which this library does not reimplement. Use the decoded PLY that training "
-            f"writes with run_codec=True (the default), wrap the live model object, or pass allow_unquantized=True "
-            f"to decode the stored features unquantised (differs from {family}'s own evaluation)."
+            f"{source}: holds the raw (not decoded) {family} model (mask logits and log scales, not the 0/1 masks and "
+            f"linear scales its codec writes). Its evaluation quantises features {why}, which this library does not "
+            f"reimplement. Use the decoded PLY that training writes with run_codec=True (the default), wrap the live "
+            f"model object, or pass allow_unquantized=True to decode the stored features unquantised (log scales "
+            f"exponentiated; differs from {family}'s own evaluation at the quantisation step)."
         )
     return bool(decoded)
 
@@ -292,13 +307,18 @@ def load_hac_dir(path: str | Path, iteration: int | None = None, *, decoded: boo
     cfg_path = root / "cfg_args"
     cfg = read_cfg_args(cfg_path)
     k, f = int(cfg.get("n_offsets", 10)), int(cfg.get("feat_dim", 50))
+    if bool(cfg.get("use_feat_bank", False)) and f % 4:
+        raise FileFormatError(
+            f"{cfg_path}: use_feat_bank=True with feat_dim={f} is not supported: the feature-bank re-weighting repeats "
+            f"every 4th feature channel 4 times, which needs feat_dim divisible by 4 ({f} channels give "
+            f"{4 * -(-f // 4)}); HAC++'s own renderer fails on it as well")
     folder = iteration_dir(root, iteration, family="HAC/HAC++")
     ply = folder / "point_cloud.ply"
     arrays = read_masked_anchor_ply(ply, n_offsets=k, feat_dim=f, mask_columns=(k, k + 1))  # HAC: K, HAC++: K + 1
     variant = "hac++" if arrays["mask"].shape[1] == k + 1 else "hac"
     is_decoded = resolve_decoded(decoded, arrays, extra_mask_column=variant == "hac++", allow_unquantized=allow_unquantized,
                                  source=str(ply), family=variant.upper(), why="with the hash grid + mlp_grid "
-                                 "(x_bound only in the pickled bitstreams/x_bound_*.pkl, which are not unpickled)")
+                                 "(interpolated inside x_bound, which bitstreams/x_bound_*.pkl hold)")
     voxel_size = float(cfg.get("voxel_size", 0.0))
     if not is_decoded and voxel_size <= 0:
         raise FileFormatError(f"{cfg_path}: voxel_size={voxel_size}: the raw model's anchors are snapped to a voxel grid "

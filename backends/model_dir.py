@@ -20,6 +20,7 @@ from typing import Any
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
 
+from .family_common import bitstreams_only
 from .formats import ply_field_names
 
 __all__ = ["FAMILIES", "detect_family", "load_model_dir"]
@@ -65,7 +66,7 @@ def detect_family(path: str | Path, *, iteration: int | None = None) -> str:
     if folder is None:
         if (root / "point_cloud" / "bitstreams.npz").is_file():
             return "compgs"  # CompGS's final compressed model: its loader says why it is refused
-        raise _unrecognised(root, "no point_cloud/iteration_<N> folder")
+        raise _unrecognised(root, "no point_cloud/iteration_<N> folder" + bitstreams_only(root))
     ply = folder / "point_cloud.ply"
     if not ply.is_file():
         raise _unrecognised(root, f"no {ply.relative_to(root)}")

@@ -109,11 +109,15 @@ class Backend:
 
         return ModelRenderer() if ModelRenderer.fits(model) else None
 
-    def fingerprint(self, model: Any) -> str:
+    def fingerprint(self, model: Any, anchor_ids: torch.Tensor | None = None) -> str:
         """SHA-256 (hex, 16 chars) over anchor positions and every decoder's weights: identifies the
-        backbone an adapter was trained on."""
+        backbone an adapter was trained on. ``anchor_ids`` (``LongTensor[R]``): hash only those
+        anchors' positions, in that order (None: all)."""
         h = hashlib.sha256()
-        pos = self.anchor_positions(model).detach().to("cpu", torch.float32).contiguous()
+        pos = self.anchor_positions(model).detach()
+        if anchor_ids is not None:
+            pos = pos.index_select(0, anchor_ids.to(pos.device))
+        pos = pos.to("cpu", torch.float32).contiguous()
         h.update(str(tuple(pos.shape)).encode())
         h.update(pos.numpy().tobytes())
         for path in self.decoder_paths(model):

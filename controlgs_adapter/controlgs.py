@@ -458,6 +458,7 @@ class ControlGS:
             "num_anchors": self.num_anchors,
             "rows_per_anchor": self.rows_per_anchor,
             "fingerprint": self.fingerprint,
+            **({} if (fp := _valid_fingerprint(self.model, self.backend)) is None else {"valid_fingerprint": fp}),
         }
 
     def save(self, path: str | Path, dtype: torch.dtype | None = None) -> Path:
@@ -507,8 +508,10 @@ class ControlGS:
                     other = "no registered backend"
                 problems.append(f"backend: the adapter was made for {spec['backend']!r}; this model is recognised by {other}")
                 backend = None
+        rows = None
         if backend is not None:
-            problems += _model_mismatches(model, backend, spec)
+            rows = _row_map(model, backend, spec)
+            problems += _model_mismatches(model, backend, spec, mapped=rows is not None)
         tensors, _ = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
         problems += _tensor_mismatches(tensors, spec)
         if problems:
@@ -518,6 +521,14 @@ class ControlGS:
                        endpoints={m: (s["lo"], s["hi"]) for m, s in spec["schedules"].items()},
                        state_blind=spec["state_blind"])
         state = cgs.injector.state_dict()
+        if rows is not None:
+            saved, (kind, index) = tensors["conditions"], rows
+            if kind == "gather":
+                tensors["conditions"] = saved.index_select(0, index.to(saved.device))
+            else:
+                full = saved.new_zeros((cgs.num_anchors, *saved.shape[1:]))
+                full[index.to(saved.device)] = saved
+                tensors["conditions"] = full
         cgs.injector.load_state_dict({k: v.to(state[k].dtype) for k, v in tensors.items()})
         return cgs
 
@@ -571,10 +582,41 @@ def _header_spec(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
     return header
 
 
-def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any]) -> list[str]:
+def _valid_fingerprint(model: Any, backend: Backend) -> str | None:
+    """Fingerprint over the anchors that produce Gaussians, for backends that tell them
+    (``valid_anchors``: HAC, ContextGS); None for the others."""
+    valid = getattr(backend, "valid_anchors", None)
+    if valid is None:
+        return None
+    return backend.fingerprint(model, valid(model).nonzero().squeeze(1))
+
+
+def _row_map(model: Any, backend: Backend, spec: dict[str, Any]) -> tuple[str, torch.Tensor] | None:
+    """How the saved condition rows map onto ``model``'s anchors when the adapter was trained on the
+    same scene with or without its invalid anchors (a live zero-padded HAC/ContextGS model vs the
+    loaded stand-in, which drops them and keeps each anchor's file row in ``source_index``):
+    ``("gather", rows)``: model anchor i takes saved row ``rows[i]``; ``("scatter", ids)``: saved
+    row j goes to model anchor ``ids[j]`` (the others stay zero, inert). None: no mapping (the
+    anchor counts agree, or nothing proves it is the same scene)."""
+    want, a, saved = spec.get("valid_fingerprint"), backend.num_anchors(model), spec["num_anchors"]
+    if not isinstance(want, str) or a == saved or getattr(backend, "valid_anchors", None) is None:
+        return None
+    source = getattr(model, "source_index", None)
+    if (isinstance(source, torch.Tensor) and source.shape == (a,) and a < saved and int(source.max()) < saved
+            and _valid_fingerprint(model, backend) == want and bool(backend.valid_anchors(model).all())):
+        return "gather", source.long()
+    ids = backend.valid_anchors(model).nonzero().squeeze(1)
+    if ids.numel() == saved and backend.fingerprint(model, ids) == want:
+        return "scatter", ids
+    return None
+
+
+def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any], *, mapped: bool = False) -> list[str]:
+    """What does not fit; ``mapped``: the anchors were matched by :func:`_row_map` (count and
+    fingerprint already checked over the valid anchors)."""
     problems = []
     a = backend.num_anchors(model)
-    if a != spec["num_anchors"]:
+    if a != spec["num_anchors"] and not mapped:
         problems.append(f"anchor count: the adapter has {spec['num_anchors']} anchors, the model {a}")
     rpa = backend.rows_per_anchor(model)
     if rpa != spec["rows_per_anchor"]:
@@ -589,7 +631,7 @@ def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any]) -> lis
             problems.append(f"target {t['decoder']!r}: the adapter was made for Linear({t['in_features']} -> "
                             f"{t['out_features']}), the model has Linear({got.in_features} -> {got.out_features})")
     fp = backend.fingerprint(model)
-    if fp != spec["fingerprint"]:
+    if fp != spec["fingerprint"] and not mapped:
         problems.append(f"backbone fingerprint: the adapter was trained on backbone {spec['fingerprint']}, "
                         f"this model is {fp} (other anchors or decoder weights)")
     return problems

@@ -188,3 +188,68 @@ def test_lens_strength_uses_quantised_positions():
     assert torch.allclose(lam, radius(q), atol=1e-5)
     assert (lam - radius(t["anchor"].double())).abs().max() > 1e-3  # the raw positions would give other strengths
     cgs.unwrap()
+
+
+def test_adapter_maps_between_live_padded_model_and_loaded_folder(tmp_path):
+    """An adapter trained on the live (zero-padded) decoded model loads onto the stand-in of its
+    folder (which drops invalid anchors; source_index maps the rows) and back, with equal outputs."""
+    from controlgs_adapter import RuntimeState
+    from controlgs_adapter.controlgs import ControlGS
+    from controlgs_adapter.errors import IncompatibleAdapterError
+
+    arr, decs = _arrays(7, decoded=True), _decoders(7)
+    arr["mask"][3] = 0.0  # an invalid anchor among the valid ones
+    root = _write_dir(tmp_path / "scene", arr, decs)
+    live, loaded = _model(arr, decs, decoded=True), load_contextgs_dir(root)
+    rows = [i for i in range(A - PAD) if i != 3]
+    assert loaded.source_index.tolist() == rows
+    cam, state = torch.tensor([0.0, 0.5, -6.0]), RuntimeState(downsample=4, power_saving=0.4)
+    cgs = ControlGS.wrap(live, modules=("resample", "display"), cond_dim=4)
+    with torch.no_grad():
+        cgs.injector.conditions.normal_(generator=torch.Generator().manual_seed(0))
+    cgs.save(tmp_path / "live.safetensors")
+    pick = torch.arange(0, len(rows), 2)
+    with cgs.conditioned(state, anchor_ids=loaded.source_index[pick]):
+        want = outputs(live, live.decoder_inputs(cam, loaded.source_index[pick]))
+    trained = cgs.injector.conditions.detach().clone()
+    cgs.unwrap()
+    on_loaded = ControlGS.load(tmp_path / "live.safetensors", loaded)
+    assert torch.equal(on_loaded.injector.conditions.detach(), trained[loaded.source_index])
+    with on_loaded.conditioned(state, anchor_ids=pick):
+        got = outputs(loaded, loaded.decoder_inputs(cam, pick))
+    for p in want:
+        assert torch.equal(got[p], want[p]), p
+    on_loaded.save(tmp_path / "loaded.safetensors")
+    on_loaded.unwrap()
+    back = ControlGS.load(tmp_path / "loaded.safetensors", live)
+    assert torch.equal(back.injector.conditions.detach()[rows], trained[rows])
+    assert not back.injector.conditions.detach()[[3, *range(A - PAD, A)]].any()  # invalid rows stay at zero
+    back.unwrap()
+    other = load_contextgs_dir(_write_dir(tmp_path / "other", _arrays(8, decoded=True), decs))
+    with pytest.raises(IncompatibleAdapterError, match="anchor count"):
+        ControlGS.load(tmp_path / "live.safetensors", other)
+
+
+def test_prefilter_uses_anchor_zero_rotation():
+    """ContextGS's prefilter_voxel passes rotations[[0]] for every anchor; the stand-in does the same
+    (kept from the file's row 0 even when that anchor is dropped)."""
+    from _family_checks import make_camera
+    from controlgs_adapter.backends.family_common import anchor_visibility
+
+    arr = _arrays(9, decoded=True)
+    arr["anchor"][: A - PAD] = np.array([[0.5, 0.0, 0.0]], np.float32) + np.arange(A - PAD, dtype=np.float32)[:, None] * \
+        np.array([[0.01, 0.0, 0.0]], np.float32)  # centres 8-15 px beyond the right edge of the image
+    arr["scale"][: A - PAD] = np.array([0.01, 0.2, 0.01, 0.1, 0.1, 0.1], np.float32)  # long along y
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    half = 2 ** -0.5
+    rot = torch.tensor([[half, half, 0.0, 0.0]]).repeat(A, 1)  # 90 degrees about x: long along the view axis
+    rot[0] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    model = ContextGSModel(anchor=t["anchor"], offset=t["offset"], mask=t["mask"][:, :, None], anchor_feat=t["feat"],
+                           scaling=t["scale"], hyper_latent=t["hyper"], rotation=rot, decoded_version=True, **_decoders(9))
+    cam = make_camera()
+    cam.intrinsics[0, 0] = cam.intrinsics[1, 1] = 400.0  # narrow: a long axis along the view projects short
+    got = model.visible_anchors(cam)
+    own = anchor_visibility(cam, model.get_anchor, model.get_scaling[:, :3], rot)
+    first = anchor_visibility(cam, model.get_anchor, model.get_scaling[:, :3], rot[:1].expand(A, 4))
+    assert torch.equal(got, first) and not torch.equal(got, own)
+    assert got[1 : A - PAD].all() and not own[1 : A - PAD].any()  # anchor 0's footprint reaches into the image

@@ -210,3 +210,49 @@ def test_invalid_anchor_condition_rows_get_no_gradient():
     assert all(bool(grad[a].abs().sum() > 0) for a in (0, 1, 3))
     assert bool((grad[4:] == 0).all())  # anchors not in the view
     cgs.unwrap()
+
+
+@pytest.mark.parametrize("variant", ["hac++", "hac"])
+def test_decoded_dir_with_scales_rounded_to_zero(tmp_path, variant):
+    """The codecs store round(s / Q) * Q (Q about 1e-3): small scales are exactly 0, still decoded."""
+    arr = _arrays(7, decoded=True, mask_cols=K + 1 if variant == "hac++" else K)
+    arr["scale"][1:6, 2] = 0.0
+    arr["scale"][9, :3] = 0.0
+    root = _write_dir(tmp_path / "scene", arr, _decoders(7))
+    model = load_hac_dir(root)
+    assert model.decoded_version and torch.equal(model.get_scaling, torch.from_numpy(arr["scale"]))  # linear, no exp
+
+
+def test_undecidable_dir_refused_even_with_allow_unquantized(tmp_path):
+    """0/1 masks with negative scales: the loader asks for decoded= rather than guessing (reading
+    linear scales as log scales, or the reverse, would be silently wrong)."""
+    arr = _arrays(8, decoded=True, mask_cols=K + 1)
+    arr["scale"][2, 0] = -0.5
+    root = _write_dir(tmp_path / "scene", arr, _decoders(8))
+    for kw in ({}, {"allow_unquantized": True}):
+        with pytest.raises(FileFormatError, match=r"cannot tell .*1 scale_\* value.*decoded=True.*decoded=False"):
+            load_hac_dir(root, **kw)
+    assert load_hac_dir(root, decoded=True).decoded_version
+    raw = _write_dir(tmp_path / "raw", _arrays(9, decoded=False, mask_cols=K + 1), _decoders(9))
+    with pytest.raises(FileFormatError, match=r"mask logits and log scales.*allow_unquantized=True .*log scales exponentiated"):
+        load_hac_dir(raw)
+
+
+def test_feature_bank_at_width_50_refused(tmp_path):
+    arr = _arrays(10, decoded=True, mask_cols=K + 1)
+    root = _write_dir(tmp_path / "scene", arr, _decoders(10))
+    write_cfg_args(root / "cfg_args", feat_dim=F, n_offsets=K, voxel_size=VOXEL, use_feat_bank=True)
+    with pytest.raises(FileFormatError, match=r"use_feat_bank=True with feat_dim=50.*divisible by 4 \(50 channels give 52\)"):
+        load_hac_dir(root)
+
+
+def test_bitstreams_only_folder(tmp_path):
+    from controlgs_adapter.backends import load_model_dir
+
+    root = tmp_path / "compressed"
+    (root / "bitstreams").mkdir(parents=True)
+    (root / "bitstreams" / "hash.b").write_bytes(b"\0")
+    write_cfg_args(root / "cfg_args", feat_dim=F, n_offsets=K, voxel_size=VOXEL, use_feat_bank=False)
+    for load in (load_hac_dir, load_model_dir):
+        with pytest.raises(FileFormatError, match="bitstreams/ was found, but it cannot be decoded"):
+            load(root)
