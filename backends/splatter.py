@@ -259,81 +259,68 @@ def _bin_tiles(rect: torch.Tensor, width: int, height: int, tile_size: int) -> _
 
 @dataclass
 class _Pairs:
-    """The (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by (pixel, depth).
-
-    Pairs that are not drawn (``T`` below ``TRANSMITTANCE_MIN``) keep ``w = 0``; a few candidates at
-    the edge of the alpha ellipse with alpha < ALPHA_MIN are kept with ``alpha = w = 0`` and
-    ``frozen`` (no gradient), which changes nothing."""
+    """The (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by (pixel, depth);
+    pairs that are not drawn (``T`` below ``TRANSMITTANCE_MIN``) have ``w = 0``."""
 
     gauss: torch.Tensor  # [P] int32
     key: torch.Tensor  # [P] int32 chunk-local tile-major pixel
     alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G), or 0
     w: torch.Tensor  # [P] alpha T_before if drawn, else 0
-    frozen: torch.Tensor  # [P] bool: alpha clamped at ALPHA_MAX or below ALPHA_MIN (no gradient)
+    frozen: torch.Tensor  # [P] bool: alpha clamped at ALPHA_MAX (no gradient through it)
     crow: torch.Tensor  # [B + 1] int32 first pair of each of the chunk's B pixels (CSR row pointers)
 
     def nbytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in vars(self).values())
 
 
-# widening of the alpha >= ALPHA_MIN ellipse used to enumerate each row's candidate span (in units of
-# the exponent): a pixel is tested exactly (o G >= ALPHA_MIN) only after it is enumerated, so the
-# span must contain every pixel that passes the test despite the round-off of the working dtype
-_SPAN_SLACK = 1e-3
-
-
 def _expand_pairs(
     tiling: _Tiling, chunk: tuple[int, int, int, int], means2d: torch.Tensor, conic: torch.Tensor,
     opacity: torch.Tensor,
 ) -> _Pairs:
-    """Enumerate one chunk's pairs (exact alpha-ellipse span per pixel row), sort them by pixel and get
-    every pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix sums)."""
+    """Expand one chunk's records into their (pixel, Gaussian) pairs, drop those with alpha < 1/255,
+    stable-sort them by pixel (each pixel's run stays in depth order; int16 keys) and get every pair's
+    transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix sums)."""
     r0, r1, t0, t1 = chunk
     dev, dtype = means2d.device, means2d.dtype
-    n_keys = (t1 - t0) * tiling.tile_size**2
+    ts = tiling.tile_size
+    n_keys = (t1 - t0) * ts * ts
     g_rec = tiling.gauss[r0:r1]
-    # rows: (record, pixel row y); the alpha ellipse dx^T conic dx / 2 <= ln(o / ALPHA_MIN) cut by the row is
-    # the span A dx^2 + B dx + C <= L (float64: rows are few, the span must be robust)
-    rows = tiling.rows[r0:r1]
-    rrow = torch.repeat_interleave(torch.arange(r1 - r0, device=dev), rows)  # [Nr]
-    y = tiling.y0[r0:r1].index_select(0, rrow) + (
-        torch.arange(rrow.numel(), device=dev) - (torch.cumsum(rows, 0) - rows).index_select(0, rrow))
-    g_row = g_rec.index_select(0, rrow)
-    u, v, ca, cb, cc = (t.index_select(0, g_row).double() for t in (*means2d.t(), *conic.t()))
-    o = opacity.index_select(0, g_row).double()
-    dy = y.double() + 0.5 - v
-    a_q, b_q, c_q = 0.5 * ca, cb * dy, 0.5 * cc * dy * dy
-    level = torch.log(o / ALPHA_MIN)
-    disc = b_q * b_q - 4 * a_q * (c_q - level - _SPAN_SLACK * (1 + level))
-    half = torch.sqrt(disc.clamp(min=0)) / (2 * a_q)
-    centre = u - 0.5 - b_q / (2 * a_q)  # x of the span's centre, in pixel indices
-    lo_rec, hi_rec = tiling.x0[r0:r1].index_select(0, rrow), tiling.x1[r0:r1].index_select(0, rrow)
-    x_lo = torch.maximum(torch.ceil(centre - half).clamp(-1, 1 << 30).long(), lo_rec)
-    x_hi = torch.minimum(torch.floor(centre + half).clamp(-1, 1 << 30).long(), hi_rec)
-    width = torch.where(disc >= 0, (x_hi - x_lo + 1).clamp(min=0), torch.zeros_like(x_lo))
-    # per row, in the working dtype: dx of the first pixel and the exponent's coefficients
-    dx0 = (x_lo.double() + 0.5 - u).to(dtype)
-    a_w, b_w, c_w = a_q.to(dtype), b_q.to(dtype), (c_q - torch.log(o)).to(dtype)
-    key0 = (tiling.key_base[r0:r1].index_select(0, rrow) + y * tiling.tile_size + x_lo).int()
-    g_row = g_row.int()
-    del rrow, y, u, v, ca, cb, cc, o, dy, a_q, b_q, c_q, level, disc, half, centre, lo_rec, hi_rec, x_hi
-    # pairs (row-major): alpha = o exp(-0.5 dx^T conic dx) = exp(-(dx (A dx + B) + C - ln o))
-    n = int(width.sum())
-    rp = torch.repeat_interleave(torch.arange(width.numel(), device=dev, dtype=torch.int32), width, output_size=n)
-    lx = torch.arange(n, device=dev, dtype=torch.int32) - (torch.cumsum(width, 0) - width).int().index_select(0, rp)
-    dx = dx0.index_select(0, rp).add_(lx)
-    raw = torch.exp_(dx.mul(a_w.index_select(0, rp)).add_(b_w.index_select(0, rp)).mul_(dx).add_(c_w.index_select(0, rp)).neg_())
-    del dx
-    key = key0.index_select(0, rp).add_(lx)
-    del lx
+    x0, y0 = tiling.x0[r0:r1], tiling.y0[r0:r1]
+    wx = tiling.x1[r0:r1] - x0 + 1
+    count = wx * tiling.rows[r0:r1]
+    n = int(count.sum())
+    # per record: offsets of its first pixel centre from the mean, key of its first pixel, conic, opacity
+    ox = (x0.to(dtype) + 0.5 - means2d[:, 0].index_select(0, g_rec))
+    oy = (y0.to(dtype) + 0.5 - means2d[:, 1].index_select(0, g_rec))
+    key0 = (tiling.key_base[r0:r1] + y0 * ts + x0).int()
+    ca, cb, cc = (row.index_select(0, g_rec) for row in conic.t())
+    o = opacity.index_select(0, g_rec)
+    count, wx = count.int(), wx.int()
+    # pairs, record-major (gathers by the record index are monotone, hence cache-friendly)
+    rec = torch.repeat_interleave(torch.arange(r1 - r0, device=dev, dtype=torch.int32), count, output_size=n)
+    local = torch.arange(n, device=dev, dtype=torch.int32).sub_((torch.cumsum(count, 0, dtype=torch.int32) - count).index_select(0, rec))
+    wx_p = wx.index_select(0, rec)
+    ly = local // wx_p
+    lx = local.sub_(ly * wx_p)
+    del wx_p
+    key = key0.index_select(0, rec).add_(ly * ts).add_(lx)
+    dx = ox.index_select(0, rec).add_(lx)
+    dy = oy.index_select(0, rec).add_(ly)
+    del lx, ly
+    raw = (ca.index_select(0, rec) * dx).mul_(dx).addcmul_(cc.index_select(0, rec) * dy, dy).mul_(-0.5)
+    raw = torch.exp_(raw.sub_(cb.index_select(0, rec).mul_(dx).mul_(dy))).mul_(o.index_select(0, rec))
+    del dx, dy
+    keep = (raw >= ALPHA_MIN).nonzero().squeeze(1)
+    key = key.index_select(0, keep)
     key, order = torch.sort(key.to(torch.int16) if n_keys <= _KEY_LIMIT else key, stable=True)  # depth order kept
     key = key.int()
-    gauss = g_row.index_select(0, rp.index_select(0, order))
-    raw = raw.index_select(0, order)
-    del rp, order
-    below = raw < ALPHA_MIN
-    frozen = below | (raw > ALPHA_MAX)
-    alpha = raw.clamp_(max=ALPHA_MAX).masked_fill_(below, 0.0)
+    sel = keep.index_select(0, order)
+    del keep, order
+    gauss = g_rec.int().index_select(0, rec.index_select(0, sel))
+    raw = raw.index_select(0, sel)
+    del rec, sel
+    frozen = raw > ALPHA_MAX
+    alpha = raw.clamp_(max=ALPHA_MAX)
     # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
     crow = torch.zeros(n_keys + 1, dtype=torch.int32, device=dev)
     torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=crow[1:])
