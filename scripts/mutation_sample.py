@@ -1,0 +1,165 @@
+"""A small mutation sample (not run in CI): apply plausible one-line bugs, one at a time, to a copy of
+the library in a temporary git worktree of HEAD, run the test files that cover the site, and report
+which mutations the tests caught. Results are recorded in docs/testing.md.
+
+    .venv/bin/python scripts/mutation_sample.py [--only ID ...] [--worktree /tmp/mut]
+
+The worktree is imported instead of this checkout (the editable install's package mapping is
+pointed at it for each run) and removed at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass(frozen=True)
+class Mutation:
+    id: str
+    path: str
+    old: str
+    new: str
+    tests: tuple[str, ...]
+    what: str
+
+
+MUTATIONS: tuple[Mutation, ...] = (
+    # --- the seven of issue 15, section 5 (kept to show they are caught now)
+    Mutation("i1", "controlgs_adapter/state.py", "[[fx, 0.0, w / 2.0], [0.0, fy, h / 2.0]",
+             "[[fx, 0.0, (w - 1) / 2.0], [0.0, fy, (h - 1) / 2.0]", ("tests/test_camera_scaffold.py",),
+             "from_scaffold principal point at (w-1)/2"),
+    Mutation("i2", "downstream/display.py", "(228.52, 205.66, 567.64)", "(205.66, 228.52, 567.64)",
+             ("tests/test_regressions.py", "tests/test_stages_display.py"), "display power coefficients R and G swapped"),
+    Mutation("i3", "controlgs_adapter/injector.py", "key = (width, torch.is_grad_enabled())", "key = (width, False)",
+             ("tests/test_regressions.py", "tests/test_controlgs.py"), "injection cache key without grad mode"),
+    Mutation("i4", "downstream/display.py", "        power_ref = power.detach()\n    target", "        power_ref = power\n    target",
+             ("tests/test_regressions.py", "tests/test_stages_display.py"), "P_ref without reference not detached"),
+    Mutation("i5", "downstream/pipeline.py", "pos = result.index(chain[-1]) + 1", "pos = result.index(chain[0]) + 1",
+             ("tests/test_regressions.py", "tests/test_pipeline.py"), "stages after the same stage: reversed order"),
+    Mutation("i6", "backends/formats.py", 'order = "<" if fmt == "binary_little_endian" else ">"', 'order = "<"',
+             ("tests/test_regressions.py", "tests/test_formats.py"), "big-endian PLY read as little-endian"),
+    Mutation("i7", "controlgs_adapter/evaluation.py", "e, g = eye.detach().clamp(0.0, 1.0).double(), gt.double()",
+             "e, g = eye.detach().double(), gt.double()", ("tests/test_regressions.py",), "no clamp before the metrics"),
+    # --- other sites
+    Mutation("m1", "controlgs_adapter/state.py", "        k[0] *= w / self.width\n", "        k[0] *= h / self.height\n",
+             ("tests/test_state.py", "tests/test_regressions.py"), "Camera.scaled: x intrinsics scaled by the height ratio"),
+    Mutation("m2", "controlgs_adapter/state.py", "[0.0, 2.0 / self.height, -1.0]", "[0.0, 2.0 / self.width, -1.0]",
+             ("tests/test_state.py", "tests/test_regressions.py", "tests/test_schedules.py"),
+             "normalized_screen: y normalised by the width"),
+    Mutation("m3", "controlgs_adapter/schedules.py", "        return math.log2(state.downsample)",
+             "        return math.log(state.downsample)", ("tests/test_schedules.py", "tests/test_regressions.py"),
+             "resample control ln(d) instead of log2(d)"),
+    Mutation("m4", "controlgs_adapter/schedules.py", "        return min(max((alpha - self.lo) / (self.hi - self.lo), 0.0), 1.0)",
+             "        return min(max((alpha - self.lo) / (self.hi - self.lo), 0.0), 2.0)",
+             ("tests/test_schedules.py", "tests/test_regressions.py"), "scalar strength clamped at 2, not 1"),
+    Mutation("m5", "downstream/display.py", "    emitted = linear.clamp(min=0.0)", "    emitted = linear",
+             ("tests/test_stages_display.py", "tests/test_display_mapping.py", "tests/test_regressions.py"),
+             "negative light counted in the power"),
+    Mutation("m6", "downstream/display.py", "    out = dimmed.clamp(0.0, 1.0)", "    out = dimmed",
+             ("tests/test_stages_display.py", "tests/test_display_mapping.py"), "display output not clipped"),
+    Mutation("m7", "downstream/display.py", "        scale = scale.clamp(max=1.0)", "        scale = scale.clamp(min=1.0)",
+             ("tests/test_stages_display.py", "tests/test_display_mapping.py"), "brighten=False clamps the wrong side"),
+    Mutation("m8", "downstream/color.py", "_GAMMA = 2.4", "_GAMMA = 2.2", ("tests/test_stages_color.py",),
+             "sRGB exponent 2.2"),
+    Mutation("m9", "controlgs_adapter/metrics.py", "c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2",
+             "c1, c2 = (0.03 * data_range) ** 2, (0.01 * data_range) ** 2", ("tests/test_metrics.py",),
+             "SSIM constants swapped"),
+    Mutation("m10", "controlgs_adapter/losses.py", "    loss = weights.l1 * diff.abs().mean() + weights.mse * diff.square().mean()",
+             "    loss = weights.l1 * diff.abs().mean() + weights.mse * diff.abs().mean()",
+             ("tests/test_training.py", "tests/test_metrics.py"), "MSE term computed as L1"),
+    Mutation("m11", "controlgs_adapter/injector.py", "                z[:, j] *= lam.to(z.dtype).unsqueeze(-1)",
+             "                pass", ("tests/test_controlgs.py",), "per-anchor strength ignored"),
+    Mutation("m12", "controlgs_adapter/injector.py", "                w = w * lam", "                w = w",
+             ("tests/test_controlgs.py",), "shared strength ignored"),
+    Mutation("m13", "controlgs_adapter/controlgs.py", "bool(((ids < 0) | (ids >= a)).any())", "bool(((ids < 0) | (ids > a)).any())",
+             ("tests/test_controlgs.py", "tests/test_bad_inputs.py"), "anchor id == A accepted (off by one)"),
+    Mutation("m14", "backends/family_common.py", "    return torch.round(anchor / voxel_size) * voxel_size",
+             "    return torch.floor(anchor / voxel_size) * voxel_size", ("tests/test_backend_hac.py",),
+             "HAC voxel snap floors instead of rounding"),
+    Mutation("m15", "backends/contextgs.py", "    levels = 2 ** ANCHOR_BITS - 1", "    levels = 2 ** ANCHOR_BITS",
+             ("tests/test_backend_contextgs.py",), "ContextGS anchor quantisation: 2^16 levels"),
+    Mutation("m16", "backends/octree_gs.py", "self._level.squeeze(1) <= self.map_to_int_level(",
+             "self._level.squeeze(1) < self.map_to_int_level(", ("tests/test_backend_octree_gs.py",),
+             "Octree LOD mask drops the selected level"),
+    Mutation("m17", "backends/compgs.py", "        return anchor_ids.repeat_interleave(rows_per_anchor)",
+             "        return anchor_ids.repeat(rows_per_anchor)", ("tests/test_backend_compgs.py",),
+             "CompGS rows -> anchors tiled instead of grouped"),
+    Mutation("m18", "backends/scaffold_io.py", '"offset": stack(offsets).reshape(-1, 3, k).transpose(0, 2, 1),',
+             '"offset": stack(offsets).reshape(-1, k, 3),', ("tests/test_scaffold_io.py",),
+             "Scaffold PLY offsets read without the transpose"),
+    Mutation("m19", "backends/family_common.py", "scales=s[:, 3:] * torch.sigmoid(scale_rot[flat, :3]),",
+             "scales=s[:, :3] * torch.sigmoid(scale_rot[flat, :3]),",
+             ("tests/test_backend_hac.py", "tests/test_backend_contextgs.py", "tests/test_backend_octree_gs.py"),
+             "family Gaussians scaled by the offset scales"),
+    Mutation("m20", "backends/hac.py", "    return True if bool((scales >= 0).all()) else None",
+             "    return True if bool((scales > 0).all()) else None", ("tests/test_backend_hac.py",),
+             "decoded detection requires scales > 0"),
+    Mutation("m21", "controlgs_adapter/training.py",
+             'd = math.exp(float(u[0]) * math.log(c.max_downsample)) if "resample" in self.pipeline else 1.0',
+             'd = 1.0 + float(u[0]) * (c.max_downsample - 1.0) if "resample" in self.pipeline else 1.0',
+             ("tests/test_training.py",), "downsample sampled uniformly, not log-uniformly"),
+    Mutation("m22", "controlgs_adapter/metrics.py", "    mse = (x - y).square().mean(dim=(-3, -2, -1))",
+             "    mse = (x - y).square().mean(dim=(-2, -1)).sum(-1)", ("tests/test_metrics.py",),
+             "PSNR: MSE summed over channels"),
+    Mutation("m23", "backends/contextgs.py", "        rot = self.prefilter_rotation.to(self._rotation).expand(self._anchor.shape[0], 4)",
+             "        rot = self._rotation", ("tests/test_backend_contextgs.py",),
+             "ContextGS prefilter with each anchor's rotation"),
+)
+
+
+def _run(worktree: Path, m: Mutation, timeout: float) -> tuple[bool, float, str]:
+    """Apply ``m`` in ``worktree``, run its tests, restore; (caught, seconds, last line)."""
+    target = worktree / m.path
+    original = target.read_text()
+    if original.count(m.old) != 1:
+        raise SystemExit(f"{m.id}: the original text occurs {original.count(m.old)} times in {m.path}")
+    target.write_text(original.replace(m.old, m.new))
+    boot = ("import sys, pytest, __editable___controlgs_adapter_0_1_0_finder as f; "
+            f"f.MAPPING.update({{'controlgs_adapter': {str(worktree / 'controlgs_adapter')!r}, "
+            f"'controlgs_adapter.backends': {str(worktree / 'backends')!r}, "
+            f"'controlgs_adapter.downstream': {str(worktree / 'downstream')!r}}}); "
+            "sys.exit(pytest.main(sys.argv[1:]))")
+    start = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, "-c", boot, "-x", "-q", "-p", "no:cacheprovider", *m.tests],
+                              cwd=worktree, capture_output=True, text=True, timeout=timeout)
+        caught, tail = proc.returncode != 0, (proc.stdout.strip().splitlines() or [""])[-1]
+    except subprocess.TimeoutExpired:
+        caught, tail = True, "timeout"
+    finally:
+        target.write_text(original)
+    return caught, time.perf_counter() - start, tail
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", nargs="*", help="mutation ids to run (default: all)")
+    ap.add_argument("--worktree", default="/tmp/mut")
+    ap.add_argument("--timeout", type=float, default=600.0)
+    args = ap.parse_args()
+    chosen = [m for m in MUTATIONS if not args.only or m.id in args.only]
+    worktree = Path(args.worktree)
+    subprocess.run(["git", "worktree", "add", "--detach", str(worktree), "HEAD"], cwd=ROOT, check=True,
+                   capture_output=True)
+    try:
+        results = []
+        for m in chosen:
+            caught, secs, tail = _run(worktree, m, args.timeout)
+            results.append((m, caught))
+            print(f"{m.id:4s} {'caught' if caught else 'MISSED':6s} {secs:6.1f}s  {m.what}  [{tail}]", flush=True)
+        n = sum(c for _, c in results)
+        others = [c for m, c in results if not m.id.startswith("i")]
+        print(f"caught {n}/{len(results)}; other sites {sum(others)}/{len(others)}")
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, check=False)
+
+
+if __name__ == "__main__":
+    main()
