@@ -35,7 +35,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation("i1", "controlgs_adapter/state.py", "[[fx, 0.0, w / 2.0], [0.0, fy, h / 2.0]",
              "[[fx, 0.0, (w - 1) / 2.0], [0.0, fy, (h - 1) / 2.0]", ("tests/test_camera_scaffold.py",),
              "from_scaffold principal point at (w-1)/2"),
-    Mutation("i2", "downstream/display.py", "(228.52, 205.66, 567.64)", "(205.66, 228.52, 567.64)",
+    Mutation("i2", "downstream/display.py", "float] = (228.52, 205.66, 567.64)", "float] = (205.66, 228.52, 567.64)",
              ("tests/test_regressions.py", "tests/test_stages_display.py"), "display power coefficients R and G swapped"),
     Mutation("i3", "controlgs_adapter/injector.py", "key = (width, torch.is_grad_enabled())", "key = (width, False)",
              ("tests/test_regressions.py", "tests/test_controlgs.py"), "injection cache key without grad mode"),
@@ -149,6 +149,10 @@ def main() -> None:
     subprocess.run(["git", "worktree", "add", "--detach", str(worktree), "HEAD"], cwd=ROOT, check=True,
                    capture_output=True)
     try:
+        bad = [f"{m.id} ({m.path}: {(worktree / m.path).read_text().count(m.old)}x)" for m in chosen
+               if (worktree / m.path).read_text().count(m.old) != 1]
+        if bad:
+            raise SystemExit(f"the original text must occur once: {', '.join(bad)}")
         results = []
         for m in chosen:
             caught, secs, tail = _run(worktree, m, args.timeout)
