@@ -16,17 +16,19 @@ How it is fast (2 CPU cores, no compiled extension; profiler labels ``splatter.*
    the image (``visible``);
 2. [bin] sort the rest by depth, bin their candidate rectangles (footprint cut to the box where
    alpha can reach 1/255) into ``tile_size`` x ``tile_size`` tiles, stable-sort the records by tile
-   (so (tile, depth) order), and cut the tiles into chunks of about ``_PAIR_BUDGET`` (pixel,
-   Gaussian) pairs, so that memory is bounded whatever the scene (never a dense
-   [pixels x Gaussians] tensor);
+   (so (tile, depth) order), and cut the tiles into chunks of about ``_PAIR_BUDGET`` candidate
+   (pixel, Gaussian) pairs and at most ``2^15`` pixels, so that memory is bounded whatever the scene
+   (never a dense [pixels x Gaussians] tensor) and a chunk's pixels, numbered tile-major, fit int16;
 3. [expand_pairs] per chunk, expand the records into their (pixel, Gaussian) pairs, drop those with
-   alpha < 1/255, stable-sort them by pixel (each pixel's run stays in depth order) and get every
-   pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix sums);
-4. [accumulate] ``sum_i w_i f_i`` per pixel is one sparse CSR [pixels x Gaussians] @ [Gaussians x 5]
-   product (colour, depth, alpha);
+   alpha < 1/255, stable-sort them by pixel with int16 keys (each pixel's run stays in depth order)
+   and get every pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix
+   sums); per-chunk work is proportional to the chunk's pairs and pixels, never to the image;
+4. [accumulate] ``sum_i w_i f_i`` per pixel is one sparse CSR [chunk pixels x Gaussians] @
+   [Gaussians x 5] product (colour, depth, alpha);
 5. [backward_pairs] the compositing is a ``torch.autograd.Function`` with a hand-written backward
    (the 3DGS back-to-front suffix sums as a reverse segmented scan, then scatter-adds to the
-   Gaussians); a chunk's pairs are kept for it while they fit in ``_CACHE_BYTES``, the others are
+   Gaussians); a chunk's pairs (17 bytes each: Gaussian, pixel, alpha, weight, clamp flag; offsets
+   recomputed from the pixel) are kept for it while they fit in ``_CACHE_BYTES``, the others are
    recomputed (as the CUDA kernel does).
 """
 

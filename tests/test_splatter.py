@@ -313,9 +313,9 @@ def test_single_gaussian_closed_form(x_over_z: float) -> None:
 
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 30), tile_size=st.sampled_from([3, 4, 16]))
-def test_row_spans_enumerate_every_pair_above_alpha_min(seed: int, n: int, tile_size: int) -> None:
-    """The exact per-row alpha-ellipse spans drop no (pixel, Gaussian) pair with alpha >= 1/255 inside the
-    footprint (counted by brute force), and the image matches the float64 oracle."""
+def test_every_pair_above_alpha_min_is_enumerated(seed: int, n: int, tile_size: int) -> None:
+    """The candidate culling (alpha box, tiles, chunks) drops no (pixel, Gaussian) pair with alpha >= 1/255
+    inside the footprint (counted by brute force), and the image matches the float64 oracle."""
     cam = make_camera(19, 13)
     scene = random_scene(seed, n, cam)
     enumerated = []
