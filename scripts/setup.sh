@@ -13,7 +13,7 @@ PY=${PYTHON:-python3}
 # the viewer's browser test drives Debian's headless Chromium: installed only as root with apt-get, when missing
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null && ! { command -v chromium && command -v chromedriver; } >/dev/null 2>&1; then
     export DEBIAN_FRONTEND=noninteractive
-    apt-get install -y -q --no-install-recommends chromium chromium-driver >/dev/null 2>&1 \
-        || { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q --no-install-recommends chromium chromium-driver >/dev/null 2>&1; } \
+    apt-get install -y -q --no-install-recommends chromium chromium-driver fonts-liberation >/dev/null 2>&1 \
+        || { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q --no-install-recommends chromium chromium-driver fonts-liberation >/dev/null 2>&1; } \
         || echo "setup.sh: could not install chromium + chromium-driver; the viewer's browser test will be skipped" >&2
 fi

@@ -31,6 +31,7 @@ from ..evaluation import BASELINES, _scores, make_pipeline
 from ..metrics import optional_metrics
 from ..rendering import Renderer, model_device, render_view, renderer_for
 from ..state import Camera, RuntimeState
+from ..training import view_cameras
 
 __all__ = ["STAGES", "OPTICS_MODES", "ViewState", "parse_state", "ViewerSession", "Superseded", "orbit_camera",
            "scene_centre", "encode_png"]
@@ -262,7 +263,7 @@ class ViewerSession:
             copy_ = _shared_copy(model)
             self.adapters[method] = (copy_, ControlGS.load(path, copy_))
         self.methods = [*BASELINES, *self.adapters]
-        self.cameras = [views[i][0] for i in range(len(views))]
+        self.cameras = view_cameras(views)
         points = None
         if self.adapters:
             cgs = next(iter(self.adapters.values()))[1]
@@ -344,7 +345,7 @@ class ViewerSession:
                          "rendered_size": [rendered.shape[-1], rendered.shape[-2]], "strengths": strengths,
                          "overlay": overlay, "stages_run": record["stages_run"], "metrics": None, "diff": None}
                 if gt is not None:
-                    entry["metrics"] = _scores(eye, gt, {})
+                    entry["metrics"] = {k: v if math.isfinite(v) else None for k, v in _scores(eye, gt, {}).items()}
                     entry["diff"] = encode_png(((eye - gt).abs() * DIFF_GAIN).clamp(0.0, 1.0))
                 out["methods"].append(entry)
                 check()
@@ -385,6 +386,7 @@ class ViewerSession:
         _, eyes, gt = self._last
         out = {}
         for method, eye in eyes.items():
-            out[method] = {k: fn(eye.double(), gt.double()) for k, fn in self.extra_metrics.items()}
+            values = {k: fn(eye.double(), gt.double()) for k, fn in self.extra_metrics.items()}
+            out[method] = {k: v if math.isfinite(v) else None for k, v in values.items()}
             check()
         return out
