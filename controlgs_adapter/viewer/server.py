@@ -61,7 +61,7 @@ class ViewerServer(ThreadingHTTPServer):
     daemon_threads = True
 
     def __init__(self, session: ViewerSession, port: int = 0, host: str = "127.0.0.1") -> None:
-        if host not in ("127.0.0.1", "localhost", "::1"):
+        if host not in ("127.0.0.1", "localhost"):
             raise InputValueError(f"the viewer binds to the loopback interface only, got host {host!r}")
         super().__init__((host, port), _Handler)
         self.session = session
