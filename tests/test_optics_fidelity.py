@@ -57,15 +57,19 @@ def _steps(o: torch.Tensor) -> float:
 # ----------------------------------------------------------------------------- section 1: radiometry
 @pytest.mark.parametrize("mode", list(OPS))
 def test_flat_field_of_the_cardboard_lens_is_uniform_in_every_mode(mode):
-    """Radiance (default): a flat white display is seen flat, up to the pupil transmission (1 on
-    the Cardboard field grid: the 34 mm lens clips no ray of the 4 mm pupil there). The paper's
-    energy form dims it by the area magnification (~0.8 at mid-edge, ~0.6 towards the corner)."""
+    """Radiance (default): a flat white display is seen flat, up to the pupil transmission (the
+    vignetting model: the pupil area on the primary branch; 1 except in the outermost field
+    samples of the Cardboard bank, >= 0.98 there, where the lens rim folds part of the pupil
+    into the second image). The paper's energy form dims it by the area magnification (~0.8 at
+    mid-edge, ~0.6 towards the corner)."""
     bank = PSFBank.default()
-    assert torch.equal(bank.transmission, torch.ones_like(bank.transmission))
+    assert bank.transmission.min() > 0.98
     S = 96
     x = torch.ones(3, S, S, dtype=D64)
-    out = OPS[mode](x, bank.resample_to(S, S, dtype=D64))
-    assert (_inner(out) - 1).abs().max() < 1e-6                               # target: 2 %
+    rb = bank.resample_to(S, S, dtype=D64)
+    out = OPS[mode](x, rb)
+    assert (out - rb.vignetting.reshape(3, S, S))[:, 8:-8, 8:-8].abs().max() < 1e-6
+    assert (_inner(out) - 1).abs().max() < 1e-3                               # target: 2 %
     energy = OPS[mode](x, bank.resample_to(S, S, dtype=D64, radiometry="energy"))
     assert 0.78 < energy[1, S // 2, 5].item() < 0.86 and energy[1, 5, 5].item() < 0.7
 
@@ -74,7 +78,7 @@ def test_flat_field_of_a_16_9_image_is_uniform():
     bank = PSFBank.default()
     x = torch.ones(1, 3, 27, 48, dtype=D64)
     for mode in OPS:
-        assert (_inner(optics(x, bank, mode)) - 1).abs().max() < 1e-6
+        assert (_inner(optics(x, bank, mode)) - 1).abs().max() < 1e-3
 
 
 def test_pure_magnification_gives_a_uniform_flat_field_analytically():
@@ -191,7 +195,7 @@ def test_no_seams_on_the_field_sample_lines_in_exact_mode():
     x = torch.ones(3, S, S, dtype=D64)
     out = _inner(psf_exact(x, bank.resample_to(S, S, dtype=D64)))
     assert _steps(out) < 1e-4
-    assert (out - 1).abs().max() < 1e-6
+    assert (out - 1).abs().max() < 1e-3
     energy = _inner(psf_exact(x, bank.resample_to(S, S, dtype=D64, radiometry="energy")))
     assert _steps(energy) > 1e-3
 
@@ -226,7 +230,7 @@ def test_fast_mode_converges_to_the_radiance_exact_operator_and_keeps_flat_field
     errs = [((psf_fast(x, rb, tol=t, zone=5) - ref).norm() / ref.norm()).item() for t in (0.3, 0.1, 0.03, 0.0)]
     assert errs[0] > errs[1] > errs[2] and errs[3] < 1e-9
     flat = psf_fast(torch.ones(3, 48, 48, dtype=D64), rb, tol=0.3, zone=6)
-    assert (_inner(flat) - 1).abs().max() < 1e-6                              # kernel sums kept
+    assert (flat - rb.vignetting.reshape(3, 48, 48))[:, 4:-4, 4:-4].abs().max() < 1e-6   # kernel sums kept
 
 
 # ----------------------------------------------------------------------------- stage plumbing
@@ -238,7 +242,7 @@ def test_radiometry_is_an_explicit_argument():
     paper = OpticsStage(mode="distortion", radiometry="energy")
     state = RuntimeState(downsample=1.0, power_saving=0.0)
     assert torch.allclose(paper(img, state, None), optics(img, bank, "distortion", radiometry="energy"))
-    assert (st(img, state, None) - 0.5).abs().max() < 1e-9
+    assert (_inner(st(img, state, None)) - 0.5).abs().max() < 1e-6
     assert bank.resample_to(32, 32) is not bank.resample_to(32, 32, radiometry="energy")
     with pytest.raises(InputValueError, match="radiometry"):
         OpticsStage(radiometry="lumens")  # type: ignore[arg-type]
@@ -253,7 +257,7 @@ def test_bank_psf_centroid_matches_a_trace_aimed_uniformly_over_the_pupil():
     """The shipped bank's mid-edge coma centroid (550 nm) against an independent trace: rays
     aimed by Newton at the points of a uniform grid over the 4 mm pupil (equal area each), their
     mean crossing of the virtual image plane relative to the chief ray. Uniform launch slopes gave
-    1.20 px at 1024 px; the pupil-uniform value is ~0.92 px."""
+    1.20 px at 1024 px; the pupil-uniform value is 0.94 px."""
     from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
     from controlgs_adapter.downstream.optics.raytrace import chief_ray, real_magnification, trace
 
@@ -289,5 +293,5 @@ def test_bank_psf_centroid_matches_a_trace_aimed_uniformly_over_the_pupil():
     pitch = bank.psf_pitch_mm[li, iy, ix].item() * px_per_mm
     cx, cy = (p.sum(0) * t).sum().item() * pitch, (p.sum(1) * t).sum().item() * pitch
     got = (cx * fx + cy * fy) / r
-    assert got == pytest.approx(want, abs=0.03)
-    assert 0.85 < got < 1.0
+    assert got == pytest.approx(want, abs=0.015)
+    assert 0.9 < got < 1.0
