@@ -49,7 +49,7 @@ MUTATIONS: tuple[Mutation, ...] = (
              "e, g = eye.detach().double(), gt.double()", ("tests/test_regressions.py",), "no clamp before the metrics"),
     # --- other sites
     Mutation("m1", "controlgs_adapter/state.py", "        k[0] *= w / self.width\n", "        k[0] *= h / self.height\n",
-             ("tests/test_state.py", "tests/test_regressions.py"), "Camera.scaled: x intrinsics scaled by the height ratio"),
+             ("tests/test_state.py", "tests/test_camera_scaffold.py"), "Camera.scaled: x intrinsics scaled by the height ratio"),
     Mutation("m2", "controlgs_adapter/state.py", "[0.0, 2.0 / self.height, -1.0]", "[0.0, 2.0 / self.width, -1.0]",
              ("tests/test_state.py", "tests/test_regressions.py", "tests/test_schedules.py"),
              "normalized_screen: y normalised by the width"),

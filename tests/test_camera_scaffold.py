@@ -71,3 +71,18 @@ def test_uid_carried_and_picks_the_appearance_code():
     got = model.decode(cam).colors
     assert torch.equal(got, want)
     assert (got - code0).abs().max() > 1e-2  # the code matters: uid 0 would decode other colours
+
+
+def test_scaled_rescales_each_axis_by_its_own_rounded_size():
+    """Camera.scaled(f): size round(size / f) per axis, K's rows scaled by that axis's ratio (a 64 x 48
+    camera at f = 3 becomes 21 x 16: x by 21/64, y by 16/48, not the same factor)."""
+    k = torch.tensor([[50.0, 0.0, 32.0], [0.0, 40.0, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cam = Camera(torch.eye(4, dtype=torch.float64), k, 64, 48, {"uid": 2})
+    small = cam.scaled(3.0)
+    assert (small.width, small.height, small.extra) == (21, 16, {"uid": 2})
+    want = torch.tensor([[50.0 * 21 / 64, 0.0, 32.0 * 21 / 64], [0.0, 40.0 * 16 / 48, 24.0 * 16 / 48], [0.0, 0.0, 1.0]],
+                        dtype=torch.float64)
+    assert torch.allclose(small.intrinsics, want, atol=1e-12, rtol=0)
+    corner = torch.tensor([[0.64, 0.6, 1.0]], dtype=torch.float64)  # projects to pixel (64, 48): the corner
+    assert torch.allclose(cam.project(corner)[0], torch.tensor([[64.0, 48.0]], dtype=torch.float64))
+    assert torch.allclose(small.project(corner)[0], torch.tensor([[21.0, 16.0]], dtype=torch.float64))
