@@ -40,7 +40,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import torch
-import torch.nn.functional as F
 
 from controlgs_adapter.errors import InputValueError
 
@@ -263,7 +262,8 @@ class ResampledBank:
                 w.transpose(0, 1).reshape(self.L, 4, -1).to(self.device, self.dtype))
 
     # ----------------------------------------------------------------- chief-ray footprints
-    def _chief_at(self, u: torch.Tensor, v: torch.Tensor, per_wavelength: bool = False, jacobian: bool = False):
+    def _chief_at(self, u: torch.Tensor, v: torch.Tensor, per_wavelength: bool = False, jacobian: bool = False
+                  ) -> torch.Tensor | tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         """Chief-ray landing ``[L, *u.shape, 2]`` (normalised) at normalised display points ``u, v``
         (the same for every wavelength, or ``[L, ...]`` with ``per_wavelength``; then ``[*u.shape, 2]``).
         With ``jacobian``, also its derivatives ``(dX/du, dX/dv, dY/du, dY/dv)``.
@@ -271,10 +271,7 @@ class ResampledBank:
         Separable Keys cubic convolution (a = -1/2: reproduces quadratics, C1), so the derivative,
         the local magnification, is continuous and a flat field shows no steps at grid lines.
         The grid is extended by one sample each side by quadratic extrapolation."""
-        ch = self.bank.chief.double().to(u.device)                              # [L, Cy, Cx, 2]
-        ch = torch.cat([3 * ch[:, :1] - 3 * ch[:, 1:2] + ch[:, 2:3], ch, 3 * ch[:, -1:] - 3 * ch[:, -2:-1] + ch[:, -3:-2]], 1)
-        ch = torch.cat([3 * ch[:, :, :1] - 3 * ch[:, :, 1:2] + ch[:, :, 2:3], ch,
-                        3 * ch[:, :, -1:] - 3 * ch[:, :, -2:-1] + ch[:, :, -3:-2]], 2)
+        ch = _pad_quadratic(self.bank.chief.double().to(u.device))             # [L, Cy + 2, Cx + 2, 2]
         Cy, Cx = self.bank.chief.shape[1:3]
         L, shape = self.L, u.shape
         ch = ch.reshape(L, -1, 2)
@@ -283,8 +280,7 @@ class ResampledBank:
             g = (t.double() + 1) / 2 * (n - 1)                                 # grid units, 0..n-1
             i = torch.floor(g).clamp(0, n - 2)
             f = g - i
-            w = torch.stack([((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0,
-                             ((-1.5 * f + 2.0) * f + 0.5) * f, (0.5 * f - 0.5) * f * f], -1)
+            w = _keys(f)
             dw = torch.stack([(-1.5 * f + 2.0) * f - 0.5, (4.5 * f - 5.0) * f, (-4.5 * f + 4.0) * f + 0.5,
                               (1.5 * f - 1.0) * f], -1) * ((n - 1) / 2)
             return i.long()[..., None] + torch.arange(4, device=t.device), w, dw   # padded grid index
