@@ -128,9 +128,10 @@ def _run(worktree: Path, m: Mutation, timeout: float) -> tuple[bool, float, str]
             "sys.exit(pytest.main(sys.argv[1:]))")
     start = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, "-c", boot, "-x", "-q", "-p", "no:cacheprovider", *m.tests],
+        proc = subprocess.run([sys.executable, "-c", boot, "-x", "-q", "-rf", "-p", "no:cacheprovider", *m.tests],
                               cwd=worktree, capture_output=True, text=True, timeout=timeout)
-        caught, tail = proc.returncode != 0, (proc.stdout.strip().splitlines() or [""])[-1]
+        failed = [ln.split(" ")[1] for ln in proc.stdout.splitlines() if ln.startswith("FAILED ")]
+        caught, tail = proc.returncode != 0, (failed or proc.stdout.strip().splitlines() or [""])[-1]
     except subprocess.TimeoutExpired:
         caught, tail = True, "timeout"
     finally:
