@@ -23,7 +23,7 @@ from . import hookspecs
 from .errors import PluginLoadError
 
 __all__ = [
-    "BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "PluginInfo", "get_plugin_manager", "register_plugin",
+    "BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "PluginInfo", "PluginManager", "get_plugin_manager", "register_plugin",
     "unregister_plugin", "backends", "stages", "schedules", "rasterizers", "plugin_report", "load_failures", "reset_plugin_manager",
 ]
 
@@ -50,22 +50,43 @@ class PluginInfo:
     obj: Any
 
 
-_pm: pluggy.PluginManager | None = None
+class PluginManager(pluggy.PluginManager):
+    """pluggy's manager plus the registry's lookup cache, which every registration change drops
+    (``register``, ``unregister``, ``set_blocked``), so a plain ``pm.register(obj)`` is seen by the
+    next :func:`backends` / :func:`stages` / ... call."""
+
+    def __init__(self, project_name: str) -> None:
+        super().__init__(project_name)
+        self.lookup_cache: dict[str, dict[str, PluginInfo]] = {}
+
+    def register(self, plugin: Any, name: str | None = None) -> str | None:
+        self.lookup_cache.clear()
+        return super().register(plugin, name=name)
+
+    def unregister(self, plugin: Any | None = None, name: str | None = None) -> Any | None:
+        self.lookup_cache.clear()
+        return super().unregister(plugin, name=name)
+
+    def set_blocked(self, name: str) -> None:
+        self.lookup_cache.clear()
+        super().set_blocked(name)
+
+
+_pm: PluginManager | None = None
 _sources: dict[str, str] = {}
 _failures: list[str] = []
-_cache: dict[str, dict[str, PluginInfo]] = {}
 
 
 def _strict_default() -> bool:
     return os.environ.get("CONTROLGS_STRICT_PLUGINS", "") not in ("", "0")
 
 
-def get_plugin_manager(*, strict: bool | None = None) -> pluggy.PluginManager:
+def get_plugin_manager(*, strict: bool | None = None) -> PluginManager:
     """The process-wide plug-in manager (built on first use)."""
     global _pm
     if _pm is None:
         strict = _strict_default() if strict is None else strict
-        pm = pluggy.PluginManager(hookspecs.PROJECT)
+        pm = PluginManager(hookspecs.PROJECT)
         pm.add_hookspecs(hookspecs)
         for mod in BUILTIN_PLUGINS:
             pm.register(importlib.import_module(mod), name=mod)
@@ -83,7 +104,6 @@ def reset_plugin_manager() -> None:
     _pm = None
     _sources.clear()
     _failures.clear()
-    _cache.clear()
 
 
 def _load_entry_points(pm: pluggy.PluginManager, strict: bool) -> None:
@@ -115,7 +135,6 @@ def register_plugin(plugin: Any, name: str | None = None) -> str:
         raise PluginLoadError(f"plug-in {name or plugin!r} is blocked")
     pm.check_pending()
     _sources[registered] = "runtime"
-    _cache.clear()
     return registered
 
 
@@ -123,7 +142,6 @@ def unregister_plugin(name: str) -> None:
     """Remove a run-time registered plug-in by name."""
     get_plugin_manager().unregister(name=name)
     _sources.pop(name, None)
-    _cache.clear()
 
 
 def load_failures() -> list[str]:
@@ -132,17 +150,32 @@ def load_failures() -> list[str]:
     return list(_failures)
 
 
-def _collect(kind: str, hook_name: str, key: Callable[[Any], str]) -> dict[str, PluginInfo]:
-    if kind in _cache:
-        return _cache[kind]
-    pm = get_plugin_manager()
-    out: dict[str, PluginInfo] = {}
+def _attributed(pm: PluginManager, hook_name: str) -> list[tuple[str, Any]]:
+    """Call the hook through pluggy (so hook wrappers and tracing apply) and pair each result with
+    the plug-in that returned it, in call order (last registered first, ``trylast`` built-ins last)."""
     caller = getattr(pm.hook, hook_name)
-    # pluggy calls implementations last-registered first; keep that priority order
-    for impl in reversed(caller.get_hookimpls()):
-        plugin_name = pm.get_name(impl.plugin) or repr(impl.plugin)
+    impls = [i for i in reversed(caller.get_hookimpls()) if not (i.hookwrapper or i.wrapper)]
+    results = caller()
+    if len(results) == len(impls):
+        return [(pm.get_name(i.plugin) or repr(i.plugin), r) for i, r in zip(impls, results)]
+    # some implementation returned None (pluggy drops those): attribute plug-in by plug-in, still through pluggy
+    out: list[tuple[str, Any]] = []
+    plugins = [i.plugin for i in impls]
+    for impl in impls:
+        sub = pm.subset_hook_caller(hook_name, remove_plugins=[p for p in plugins if p is not impl.plugin])
+        out += [(pm.get_name(impl.plugin) or repr(impl.plugin), r) for r in sub()]
+    return out
+
+
+def _collect(kind: str, hook_name: str, key: Callable[[Any], str]) -> dict[str, PluginInfo]:
+    pm = get_plugin_manager()
+    cached = pm.lookup_cache.get(kind)
+    if cached is not None:
+        return cached
+    out: dict[str, PluginInfo] = {}
+    for plugin_name, objs in _attributed(pm, hook_name):
         source = _sources.get(plugin_name, "runtime")
-        for obj in impl.function() or ():
+        for obj in objs or ():
             name = key(obj)
             prev = out.get(name)
             if prev is not None:
@@ -154,7 +187,7 @@ def _collect(kind: str, hook_name: str, key: Callable[[Any], str]) -> dict[str, 
                     f"{kind} {name!r} is registered twice: by {prev.plugin} ({prev.source}) and {plugin_name} ({source})"
                 )
             out[name] = PluginInfo(kind, name, plugin_name, source, obj)
-    _cache[kind] = out
+    pm.lookup_cache[kind] = out
     return out
 
 
