@@ -34,6 +34,7 @@ How it is fast (2 CPU cores, no compiled extension; profiler labels ``splatter.*
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -63,7 +64,7 @@ EXTENT_SIGMAS = 3.0  # footprint half-width, in standard deviations along the ma
 FRUSTUM_MARGIN = 0.15  # the Jacobian's x/z, y/z are clamped to the image +- this fraction of its size
 ALPHA_MAX = 0.99  # per-splat alpha clamp
 ALPHA_MIN = 1.0 / 255.0  # splats with alpha below this are skipped
-TRANSMITTANCE_MIN = 1e-4  # a splat that would take T below this is not drawn, nor is any behind it
+TRANSMITTANCE_MIN = 1e-4  # default of rasterize's transmittance_min (early termination, as 3DGS)
 
 _PAIR_BUDGET = 1 << 20  # (pixel, Gaussian) pairs expanded at once (~150 bytes of temporaries each)
 _CACHE_BYTES = 512 << 20  # pair data kept from forward for backward; chunks beyond it are recomputed
@@ -200,6 +201,8 @@ class _Tiling:
     y0: torch.Tensor  # [R] int64 first pixel row
     rows: torch.Tensor  # [R] int64 pixel rows of the rectangle
     key_base: torch.Tensor  # [R] int64 key of pixel (x, y) in its chunk = key_base + y * ts + x
+    tile: torch.Tensor  # [R] int64 tile index
+    rank: torch.Tensor  # [R] int64 depth rank of the record among its tile's records
     chunks: list[tuple[int, int, int, int]]  # (first record, end record, first tile, end tile)
     tile_size: int
     tiles_x: int
@@ -256,18 +259,20 @@ def _bin_tiles(rect: torch.Tensor, width: int, height: int, tile_size: int) -> _
         t0s = torch.tensor([ch[2] for ch in chunks], device=dev)
         t0_rec = t0s.index_select(0, torch.searchsorted(bounds, torch.arange(tile.numel(), device=dev), right=True) - 1)
     key_base = (tile - t0_rec) * tp - ty * ts * ts - tx * ts
-    return _Tiling(ids.index_select(0, owner), rx0, rx1, ry0, ry1 - ry0 + 1, key_base, chunks, ts, tiles_x, tiles_y)
+    rank = torch.arange(tile.numel(), device=dev) - first_idx.index_select(0, torch.cumsum(tile_first, 0) - 1)
+    return _Tiling(ids.index_select(0, owner), rx0, rx1, ry0, ry1 - ry0 + 1, key_base, tile, rank, chunks, ts,
+                   tiles_x, tiles_y)
 
 
 @dataclass
 class _Pairs:
-    """The (pixel, Gaussian) pairs of one chunk with alpha >= ALPHA_MIN, sorted by (pixel, depth);
-    pairs that are not drawn (``T`` below ``TRANSMITTANCE_MIN``) have ``w = 0``."""
+    """The drawn (pixel, Gaussian) pairs of one chunk, sorted by (pixel, depth): alpha >= ALPHA_MIN and,
+    with early termination, only those in front of their pixel's termination point."""
 
     gauss: torch.Tensor  # [P] int32
     key: torch.Tensor  # [P] int32 chunk-local tile-major pixel
-    alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G), or 0
-    w: torch.Tensor  # [P] alpha T_before if drawn, else 0
+    alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G)
+    w: torch.Tensor  # [P] alpha T_before
     frozen: torch.Tensor  # [P] bool: alpha clamped at ALPHA_MAX (no gradient through it)
     crow: torch.Tensor  # [B + 1] int32 first pair of each of the chunk's B pixels (CSR row pointers)
 
@@ -275,31 +280,31 @@ class _Pairs:
         return sum(t.numel() * t.element_size() for t in vars(self).values())
 
 
-def _expand_pairs(
-    tiling: _Tiling, chunk: tuple[int, int, int, int], means2d: torch.Tensor, conic: torch.Tensor,
-    opacity: torch.Tensor,
-) -> _Pairs:
-    """Expand one chunk's records into their (pixel, Gaussian) pairs, drop those with alpha < 1/255,
-    stable-sort them by pixel (each pixel's run stays in depth order; int16 keys) and get every pair's
-    transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix sums)."""
-    r0, r1, t0, t1 = chunk
+_PASS_RANKS = (32, 128, 512)  # depth ranks (within a tile) where a chunk's passes end, with early termination
+
+
+def _record_pairs(
+    tiling: _Tiling, recs: slice | torch.Tensor, means2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pairs with ``o G >= ALPHA_MIN`` of the records ``recs`` (a slice or ascending int64 indices),
+    record-major: chunk-local key (int32), Gaussian (int32), ``o G`` (unclamped)."""
+    take = (lambda t: t[recs]) if isinstance(recs, slice) else (lambda t: t.index_select(0, recs))
     dev, dtype = means2d.device, means2d.dtype
     ts = tiling.tile_size
-    n_keys = (t1 - t0) * ts * ts
-    g_rec = tiling.gauss[r0:r1]
-    x0, y0 = tiling.x0[r0:r1], tiling.y0[r0:r1]
-    wx = tiling.x1[r0:r1] - x0 + 1
-    count = wx * tiling.rows[r0:r1]
+    g_rec = take(tiling.gauss)
+    x0, y0 = take(tiling.x0), take(tiling.y0)
+    wx = take(tiling.x1) - x0 + 1
+    count = wx * take(tiling.rows)
     n = int(count.sum())
     # per record: offsets of its first pixel centre from the mean, key of its first pixel, conic, opacity
     ox = (x0.to(dtype) + 0.5 - means2d[:, 0].index_select(0, g_rec))
     oy = (y0.to(dtype) + 0.5 - means2d[:, 1].index_select(0, g_rec))
-    key0 = (tiling.key_base[r0:r1] + y0 * ts + x0).int()
+    key0 = (take(tiling.key_base) + y0 * ts + x0).int()
     ca, cb, cc = (row.index_select(0, g_rec) for row in conic.t())
     o = opacity.index_select(0, g_rec)
     count, wx = count.int(), wx.int()
     # pairs, record-major (gathers by the record index are monotone, hence cache-friendly)
-    rec = torch.repeat_interleave(torch.arange(r1 - r0, device=dev, dtype=torch.int32), count, output_size=n)
+    rec = torch.repeat_interleave(torch.arange(g_rec.numel(), device=dev, dtype=torch.int32), count, output_size=n)
     local = torch.arange(n, device=dev, dtype=torch.int32).sub_((torch.cumsum(count, 0, dtype=torch.int32) - count).index_select(0, rec))
     wx_p = wx.index_select(0, rec)
     ly = local // wx_p
@@ -313,28 +318,88 @@ def _expand_pairs(
     raw = torch.exp_(raw.sub_(cb.index_select(0, rec).mul_(dx).mul_(dy))).mul_(o.index_select(0, rec))
     del dx, dy
     keep = (raw >= ALPHA_MIN).nonzero().squeeze(1)
-    key = key.index_select(0, keep)
-    key, order = torch.sort(key.to(torch.int16) if n_keys <= _KEY_LIMIT else key, stable=True)  # depth order kept
-    key = key.int()
-    sel = keep.index_select(0, order)
-    del keep, order
-    gauss = g_rec.int().index_select(0, rec.index_select(0, sel))
-    raw = raw.index_select(0, sel)
-    del rec, sel
-    frozen = raw > ALPHA_MAX
-    alpha = raw.clamp_(max=ALPHA_MAX)
-    # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
-    crow = torch.zeros(n_keys + 1, dtype=torch.int32, device=dev)
+    gauss = g_rec.int().index_select(0, rec.index_select(0, keep))
+    return key.index_select(0, keep), gauss, raw.index_select(0, keep)
+
+
+def _sort_by_pixel(key: torch.Tensor, n_keys: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Stable sort of chunk-local keys (int16 when they fit: about 2x faster) -> (int32 keys, order)."""
+    key, order = torch.sort(key.to(torch.int16) if n_keys <= _KEY_LIMIT else key, stable=True)
+    return key.int(), order
+
+
+def _expand_pairs(
+    tiling: _Tiling, chunk: tuple[int, int, int, int], means2d: torch.Tensor, conic: torch.Tensor,
+    opacity: torch.Tensor, transmittance_min: float,
+) -> _Pairs:
+    """Expand one chunk's records into their drawn (pixel, Gaussian) pairs sorted by (pixel, depth).
+
+    Per pass: expand the pairs, drop those with alpha < 1/255, stable-sort them by pixel (int16 keys;
+    each pixel's run stays in depth order) and get every pair's transmittance from one segmented scan
+    of ``log(1 - alpha)`` (float64 prefix sums), continuing the pixel's transmittance from the earlier
+    passes. With ``transmittance_min > 0`` the tile's records are taken in passes of increasing depth
+    rank (``_PASS_RANKS``); the pairs behind a pixel's termination point are dropped, and a tile whose
+    pixels have all terminated expands none of its later records (the 3DGS block's early exit).
+    """
+    r0, r1, t0, t1 = chunk
+    dtype = means2d.dtype
+    tp = tiling.tile_size**2
+    n_keys = (t1 - t0) * tp
+    log_t_min = math.log(transmittance_min) if transmittance_min > 0 else -math.inf
+    log_t_pix: torch.Tensor | None = None  # [n_keys] float64 log T of every pixel after the passes so far
+    done: torch.Tensor | None = None  # [n_keys] bool: pixel terminated
+    parts: list[tuple[torch.Tensor, ...]] = []
+    lo = 0
+    for hi in (*(_PASS_RANKS if transmittance_min > 0 else ()), None):
+        rank = tiling.rank[r0:r1]
+        if lo == 0 and (hi is None or int(rank.max()) < hi):
+            recs: slice | torch.Tensor = slice(r0, r1)
+        else:
+            sel = (rank >= lo) if hi is None else (rank >= lo) & (rank < hi)
+            if done is not None:
+                sel &= ~done.view(-1, tp).all(1).index_select(0, tiling.tile[r0:r1] - t0)
+            recs = sel.nonzero().squeeze(1).add_(r0)
+        key, gauss, raw = _record_pairs(tiling, recs, means2d, conic, opacity)
+        if done is not None:
+            live = (~done).index_select(0, key).nonzero().squeeze(1)
+            key, gauss, raw = key.index_select(0, live), gauss.index_select(0, live), raw.index_select(0, live)
+        key, order = _sort_by_pixel(key, n_keys)
+        gauss, raw = gauss.index_select(0, order), raw.index_select(0, order)
+        del order
+        frozen = raw > ALPHA_MAX
+        alpha = raw.clamp_(max=ALPHA_MAX)
+        # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
+        first = torch.zeros(n_keys + 1, dtype=torch.int64, device=key.device)
+        torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=first[1:])
+        log_t = torch.log1p(-alpha).double()  # transcendentals in the working dtype (float64 ones are slow)
+        log_before = torch.cumsum(log_t, 0).sub_(log_t)
+        log_before.sub_(log_before.index_select(0, first.index_select(0, key)))
+        del first
+        if log_t_pix is not None:
+            log_before.add_(log_t_pix.index_select(0, key))
+        if transmittance_min > 0:
+            stop = (log_before + log_t) < log_t_min  # monotone along a pixel's run: a suffix of it
+            if bool(stop.any()):
+                done = torch.zeros(n_keys, dtype=torch.bool, device=key.device) if done is None else done
+                done[key[stop]] = True
+                drawn = (~stop).nonzero().squeeze(1)
+                key, gauss, alpha, frozen, log_before, log_t = (
+                    t.index_select(0, drawn) for t in (key, gauss, alpha, frozen, log_before, log_t))
+            if hi is not None:
+                log_t_pix = log_t.new_zeros(n_keys) if log_t_pix is None else log_t_pix
+                log_t_pix.index_add_(0, key, log_t)
+        parts.append((key, gauss, alpha, frozen, log_before))
+        if hi is None or int(rank.max()) < hi or (done is not None and bool(done.all())):
+            break
+        lo = hi
+    key, gauss, alpha, frozen, log_before = (torch.cat(t) for t in zip(*parts)) if len(parts) > 1 else parts[0]
+    if len(parts) > 1:  # each pass's pairs lie behind the earlier passes' ones: a stable sort merges them
+        key, order = _sort_by_pixel(key, n_keys)
+        gauss, alpha, frozen, log_before = (t.index_select(0, order) for t in (gauss, alpha, frozen, log_before))
+    crow = torch.zeros(n_keys + 1, dtype=torch.int32, device=key.device)
     torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=crow[1:])
-    log_t = torch.log1p(-alpha).double()  # transcendentals in the working dtype (float64 ones are slow)
-    excl = torch.cumsum(log_t, 0).sub_(log_t)
-    log_before = excl.sub_(excl.index_select(0, crow.index_select(0, key)))
-    drawn = (log_before + log_t) >= _LOG_T_MIN
-    w = torch.exp(log_before.to(dtype)).mul_(alpha).mul_(drawn)
+    w = torch.exp(log_before.to(dtype)).mul_(alpha)
     return _Pairs(gauss, key, alpha, w, frozen, crow)
-
-
-_LOG_T_MIN = float(torch.log(torch.tensor(TRANSMITTANCE_MIN, dtype=torch.float64)))
 
 
 def _to_tiles(img: torch.Tensor, tiling: _Tiling, width: int, height: int) -> torch.Tensor:
@@ -355,14 +420,14 @@ class _Composite(torch.autograd.Function):
     """Front-to-back alpha compositing of per-Gaussian features over the tiled pairs."""
 
     @staticmethod
-    def forward(ctx, means2d, conic, opacity, feats, tiling, width, height):  # type: ignore[override]
+    def forward(ctx, means2d, conic, opacity, feats, tiling, width, height, t_min):  # type: ignore[override]
         tp = tiling.tile_size**2
         out = feats.new_zeros(tiling.tiles_x * tiling.tiles_y * tp, feats.shape[1])  # tile-major [T ts^2, F]
         cached: list[_Pairs | None] = []
         cache_left = _CACHE_BYTES if any(ctx.needs_input_grad[:4]) else 0
         for chunk in tiling.chunks:
             with torch.profiler.record_function("splatter.expand_pairs"):
-                p = _expand_pairs(tiling, chunk, means2d, conic, opacity)
+                p = _expand_pairs(tiling, chunk, means2d, conic, opacity, t_min)
             with torch.profiler.record_function("splatter.accumulate"):
                 # out[pixel] += w feats[gauss]: the pairs are sorted by pixel, i.e. a CSR matrix [B, M]
                 n_keys = p.crow.numel() - 1
@@ -373,7 +438,7 @@ class _Composite(torch.autograd.Function):
             keep = p.nbytes() <= cache_left
             cache_left -= p.nbytes() if keep else 0
             cached.append(p if keep else None)
-        ctx.tiling, ctx.width, ctx.height, ctx.cached = tiling, width, height, cached
+        ctx.tiling, ctx.width, ctx.height, ctx.cached, ctx.t_min = tiling, width, height, cached, t_min
         ctx.save_for_backward(means2d, conic, opacity, feats)
         return _from_tiles(out, tiling, width, height)
 
@@ -381,7 +446,7 @@ class _Composite(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_out):  # type: ignore[override]
         means2d, conic, opacity, feats = ctx.saved_tensors
-        tiling, width, height = ctx.tiling, ctx.width, ctx.height
+        tiling, width, height, t_min = ctx.tiling, ctx.width, ctx.height, ctx.t_min
         tp, ts = tiling.tile_size**2, tiling.tile_size
         nf = feats.shape[1]
         grad_tm = _to_tiles(grad_out, tiling, width, height)  # [F, T ts^2]
@@ -394,7 +459,7 @@ class _Composite(torch.autograd.Function):
             p = ctx.cached[i]
             if p is None:
                 with torch.profiler.record_function("splatter.expand_pairs"):
-                    p = _expand_pairs(tiling, chunk, means2d, conic, opacity)
+                    p = _expand_pairs(tiling, chunk, means2d, conic, opacity, t_min)
             with torch.profiler.record_function("splatter.backward_pairs"):
                 t0, t1 = chunk[2], chunk[3]
                 grad_c = grad_tm[:, t0 * tp:t1 * tp]
@@ -430,7 +495,7 @@ class _Composite(torch.autograd.Function):
                 g_geo[5].index_add_(0, gauss, g_pow.div_(opacity.index_select(0, gauss)))
         g_means2d = g_geo[:2].t() if need_uv else None
         g_conic = g_geo[2:5].t()
-        return g_means2d, g_conic, g_geo[5], g_feats.t(), None, None, None
+        return g_means2d, g_conic, g_geo[5], g_feats.t(), None, None, None, None
 
 
 # ----------------------------------------------------------------------------- public API
@@ -473,6 +538,7 @@ def rasterize(
     background: torch.Tensor | None = None,
     *,
     tile_size: int = 16,
+    transmittance_min: float = TRANSMITTANCE_MIN,
 ) -> RasterOutput:
     """Render 3D Gaussians with EWA splatting and front-to-back alpha compositing.
 
@@ -488,6 +554,12 @@ def rasterize(
         background: ``[3]`` colour behind everything (default black).
         tile_size: tile edge in pixels used to bin the footprints; memory chunks are whole tiles, so a
             tile much larger than 16 raises the peak memory (affects speed and memory only, never the image).
+        transmittance_min: early termination (3DGS: 1e-4, the default): a pixel stops compositing at the
+            first splat that would take its transmittance below this, and neither that splat nor any
+            behind it is drawn (nor costs time in forward or backward). ``0`` composites every splat
+            (exact). A terminated pixel's colour, alpha and depth differ from the exact ones by at most
+            ``T_stop max|f - f_background|``, with ``T_stop = 1 - alpha`` its remaining transmittance,
+            ``< transmittance_min / (1 - ALPHA_MAX)`` (``f`` the colours, depths and 1 of the splats not drawn).
 
     Returns:
         ``RasterOutput(color [3, H, W], alpha [1, H, W], depth [1, H, W], visible [N] bool)``, with
@@ -508,8 +580,8 @@ def rasterize(
         * ``alpha_i = min(0.99, o_i exp(-0.5 d^T Sigma_2D^-1 d))``, ``d`` = pixel centre - ``(u, v)``;
           splats with ``alpha_i < 1/255`` are skipped;
         * per pixel, splats in ascending ``z`` (ties: input order); ``T_i = prod_{j<i} (1 - alpha_j)``;
-          splat ``i`` is drawn only if ``T_i (1 - alpha_i) >= 1e-4``, and nothing behind the first that
-          is not; ``w_i = alpha_i T_i``;
+          splat ``i`` is drawn only if ``T_i (1 - alpha_i) >= transmittance_min`` (default 1e-4), and
+          nothing behind the first that is not; ``w_i = alpha_i T_i``;
         * ``color = sum_i w_i c_i + T_final background``, ``alpha = 1 - T_final = sum_i w_i``,
           ``depth = sum_i w_i z_i``.
         The cut-offs (near plane, footprint, 1/255, 1e-4, 0.99 clamp) have zero gradient.
@@ -527,6 +599,8 @@ def rasterize(
     n = _check_inputs(means, scales, rotations, opacities, colors, camera, background)
     if not (isinstance(tile_size, int) and tile_size >= 1):
         raise InputValueError(f"tile_size must be a positive int, got {tile_size!r}")
+    if not (isinstance(transmittance_min, (int, float)) and 0 <= transmittance_min < 1):
+        raise InputValueError(f"transmittance_min must be a number in [0, 1), got {transmittance_min!r}")
     width, height = camera.width, camera.height
     dtype, dev = means.dtype, means.device
     w2c = camera.world_to_camera.to(device=dev, dtype=dtype)
@@ -549,7 +623,8 @@ def rasterize(
         z = z[order]
         feats = torch.cat([colors[idx], z.unsqueeze(-1), torch.ones_like(z).unsqueeze(-1)], dim=-1)  # [M, 5]
         tiling = _bin_tiles(candidates[sel], width, height, tile_size)
-    out = _Composite.apply(means2d[sel], conic[sel], opacities[idx], feats, tiling, width, height)
+    out = _Composite.apply(means2d[sel], conic[sel], opacities[idx], feats, tiling, width, height,
+                           float(transmittance_min))
     out = out.reshape(5, height, width)
     alpha = out[4:5]
     color = out[:3]

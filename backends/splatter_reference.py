@@ -46,6 +46,8 @@ def rasterize_reference(
     colors: torch.Tensor,
     camera: Camera,
     background: torch.Tensor | None = None,
+    *,
+    transmittance_min: float = TRANSMITTANCE_MIN,
 ) -> RasterOutput:
     """Same contract and conventions as ``rasterize`` (see its docstring), computed in float64 by
     brute force. Returns float64 tensors. Memory O(H W N): keep scenes small."""
@@ -97,7 +99,7 @@ def rasterize_reference(
         a = alpha[:, i]
         skip = ~inside[:, i] | (a.detach() < ALPHA_MIN) | done
         t_next = t * (1 - a)
-        stop = ~skip & (t_next.detach() < TRANSMITTANCE_MIN)
+        stop = ~skip & (t_next.detach() < transmittance_min)
         done = done | stop
         draw = ~skip & ~stop
         w = torch.where(draw, a * t, torch.zeros_like(a))

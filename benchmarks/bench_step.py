@@ -25,6 +25,7 @@ Usage: ``python benchmarks/bench_step.py [--anchors 10000 100000] [--sizes 256 5
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import json
 import math
@@ -59,8 +60,10 @@ def camera(width: int) -> Camera:
     return Camera(torch.eye(4), k, width, height)
 
 
-def make_model(anchors: int, seed: int = 0) -> NeuralGaussianModel:
-    """Reference model with ``anchors`` anchors on the room's surfaces (see the module docstring)."""
+def make_model(anchors: int, seed: int = 0, scale: float = 1.0, opacity_bias: float = 0.3) -> NeuralGaussianModel:
+    """Reference model with ``anchors`` anchors on the room's surfaces (see the module docstring);
+    ``scale`` multiplies the Gaussians' size (not their offsets), ``opacity_bias`` is the
+    bias of the opacity MLP's last layer (higher: more and more opaque Gaussians)."""
     g = torch.Generator().manual_seed(seed)
 
     def u(n: int, lo: float, hi: float) -> torch.Tensor:
@@ -83,13 +86,13 @@ def make_model(anchors: int, seed: int = 0) -> NeuralGaussianModel:
         model._anchor.copy_(torch.cat([wall, floor, sph]))
         model._offset.copy_(0.6 * torch.randn(anchors, 10, 3, generator=g))
         model._anchor_feat.copy_(torch.randn(anchors, 32, generator=g))
-        model._scaling.copy_(torch.tensor([math.log(spacing)] * 3 + [math.log(0.3 * spacing)] * 3).expand(anchors, 6))
+        model._scaling.copy_(torch.tensor([math.log(spacing)] * 3 + [math.log(0.3 * scale * spacing)] * 3).expand(anchors, 6))
         for mlp in (model.mlp_opacity, model.mlp_cov, model.mlp_color):
             for layer in mlp:
                 if isinstance(layer, torch.nn.Linear):
                     layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) / math.sqrt(layer.in_features))
                     layer.bias.zero_()
-        model.mlp_opacity[-2].bias.fill_(0.3)
+        model.mlp_opacity[-2].bias.fill_(opacity_bias)
     return model
 
 
@@ -109,10 +112,13 @@ def load_rasterize(baseline: str | None):
     return module.rasterize
 
 
-def measure_case(anchors: int, width: int, reps: int, baseline: str | None, profile: bool) -> dict:
-    """Run in a subprocess: seconds per phase (fastest of ``reps`` steps after a warm-up), peak MiB."""
+def measure_case(anchors: int, width: int, args: argparse.Namespace, baseline: str | None) -> dict:
+    """Run in a subprocess: seconds per phase (fastest of ``args.reps`` steps after a warm-up), peak MiB."""
+    reps, profile = args.reps, args.profile
     rasterize = load_rasterize(baseline)
-    model = make_model(anchors)
+    if not baseline and args.transmittance_min is not None:
+        rasterize = functools.partial(rasterize, transmittance_min=args.transmittance_min)
+    model = make_model(anchors, scale=args.scale, opacity_bias=args.opacity_bias)
     cam = camera(width)
     cgs = ControlGS.wrap(model, modules=modules_for(DEFAULT_EFFECTS))
     pipeline = Pipeline.from_config(DEFAULT_EFFECTS)
@@ -169,7 +175,9 @@ def measure_case(anchors: int, width: int, reps: int, baseline: str | None, prof
 
 def run_case_subprocess(anchors: int, width: int, args: argparse.Namespace, baseline: str | None) -> dict:
     cmd = [sys.executable, __file__, "--case", str(anchors), str(width), "--reps", str(args.reps),
-           "--threads", str(args.threads)]
+           "--threads", str(args.threads), "--scale", str(args.scale), "--opacity-bias", str(args.opacity_bias)]
+    if args.transmittance_min is not None:
+        cmd += ["--transmittance-min", str(args.transmittance_min)]
     if baseline:
         cmd += ["--baseline", baseline]
     if args.profile:
@@ -188,12 +196,17 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=2, help="timed steps per case after a warm-up (fastest reported)")
     ap.add_argument("--baseline", help="splatter module file to compare against (same cases, same run)")
     ap.add_argument("--profile", action="store_true", help="also profile the splatter's phases (one more step)")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="Gaussian size factor (1: light scene, ~37 pairs/px; 3: dense scene, see docs/benchmarks-step.md)")
+    ap.add_argument("--opacity-bias", type=float, default=0.3, help="bias of the opacity MLP's last layer")
+    ap.add_argument("--transmittance-min", type=float,
+                    help="rasterize's early-termination threshold for this tree's splatter (default: its default)")
     ap.add_argument("--out", type=Path, help="write the tables to this markdown file")
     ap.add_argument("--case", nargs=2, type=int, metavar=("ANCHORS", "WIDTH"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     if args.case:
-        print(json.dumps(measure_case(args.case[0], args.case[1], args.reps, args.baseline, args.profile)))
+        print(json.dumps(measure_case(args.case[0], args.case[1], args, args.baseline)))
         return
 
     header = ("| anchors | size | Gaussians (visible) | " + " | ".join(PHASES) + " | step (s) | step CPU (s) | peak (MiB) |"

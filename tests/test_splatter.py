@@ -76,12 +76,16 @@ def _stack(out) -> torch.Tensor:
 
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("tile_size", [4, 16])
-def test_matches_reference_float64(seed: int, tile_size: int) -> None:
+@pytest.mark.parametrize("t_min", [0.0, 1e-4])
+def test_matches_reference_float64(seed: int, tile_size: int, t_min: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Same threshold, same image; the depth-rank passes of early termination (here after 1 and 3
+    records per tile) change nothing."""
+    monkeypatch.setattr(splatter, "_PASS_RANKS", (1, 3))
     cam = make_camera()
     scene = random_scene(seed, 60, cam)
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
-    fast = rasterize(*scene, cam, bg, tile_size=tile_size)
-    ref = rasterize_reference(*scene, cam, bg)
+    fast = rasterize(*scene, cam, bg, tile_size=tile_size, transmittance_min=t_min)
+    ref = rasterize_reference(*scene, cam, bg, transmittance_min=t_min)
     assert fast.color.shape == (3, 17, 23) and fast.alpha.shape == fast.depth.shape == (1, 17, 23)
     torch.testing.assert_close(_stack(fast), _stack(ref), rtol=1e-10, atol=1e-10)
     assert torch.equal(fast.visible, ref.visible)
@@ -142,10 +146,63 @@ def test_gradcheck() -> None:
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6, fast_mode=True)
 
 
-def test_chunked_and_recomputed_backward_agree(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Tiny pair budget (many chunks) and no pair cache (backward recomputes) give the same result."""
+def _opaque_stack(n: int = 40, seed: int = 2):
+    """Layers of large, fairly opaque Gaussians over a 23 x 17 image: most pixels terminate (T < 1e-4)."""
     cam = make_camera()
-    scene = random_scene(5, 50, cam)
+    g = torch.Generator().manual_seed(seed)
+    z = 1.0 + 3.0 * torch.rand(n, generator=g, dtype=F64)
+    xy = (torch.rand(n, 2, generator=g, dtype=F64) * 2 - 1) * 0.3 * z[:, None]
+    means = camera_to_world_points(cam, torch.cat([xy, z[:, None]], -1))
+    scales = 0.25 * z[:, None] * (0.5 + torch.rand(n, 3, generator=g, dtype=F64))
+    rotations = torch.randn(n, 4, generator=g, dtype=F64)
+    opacities = 0.5 + 0.5 * torch.rand(n, generator=g, dtype=F64)
+    colors = torch.rand(n, 3, generator=g, dtype=F64)
+    return (means, scales, rotations, opacities, colors), cam
+
+
+def test_early_termination_error_bound() -> None:
+    """Against the exact oracle (no termination), a terminated pixel's colour, alpha and depth are off by
+    at most ``T_stop max|f - f_bg|`` (``T_stop = 1 - alpha``, the transmittance it stopped at, which is
+    below ``transmittance_min / (1 - ALPHA_MAX)``); the other pixels are exact."""
+    scene, cam = _opaque_stack()
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+    for t_min in (1e-4, 1e-2):
+        fast = rasterize(*scene, cam, bg, transmittance_min=t_min)
+        torch.testing.assert_close(_stack(fast), _stack(rasterize_reference(*scene, cam, bg, transmittance_min=t_min)),
+                                   rtol=1e-10, atol=1e-10)
+        exact = rasterize_reference(*scene, cam, bg, transmittance_min=0.0)
+        err = (_stack(fast) - _stack(exact)).abs()  # [5, H, W]
+        t_stop = 1 - fast.alpha[0]
+        stopped = err.amax(0) > 1e-9  # beyond float64 rounding
+        assert int(stopped.sum()) > 0.5 * stopped.numel()  # the scene exercises termination
+        assert float(t_stop[stopped].max()) < t_min / (1 - splatter.ALPHA_MAX)
+        z = (scene[0] @ cam.world_to_camera[:3, :3].t() + cam.world_to_camera[:3, 3])[:, 2]
+        spread = torch.cat([(scene[4] - bg).abs().amax(0), torch.ones(1, dtype=F64), z.abs().amax().view(1)])
+        assert bool((err <= t_stop * spread.view(5, 1, 1) + 1e-10).all())
+
+
+def test_gradcheck_with_early_termination() -> None:
+    """Gradients of the drawn splats where pixels terminate (generic scene: no threshold crossing within
+    the finite-difference step)."""
+    scene, cam = _opaque_stack(n=8, seed=4)
+    scene = (*scene[:3], torch.full((8,), 0.93, dtype=F64), scene[4])
+    bg = torch.tensor([0.4, 0.4, 0.2], dtype=F64)
+    exact = rasterize_reference(*scene, cam, bg, transmittance_min=0.0)
+    assert not torch.allclose(_stack(rasterize(*scene, cam, bg)), _stack(exact), atol=1e-9)  # some pixels stop
+    inputs = tuple(t.clone().requires_grad_() for t in (*scene, bg))
+
+    def fn(*args):
+        return _stack(rasterize(*args[:5], cam, args[5], tile_size=4))
+
+    torch.manual_seed(0)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6, fast_mode=True)
+
+
+@pytest.mark.parametrize("opaque", [False, True])
+def test_chunked_and_recomputed_backward_agree(opaque: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tiny pair budget (many chunks), no pair cache (backward recomputes) and depth-rank passes of
+    one record per tile give the same result."""
+    scene, cam = _opaque_stack() if opaque else (random_scene(5, 50, make_camera()), make_camera())
     weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(1), dtype=F64)
 
     def run():
@@ -156,6 +213,7 @@ def test_chunked_and_recomputed_backward_agree(monkeypatch: pytest.MonkeyPatch) 
     out_a, grads_a = run()
     monkeypatch.setattr(splatter, "_PAIR_BUDGET", 64)
     monkeypatch.setattr(splatter, "_CACHE_BYTES", 0)
+    monkeypatch.setattr(splatter, "_PASS_RANKS", (1, 2, 3))
     out_b, grads_b = run()
     torch.testing.assert_close(out_b, out_a, rtol=1e-12, atol=1e-12)
     for g_a, g_b in zip(grads_a, grads_b):
@@ -328,7 +386,7 @@ def test_every_pair_above_alpha_min_is_enumerated(seed: int, n: int, tile_size: 
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(splatter, "_expand_pairs", counting)
-        fast = rasterize(*scene, cam, tile_size=tile_size)
+        fast = rasterize(*scene, cam, tile_size=tile_size, transmittance_min=0.0)
     means, scales, rotations, opacities = scene[:4]
     w2c, k = cam.world_to_camera, cam.intrinsics
     means_cam = means @ w2c[:3, :3].t() + w2c[:3, 3]
@@ -342,4 +400,5 @@ def test_every_pair_above_alpha_min_is_enumerated(seed: int, n: int, tile_size: 
     ix, iy = xs.reshape(-1, 1), ys.reshape(-1, 1)
     inside = (ix >= rect[:, 0]) & (ix <= rect[:, 1]) & (iy >= rect[:, 2]) & (iy <= rect[:, 3])
     assert sum(enumerated) == int((inside & (alpha >= splatter.ALPHA_MIN)).sum())
-    torch.testing.assert_close(_stack(fast), _stack(rasterize_reference(*scene, cam)), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(_stack(fast), _stack(rasterize_reference(*scene, cam, transmittance_min=0.0)),
+                               rtol=1e-10, atol=1e-10)
