@@ -10,9 +10,9 @@ Part 2 (exchange only): one gradient exchange of a condition table of A anchors 
 with a given fraction of rows touched per rank (random rows, no rendering), sparse vs dense:
 bytes sent per rank and milliseconds. This is the regime of scenes with millions of anchors.
 
-    python benchmarks/bench_distributed.py [--resolution 48] [--iterations 6] [--out docs/distributed.md]
+    python benchmarks/bench_distributed.py [--resolution 48] [--iterations 6] [--doc | --out FILE]
 
-Writes the tables between the markers in ``docs/distributed.md``. Each configuration runs in a
+Prints the tables; ``--doc`` rewrites them between the markers in ``docs/distributed.md`` (``--out FILE``: another file). Each configuration runs in a
 fresh torchrun (OMP_NUM_THREADS=1 per process, so 1 vs 2 processes compares 1 vs 2 cores).
 """
 
@@ -186,7 +186,9 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=2, help="global batch (views per step)")
     p.add_argument("--sizes", default="100000,1000000", help="anchor counts of the exchange-only part")
     p.add_argument("--fractions", default="0.01,0.1,0.5", help="fractions of rows touched per rank (exchange-only)")
-    p.add_argument("--out", type=Path, default=ROOT / "docs" / "distributed.md")
+    p.add_argument("--out", type=Path, default=None, help="file whose marked block to rewrite (default: print only)")
+    p.add_argument("--doc", dest="out", action="store_const", const=ROOT / "docs" / "distributed.md",
+                   help="rewrite the block in docs/distributed.md")
     a = p.parse_args()
     if a.worker:
         (_worker_train if a.task == "train" else _worker_exchange)(a)
@@ -223,7 +225,7 @@ def main() -> None:
                                  "bytes saved", "sparse ms", "dense ms", "auto picks"], rows)
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    text = (f"{BEGIN}\n_Measured by `python benchmarks/bench_distributed.py` on {platform.machine()}, "
+    text = (f"{BEGIN}\n_Measured by `python benchmarks/bench_distributed.py --doc` on {platform.machine()}, "
             f"{os.cpu_count()} cores, torch {torch.__version__}, gloo over loopback, 1 thread per process; "
             f"load average {load:.1f} during the run. Training part: built-in `{a.variant}` scene at "
             f"{a.resolution} px, {source}, global batch {a.batch}, mean of {a.iterations - 1} iterations after one "
@@ -231,6 +233,8 @@ def main() -> None:
             f"**Gradient exchange alone, 2 processes** (conditions A x 3 x 8 float32 + projections; median of "
             f"5)\n\n{exchange_table}\n{END}")
     print(text)
+    if a.out is None:
+        return
     doc = a.out.read_text() if a.out.exists() else ""
     if BEGIN in doc and END in doc:
         doc = doc[:doc.index(BEGIN)] + text + doc[doc.index(END) + len(END):]

@@ -15,7 +15,7 @@ shared machine from inflating them. Also measured: the full Scaffold-GS decode
 Storage: a real Scaffold-GS output directory (``save_scaffold_dir``: PLY + TorchScript decoders +
 cfg_args) vs the adapter file (``cgs.save``), float32 and float16 conditions.
 
-    python benchmarks/bench_injector.py                 # ~1-2 min, writes docs/benchmarks-injector.md
+    python benchmarks/bench_injector.py --doc           # ~1-2 min, writes docs/benchmarks-injector.md (default: print only)
     python benchmarks/bench_injector.py --anchors 10000 --repeats 3 --no-write   # quick look
 """
 
@@ -243,7 +243,8 @@ def main() -> None:
     p.add_argument("--modules", type=int, nargs="+", default=[1, 2, 3], choices=[1, 2, 3])
     p.add_argument("--repeats", type=int, default=15, help="bare/wrapped pairs per configuration")
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--no-write", action="store_true", help="print only; do not write docs/benchmarks-injector.md")
+    p.add_argument("--out", type=Path, default=None, help="write the report to this file (default: print only)")
+    p.add_argument("--doc", dest="out", action="store_const", const=DOC, help="write docs/benchmarks-injector.md")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
@@ -256,9 +257,9 @@ def main() -> None:
     fp16 = fp16_effect()
     text = render_markdown(args, timing, full, storage, fp16)
     print(text)
-    if not args.no_write:
-        DOC.write_text(text)
-        print(f"wrote {DOC} ({time.perf_counter() - t0:.0f} s)")
+    if args.out is not None:
+        args.out.write_text(text)
+        print(f"wrote {args.out} ({time.perf_counter() - t0:.0f} s)")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ log-normal around ``sqrt(50k / N)`` px at 256^2, opacities U(0.05, 0.95), random
    render directly at S/d (``camera.scaled(d)``), d in {2, 4, 8};
 4. where the time goes (top operators of one 50k @ 256^2 forward+backward, torch profiler).
 
-Usage: ``python benchmarks/bench_splatter.py [--quick] [--threads 2] [--out docs/benchmarks-splatter.md]``.
+Usage: ``python benchmarks/bench_splatter.py [--quick] [--threads 2] [--doc | --out FILE]`` (prints; ``--doc`` writes docs/benchmarks-splatter.md).
 """
 
 from __future__ import annotations
@@ -176,7 +176,9 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small run: 1k/10k at 128^2/256^2, one repetition")
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     ap.add_argument("--reps", type=int, default=3, help="timed repetitions per case (the fastest is reported)")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks-splatter.md")
+    ap.add_argument("--out", type=Path, default=None, help="write the report to this file (default: print only)")
+    ap.add_argument("--doc", dest="out", action="store_const", const=ROOT / "docs" / "benchmarks-splatter.md",
+                    help="write docs/benchmarks-splatter.md")
     ap.add_argument("--case", nargs=2, type=int, metavar=("N", "SIZE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -190,7 +192,7 @@ def main() -> None:
     lines = [
         "# CPU splatter benchmark",
         "",
-        f"`python benchmarks/bench_splatter.py{' --quick' if args.quick else ''} --threads {args.threads}` on "
+        f"`python benchmarks/bench_splatter.py{' --quick' if args.quick else ''} --threads {args.threads} --doc` on "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, torch {torch.__version__}, "
         f"{args.threads} thread(s), float32, fastest of {reps} run(s) after a warm-up; load average "
         f"{os.getloadavg()[0]:.1f} when started. On a machine shared with other jobs the wall-clock "
@@ -285,8 +287,12 @@ def main() -> None:
         "- Peak memory is bounded by the chunk size (`_PAIR_BUDGET`, ~150 bytes per candidate pair) and by "
         "the pairs kept for the backward pass (`_CACHE_BYTES`, 512 MiB; beyond it backward recomputes).",
     ]
+    text = "\n".join(lines) + "\n"
+    if args.out is None:
+        print(text)
+        return
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
+    args.out.write_text(text)
     print(f"wrote {args.out}")
 
 

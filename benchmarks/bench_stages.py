@@ -1,7 +1,7 @@
 """Time each downstream stage and the whole pipeline (no PSF), forward and forward+backward.
 
     python benchmarks/bench_stages.py [--sizes 256 512 1024] [--device cpu|cuda] [--reps 10] [--threads N]
-                                      [--out docs/benchmarks-stages.md]
+                                      [--doc | --out FILE]
 
 Images are ``[1, 3, S, S]`` float32. Each row reports the best time over repeats and its ratio
 to an elementwise copy of the same image (``x * 1``), measured in the same run: a memory-bound
@@ -114,7 +114,7 @@ def to_markdown(rows: list[dict], device: torch.device) -> str:
     lines = [
         "# Downstream stage benchmark",
         "",
-        f"`python benchmarks/bench_stages.py` on {where}, torch {torch.__version__}, float32, image `[1, 3, S, S]`;"
+        f"`python benchmarks/bench_stages.py --doc` on {where}, torch {torch.__version__}, float32, image `[1, 3, S, S]`;"
         f" load average at the end {load:.1f}.",
         "Best of round-robin repeats; `x` = ratio to an elementwise copy of the same image in the same run (memory-bound unit)."
         " On a shared machine absolute times vary with the load; compare ratios within one run.",
@@ -136,7 +136,9 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--reps", type=int, default=10, help="round-robin repeats (the best of them is reported)")
     ap.add_argument("--threads", type=int, default=0, help="CPU intra-op threads (0: torch's default)")
-    ap.add_argument("--out", type=Path, default=Path("docs/benchmarks-stages.md"))
+    ap.add_argument("--out", type=Path, default=None, help="write the table to this file (default: print only)")
+    ap.add_argument("--doc", dest="out", action="store_const", const=Path(__file__).resolve().parents[1] / "docs" / "benchmarks-stages.md",
+                    help="write docs/benchmarks-stages.md")
     args = ap.parse_args()
     if args.threads > 0:
         torch.set_num_threads(args.threads)

@@ -7,8 +7,8 @@ image (base64 PNGs) and PSNR / SSIM. The adapter has random conditions: the late
 on what it learned. With ``--screenshot-of URL``: a screenshot of a running viewer through headless
 Chromium instead (``docs/viewer.png`` is ``controlgs view``'s built-in scene with its quick adapter).
 
-    .venv/bin/python benchmarks/bench_viewer.py                       # writes docs/benchmarks-viewer.md
-    .venv/bin/python benchmarks/bench_viewer.py --screenshot-of http://127.0.0.1:PORT/   # docs/viewer.png
+    .venv/bin/python benchmarks/bench_viewer.py --doc                 # writes docs/benchmarks-viewer.md (default: print)
+    .venv/bin/python benchmarks/bench_viewer.py --screenshot-of http://127.0.0.1:PORT/ --screenshot docs/viewer.png
 """
 
 from __future__ import annotations
@@ -113,9 +113,11 @@ def main() -> int:
     p.add_argument("--requests", type=int, default=20, help="timed requests per size and optics mode")
     p.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch intra-op threads (the target: 2 CPU cores)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--out", default=str(ROOT / "docs" / "benchmarks-viewer.md"))
+    p.add_argument("--out", default=None, help="write the report to this file (default: print only)")
+    p.add_argument("--doc", dest="out", action="store_const", const=str(ROOT / "docs" / "benchmarks-viewer.md"),
+                   help="write docs/benchmarks-viewer.md")
     p.add_argument("--screenshot-of", default=None, metavar="URL", help="only take a screenshot of the viewer at URL")
-    p.add_argument("--screenshot", default=str(ROOT / "docs" / "viewer.png"), help="where --screenshot-of writes")
+    p.add_argument("--screenshot", default="viewer.png", help="where --screenshot-of writes (docs/viewer.png: the README's)")
     args = p.parse_args()
     if args.screenshot_of:
         print(screenshot(args.screenshot_of, Path(args.screenshot)))
@@ -142,7 +144,7 @@ def main() -> int:
     load_after = os.getloadavg()
     lines = [
         "# Viewer latency (`controlgs view`)", "",
-        "`benchmarks/bench_viewer.py`: time from an HTTP request with a new state to the JSON answer holding every",
+        "`benchmarks/bench_viewer.py --doc`: time from an HTTP request with a new state to the JSON answer holding every",
         "updated image (rendered frame, eye image, difference, lens overlay; base64 PNG) and PSNR / SSIM, for the",
         "three methods (backbone without SS, SS-backbone, ControlGS) on the built-in scene, measured by a client",
         f"on the same machine over {args.requests} requests of a slider drag (every request a new d, so a new display",
@@ -157,6 +159,9 @@ def main() -> int:
               for s, t, o, r in rows]
     lines += ["", "Target: under 300 ms at 128 px with the fast optics. On a busy machine one intra-op thread can beat",
               "two (OpenMP threads wait for a core the other jobs hold): `controlgs view --threads 1`.", ""]
+    if args.out is None:
+        print("\n".join(lines))
+        return 0
     Path(args.out).write_text("\n".join(lines))
     print(args.out)
     return 0

@@ -27,14 +27,15 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     f.add_argument("--prescription", type=Path, default=None)
     f.set_defaults(func=run_figures)
 
-    c = osub.add_parser("bench", help="error vs time of the PSF operators (table + plot into docs/)")
+    c = osub.add_parser("bench", help="error vs time of the PSF operators (printed; table + plot with --out / --doc)")
     c.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
     c.add_argument("--tols", type=float, nargs="+", default=[0.1, 0.05, 0.02, 0.01], help="fast-mode tolerances")
     c.add_argument("--zone", type=int, default=5, help="fast-mode field-group size")
     c.add_argument("--exact-max", type=int, default=1024,
                    help="largest size where the exact operator is also timed (it is always the reference)")
     c.add_argument("--threads", type=int, default=2)
-    c.add_argument("--out", type=Path, default=Path("docs"), help="folder for optics_bench.md / optics_bench.png")
+    c.add_argument("--out", type=Path, default=None, help="folder for optics_bench.md / optics_bench.png (default: print only)")
+    c.add_argument("--doc", dest="out", action="store_const", const=Path("docs"), help="write them into ./docs")
     c.set_defaults(func=run_bench)
 
     w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a bank's optics")

@@ -9,13 +9,14 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p = sub.add_parser("scene", help="the built-in diorama scene: bake its backbone, export its views")
     ssub = p.add_subparsers(dest="scene_command", metavar="ACTION", required=True)
     b = ssub.add_parser("build-backbone", help="train the reference model on the built-in scene and bake it "
-                                               "(Scaffold-GS format) into the package's data folder")
+                                               "(Scaffold-GS format) into --out (the shipped one: "
+                                               "controlgs_adapter/data/builtin_scene/VARIANT of a checkout)")
     b.add_argument("--variant", choices=("ar", "vr"), default="ar")
     b.add_argument("--resolution", type=int, default=128, help="native resolution S of the training views")
     b.add_argument("--iterations", type=int, default=1500)
     b.add_argument("--max-anchors", type=int, default=3000)
     b.add_argument("--n-offsets", type=int, default=5, help="K Gaussians per anchor")
-    b.add_argument("--out", default=None, help="folder to write instead of the package's data folder")
+    b.add_argument("--out", required=True, help="folder to write (never the installed package by default)")
     b.add_argument("--seed", type=int, default=0)
     b.set_defaults(func=run_build)
     e = ssub.add_parser("export", help="write the ground-truth views as PNG files")

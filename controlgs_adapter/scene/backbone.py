@@ -35,16 +35,17 @@ def load_builtin_backbone(variant: str = "ar") -> Any:
     if not (path / "point_cloud").is_dir():
         raise FileFormatError(
             f"{path}: the built-in {variant!r} backbone is not baked into this installation; "
-            f"build it with `controlgs scene build-backbone --variant {variant}`"
+            f"bake it in a checkout with `controlgs scene build-backbone --variant {variant} --out {path}`"
         )
     return load_scaffold_dir(path).eval()
 
 
-def build_builtin_backbone(variant: str = "ar", *, resolution: int = 128, iterations: int = 1500,
+def build_builtin_backbone(variant: str = "ar", *, out: str | Path, resolution: int = 128, iterations: int = 1500,
                            max_anchors: int = 3000, n_offsets: int = 5, feat_dim: int = 32, point_spacing: float = 0.04,
-                           out: str | Path | None = None, seed: int = 0, progress: bool = True) -> Path:
+                           seed: int = 0, progress: bool = True) -> Path:
     """Train the reference model on the built-in scene's training views at ``resolution`` and save
-    it with :func:`save_scaffold_dir` to ``out`` (default: the package's data folder), with a
+    it with :func:`save_scaffold_dir` to ``out`` (always given: never the installed package; the shipped
+    backbones are ``controlgs_adapter/data/builtin_scene/<variant>`` of a checkout), with a
     ``build.json`` that records the arguments, time and the test-view PSNR of the bare backbone."""
     from ..backends.scaffold_io import save_scaffold_dir
     from ..backends.train_backbone import train_reference_model
@@ -61,7 +62,7 @@ def build_builtin_backbone(variant: str = "ar", *, resolution: int = 128, iterat
         renders = [model.render(c, None, scene.background).color.clamp(0, 1) for c in scene.test_cameras]
         p = [float(psnr(r, g)) for r, g in zip(renders, scene.test_images)]
         s = [float(ssim(r, g)) for r, g in zip(renders, scene.test_images)]
-    target = Path(out) if out is not None else builtin_backbone_dir(variant)
+    target = Path(out)
     save_scaffold_dir(model, target, iteration=iterations)
     info = {"variant": variant, "resolution": resolution, "iterations": iterations, "max_anchors": max_anchors,
             "n_offsets": n_offsets, "feat_dim": feat_dim, "point_spacing": point_spacing, "seed": seed,

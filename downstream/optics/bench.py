@@ -65,7 +65,8 @@ def _kernel_scaling(size: int, zone: int) -> list[tuple[int, float]]:
 
 
 def run(sizes: Sequence[int] = (256, 512, 1024), exact_max: int = 1024,
-        threads: int = 2, out: Path = Path("docs"), zone: int = 5, tols: Sequence[float] = TOLS) -> list[dict]:
+        threads: int = 2, out: Path | None = None, zone: int = 5, tols: Sequence[float] = TOLS) -> list[dict]:
+    """Time and compare the operators; ``out``: folder for ``optics_bench.md`` / ``.png`` (None: print only)."""
     torch.set_num_threads(threads)
     bank = PSFBank.default()
     rows: list[dict] = []
@@ -102,7 +103,8 @@ def run(sizes: Sequence[int] = (256, 512, 1024), exact_max: int = 1024,
         print(f"{size:5d} resample_to {t_res:.2f} s, exact reference incl. its tables {t_exact_build:.2f} s")
     scaling = _kernel_scaling(max(sizes), zone=6)
     print(f"kernel-size scaling at {max(sizes)}^2 (fast, fwd+bwd): " + ", ".join(f"k={k}: {t:.3f} s" for k, t in scaling))
-    _write(rows, scaling, max(sizes), threads, Path(out))
+    if out is not None:
+        _write(rows, scaling, max(sizes), threads, Path(out))
     return rows
 
 
