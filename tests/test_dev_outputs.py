@@ -31,3 +31,15 @@ def test_benchmark_scripts_default_to_printing(script: str) -> None:
     text = (ROOT / "benchmarks" / script).read_text()
     defaults = re.findall(r"add_argument\([^)]*default=([^,)]*)", text)
     assert not [d for d in defaults if "docs" in d], f"{script}: a default path into docs/"
+
+
+def test_cli_training_defaults_come_from_train_config() -> None:
+    from controlgs_adapter.commands.demo import DEMO_ITERATIONS
+    from controlgs_adapter.training import TrainConfig
+
+    base = TrainConfig()
+    for cmd in ("demo", "train"):
+        args = build_parser().parse_args([cmd])
+        assert args.iterations == DEMO_ITERATIONS  # the one documented exception: a CPU-sized demo
+        assert (args.checkpoint_every, args.lr, args.cond_dim, args.psf_fraction) == (
+            base.checkpoint_every, base.lr, base.cond_dim, base.psf_fraction)

@@ -10,7 +10,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-DEFAULT_ITERATIONS = 1000
+#: ``--iterations`` of demo / train: a CPU-sized run on purpose, 10x fewer than the paper's 10,000
+#: (``TrainConfig.iterations``); every other training option defaults to the :class:`TrainConfig` field
+DEMO_ITERATIONS = 1000
 DEFAULT_RESOLUTION = 96
 
 
@@ -95,11 +97,17 @@ def effects_from(names: str | list[str] | None) -> dict[str, Any]:
 def add_training(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", default=None, help=f"downstream stages the adapter is trained and evaluated through, "
                                                    f"comma-separated (default: all of {','.join(STAGES)})")
-    p.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS, help="adapter training iterations")
-    p.add_argument("--psf-fraction", type=float, default=0.1, help="final fraction of iterations with the full PSF")
-    p.add_argument("--lr", type=float, default=3e-3)
-    p.add_argument("--cond-dim", type=int, default=8, help="N per module")
-    p.add_argument("--checkpoint-every", type=int, default=100)
+    from controlgs_adapter.training import TrainConfig
+
+    base = TrainConfig()
+    p.add_argument("--iterations", type=int, default=DEMO_ITERATIONS,
+                   help=f"adapter training iterations (default {DEMO_ITERATIONS}, a CPU-sized demo; the paper and "
+                        f"TrainConfig use {base.iterations})")
+    p.add_argument("--psf-fraction", type=float, default=base.psf_fraction, help="final fraction of iterations with the full PSF")
+    p.add_argument("--lr", type=float, default=base.lr)
+    p.add_argument("--cond-dim", type=int, default=base.cond_dim, help="N per module")
+    p.add_argument("--checkpoint-every", type=int, default=base.checkpoint_every,
+                   help=f"checkpoint every this many iterations (default {base.checkpoint_every}; 0: only at the end)")
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
