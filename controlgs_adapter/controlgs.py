@@ -25,7 +25,7 @@ from torch import nn
 from . import plugins
 from .backend import Backend, get_attr_path, set_attr_path
 from .errors import (FileFormatError, IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
-                     NonFiniteError, ShapeError, StateError, TargetError)
+                     LifecycleError, NonFiniteError, ShapeError, TargetError)
 from .injector import ConditionInjector, InjectionContext
 from .io import load_tensors, read_header, save_tensors
 from .schedules import StrengthSchedule
@@ -119,7 +119,7 @@ def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
     if not isinstance(fc1, nn.Linear):
         raise TargetError(f"{backend.name}: first layer {fc1_path!r} of {path!r} must be an eager nn.Linear, got {type(fc1).__name__}")
     if fc1 in _ATTACHED:
-        raise TargetError(f"{fc1_path!r} already carries an injector ({_ATTACHED[fc1]!r}): unwrap it first, "
+        raise LifecycleError(f"{fc1_path!r} already carries an injector ({_ATTACHED[fc1]!r}): unwrap it first, "
                           "e.g. ControlGS.attached(model).unwrap()")
     target = Target(path, fc1_path, fc1.in_features, fc1.out_features, eager is not None)
     return _Plan(target, eager)
@@ -301,7 +301,7 @@ class ControlGS:
 
     def _check_live(self) -> None:
         if not self._wrapped:
-            raise StateError("this ControlGS was unwrapped; wrap the model again")
+            raise LifecycleError("this ControlGS was unwrapped; wrap the model again")
 
     # ------------------------------------------------------------------ run time
     @property

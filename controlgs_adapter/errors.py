@@ -16,7 +16,16 @@ class InputValueError(ControlGSError, ValueError):
 
 
 class StateError(InputValueError):
+    """A run-time state is invalid (base of :class:`StateRangeError`)."""
+
+
+class StateRangeError(StateError):
     """A run-time state (downsample, power saving, gaze) is outside its physical range."""
+
+
+class LifecycleError(ControlGSError, RuntimeError):
+    """An object is used in the wrong phase of its life: a ``conditioned`` block inside another,
+    a ``ControlGS`` used after ``unwrap``, a decoder wrapped twice."""
 
 
 class NoMatchingBackendError(ControlGSError, TypeError):

@@ -21,7 +21,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from .errors import ShapeError, StateError
+from .errors import InputValueError, LifecycleError, ShapeError
 
 __all__ = ["ConditionInjector", "InjectionContext"]
 
@@ -109,10 +109,10 @@ class ConditionInjector(nn.Module):
 
     def activate(self, ctx: InjectionContext) -> None:
         if self._ctx is not None:
-            raise StateError("already inside a conditioned block: nested blocks are not supported")
+            raise LifecycleError("already inside a conditioned block: nested blocks are not supported")
         unknown = set(ctx.strengths) - set(self.module_names)
         if unknown:
-            raise StateError(f"strengths for unknown module(s) {sorted(unknown)}; wrapped modules: {list(self.module_names)}")
+            raise InputValueError(f"strengths for unknown module(s) {sorted(unknown)}; wrapped modules: {list(self.module_names)}")
         self._ctx = ctx
 
     def deactivate(self) -> None:

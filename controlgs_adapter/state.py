@@ -16,7 +16,7 @@ from typing import Any
 import torch
 
 from .checks import check_tensor
-from .errors import InputValueError, StateError
+from .errors import InputValueError, StateRangeError
 
 __all__ = ["RuntimeState", "Camera"]
 
@@ -62,20 +62,20 @@ class RuntimeState:
     gaze: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
-        d, rho = _real("downsample", self.downsample, StateError), _real("power_saving", self.power_saving, StateError)
+        d, rho = _real("downsample", self.downsample, StateRangeError), _real("power_saving", self.power_saving, StateRangeError)
         if not math.isfinite(d) or d < 1.0:
-            raise StateError(f"downsample must be a finite number >= 1 (S / display rate), got {self.downsample!r}")
+            raise StateRangeError(f"downsample must be a finite number >= 1 (S / display rate), got {self.downsample!r}")
         if not math.isfinite(rho) or not (0.0 <= rho < 1.0):
-            raise StateError(f"power_saving must be a finite number in [0, 1), got {self.power_saving!r}")
+            raise StateRangeError(f"power_saving must be a finite number in [0, 1), got {self.power_saving!r}")
         object.__setattr__(self, "downsample", d)
         object.__setattr__(self, "power_saving", rho)
         if self.gaze is not None:
             gaze = self.gaze.tolist() if isinstance(self.gaze, torch.Tensor) else self.gaze
             if isinstance(gaze, (str, bytes)) or not isinstance(gaze, (tuple, list)) or len(gaze) != 2:
-                raise StateError(f"gaze must be None or a pair (x, y) in [-1, 1]^2, got {self.gaze!r}")
-            g = tuple(_real("gaze", v, StateError) for v in gaze)
+                raise StateRangeError(f"gaze must be None or a pair (x, y) in [-1, 1]^2, got {self.gaze!r}")
+            g = tuple(_real("gaze", v, StateRangeError) for v in gaze)
             if not all(math.isfinite(v) and -1.0 <= v <= 1.0 for v in g):
-                raise StateError(f"gaze must be None or (x, y) in [-1, 1]^2, got {self.gaze!r}")
+                raise StateRangeError(f"gaze must be None or (x, y) in [-1, 1]^2, got {self.gaze!r}")
             object.__setattr__(self, "gaze", g)
 
 

@@ -34,7 +34,7 @@ from typing import Literal, Sequence
 import torch
 
 from controlgs_adapter.checks import check_image, check_same_device, value_checks_enabled
-from controlgs_adapter.errors import InputValueError, StateError
+from controlgs_adapter.errors import InputValueError, StateRangeError
 from controlgs_adapter.state import RuntimeState
 
 from .color import srgb_to_linear
@@ -97,9 +97,9 @@ def _check_rho(rho: object) -> float:
     try:
         value = float(rho)  # type: ignore[arg-type]
     except (TypeError, ValueError):
-        raise StateError(f"rho (power saving) must be a real number in [0, 1), got {rho!r}") from None
+        raise StateRangeError(f"rho (power saving) must be a real number in [0, 1), got {rho!r}") from None
     if not math.isfinite(value) or not 0.0 <= value < 1.0:
-        raise StateError(f"rho (power saving) must be a finite number in [0, 1), got {rho!r}")
+        raise StateRangeError(f"rho (power saving) must be a finite number in [0, 1), got {rho!r}")
     return value
 
 

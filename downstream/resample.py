@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from controlgs_adapter.checks import check_image
-from controlgs_adapter.errors import ShapeError, StateError
+from controlgs_adapter.errors import ShapeError, StateRangeError
 from controlgs_adapter.state import RuntimeState
 
 from .stage import Stage, StageContext
@@ -38,9 +38,9 @@ def _check_factor(d: object, name: str = "d") -> float:
     try:
         value = float(d)  # type: ignore[arg-type]
     except (TypeError, ValueError):
-        raise StateError(f"{name} must be a real number >= 1 (S / display rate), got {d!r}") from None
+        raise StateRangeError(f"{name} must be a real number >= 1 (S / display rate), got {d!r}") from None
     if not math.isfinite(value) or value < 1.0:
-        raise StateError(f"{name} must be a finite number >= 1 (S / display rate), got {d!r}")
+        raise StateRangeError(f"{name} must be a finite number >= 1 (S / display rate), got {d!r}")
     return value
 
 
@@ -109,7 +109,7 @@ class ResampleStage(Stage):
 
     Args:
         max_factor: largest d this scene/run supports (the paper trains d in [1, 8]); a larger
-            state raises :class:`StateError`.
+            state raises :class:`StateRangeError`.
     """
 
     name = "resample"
@@ -129,7 +129,7 @@ class ResampleStage(Stage):
         the display size (no-SS baseline) passes through."""
         d = state.downsample
         if d > self.max_factor:
-            raise StateError(f"downsample {d} exceeds this pipeline's max_factor {self.max_factor}")
+            raise StateRangeError(f"downsample {d} exceeds this pipeline's max_factor {self.max_factor}")
         size = tuple(image.shape[-2:])
         target = resampled_size(ctx.native_size, d)
         if size == target:

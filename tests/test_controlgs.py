@@ -11,7 +11,8 @@ from torch import nn
 
 from controlgs_adapter import ControlGS, RuntimeState
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
-from controlgs_adapter.errors import InputValueError, NoMatchingBackendError, ShapeError, StateError, TargetError
+from controlgs_adapter.errors import (InputValueError, LifecycleError, NoMatchingBackendError, ShapeError, StateError,
+                                      StateRangeError, TargetError)
 
 from scaffold_standin import ScaffoldStandIn, script_decoders, make_camera
 
@@ -269,7 +270,7 @@ def test_unwrap_restores_objects_flags_and_outputs(kind):
     assert all(not f._forward_hooks for f in fc1s)
     assert {id(t): t.requires_grad for t in (model._anchor, model._anchor_feat, model._offset)} == flags
     assert_equal_outputs(ref, outputs(model, x))
-    with pytest.raises(StateError, match="unwrapped"):
+    with pytest.raises(LifecycleError, match="unwrapped"):
         with cgs.conditioned(FULL, camera=cam):
             pass
     ControlGS.wrap(model).unwrap()  # can be wrapped again
@@ -285,7 +286,7 @@ def test_wrong_rows_ids_and_masks_raise():
         model.decode(x[:5])
         with pytest.raises(ShapeError, match="called with 20 rows .* expects 5 rows"):
             model.decode(x)
-        with pytest.raises(StateError, match="nested"):
+        with pytest.raises(LifecycleError, match="nested"):
             with cgs.conditioned(FULL, camera=cam):
                 pass
     with pytest.raises(ShapeError, match=r"mask must have shape \[20\]"):
@@ -361,7 +362,7 @@ def test_no_matching_backend_lists_what_each_backend_looks_for():
 def test_wrapping_twice_is_refused_and_feature_bank_is_targetable():
     model = make_model("eager", use_feat_bank=True)
     cgs = ControlGS.wrap(model)
-    with pytest.raises(TargetError, match=r"already carries an injector \(ControlGS\(backend='scaffold_gs'"):
+    with pytest.raises(LifecycleError, match=r"already carries an injector \(ControlGS\(backend='scaffold_gs'"):
         ControlGS.wrap(model)
     assert ControlGS.attached(model) is cgs
     ControlGS.attached(model).unwrap()
@@ -381,3 +382,12 @@ def test_backend_positions_and_visible_rows():
     assert backend.visible_rows_to_anchor_ids(mask).tolist() == [1, 2, 5, 7]
     with pytest.raises(InputValueError, match="bool"):
         backend.visible_rows_to_anchor_ids(mask.long())
+
+
+def test_lifecycle_and_state_range_errors_are_distinct():
+    from controlgs_adapter import RuntimeState
+
+    with pytest.raises(StateRangeError) as e:
+        RuntimeState(downsample=0.5)
+    assert isinstance(e.value, StateError) and isinstance(e.value, ValueError)
+    assert not issubclass(LifecycleError, StateError) and issubclass(LifecycleError, RuntimeError)
