@@ -23,7 +23,7 @@ import torch
 from controlgs_adapter.downstream.color import linear_to_srgb, srgb_to_linear
 from controlgs_adapter.downstream.display import display_mapping
 from controlgs_adapter.downstream.lens import CARDBOARD_RADIAL, RadialMap, lens_prewarp
-from controlgs_adapter.downstream.oled import box_emission
+from controlgs_adapter.downstream.oled import oled_emission
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.resample import area_resample
 from controlgs_adapter.state import RuntimeState
@@ -64,7 +64,7 @@ def _cases(size: int, device: torch.device) -> dict[str, Callable[[torch.Tensor]
 
     def by_hand(x: torch.Tensor) -> torch.Tensor:  # the same E_s from the functionals: pipeline overhead
         y = area_resample(lens_prewarp(srgb_to_linear(x), grid), 2.5)
-        return linear_to_srgb(box_emission(display_mapping(y, 0.4, reference_power=power_ref), (size, size)))
+        return linear_to_srgb(oled_emission(display_mapping(y, 0.4, reference_power=power_ref), (size, size)))
 
     return {
         "copy (x * 1, unit)": lambda x: x * 1.0,
@@ -74,7 +74,7 @@ def _cases(size: int, device: torch.device) -> dict[str, Callable[[torch.Tensor]
         "resample d=2 (avg-pool path)": lambda x: area_resample(x, 2.0),
         "resample d=2.5 (area taps)": lambda x: area_resample(x, 2.5),
         "display rho=0.4 (at S/2.5)": lambda x: display_mapping(x[..., : low[0], : low[1]], 0.4, gt_lin),
-        "OLED S/2.5 -> S": lambda x: box_emission(x[..., : low[0], : low[1]], (size, size)),
+        "OLED S/2.5 -> S": lambda x: oled_emission(x[..., : low[0], : low[1]], (size, size)),
         "functionals composed by hand": by_hand,
         "pipeline d=2.5 rho=0.4 (no PSF)": lambda x: pipeline(x, state, reference=gt),
     }

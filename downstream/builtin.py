@@ -7,11 +7,11 @@ from controlgs_adapter.hookspecs import hookimpl
 
 @hookimpl(trylast=True)
 def controlgs_register_stages() -> list:
-    from .display import DisplayStage
-    from .foveation import FoveationStage
+    from .display import DisplayMapping
+    from .foveation import Foveation
     from .lens import LensPrewarp
-    from .oled import OLEDStage
-    from .optics.stage import OpticsStage
-    from .resample import ResampleStage
+    from .oled import OLEDEmission
+    from .optics.stage import PSFOptics
+    from .resample import AreaResample
 
-    return [FoveationStage, LensPrewarp, ResampleStage, DisplayStage, OLEDStage, OpticsStage]
+    return [Foveation, LensPrewarp, AreaResample, DisplayMapping, OLEDEmission, PSFOptics]

@@ -9,7 +9,7 @@ light and count as 0. :func:`display_power_watts` gives watts as ``3/1000 * P`` 
 the same group's PowerGS: full white = 3.0055 W).
 
 Uniform dimming: with ``P_ref = P(reference)`` (the ground-truth image; in the pipeline, the
-ground truth as the display would show it, :class:`DisplayStage`) and
+ground truth as the display would show it, :class:`DisplayMapping`) and
 ``P_target = (1 - rho) P_ref``, the image is scaled by ``P_target / P(image)`` so that its power
 equals the target (the paper's equal-power comparison; this brightens an image darker than the
 target unless ``brighten=False``), then clipped to the display range [0, 1]. The power after
@@ -41,8 +41,8 @@ from .color import srgb_to_linear
 from .stage import Stage, StageContext
 
 __all__ = [
-    "PANEL_COEFFICIENTS", "WATTS_PER_UNIT", "display_power", "display_power_watts", "display_mapping",
-    "DisplayStage",
+    "PANEL_COEFFICIENTS", "WATTS_PER_UNIT", "display_power", "display_power_watts", "display_mapping", "display_mapping_with_stats",
+    "DisplayMapping",
 ]
 
 #: OLED power coefficients (alpha, beta, gamma) for linear (R, G, B), paper Supp. Eq. S2.
@@ -111,8 +111,7 @@ def display_mapping(
     reference_power: torch.Tensor | float | None = None,
     coefficients: Sequence[float] = PANEL_COEFFICIENTS,
     brighten: bool = True,
-    return_stats: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
+) -> torch.Tensor:
     """Uniformly dim ``image`` to ``(1 - rho) P_ref`` and clip to the display range [0, 1].
 
     Args:
@@ -124,18 +123,39 @@ def display_mapping(
             ``reference``.
         coefficients: panel coefficients (alpha, beta, gamma).
         brighten: if False, never scale up (``scale = min(1, P_target / P(image))``).
-        return_stats: also return ``{"scale", "power_target", "power", "clipped_fraction"}``
-            (each ``[...]``; ``power`` is that of the clipped output).
     Returns:
-        ``[..., 3, H, W]`` dimmed and clipped image (and the stats if asked).
+        ``[..., 3, H, W]`` dimmed and clipped image (:func:`display_mapping_with_stats` also
+        returns what it did).
     """
+    return _display_mapping(image, rho, reference, reference_power, coefficients, brighten, False)[0]
+
+
+def display_mapping_with_stats(
+    image: torch.Tensor,
+    rho: float,
+    reference: torch.Tensor | None = None,
+    *,
+    reference_power: torch.Tensor | float | None = None,
+    coefficients: Sequence[float] = PANEL_COEFFICIENTS,
+    brighten: bool = True,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """:func:`display_mapping` and ``{"scale", "power_target", "power", "clipped_fraction"}``
+    (each ``[...]``, detached; ``power`` is that of the clipped output)."""
+    out, stats = _display_mapping(image, rho, reference, reference_power, coefficients, brighten, True)
+    assert stats is not None
+    return out, stats
+
+
+def _display_mapping(image: torch.Tensor, rho: float, reference: torch.Tensor | None,
+                     reference_power: torch.Tensor | float | None, coefficients: Sequence[float], brighten: bool,
+                     return_stats: bool) -> tuple[torch.Tensor, dict[str, torch.Tensor] | None]:
     check_image("image", image, finite=False)
     rho = _check_rho(rho)
     c = _check_coefficients(coefficients)
     power = _power(image, c)  # [...]
     if rho == 0.0 and reference is None and reference_power is None:  # scale 1: nothing to do
         if not return_stats:
-            return image
+            return image, None
         p = power.detach()
         return image, {"scale": torch.ones_like(p), "power_target": p, "power": p, "clipped_fraction": torch.zeros_like(p)}
     if reference is not None and reference_power is not None:
@@ -159,7 +179,7 @@ def display_mapping(
     dimmed = image * scale[..., None, None, None]
     out = dimmed.clamp(0.0, 1.0)
     if not return_stats:
-        return out
+        return out, None
     with torch.no_grad():
         clipped = ((dimmed < 0.0) | (dimmed > 1.0)).to(image.dtype).mean(dim=(-3, -2, -1))
         stats = {"scale": scale.detach(), "power_target": target.detach(), "power": _power(out.detach(), c),
@@ -167,14 +187,14 @@ def display_mapping(
     return out, stats
 
 
-class DisplayStage(Stage):
+class DisplayMapping(Stage):
     """P_disp: uniform dimming to ``(1 - state.power_saving) * P_ref``, then clipping.
 
     ``P_ref`` is the power the display consumes showing the ground truth (paper Supp. "Display
     Mapping"): with ``p_ref="displayed"`` (default) that of the ground truth *as displayed*, i.e.
     ``ctx.reference`` through the same post-processing stages that ran before this one (pre-warp
     with its black corners, resampling), which the pipeline puts in
-    ``ctx.extras["displayed_reference"]``, so a perfect render gets scale 1 at every rho;
+    ``ctx.displayed_reference``, so a perfect render gets scale 1 at every rho;
     ``p_ref="ground_truth"``: that of the sRGB ground truth at S as given (cached while the same,
     unmodified tensor comes back; the former rule). Without a reference the image's own power is
     the reference. Records ``display.scale``, ``display.power_ref``, ``display.power_target``,
@@ -188,7 +208,6 @@ class DisplayStage(Stage):
 
     name = "display"
     domain = "linear"
-    resolution = "keep"
     order = 30.0
 
     def __init__(self, coefficients: Sequence[float] = PANEL_COEFFICIENTS, brighten: bool = True,
@@ -221,14 +240,14 @@ class DisplayStage(Stage):
         self._reference_power = (weakref.ref(reference), reference._version, dtype, power)
         return power
 
-    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        shown = ctx.extras.get("displayed_reference") if self.wants_displayed_reference else None
+    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+        shown = ctx.displayed_reference if self.wants_displayed_reference else None
         if shown is not None:
             power_ref = _power(shown.detach().to(image.dtype), self.coefficients)
         else:
             power_ref = None if ctx.reference is None else self.reference_power(ctx.reference, image.dtype)
-        out, stats = display_mapping(image, state.power_saving, reference_power=power_ref, coefficients=self.coefficients,
-                                     brighten=self.brighten, return_stats=True)
+        out, stats = display_mapping_with_stats(image, state.power_saving, reference_power=power_ref,
+                                                coefficients=self.coefficients, brighten=self.brighten)
         if power_ref is not None:
             stats["power_ref"] = power_ref.detach()
         if ctx.record is not None:

@@ -22,11 +22,11 @@ from controlgs_adapter.state import RuntimeState
 
 from .stage import Stage, StageContext
 
-__all__ = ["foveate", "FoveationStage"]
+__all__ = ["foveation", "Foveation"]
 
 
-def foveate(image: torch.Tensor, gaze: tuple[float, float] | None) -> torch.Tensor:
-    """Functional twin of :class:`FoveationStage`: the identity (no image-side foveation yet).
+def foveation(image: torch.Tensor, gaze: tuple[float, float] | None) -> torch.Tensor:
+    """Functional twin of :class:`Foveation`: the identity (no image-side foveation yet).
 
     Args:
         image: ``[..., 3, H, W]``.
@@ -37,16 +37,15 @@ def foveate(image: torch.Tensor, gaze: tuple[float, float] | None) -> torch.Tens
     return image
 
 
-class FoveationStage(Stage):
+class Foveation(Stage):
     """Foveation placeholder; the identity at every state (see the module docstring)."""
 
     name = "foveation"
     domain = "linear"
-    resolution = "keep"
     order = 5.0
 
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         return True
 
-    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        return foveate(image, state.gaze)
+    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+        return foveation(image, state.gaze)

@@ -573,7 +573,6 @@ class LensPrewarp(Stage):
 
     name = "lens"
     domain = "linear"
-    resolution = "keep"
     order = 10.0
 
     def __init__(self, prewarp_map: PrewarpMap | None = None, *, coefficients: Sequence[Sequence[float]] | torch.Tensor | None = None,
@@ -595,7 +594,7 @@ class LensPrewarp(Stage):
         fitted LUT, its current ``mode``).
 
         Args:
-            optics: the pipeline's optics stage (:class:`~.optics.stage.OpticsStage`).
+            optics: the pipeline's optics stage (:class:`~.optics.stage.PSFOptics`).
             source: ``"fitted"``: map and gain fitted through the optics
                 (:func:`.prewarp_fit.fit_bank_prewarp`), read from ``lut`` (default: the LUT shipped
                 for the shipped Cardboard bank; for another bank without a LUT this falls back to
@@ -745,7 +744,7 @@ class LensPrewarp(Stage):
             return False
         return self.map.is_identity()
 
-    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         grid, gain = self.map(tuple(image.shape[-2:]), image.dtype, image.device)
         return lens_prewarp(image, grid, gain, self.basis)
 

@@ -23,10 +23,10 @@ from controlgs_adapter.state import RuntimeState
 
 from .stage import Stage, StageContext
 
-__all__ = ["box_emission", "OLEDStage"]
+__all__ = ["oled_emission", "OLEDEmission"]
 
 
-def box_emission(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+def oled_emission(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     """Emit display pixels as boxes sampled on a finer simulation grid.
 
     Args:
@@ -46,16 +46,15 @@ def box_emission(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return F.interpolate(flat, size=size, mode="nearest-exact").reshape(*image.shape[:-2], *size)
 
 
-class OLEDStage(Stage):
+class OLEDEmission(Stage):
     """D_phys: nearest (box) upsampling from the display resolution back to ``ctx.native_size``."""
 
     name = "oled"
     domain = "linear"
-    resolution = "restore"
     order = 40.0
 
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         return state.downsample == 1.0
 
-    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        return box_emission(image, ctx.native_size)
+    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+        return oled_emission(image, ctx.native_size)

@@ -34,14 +34,11 @@ from controlgs_adapter.state import RuntimeState
 from .color import convert_domain
 from .stage import Stage, StageContext
 
-__all__ = ["Pipeline", "PHYSICAL_STAGES", "DISPLAYED_REFERENCE"]
+__all__ = ["Pipeline", "PHYSICAL_STAGES"]
 
 #: Names of the stages that model the physical display-optics path (paper Eq. 5); everything
 #: ordered before the first of them is post-processing.
 PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
-#: key of ``StageContext.extras`` holding the ground truth as displayed (the stages before a stage
-#: with ``wants_displayed_reference``, applied to the reference), in that stage's domain
-DISPLAYED_REFERENCE = "displayed_reference"
 #: options of ``{"lens": {...}}`` that build the lens from the optics (:meth:`LensPrewarp.for_optics`)
 _LENS_FOR_OPTICS = frozenset({"source", "basis", "lut", "gain"})
 
@@ -228,28 +225,43 @@ class Pipeline(nn.Module):
     def forward(
         self,
         image: torch.Tensor,
-        state: RuntimeState,
+        state: RuntimeState | None = None,
         reference: torch.Tensor | None = None,
-        record: bool = False,
         native_size: tuple[int, int] | None = None,
-    ) -> torch.Tensor | tuple[torch.Tensor, dict[str, Any]]:
+    ) -> torch.Tensor:
         """Run E_s.
 
         Args:
             image: ``[..., 3, H, W]`` rendered image, sRGB-encoded, at the native size S (or already
                 at the display size round(S/d) for the no-supersampling baseline).
-            state: the run-time state (downsample d, power saving rho, gaze).
+            state: the run-time state (downsample d, power saving rho, gaze); None: the default.
             reference: ``[..., 3, S_h, S_w]`` ground truth (sRGB) at S; gives the display's P_ref
                 and the native size.
-            record: also return the intermediates.
             native_size: ``(S_h, S_w)``; default: the reference's size, else the image's.
         Returns:
-            ``[..., 3, S_h, S_w]`` eye-space sRGB image; with ``record`` also a dict with the
-            sRGB images ``rendered``, ``post`` (after post-processing, display size),
-            ``displayed`` (emitted by the display, at S), ``eye`` (detached copies), the list
-            ``stages_run`` and ``diagnostics`` (what stages recorded, e.g.
-            ``display.clipped_fraction``).
+            ``[..., 3, S_h, S_w]`` eye-space sRGB image.
         """
+        return self._run(image, state, reference, native_size, record=False)[0]
+
+    def run_recorded(
+        self,
+        image: torch.Tensor,
+        state: RuntimeState | None = None,
+        reference: torch.Tensor | None = None,
+        native_size: tuple[int, int] | None = None,
+    ) -> tuple[torch.Tensor, dict[str, Any]]:
+        """:meth:`forward` that also returns the intermediates: ``(eye, intermediates)`` with the
+        sRGB images ``rendered``, ``post`` (after post-processing, display size), ``displayed``
+        (emitted by the display, at S), ``eye`` (detached copies), the list ``stages_run`` and
+        ``diagnostics`` (what stages recorded, e.g. ``display.clipped_fraction``)."""
+        eye, intermediates = self._run(image, state, reference, native_size, record=True)
+        assert intermediates is not None
+        return eye, intermediates
+
+    def _run(self, image: torch.Tensor, state: RuntimeState | None, reference: torch.Tensor | None,
+             native_size: tuple[int, int] | None, record: bool) -> tuple[torch.Tensor, dict[str, Any] | None]:
+        if state is None:
+            state = RuntimeState()
         check_image("image", image)
         if not isinstance(state, RuntimeState):
             raise InputValueError(f"state must be a RuntimeState, got {type(state).__name__}")
@@ -257,8 +269,10 @@ class Pipeline(nn.Module):
             check_image("reference", reference, finite=False)
             check_same_device(image=image, reference=reference)
             check_finite("reference", reference)
+        native: tuple[int, int]
         if native_size is None:
-            native = tuple(reference.shape[-2:]) if reference is not None else tuple(image.shape[-2:])
+            src = reference if reference is not None else image
+            native = (int(src.shape[-2]), int(src.shape[-1]))
         else:
             native = (int(native_size[0]), int(native_size[1]))
             if reference is not None and tuple(reference.shape[-2:]) != native:
@@ -277,7 +291,7 @@ class Pipeline(nn.Module):
             if stage.is_identity(state, ctx):
                 continue
             if reference is not None and getattr(stage, "wants_displayed_reference", False):
-                ctx.extras[DISPLAYED_REFERENCE] = self._displayed_reference(ran_stages, state, ctx, stage.domain)
+                ctx.displayed_reference = self._displayed_reference(ran_stages, state, ctx, stage.domain)
             x = stage(convert_domain(x, domain, stage.domain), state, ctx)
             domain = stage.domain
             ran.append(stage.name)
@@ -286,7 +300,7 @@ class Pipeline(nn.Module):
                 displayed = convert_domain(x, domain, "srgb").detach()
         eye = convert_domain(x, domain, "srgb")
         if not record:
-            return eye
+            return eye, None
         post = eye.detach() if post_image is None else post_image
         intermediates = {
             "rendered": image.detach(), "post": post, "displayed": post if displayed is None else displayed,

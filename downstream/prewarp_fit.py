@@ -230,10 +230,10 @@ def fit_bank_prewarp(
         the settings and the residuals); ``.save(path)`` writes it.
     """
     from .optics.bank import PSFBank
-    from .optics.stage import OpticsStage
+    from .optics.stage import PSFOptics
 
     if optics is None or isinstance(optics, PSFBank):
-        optics = OpticsStage(optics)
+        optics = PSFOptics(optics)
     if not hasattr(optics, "bank") or not hasattr(optics, "mode"):
         raise InputValueError(f"optics must be an optics stage or a PSFBank, got {type(optics).__name__}")
     if not isinstance(size, int) or size < 8:

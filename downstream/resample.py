@@ -31,7 +31,7 @@ from controlgs_adapter.state import RuntimeState
 
 from .stage import Stage, StageContext
 
-__all__ = ["area_resample", "resampled_size", "ResampleStage"]
+__all__ = ["area_resample", "resampled_size", "AreaResample"]
 
 
 def _check_factor(d: object, name: str = "d") -> float:
@@ -104,7 +104,7 @@ def area_resample(image: torch.Tensor, d: float) -> torch.Tensor:
     return _area_resample_to(image, resampled_size(tuple(image.shape[-2:]), d))
 
 
-class ResampleStage(Stage):
+class AreaResample(Stage):
     """P_res: area filter from the native resolution S to S/d (``state.downsample``).
 
     Args:
@@ -114,7 +114,6 @@ class ResampleStage(Stage):
 
     name = "resample"
     domain = "linear"
-    resolution = "reduce"
     order = 20.0
 
     def __init__(self, max_factor: float = 8.0) -> None:
@@ -124,7 +123,7 @@ class ResampleStage(Stage):
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         return state.downsample == 1.0
 
-    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
         """``[..., 3, S_h, S_w]`` -> ``[..., 3, round(S_h/d), round(S_w/d)]``; an image already at
         the display size (no-SS baseline) passes through."""
         d = state.downsample

@@ -1,14 +1,18 @@
 """The stage interface of the downstream pipeline (paper Eq. 8).
 
-A stage is a differentiable ``nn.Module`` with a functional twin. Images are ``[..., 3, H, W]``
-float32/float64 tensors; a stage declares the colour domain it works in (``"srgb"``: encoded,
-values in [0, 1]; ``"linear"``: linear light) and whether it changes the resolution; the pipeline
-converts domains between stages and skips a stage whose :meth:`Stage.is_identity` is true.
+A stage is a differentiable ``nn.Module`` with a functional twin of the same name in snake case
+(kornia's scheme: ``LensPrewarp`` / ``lens_prewarp``, ``AreaResample`` / ``area_resample``,
+``DisplayMapping`` / ``display_mapping``, ``OLEDEmission`` / ``oled_emission``, ``PSFOptics`` /
+``psf_optics``, ``Foveation`` / ``foveation``). Images are ``[..., 3, H, W]`` float32/float64
+tensors; a stage declares the colour domain it works in (``"srgb"``: encoded, values in [0, 1];
+``"linear"``: linear light); the pipeline converts domains between stages and skips a stage whose
+:meth:`Stage.is_identity` is true. A stage is also a plain module: ``stage(image)`` runs it at the
+default :class:`RuntimeState` with the image's size as the native size.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -19,7 +23,6 @@ from controlgs_adapter.state import RuntimeState
 __all__ = ["Stage", "StageContext"]
 
 Domain = Literal["srgb", "linear"]
-Resolution = Literal["keep", "reduce", "restore"]
 
 
 @dataclass
@@ -31,12 +34,14 @@ class StageContext:
             for the display's reference power P_ref; None at pure inference.
         native_size: ``(H, W)`` of the native (simulation) resolution S.
         record: if a dict, stages may store named intermediates/diagnostics in it (for plots).
+        displayed_reference: the reference through the stages that ran before this one, in this
+            stage's domain (set by the pipeline for stages with ``wants_displayed_reference``).
     """
 
     native_size: tuple[int, int]
     reference: torch.Tensor | None = None
     record: dict[str, Any] | None = None
-    extras: dict[str, Any] = field(default_factory=dict)
+    displayed_reference: torch.Tensor | None = None
 
 
 class Stage(nn.Module):
@@ -46,14 +51,12 @@ class Stage(nn.Module):
         name: unique name (``"lens"``, ``"resample"``, ``"display"``, ``"oled"``, ``"optics"``,
             ``"foveation"``).
         domain: colour domain of input and output.
-        resolution: ``"keep"`` (same size), ``"reduce"`` (S -> S/d) or ``"restore"`` (back to S).
         order: default position in the pipeline (lower runs first).
         after / before: optional name of a stage this one must follow / precede (third-party insertion).
     """
 
     name: ClassVar[str] = ""
     domain: ClassVar[Domain] = "linear"
-    resolution: ClassVar[Resolution] = "keep"
     order: ClassVar[float] = 100.0
     after: ClassVar[str | None] = None
     before: ClassVar[str | None] = None
@@ -63,5 +66,23 @@ class Stage(nn.Module):
         no cost); ``ctx`` None asks about the state alone."""
         return False
 
-    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+    def forward(self, image: torch.Tensor, state: RuntimeState | None = None,
+                ctx: StageContext | None = None) -> torch.Tensor:
+        """Apply the stage to ``image`` ``[..., 3, H, W]`` in :attr:`domain`. ``state`` None: the
+        default :class:`RuntimeState`; ``ctx`` None: the image's size as the native size, no reference."""
+        state, ctx = self.resolve(image, state, ctx)
+        return self.apply(image, state, ctx)
+
+    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+        """The stage's work with state and context given (what subclasses implement)."""
         raise NotImplementedError
+
+    @staticmethod
+    def resolve(image: torch.Tensor, state: RuntimeState | None,
+                ctx: StageContext | None) -> tuple[RuntimeState, StageContext]:
+        """Defaults of :meth:`forward`: the default state and the image's size as the native size."""
+        if state is None:
+            state = RuntimeState()
+        if ctx is None:
+            ctx = StageContext(native_size=(int(image.shape[-2]), int(image.shape[-1])))
+        return state, ctx

@@ -67,7 +67,7 @@ def test_square_images_are_bit_identical_to_the_stretched_display(n):
         assert torch.equal(getattr(fit, name), getattr(old, name)), name
     x = torch.rand(3, n, n, dtype=torch.float64, generator=torch.Generator().manual_seed(n))
     for mode in ("distortion", "exact"):
-        assert torch.equal(optics_mod.optics(x, bank, mode), optics_mod.optics(x, bank, mode, placement="stretch"))
+        assert torch.equal(optics_mod.psf_optics(x, bank, mode), optics_mod.psf_optics(x, bank, mode, placement="stretch"))
     a = LensPrewarp.from_psf_bank(bank, (n, n), gain="jacobian").map((n, n), torch.float32, torch.device("cpu"))
     b = LensPrewarp.from_chief_ray_map(bank.chief, (n, n), sample_x=bank.chief_x, sample_y=bank.chief_y,
                                        gain="jacobian").map((n, n), torch.float32, torch.device("cpu"))
@@ -117,8 +117,8 @@ def test_fit_simulates_the_image_region_of_a_black_display(h, w, axis, mode):
     band[axis] = slice((n - min(h, w)) // 2, (n + min(h, w)) // 2)
     big[tuple(band)] = x
     bank = PSFBank.default()
-    got = optics_mod.optics(x, bank, mode)
-    want = optics_mod.optics(big, bank, mode)[tuple(band)]
+    got = optics_mod.psf_optics(x, bank, mode)
+    want = optics_mod.psf_optics(big, bank, mode)[tuple(band)]
     assert torch.allclose(got, want, rtol=0, atol=1e-12)
 
 
@@ -156,8 +156,8 @@ def test_prewarp_then_optics_lands_dots_where_they_started(h, w):
     target, where = _dots(h, w)
     prim = rgb_to_primaries(target)                 # the optics is separable per primary: warp in that domain
     shown = primaries_to_rgb(p["lens"](prim, STATE, StageContext((h, w))))
-    eye = rgb_to_primaries(optics_mod.optics(shown, p["optics"].bank, mode="distortion"))
-    plain = rgb_to_primaries(optics_mod.optics(target, p["optics"].bank, mode="distortion"))
+    eye = rgb_to_primaries(optics_mod.psf_optics(shown, p["optics"].bank, mode="distortion"))
+    plain = rgb_to_primaries(optics_mod.psf_optics(target, p["optics"].bank, mode="distortion"))
     want = torch.tensor(where, dtype=torch.float64)[:, None, :]
     err = (_centroids(eye, where) - want).norm(dim=-1)          # [dots, 3]
     moved = (_centroids(plain, where) - want).norm(dim=-1)
@@ -173,7 +173,7 @@ def test_a_prewarp_for_the_wrong_region_misses():
     prim = rgb_to_primaries(target)
     wrong = LensPrewarp.from_psf_bank(bank, placement="stretch").double()
     wrong.basis = "rgb"  # applied to primaries below
-    eye = rgb_to_primaries(optics_mod.optics(primaries_to_rgb(wrong(prim, STATE, StageContext((27, 48)))), bank,
+    eye = rgb_to_primaries(optics_mod.psf_optics(primaries_to_rgb(wrong(prim, STATE, StageContext((27, 48)))), bank,
                                              mode="distortion"))
     err = (_centroids(eye, where) - torch.tensor(where, dtype=torch.float64)[:, None, :]).norm(dim=-1)
     assert float(err.max()) > 0.3
@@ -209,7 +209,7 @@ def test_the_analytic_radial_map_uses_the_fit_frame():
 def test_gradcheck_optics_on_a_non_square_image(mode):
     bank = PSFBank.default()
     x = (torch.rand(3, 5, 9, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) + 0.1).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda t: optics_mod.optics(t, bank, mode), (x,))
+    assert torch.autograd.gradcheck(lambda t: optics_mod.psf_optics(t, bank, mode), (x,))
 
 
 def test_flat_field_through_the_pipeline_is_smooth_for_16_9():
@@ -261,10 +261,10 @@ def test_lens_strength_follows_the_radial_distance_on_the_display():
 
 
 def test_optics_stage_placement_argument():
-    assert optics_mod.OpticsStage().placement == "fit"
+    assert optics_mod.PSFOptics().placement == "fit"
     with pytest.warns(DeprecationWarning, match="placement"):
-        assert optics_mod.OpticsStage(stretch=True).placement == "stretch"
+        assert optics_mod.PSFOptics(stretch=True).placement == "stretch"
     with pytest.raises(InputValueError, match="placement"):
-        optics_mod.OpticsStage(placement="crop")  # type: ignore[arg-type]
+        optics_mod.PSFOptics(placement="crop")  # type: ignore[arg-type]
     with pytest.raises(InputValueError, match="size"):
         LensPrewarp.from_psf_bank(None, gain=torch.ones(3, 4, 4))

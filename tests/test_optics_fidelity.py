@@ -12,7 +12,7 @@ import torch.nn.functional as F
 
 from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.downstream.optics.operators import psf_distortion, psf_exact, psf_fast, psf_reference
-from controlgs_adapter.downstream.optics.stage import OpticsStage, optics
+from controlgs_adapter.downstream.optics.stage import PSFOptics, psf_optics
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.state import RuntimeState
 
@@ -78,7 +78,7 @@ def test_flat_field_of_a_16_9_image_is_uniform():
     bank = PSFBank.default()
     x = torch.ones(1, 3, 27, 48, dtype=D64)
     for mode in OPS:
-        assert (_inner(optics(x, bank, mode)) - 1).abs().max() < 1e-3
+        assert (_inner(psf_optics(x, bank, mode)) - 1).abs().max() < 1e-3
 
 
 def test_pure_magnification_gives_a_uniform_flat_field_analytically():
@@ -237,15 +237,15 @@ def test_fast_mode_converges_to_the_radiance_exact_operator_and_keeps_flat_field
 def test_radiometry_is_an_explicit_argument():
     bank = PSFBank.default()
     img = torch.full((3, 32, 32), 0.5, dtype=D64)
-    st = OpticsStage(mode="distortion")
+    st = PSFOptics(mode="distortion")
     assert st.radiometry == "radiance" and "radiometry='radiance'" in repr(st)
-    paper = OpticsStage(mode="distortion", radiometry="energy")
+    paper = PSFOptics(mode="distortion", radiometry="energy")
     state = RuntimeState(downsample=1.0, power_saving=0.0)
-    assert torch.allclose(paper(img, state, None), optics(img, bank, "distortion", radiometry="energy"))
+    assert torch.allclose(paper(img, state, None), psf_optics(img, bank, "distortion", radiometry="energy"))
     assert (_inner(st(img, state, None)) - 0.5).abs().max() < 1e-6
     assert bank.resample_to(32, 32) is not bank.resample_to(32, 32, radiometry="energy")
     with pytest.raises(InputValueError, match="radiometry"):
-        OpticsStage(radiometry="lumens")  # type: ignore[arg-type]
+        PSFOptics(radiometry="lumens")  # type: ignore[arg-type]
     with pytest.raises(InputValueError, match="radiometry"):
         bank.resample_to(8, 8, radiometry="photons")  # type: ignore[arg-type]
     with pytest.raises(InputValueError, match="transmission"):

@@ -178,7 +178,7 @@ def test_empty_regions_are_skipped_without_changing_the_result(cardboard, radiom
 
 
 def test_optics_stage_in_the_pipeline(cardboard):
-    from controlgs_adapter.downstream.optics.stage import OpticsStage
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
     from controlgs_adapter.downstream.pipeline import Pipeline
     from controlgs_adapter.state import RuntimeState
 
@@ -187,7 +187,7 @@ def test_optics_stage_in_the_pipeline(cardboard):
     img = torch.rand(1, 3, 32, 32)
     out = pipe(img, RuntimeState(downsample=1.0, power_saving=0.0))
     assert out.shape == img.shape and torch.isfinite(out).all()
-    stage = OpticsStage(mode="exact")
+    stage = PSFOptics(mode="exact")
     gray = torch.full((3, 32, 32), 0.5, dtype=D64)
     res = stage(gray, RuntimeState(downsample=1.0, power_saving=0.0), None)
     assert res[:, 14:18, 14:18].sub(0.5).abs().max() < 0.02            # grey stays grey near the centre

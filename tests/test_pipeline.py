@@ -13,7 +13,7 @@ from controlgs_adapter import plugins
 from controlgs_adapter.downstream.color import linear_to_srgb, srgb_to_linear
 from controlgs_adapter.downstream.display import display_mapping
 from controlgs_adapter.downstream.lens import LensPrewarp, RadialMap, lens_prewarp
-from controlgs_adapter.downstream.oled import box_emission
+from controlgs_adapter.downstream.oled import oled_emission
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.resample import area_resample
 from controlgs_adapter.downstream.stage import Stage
@@ -34,7 +34,7 @@ def _manual(image, state, gt, k=K):
         return area_resample(lens_prewarp(srgb_to_linear(img), grid, basis="primaries"), state.downsample)
 
     x = display_mapping(post(image), state.power_saving, post(gt))  # P_ref: the ground truth as displayed
-    x = box_emission(x, tuple(gt.shape[-2:]))
+    x = oled_emission(x, tuple(gt.shape[-2:]))
     return linear_to_srgb(x)
 
 
@@ -62,8 +62,8 @@ def test_no_ss_baseline_input_at_display_size():
     image_low = torch.rand(3, 8, 6, dtype=torch.float64)  # rendered at camera.scaled(2.5) of 20 x 16
     gt = torch.rand(3, 20, 16, dtype=torch.float64)
     p = Pipeline.from_config({"resample": True, "display": True})
-    out, inter = p(image_low, RuntimeState(2.5, 0.3), reference=gt, record=True)
-    expected = linear_to_srgb(box_emission(display_mapping(srgb_to_linear(image_low), 0.3, srgb_to_linear(gt)), (20, 16)))
+    out, inter = p.run_recorded(image_low, RuntimeState(2.5, 0.3), reference=gt)
+    expected = linear_to_srgb(oled_emission(display_mapping(srgb_to_linear(image_low), 0.3, srgb_to_linear(gt)), (20, 16)))
     assert out.shape == (3, 20, 16) and torch.allclose(out, expected, atol=1e-12)
     assert inter["post"].shape == (3, 8, 6)
     with pytest.raises(ShapeError, match="larger"):
@@ -112,7 +112,7 @@ def test_record_intermediates_and_diagnostics():
     image = torch.rand(3, 16, 16)
     gt = torch.rand(3, 16, 16)
     p = Pipeline.from_config(ALL)
-    out, inter = p(image, RuntimeState(2.0, 0.5), reference=gt, record=True)
+    out, inter = p.run_recorded(image, RuntimeState(2.0, 0.5), reference=gt)
     assert set(inter) >= {"rendered", "post", "displayed", "eye", "stages_run", "diagnostics"}
     assert inter["rendered"].shape == (3, 16, 16) and inter["post"].shape == (3, 8, 8)
     assert inter["displayed"].shape == (3, 16, 16) and torch.equal(inter["eye"], out.detach())
@@ -162,7 +162,7 @@ def test_third_party_stages_are_inserted_and_get_their_domain():
                                        basis="primaries"), 2.0)
         assert torch.allclose(_Sharpen.seen[-1], linear_to_srgb(x), atol=1e-12)  # it received sRGB
         x = srgb_to_linear(linear_to_srgb(x) * 1.1) * torch.tensor([1.0, 0.9, 0.8], dtype=torch.float64)[:, None, None]
-        assert torch.allclose(out, linear_to_srgb(box_emission(x, (8, 8))), atol=1e-12)
+        assert torch.allclose(out, linear_to_srgb(oled_emission(x, (8, 8))), atol=1e-12)
         # anchors absent from the pipeline: placed by the anchor's registered order
         assert Pipeline.from_config({"sharpen": True, "display": True, "oled": False}).names == ["sharpen", "display"]
     finally:
@@ -243,7 +243,7 @@ def test_gradcheck_pipeline():
 def test_pipeline_with_the_optics_stage():
     if "optics" not in plugins.stages():
         pytest.skip("optics stage not registered")
-    from controlgs_adapter.downstream.optics.stage import optics
+    from controlgs_adapter.downstream.optics.stage import psf_optics
 
     p = Pipeline.from_config({**ALL, "optics": {"mode": "distortion"}})
     assert p.names[-2:] == ["oled", "optics"]
@@ -252,9 +252,9 @@ def test_pipeline_with_the_optics_stage():
     grid, _ = default_lens.map((40, 40), torch.float32, torch.device("cpu"))
     assert torch.allclose(grid, bank_lens.map((40, 40), torch.float32, torch.device("cpu"))[0], atol=1e-4)
     image, gt = torch.rand(3, 32, 32), torch.rand(3, 32, 32)
-    eye, inter = p(image, RuntimeState(2.0, 0.3), reference=gt, record=True)
+    eye, inter = p.run_recorded(image, RuntimeState(2.0, 0.3), reference=gt)
     displayed = srgb_to_linear(inter["displayed"])
-    assert torch.allclose(eye, linear_to_srgb(optics(displayed, p["optics"].bank, mode="distortion")), atol=1e-5)
+    assert torch.allclose(eye, linear_to_srgb(psf_optics(displayed, p["optics"].bank, mode="distortion")), atol=1e-5)
     assert inter["stages_run"] == ["lens", "resample", "display", "oled", "optics"]
     assert not torch.allclose(inter["displayed"], eye, atol=1e-3)
 
@@ -300,3 +300,35 @@ def test_chained_and_before_placement():
     stages = [make("y", "x"), make("x", "resample"), make("w", None, "display"), make("v", None, "display")]
     p = Pipeline([*stages, *Pipeline.from_config(["resample", "display"]).stages])
     assert p.names == ["resample", "x", "y", "v", "w", "display", "oled"]
+
+
+def test_stages_are_plain_modules_with_functional_twins():
+    """Every built-in stage runs as ``stage(image)`` (default state, the image's size as native
+    size) and has a functional twin named after it in snake case (kornia's scheme)."""
+    import re
+
+    import controlgs_adapter.downstream as ds
+    import controlgs_adapter.downstream.optics as dso
+
+    image = torch.rand(1, 3, 12, 12, dtype=torch.float64)
+    for name, info in plugins.stages().items():
+        if info.source != plugins.BUILTIN_DIST:
+            continue
+        cls = info.obj
+        twin = re.sub(r"(?<=[a-z])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", "_", cls.__name__).lower()
+        assert callable(getattr(ds, twin, None) or getattr(dso, twin, None)), (cls.__name__, twin)
+        if name in ("optics", "display") or cls is ds.LensPrewarp:
+            continue  # need a bank / run at the default state below
+        out = cls()(image)
+        assert out.shape == image.shape
+    assert torch.equal(ds.DisplayMapping()(image), ds.display_mapping(image, 0.0))
+
+
+def test_run_recorded_and_forward_agree():
+    p = Pipeline.from_config({"lens": False, "resample": True, "display": True, "oled": True})
+    image, gt = torch.rand(3, 16, 16), torch.rand(3, 16, 16)
+    state = RuntimeState(2.0, 0.3)
+    eye, inter = p.run_recorded(image, state, reference=gt)
+    assert isinstance(p(image, state, reference=gt), torch.Tensor)
+    assert torch.equal(eye, p(image, state, reference=gt)) and inter["stages_run"] == ["resample", "display", "oled"]
+    assert torch.equal(p(image), p(image, RuntimeState()))

@@ -78,12 +78,12 @@ def test_a_perfect_render_gets_display_scale_one_at_every_rho(d):
     grid, _ = pipe["lens"].map((20, 20), torch.float64, "cpu")
     shown = area_resample(lens_prewarp(srgb_to_linear(gt), grid, basis="primaries"), d)   # float64 functional reference
     for rho in (0.0, 0.2, 0.4, 0.6, 0.8):
-        _, inter = pipe(gt, RuntimeState(d, rho), reference=gt, record=True)
+        _, inter = pipe.run_recorded(gt, RuntimeState(d, rho), reference=gt)
         diag = inter["diagnostics"]
         assert float(diag["display.scale"]) == pytest.approx(1.0 - rho, abs=1e-12)
         assert float(diag["display.power_ref"]) == pytest.approx(float(display_power(shown)), rel=1e-12)
     old = Pipeline.from_config({"lens": True, "resample": True, "display": {"p_ref": "ground_truth"}}).double()
-    _, inter = old(gt, RuntimeState(d, 0.0), reference=gt, record=True)
+    _, inter = old.run_recorded(gt, RuntimeState(d, 0.0), reference=gt)
     assert float(inter["diagnostics"]["display.scale"]) > 1.02       # the former rule brightens a perfect render
     with pytest.raises(InputValueError, match="p_ref"):
         Pipeline.from_config({"display": {"p_ref": "gt"}})
@@ -162,10 +162,10 @@ def test_ground_truth_through_the_default_pipeline_comes_back_within_three_perce
 # ----------------------------------------------------------------------------- the fit, the file, the fallback
 @needs_optics
 def test_fit_bank_prewarp_places_and_flattens_and_round_trips(tmp_path):
-    from controlgs_adapter.downstream.optics.stage import OpticsStage
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
     from controlgs_adapter.downstream.prewarp_fit import fit_bank_prewarp
 
-    optics = OpticsStage(mode="distortion")
+    optics = PSFOptics(mode="distortion")
     lut = fit_bank_prewarp(optics, 16, modes=("distortion",), pool=1, gain_iterations=3)
     assert lut.meta["bank"] == bank_fingerprint(optics.bank) and lut.meta["residuals"]["distortion"]["flat_max_abs"] < 1e-2
     # the map at the display centre region follows the chief rays (an independent evaluation: BankMap)
@@ -177,8 +177,8 @@ def test_fit_bank_prewarp_places_and_flattens_and_round_trips(tmp_path):
     again = LensPrewarp.for_optics(optics, lut=path)
     assert torch.equal(again.map((16, 16), torch.float64, "cpu")[0], grid)
     with pytest.raises(InputValueError, match="radiometry"):
-        LensPrewarp.for_optics(OpticsStage(mode="distortion", radiometry="energy"), lut=path)
-    other = OpticsStage(replace(optics.bank, chief=optics.bank.chief * 1.001, _cache={}))
+        LensPrewarp.for_optics(PSFOptics(mode="distortion", radiometry="energy"), lut=path)
+    other = PSFOptics(replace(optics.bank, chief=optics.bank.chief * 1.001, _cache={}))
     with pytest.raises(InputValueError, match="another PSF bank"):
         LensPrewarp.for_optics(other, lut=path)
     with warnings.catch_warnings(record=True) as caught:

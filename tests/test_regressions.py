@@ -13,7 +13,7 @@ import torch
 
 from controlgs_adapter import ControlGS, RuntimeState
 from controlgs_adapter.backends.formats import read_ply
-from controlgs_adapter.downstream.display import DisplayStage, display_mapping, display_power, display_power_watts
+from controlgs_adapter.downstream.display import DisplayMapping, display_mapping, display_power, display_power_watts
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.evaluation import _scores
@@ -70,7 +70,7 @@ def test_display_without_reference_detaches_p_ref():
 
     want = grad(by_hand)
     assert not torch.allclose(want, torch.full_like(want, 1 - rho) * weights)  # the power's gradient is not zero
-    stage = DisplayStage(p_ref="ground_truth")
+    stage = DisplayMapping(p_ref="ground_truth")
     ctx = StageContext(native_size=(5, 7))
     assert torch.allclose(grad(lambda x: stage(x, RuntimeState(power_saving=rho), ctx)), want, atol=1e-12, rtol=0)
     assert torch.allclose(grad(lambda x: display_mapping(x, rho)), want, atol=1e-12, rtol=0)

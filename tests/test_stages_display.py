@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from controlgs_adapter.downstream.color import srgb_to_linear
 from controlgs_adapter.downstream.display import (
-    PANEL_COEFFICIENTS, DisplayStage, display_mapping, display_power, display_power_watts,
+    PANEL_COEFFICIENTS, DisplayMapping, display_mapping, display_mapping_with_stats, display_power, display_power_watts,
 )
 from controlgs_adapter.downstream.stage import StageContext
 from controlgs_adapter.errors import InputValueError, StateError
@@ -50,7 +50,7 @@ def test_power_after_dimming_equals_target(rho, img_level, ref_level, seed, dtyp
     g = torch.Generator().manual_seed(seed)
     img = torch.rand(2, 3, 6, 5, generator=g, dtype=dtype) * img_level
     ref = torch.rand(3, 9, 8, generator=g, dtype=dtype) * ref_level  # at S, image at S/d: mean power compares
-    out, stats = display_mapping(img, rho, ref, return_stats=True)
+    out, stats = display_mapping_with_stats(img, rho, ref)
     assume(bool((stats["clipped_fraction"] == 0).all()))
     target = (1 - rho) * display_power(ref)
     assert torch.allclose(display_power(out), target.expand(2), rtol=1e-5, atol=0)
@@ -61,7 +61,7 @@ def test_clipping_is_reported():
     img = torch.full((3, 4, 4), 0.25, dtype=torch.float64)
     img[:, 0, 0] = 0.9
     ref = torch.full((3, 4, 4), 0.8, dtype=torch.float64)
-    out, stats = display_mapping(img, 0.1, ref, return_stats=True)
+    out, stats = display_mapping_with_stats(img, 0.1, ref)
     scale = float(stats["scale"])
     assert scale > 1.0 / 0.9  # brightened so that the 0.9 pixel clips
     assert float(out.max()) == 1.0
@@ -89,7 +89,7 @@ def test_degenerate_images_have_no_nan(rho, kind):
 
 
 def test_black_image_scale_is_one_and_no_reference_scales_by_one_minus_rho():
-    _, stats = display_mapping(torch.zeros(3, 2, 2), 0.5, torch.rand(3, 2, 2), return_stats=True)
+    _, stats = display_mapping_with_stats(torch.zeros(3, 2, 2), 0.5, torch.rand(3, 2, 2))
     assert float(stats["scale"]) == 1.0
     img = torch.rand(3, 4, 4, dtype=torch.float64) * 0.5
     assert torch.allclose(display_mapping(img, 0.3), img * 0.7)
@@ -136,13 +136,13 @@ def test_gradcheck_and_gradient_through_the_power():
     ref = torch.rand(3, 5, 5, dtype=torch.float64) * 0.3
     assert torch.autograd.gradcheck(lambda x: display_mapping(x, 0.4, ref), (img,))
     (grad,) = torch.autograd.grad(display_mapping(img, 0.4, ref).sum(), img)
-    _, stats = display_mapping(img.detach(), 0.4, ref, return_stats=True)
+    _, stats = display_mapping_with_stats(img.detach(), 0.4, ref)
     grad_fixed_scale = stats["scale"][:, None, None, None].expand_as(img)
     assert not torch.allclose(grad, grad_fixed_scale)  # the scale depends on the image's power
 
 
 def test_display_stage():
-    stage = DisplayStage()
+    stage = DisplayMapping()
     assert stage.is_identity(RuntimeState(power_saving=0.0)) and not stage.is_identity(RuntimeState(power_saving=0.2))
     ctx = StageContext(native_size=(4, 4), reference=torch.rand(3, 4, 4))
     assert not stage.is_identity(RuntimeState(power_saving=0.0), ctx)  # maps to P_ref when a reference comes
@@ -164,7 +164,7 @@ def test_reference_power_argument_and_stage_cache():
         display_mapping(img, 0.3, ref, reference_power=p_ref)
     with pytest.raises(InputValueError, match="reference_power"):
         display_mapping(img, 0.3, reference_power=-1.0)
-    stage = DisplayStage()
+    stage = DisplayMapping()
     gt = torch.rand(3, 8, 8, dtype=torch.float64)
     first = stage.reference_power(gt, torch.float64)
     assert stage.reference_power(gt, torch.float64) is first  # cached for the same tensor

@@ -239,8 +239,8 @@ def test_bank_prewarp_undoes_the_optics_distortion():
     target = rgb_to_primaries(img)  # the optics is separable per primary: warp in that domain
     shown = primaries_to_rgb(prewarp(target, STATE, StageContext((n, n))))
     # the Jacobian gain undoes the energy-conserving form's 1 / area magnification
-    eye = rgb_to_primaries(optics_stage.optics(shown, bank, mode="distortion", radiometry="energy"))
-    plain = rgb_to_primaries(optics_stage.optics(img, bank, mode="distortion", radiometry="energy"))
+    eye = rgb_to_primaries(optics_stage.psf_optics(shown, bank, mode="distortion", radiometry="energy"))
+    plain = rgb_to_primaries(optics_stage.psf_optics(img, bank, mode="distortion", radiometry="energy"))
     centre = (slice(None), slice(8, -8), slice(8, -8))
     assert float((eye - target)[centre].abs().max()) < 0.01
     assert float((plain - target)[centre].abs().max()) > 0.1

@@ -11,9 +11,9 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controlgs_adapter.downstream.foveation import FoveationStage, foveate
-from controlgs_adapter.downstream.oled import OLEDStage, box_emission
-from controlgs_adapter.downstream.resample import ResampleStage, area_resample, resampled_size
+from controlgs_adapter.downstream.foveation import Foveation, foveation
+from controlgs_adapter.downstream.oled import OLEDEmission, oled_emission
+from controlgs_adapter.downstream.resample import AreaResample, area_resample, resampled_size
 from controlgs_adapter.downstream.stage import StageContext
 from controlgs_adapter.errors import InputValueError, ShapeError, StateError
 from controlgs_adapter.state import Camera, RuntimeState
@@ -83,7 +83,7 @@ def test_gradcheck_resample():
 
 
 def test_resample_stage():
-    stage = ResampleStage(max_factor=4)
+    stage = AreaResample(max_factor=4)
     img = torch.rand(3, 20, 30)
     ctx = StageContext((20, 30))
     assert stage.is_identity(RuntimeState(1.0)) and not stage.is_identity(RuntimeState(1.5))
@@ -95,42 +95,42 @@ def test_resample_stage():
     with pytest.raises(StateError, match="max_factor"):
         stage(img, RuntimeState(5.0), ctx)
     with pytest.raises(StateError, match="max_factor"):
-        ResampleStage(max_factor=0.5)
+        AreaResample(max_factor=0.5)
 
 
 def test_box_emission_is_nearest_with_pixel_centres():
     img = torch.rand(2, 3, 4, 5, dtype=torch.float64)
-    up = box_emission(img, (8, 15))
+    up = oled_emission(img, (8, 15))
     assert torch.equal(up, img.repeat_interleave(2, -2).repeat_interleave(3, -1))
-    odd = box_emission(img, (7, 9))
+    odd = oled_emission(img, (7, 9))
     rows = [math.floor((i + 0.5) * 4 / 7) for i in range(7)]
     cols = [math.floor((j + 0.5) * 5 / 9) for j in range(9)]
     assert torch.equal(odd, img[..., rows, :][..., cols])
-    assert box_emission(img, (4, 5)) is img
+    assert oled_emission(img, (4, 5)) is img
 
 
 @settings(max_examples=15, deadline=None)
 @given(st.integers(1, 6), st.integers(1, 6), st.integers(1, 4))
 def test_area_filter_undoes_box_emission(h, w, k):
     img = torch.rand(3, h, w, dtype=torch.float64)
-    assert torch.allclose(area_resample(box_emission(img, (h * k, w * k)), k), img, atol=1e-14)
+    assert torch.allclose(area_resample(oled_emission(img, (h * k, w * k)), k), img, atol=1e-14)
 
 
 def test_gradcheck_box_emission_and_stage():
     img = torch.rand(3, 3, 4, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda x: box_emission(x, (7, 9)), (img,))
-    stage = OLEDStage()
+    assert torch.autograd.gradcheck(lambda x: oled_emission(x, (7, 9)), (img,))
+    stage = OLEDEmission()
     assert stage.is_identity(RuntimeState(1.0)) and not stage.is_identity(RuntimeState(2.0))
     assert stage(img, RuntimeState(2.0), StageContext((6, 8))).shape == (3, 6, 8)
     with pytest.raises(ShapeError, match="at least"):
-        box_emission(img, (2, 4))
+        oled_emission(img, (2, 4))
     with pytest.raises(InputValueError, match="image"):
-        box_emission(img.float().half(), (6, 8))
+        oled_emission(img.float().half(), (6, 8))
 
 
 def test_foveation_stub_is_identity():
     img = torch.rand(3, 4, 4)
-    stage = FoveationStage()
+    stage = Foveation()
     assert stage.is_identity(RuntimeState(gaze=(0.2, -0.1)))
     assert stage(img, RuntimeState(gaze=(0.2, -0.1)), StageContext((4, 4))) is img
-    assert foveate(img, None) is img
+    assert foveation(img, None) is img

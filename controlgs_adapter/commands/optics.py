@@ -110,7 +110,7 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def run_fit_prewarp(args: argparse.Namespace) -> int:
-    from controlgs_adapter.downstream.optics.stage import OpticsStage
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
     from controlgs_adapter.downstream.prewarp_fit import fit_bank_prewarp
     from controlgs_adapter.errors import InputValueError
 
@@ -118,7 +118,7 @@ def run_fit_prewarp(args: argparse.Namespace) -> int:
         raise InputValueError(f"--out {args.out}: is a folder; expected the path of the .safetensors file to write")
     if args.size < 8 or args.size % 2:
         raise InputValueError(f"--size must be an even integer >= 8, got {args.size}")
-    lut = fit_bank_prewarp(OpticsStage(args.bank, radiometry=args.radiometry), args.size, modes=tuple(args.modes))
+    lut = fit_bank_prewarp(PSFOptics(args.bank, radiometry=args.radiometry), args.size, modes=tuple(args.modes))
     lut.save(args.out)
     print(json.dumps(lut.meta, indent=2))
     print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.2f} MB)")

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from ..checks import check_number
 from ..controlgs import ControlGS
-from ..downstream.oled import box_emission
+from ..downstream.oled import oled_emission
 from ..errors import InputValueError
 from ..evaluation import BASELINES, _scores, make_pipeline
 from ..metrics import optional_metrics
@@ -336,9 +336,9 @@ class ViewerSession:
                     rendered = render_view(cgs, copy_, cam, rs, self.background, renderer=self.renderer)
                     png = encode_png(rendered)
                     strengths, overlay = self._strengths(cgs, copy_, cam, rs)
-                eye, record = pipeline(rendered, rs, reference=reference, record=True)
+                eye, record = pipeline.run_recorded(rendered, rs, reference=reference)
                 if eye.shape[-2:] != reference.shape[-2:]:  # oled off: the display's pixels as boxes at S
-                    eye = box_emission(eye, tuple(reference.shape[-2:]))
+                    eye = oled_emission(eye, tuple(reference.shape[-2:]))
                 eye = eye.clamp(0.0, 1.0)
                 eyes[method] = eye
                 entry = {"name": method, "label": LABELS.get(method, method), "rendered": png, "eye": encode_png(eye),

@@ -19,7 +19,7 @@ from .bank import PSFBank
 from .operators import psf_distortion, psf_exact, psf_fast
 from .resampled import RADIOMETRIES, Radiometry
 
-__all__ = ["OpticsStage", "optics", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
+__all__ = ["PSFOptics", "optics", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
 
 Mode = Literal["distortion", "fast", "exact"]
 MODES: tuple[str, ...] = ("distortion", "fast", "exact")
@@ -29,7 +29,7 @@ DEFAULT_TOL = 0.02
 DEFAULT_ZONE = 5
 
 
-def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
+def psf_optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
            zone: int = DEFAULT_ZONE, placement: Placement = "fit", radiometry: Radiometry = "radiance") -> torch.Tensor:
     """Functional O_phys. ``image [..., 3, H, W]`` linear RGB on the display -> linear RGB of the
     virtual image on the same grid (reference magnification). ``bank`` defaults to the shipped
@@ -59,7 +59,7 @@ def optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "exact
     return primaries_to_rgb(out)
 
 
-class OpticsStage(Stage):
+class PSFOptics(Stage):
     """Shift-variant PSF optics (paper Eq. 5, S1-S4).
 
     Args:
@@ -81,7 +81,6 @@ class OpticsStage(Stage):
 
     name = "optics"
     domain = "linear"
-    resolution = "keep"
     order = 50.0
 
     def __init__(self, bank: PSFBank | str | os.PathLike | None = None, mode: Mode = "exact", tol: float = DEFAULT_TOL,
@@ -94,7 +93,7 @@ class OpticsStage(Stage):
         if not isinstance(zone, int) or zone < 1:
             raise InputValueError(f"zone must be an int >= 1, got {zone!r}")
         if stretch is not None:
-            warnings.warn('OpticsStage(stretch=...) is deprecated; use placement="stretch" or "fit"',
+            warnings.warn('PSFOptics(stretch=...) is deprecated; use placement="stretch" or "fit"',
                           DeprecationWarning, stacklevel=2)
             placement = "stretch" if stretch else "fit"
         if placement not in PLACEMENTS:
@@ -114,8 +113,8 @@ class OpticsStage(Stage):
             raise InputValueError(f"mode must be one of {MODES}, got {value!r}")
         self._mode = value
 
-    def forward(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
-        return optics(image, self.bank, self.mode, self.tol, self.zone, self.placement, self.radiometry)
+    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+        return psf_optics(image, self.bank, self.mode, self.tol, self.zone, self.placement, self.radiometry)
 
     def extra_repr(self) -> str:
         return (f"mode={self.mode!r}, placement={self.placement!r}, radiometry={self.radiometry!r}, tol={self.tol}, zone={self.zone}, "
