@@ -240,7 +240,7 @@ class DisplayMapping(Stage):
         self._reference_power = (weakref.ref(reference), reference._version, dtype, power)
         return power
 
-    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         shown = ctx.displayed_reference if self.wants_displayed_reference else None
         if shown is not None:
             power_ref = _power(shown.detach().to(image.dtype), self.coefficients)

@@ -744,7 +744,7 @@ class LensPrewarp(Stage):
             return False
         return self.map.is_identity()
 
-    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         grid, gain = self.map(tuple(image.shape[-2:]), image.dtype, image.device)
         return lens_prewarp(image, grid, gain, self.basis)
 

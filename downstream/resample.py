@@ -123,7 +123,7 @@ class AreaResample(Stage):
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         return state.downsample == 1.0
 
-    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
         """``[..., 3, S_h, S_w]`` -> ``[..., 3, round(S_h/d), round(S_w/d)]``; an image already at
         the display size (no-SS baseline) passes through."""
         d = state.downsample

@@ -71,9 +71,9 @@ class Stage(nn.Module):
         """Apply the stage to ``image`` ``[..., 3, H, W]`` in :attr:`domain`. ``state`` None: the
         default :class:`RuntimeState`; ``ctx`` None: the image's size as the native size, no reference."""
         state, ctx = self.resolve(image, state, ctx)
-        return self.apply(image, state, ctx)
+        return self.process(image, state, ctx)
 
-    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
         """The stage's work with state and context given (what subclasses implement)."""
         raise NotImplementedError
 

@@ -64,7 +64,7 @@ class VignetteStage(Stage):
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:
         return self.strength == 0.0
 
-    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
         h, w = image.shape[-2:]
         y = (torch.arange(h, dtype=image.dtype, device=image.device) + 0.5) * 2 / h - 1
         x = (torch.arange(w, dtype=image.dtype, device=image.device) + 0.5) * 2 / w - 1

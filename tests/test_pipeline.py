@@ -332,3 +332,10 @@ def test_run_recorded_and_forward_agree():
     assert isinstance(p(image, state, reference=gt), torch.Tensor)
     assert torch.equal(eye, p(image, state, reference=gt)) and inter["stages_run"] == ["resample", "display", "oled"]
     assert torch.equal(p(image), p(image, RuntimeState()))
+
+
+def test_module_apply_still_recurses_through_a_pipeline():
+    p = Pipeline.from_config({"lens": True, "resample": True})
+    seen: list[str] = []
+    p.apply(lambda m: seen.append(type(m).__name__))  # nn.Module.apply, not shadowed by the stages
+    assert "AreaResample" in seen and seen[-1] == "Pipeline"

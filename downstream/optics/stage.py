@@ -19,7 +19,7 @@ from .bank import PSFBank
 from .operators import psf_distortion, psf_exact, psf_fast
 from .resampled import RADIOMETRIES, Radiometry
 
-__all__ = ["PSFOptics", "optics", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
+__all__ = ["PSFOptics", "psf_optics", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
 
 Mode = Literal["distortion", "fast", "exact"]
 MODES: tuple[str, ...] = ("distortion", "fast", "exact")
@@ -113,7 +113,7 @@ class PSFOptics(Stage):
             raise InputValueError(f"mode must be one of {MODES}, got {value!r}")
         self._mode = value
 
-    def apply(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         return psf_optics(image, self.bank, self.mode, self.tol, self.zone, self.placement, self.radiometry)
 
     def extra_repr(self) -> str:
