@@ -35,16 +35,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from controlgs_adapter.backend import Backend
+from controlgs_adapter.backend import Backend, has_attrs
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, TargetError
 from controlgs_adapter.state import Camera
 
-from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, has_attrs,
-                            iteration_dir, ply_columns, render_gaussians)
-from .formats import load_state_dict_file, read_ply, require_fields
-from .reference_model import NeuralGaussians
-from .splatter import RasterOutput
+from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians
+from .formats import load_state_dict_file, ply_columns, ply_xyz, read_ply, require_fields
+from .layout import iteration_dir
 
 __all__ = ["CompGSBackend", "CompGSModel", "ResidualMLP", "load_compgs_dir", "COMPGS_DECODERS"]
 
@@ -160,7 +158,7 @@ class _Network(nn.Module):
         self.entropy_model = None
 
 
-class CompGSModel(nn.Module):
+class CompGSModel(AnchorModel):
     """Stand-in for CompGS's ``GaussianModel`` (evaluation): ``network.prediction_net.*_pred_mlp``
     and ``gaussian_params.{means, scales_before_exp, rotations_before_norm, ref_feats, res_feats}``.
     The entropy model is not loaded (``network.entropy_model`` is None)."""
@@ -210,10 +208,7 @@ class CompGSModel(nn.Module):
         mean = anchor + means_pred * exp(scale[:, :3]); scale = sigmoid(cov[:, :3]) * exp(scale[:, 3:]);
         rotation = normalize(cov[:, 3:]); kept where opacity > 0."""
         p, k = self.gaussian_params, self.derive_factor
-        n = p.means.shape[0]
-        if visible_mask is None:
-            visible_mask = torch.ones(n, dtype=torch.bool, device=p.means.device)
-        ids = anchor_ids_from_mask(visible_mask, n)
+        ids = self.decoded_ids(visible_mask, p.means)
         x = self.decoder_inputs(camera.center, ids)
         net = self.network.prediction_net
         offsets = net.means_pred_mlp(x[COMPGS_DECODERS[0]])  # [R*K, 3]
@@ -222,13 +217,6 @@ class CompGSModel(nn.Module):
         color = net.color_pred_mlp(x[COMPGS_DECODERS[3]])  # [R*K, 3]
         return assemble_gaussians(ids, k, p.means[ids], offsets, torch.exp(p.scales_before_exp[ids]), opacity, color,
                                   scale_rot, opacity > 0)
-
-    def render(self, camera: Camera, visible_mask: torch.Tensor | None = None,
-               background: torch.Tensor | None = None) -> RasterOutput:
-        """:meth:`visible_anchors` (if no mask is given), :meth:`decode`, splat."""
-        if visible_mask is None:
-            visible_mask = self.visible_anchors(camera)
-        return render_gaussians(self.decode(camera, visible_mask), camera, background)
 
 
 def _load_weights(model: CompGSModel, state: Mapping[str, torch.Tensor], source: str) -> None:
@@ -291,7 +279,7 @@ def load_compgs_dir(path: str | Path, iteration: int | None = None, *, allow_unq
     k = res_flat.shape[1] // g
     rot = ply_columns(fields, "rot_", count=4, source=src) if "rot_0" in fields else None
     model = CompGSModel(
-        means=torch.from_numpy(np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32)),
+        means=torch.from_numpy(ply_xyz(fields)),
         scales_before_exp=torch.from_numpy(ply_columns(fields, "scale_", count=6, source=src)),
         ref_feats=torch.from_numpy(ref), res_feats=torch.from_numpy(np.ascontiguousarray(res_flat.reshape(-1, k, g))),
         rotations_before_norm=None if rot is None else torch.from_numpy(rot),

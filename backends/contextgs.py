@@ -29,12 +29,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from controlgs_adapter.backend import has_attrs
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.state import Camera
 
-from .family_common import anchor_visibility, as_param, check_first_width, has_attrs, iteration_dir
+from .anchor_model import anchor_visibility, as_param
+from .decoders import check_first_width
 from .formats import load_state_dict_file, read_cfg_args
+from .layout import iteration_dir
 from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, anchor_tensors, decoders_from_checkpoint,
                   drop_invalid, read_masked_anchor_ply, resolve_decoded)
 from .scaffold_gs import ATTRIBUTE_DECODERS, ScaffoldGSBackend

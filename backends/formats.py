@@ -9,6 +9,7 @@ from __future__ import annotations
 import ast
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -19,7 +20,8 @@ import torch
 from controlgs_adapter.errors import FileFormatError
 
 __all__ = ["read_ply", "ply_field_names", "write_ply", "parse_cfg_args", "read_cfg_args", "load_state_dict_file", "load_torchscript",
-           "load_torchscript_tensors", "require_fields"]
+           "load_torchscript_tensors", "require_fields",
+           "ply_columns", "ply_offsets", "ply_xyz", "read_yaml_scalars"]
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
@@ -307,3 +309,73 @@ def require_fields(fields: Mapping[str, np.ndarray], names: Iterable[str], *, so
     missing = [n for n in names if n not in fields]
     if missing:
         raise FileFormatError(f"{source}: missing PLY field(s) {missing}")
+
+
+_YAML_SCALAR = re.compile(r"^\s*([A-Za-z_]\w*)\s*:\s*([^{}\[\]]*?)\s*,?\s*$")
+
+
+def _yaml_value(text: str) -> object:
+    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
+        return text[1:-1]
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low in ("null", "none", "~"):
+        return None
+    for cast in (int, float):
+        try:
+            return cast(text)  # int("40_000") works as in YAML 1.1
+        except ValueError:
+            pass
+    return text
+
+
+YAML_MAX_BYTES = 1 << 20
+
+
+def read_yaml_scalars(path: str | Path) -> dict[str, list[object]]:
+    """The ``key: scalar`` entries of a YAML file, block or flow style (Octree-AnyGS's
+    ``config.yaml``), without a YAML dependency: ``{key: [value, ...]}`` in file order (a key may
+    occur in several sections). Nested structure, lists and multi-line scalars are not read."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileFormatError(f"{path}: no such file")
+    if path.stat().st_size > YAML_MAX_BYTES:
+        raise FileFormatError(f"{path}: {path.stat().st_size} bytes, more than a config file holds (<= {YAML_MAX_BYTES})")
+    out: dict[str, list[object]] = {}
+    for line in path.read_text(errors="replace").splitlines():
+        line = line.split(" #", 1)[0] if not line.lstrip().startswith("#") else ""
+        m = _YAML_SCALAR.match(line)
+        if m and m.group(2):
+            out.setdefault(m.group(1), []).append(_yaml_value(m.group(2)))
+    return out
+
+
+def ply_columns(fields: Mapping[str, np.ndarray], prefix: str, *, source: str, count: int | None = None) -> np.ndarray:
+    """Stack ``<prefix>0 .. <prefix>{n-1}`` into ``[V, n]`` float32: n = ``count``, or every
+    ``<prefix><i>`` column present, which must then be numbered 0..n-1 (as the families write them)."""
+    if count is None:
+        idx = sorted(int(n[len(prefix):]) for n in fields if n.startswith(prefix) and n[len(prefix):].isdigit())
+        if idx != list(range(len(idx))):
+            gaps = sorted(set(range(idx[-1] + 1)) - set(idx))
+            what = f"missing {prefix}{gaps[0]}" if gaps else "a number used twice"
+            raise FileFormatError(f"{source}: PLY fields {prefix}* are not numbered 0..n-1 ({what})")
+        count = len(idx)
+    names = [f"{prefix}{i}" for i in range(count)]
+    missing = [k for k in names if k not in fields]
+    if missing or count == 0:
+        raise FileFormatError(f"{source}: missing PLY field(s) {missing or [prefix + '0']}")
+    return np.stack([fields[k].astype(np.float32) for k in names], axis=1)
+
+
+def ply_xyz(fields: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The ``x, y, z`` columns as ``[V, 3]`` float32 (check them with :func:`require_fields` first)."""
+    return np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32)
+
+
+def ply_offsets(fields: Mapping[str, np.ndarray], n_offsets: int, *, source: str) -> np.ndarray:
+    """Scaffold-family offsets: ``f_offset_{c*K + k}`` is coordinate c of offset k. -> ``[V, K, 3]``."""
+    flat = ply_columns(fields, "f_offset_", source=source)
+    if flat.shape[1] != 3 * n_offsets:
+        raise FileFormatError(f"{source}: expected {3 * n_offsets} f_offset_* fields (3 x n_offsets={n_offsets}), got {flat.shape[1]}")
+    return np.ascontiguousarray(flat.reshape(-1, 3, n_offsets).transpose(0, 2, 1))

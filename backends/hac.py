@@ -34,17 +34,16 @@ import numpy as np
 import torch
 from torch import nn
 
+from controlgs_adapter.backend import has_attrs
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError, TargetError
 from controlgs_adapter.state import Camera
 
-from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, check_first_width,
-                            has_attrs, iteration_dir, mlp_from_state_dict, ply_columns, ply_offsets, render_gaussians,
-                            voxel_snap)
-from .formats import load_state_dict_file, read_cfg_args, read_ply, require_fields
-from .reference_model import NeuralGaussians
+from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
+from .decoders import DECODER_ACTIVATIONS, ATTRIBUTE_DECODERS, check_first_width, decoders_from_state_dicts
+from .formats import load_state_dict_file, ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply, require_fields
+from .layout import iteration_dir
 from .scaffold_gs import ScaffoldGSBackend
-from .splatter import RasterOutput
 
 __all__ = ["HACBackend", "HACModel", "MaskedAnchorModel", "load_hac_dir", "infer_decoded", "DECODER_ACTIVATIONS"]
 
@@ -53,10 +52,9 @@ HAC_MARKERS: tuple[str, ...] = ("_mask", "mlp_grid", "encoding_xyz")
 #: ContextGS carries these instead of the hash grid (see backends/contextgs.py).
 CONTEXTGS_MARKERS: tuple[str, ...] = ("latent_codec", "_hyper_latent")
 
-#: Activations of the Scaffold-family decoders between their Linears (Sequential indices).
-DECODER_ACTIVATIONS: dict[str, dict[int, type[nn.Module]]] = {
-    "mlp_opacity": {1: nn.ReLU, 3: nn.Tanh}, "mlp_cov": {1: nn.ReLU}, "mlp_color": {1: nn.ReLU, 3: nn.Sigmoid},
-}
+#: Entries of ``checkpoint.pth`` that hold the decoders (HAC/HAC++ and ContextGS).
+CHECKPOINT_KEYS: dict[str, str] = {"mlp_opacity": "opacity_mlp", "mlp_cov": "cov_mlp", "mlp_color": "color_mlp",
+                                   "mlp_feature_bank": "mlp_feature_bank"}
 
 _MASK_THRESHOLD = 0.01  # sigmoid(_mask) > 0.01 switches an offset on (not-decoded models)
 
@@ -93,7 +91,7 @@ def _valid_from_mask(mask: torch.Tensor) -> torch.Tensor:
     return mask.detach().reshape(mask.shape[0], -1).sum(dim=1) > 0
 
 
-class MaskedAnchorModel(nn.Module):
+class MaskedAnchorModel(AnchorModel):
     """Common part of the HAC/HAC++ and ContextGS stand-ins: Scaffold-GS attribute names plus
     ``_mask`` and ``decoded_version``; decoders take ``[feat, view, dist]``.
 
@@ -150,10 +148,7 @@ class MaskedAnchorModel(nn.Module):
         dist = torch.linalg.vector_norm(view, dim=1, keepdim=True)
         view = view / dist
         if self.mlp_feature_bank is not None:
-            weight = self.mlp_feature_bank(torch.cat([view, dist], dim=1)).unsqueeze(1)  # [R, 1, 3]
-            f = feat.unsqueeze(-1)
-            feat = (f[:, ::4, :1].repeat(1, 4, 1) * weight[:, :, :1] + f[:, ::2, :1].repeat(1, 2, 1) * weight[:, :, 1:2]
-                    + f * weight[:, :, 2:]).squeeze(-1)
+            feat = feature_bank(feat, self.mlp_feature_bank(torch.cat([view, dist], dim=1)))
         x = torch.cat([feat, view, dist], dim=1)
         return {"mlp_opacity": x, "mlp_cov": x, "mlp_color": x}
 
@@ -165,10 +160,7 @@ class MaskedAnchorModel(nn.Module):
     def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None) -> NeuralGaussians:
         """Decode the anchors in ``visible_mask`` (``[A]`` bool; None = all) as the family's renderer at
         evaluation: Gaussians with neural opacity > 0 **and** their offset mask on are kept."""
-        n = self._anchor.shape[0]
-        if visible_mask is None:
-            visible_mask = torch.ones(n, dtype=torch.bool, device=self._anchor.device)
-        ids = anchor_ids_from_mask(visible_mask, n)
+        ids = self.decoded_ids(visible_mask, self._anchor)
         x = self.decoder_inputs(camera.center, ids)
         opacity = self.mlp_opacity(x["mlp_opacity"]).reshape(-1)  # [R*K]
         color = self.mlp_color(x["mlp_color"]).reshape(-1, 3)
@@ -176,13 +168,6 @@ class MaskedAnchorModel(nn.Module):
         keep = (opacity > 0) & (self.get_mask[ids].reshape(-1) > 0)
         return assemble_gaussians(ids, self.n_offsets, self.get_anchor[ids], self._offset[ids].reshape(-1, 3),
                                   self.get_scaling[ids], opacity, color, scale_rot, keep)
-
-    def render(self, camera: Camera, visible_mask: torch.Tensor | None = None,
-               background: torch.Tensor | None = None) -> RasterOutput:
-        """:meth:`visible_anchors` (if no mask is given), :meth:`decode`, splat."""
-        if visible_mask is None:
-            visible_mask = self.visible_anchors(camera)
-        return render_gaussians(self.decode(camera, visible_mask), camera, background)
 
 
 class HACModel(MaskedAnchorModel):
@@ -207,6 +192,11 @@ class HACModel(MaskedAnchorModel):
         return self._anchor if self.decoded_version else voxel_snap(self._anchor, self.voxel_size)
 
 
+def voxel_snap(anchor: torch.Tensor, voxel_size: float) -> torch.Tensor:
+    """HAC/HAC++ ``get_anchor`` of a not-decoded model: ``round(anchor / voxel_size) * voxel_size``. ``[A, 3]``."""
+    return torch.round(anchor / voxel_size) * voxel_size
+
+
 def infer_decoded(scales: np.ndarray, masks: np.ndarray, *, extra_mask_column: bool) -> bool | None:
     """Whether a HAC/ContextGS PLY holds the decoded model, from what their codecs write: offset masks
     exactly 0/1 (a binary arithmetic coder; HAC++'s extra column is filled with 0) and linear scales
@@ -226,20 +216,11 @@ def infer_decoded(scales: np.ndarray, masks: np.ndarray, *, extra_mask_column: b
 
 def decoders_from_checkpoint(sd: dict[str, Any], path: Path, *, feature_bank: bool) -> dict[str, nn.Module]:
     """Rebuild ``mlp_opacity``, ``mlp_cov``, ``mlp_color`` (and the feature bank) from a HAC-family
-    ``checkpoint.pth`` of state dicts ``sd`` (keys ``opacity_mlp, cov_mlp, color_mlp, [mlp_feature_bank]``)
-    read from ``path``."""
-    out = {}
-    for attr, key in (("mlp_opacity", "opacity_mlp"), ("mlp_cov", "cov_mlp"), ("mlp_color", "color_mlp")):
-        if key not in sd:
-            raise FileFormatError(f"{path}: missing entry {key!r} (has {sorted(sd)})")
-        out[attr] = mlp_from_state_dict(sd[key], {i: a() for i, a in DECODER_ACTIVATIONS[attr].items()}, name=key,
-                                        source=str(path))
-    if feature_bank:
-        if "mlp_feature_bank" not in sd:
-            raise FileFormatError(f"{path}: missing entry 'mlp_feature_bank' (cfg_args has use_feat_bank=True)")
-        out["mlp_feature_bank"] = mlp_from_state_dict(sd["mlp_feature_bank"], {1: nn.ReLU(), 3: nn.Softmax(dim=1)},
-                                                      name="mlp_feature_bank", source=str(path))
-    return out
+    ``checkpoint.pth`` of state dicts ``sd`` (entries :data:`CHECKPOINT_KEYS`) read from ``path``."""
+    if feature_bank and "mlp_feature_bank" not in sd:
+        raise FileFormatError(f"{path}: missing entry 'mlp_feature_bank' (cfg_args has use_feat_bank=True)")
+    keys = CHECKPOINT_KEYS if feature_bank else {a: CHECKPOINT_KEYS[a] for a in ATTRIBUTE_DECODERS}
+    return decoders_from_state_dicts(sd, keys, source=str(path))
 
 
 def read_masked_anchor_ply(ply: Path, *, n_offsets: int, feat_dim: int,
@@ -257,7 +238,7 @@ def read_masked_anchor_ply(ply: Path, *, n_offsets: int, feat_dim: int,
         raise FileFormatError(f"{src}: {mask.shape[1]} f_mask_* fields, expected {' or '.join(map(str, mask_columns))} "
                               f"for n_offsets={n_offsets}")
     out = {
-        "anchor": np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32),
+        "anchor": ply_xyz(fields),
         "offset": ply_offsets(fields, n_offsets, source=src), "mask": mask[:, :, None], "anchor_feat": feat,
         "scaling": ply_columns(fields, "scale_", count=6, source=src),
     }

@@ -20,7 +20,7 @@ from typing import Any
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
 
-from .family_common import bitstreams_only
+from .layout import bitstreams_only, iteration_dirs
 from .formats import ply_field_names
 
 __all__ = ["FAMILIES", "detect_family", "load_model_dir"]
@@ -42,8 +42,7 @@ _FILES = ("opacity_mlp.pt", "checkpoints.pth", "checkpoint.pth", "weights.pth")
 def _iteration_folder(root: Path, iteration: int | None) -> Path | None:
     """``point_cloud/iteration_<N>`` (``iteration`` or the largest N); None when there is none."""
     pc = root / "point_cloud"
-    found = {int(m.group(1)): p for p in pc.iterdir() if p.is_dir() and (m := re.fullmatch(r"iteration_(\d+)", p.name))} \
-        if pc.is_dir() else {}
+    found = iteration_dirs(root)
     if iteration is not None:
         if int(iteration) not in found:
             raise FileFormatError(f"{pc}: no 'iteration_{int(iteration)}' folder (present: {sorted(found)})")

@@ -27,18 +27,16 @@ import numpy as np
 import torch
 from torch import nn
 
+from controlgs_adapter.backend import has_attrs
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError, TargetError
 from controlgs_adapter.state import Camera
 
-from .family_common import (anchor_ids_from_mask, anchor_visibility, as_param, assemble_gaussians, check_first_width,
-                            has_attrs, iteration_dir, mlp_from_state_dict, ply_columns, ply_offsets, read_yaml_scalars,
-                            render_gaussians)
-from .formats import (load_state_dict_file, load_torchscript, load_torchscript_tensors, read_cfg_args, read_ply,
-                      require_fields)
-from .reference_model import NeuralGaussians
+from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
+from .decoders import Decoders, check_first_width
+from .formats import ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply, read_yaml_scalars, require_fields
+from .layout import iteration_dir
 from .scaffold_gs import ScaffoldGSBackend
-from .splatter import RasterOutput
 
 __all__ = ["OctreeGSBackend", "OctreeGSModel", "lod_anchor_ids", "load_octree_gs_dir"]
 
@@ -123,7 +121,7 @@ class OctreeGSBackend(ScaffoldGSBackend):
         return fc1
 
 
-class OctreeGSModel(nn.Module):
+class OctreeGSModel(AnchorModel):
     """A light stand-in for Octree-GS's ``GaussianModel`` (evaluation only) with its attribute names.
 
     Shapes: ``_anchor [A, 3]``, ``_offset [A, K, 3]``, ``_anchor_feat [A, F]``, ``_scaling [A, 6]``
@@ -221,10 +219,7 @@ class OctreeGSModel(nn.Module):
         view = view / dist
         if self.mlp_feature_bank is not None:
             bank_in = torch.cat([view, level], dim=1) if self.add_level else view
-            weight = self.mlp_feature_bank(bank_in).unsqueeze(1)  # [R, 1, 3]
-            f = feat.unsqueeze(-1)
-            feat = (f[:, ::4, :1].repeat(1, 4, 1) * weight[:, :, :1] + f[:, ::2, :1].repeat(1, 2, 1) * weight[:, :, 1:2]
-                    + f * weight[:, :, 2:]).squeeze(-1)
+            feat = feature_bank(feat, self.mlp_feature_bank(bank_in))
         extra = [level] if self.add_level else []
         with_dist = torch.cat([feat, view, dist, *extra], dim=1)
         without = torch.cat([feat, view, *extra], dim=1)
@@ -238,7 +233,6 @@ class OctreeGSModel(nn.Module):
                                                         device=anchor.device))
             out["mlp_color"] = torch.cat([out["mlp_color"], code], dim=1)
         return out
-
 
     @torch.no_grad()
     def visible_anchors(self, camera: Camera, resolution_scale: float = 1.0) -> torch.Tensor:
@@ -256,10 +250,7 @@ class OctreeGSModel(nn.Module):
         """Decode the Gaussians of the anchors in ``visible_mask`` (``[A]`` bool; None = all) as
         Octree-GS's ``generate_neural_gaussians`` at evaluation (progressive opacity ratio included).
         ``appearance_id`` defaults to ``camera.extra["uid"]`` (0 if absent)."""
-        n = self._anchor.shape[0]
-        if visible_mask is None:
-            visible_mask = torch.ones(n, dtype=torch.bool, device=self._anchor.device)
-        ids = anchor_ids_from_mask(visible_mask, n)
+        ids = self.decoded_ids(visible_mask, self._anchor)
         if appearance_id is None and self.embedding_appearance is not None:
             appearance_id = int(camera.extra.get("uid", 0))
         x = self.decoder_inputs(camera.center, ids, appearance_id)
@@ -272,54 +263,6 @@ class OctreeGSModel(nn.Module):
         scale_rot = self.mlp_cov(x["mlp_cov"]).reshape(-1, 7)
         return assemble_gaussians(ids, self.n_offsets, self.get_anchor[ids], self._offset[ids].reshape(-1, 3),
                                   self.get_scaling[ids], opacity, color, scale_rot, opacity > 0)
-
-    def render(self, camera: Camera, visible_mask: torch.Tensor | None = None, background: torch.Tensor | None = None,
-               appearance_id: int | None = None) -> RasterOutput:
-        """:meth:`visible_anchors` (if no mask is given), :meth:`decode`, splat."""
-        if visible_mask is None:
-            visible_mask = self.visible_anchors(camera)
-        return render_gaussians(self.decode(camera, visible_mask, appearance_id), camera, background)
-
-
-def _load_decoders(folder: Path, trust_code: bool) -> dict[str, nn.Module]:
-    jit = {"mlp_opacity": "opacity_mlp.pt", "mlp_cov": "cov_mlp.pt", "mlp_color": "color_mlp.pt",
-           "mlp_feature_bank": "feature_bank_mlp.pt"}
-    if (folder / "opacity_mlp.pt").is_file():
-        out = {}
-        for attr, fname in jit.items():
-            path = folder / fname
-            if path.is_file():
-                out[attr] = load_torchscript(path, trust_code=trust_code)
-            elif attr != "mlp_feature_bank":
-                raise FileFormatError(f"{path}: missing (the decoders were saved as TorchScript, 'split' mode)")
-        app = folder / "embedding_appearance.pt"
-        if app.is_file():
-            weights = [v for k, v in load_torchscript_tensors(app, trust_code=trust_code).items() if k.endswith("weight")]
-            if len(weights) != 1 or weights[0].dim() != 2:
-                raise FileFormatError(f"{app}: expected one [num_cameras, appearance_dim] embedding table")
-            out["embedding_appearance"] = nn.Embedding.from_pretrained(weights[0].float().clone())
-        return out
-    unite = folder / "checkpoints.pth"
-    if not unite.is_file():
-        raise FileFormatError(f"{folder}: no decoders: neither TorchScript 'opacity_mlp.pt, cov_mlp.pt, color_mlp.pt' "
-                              f"nor 'checkpoints.pth'")
-    sd = load_state_dict_file(unite)
-    acts = {"mlp_opacity": {1: nn.ReLU(), 3: nn.Tanh()}, "mlp_cov": {1: nn.ReLU()}, "mlp_color": {1: nn.ReLU(), 3: nn.Sigmoid()},
-            "mlp_feature_bank": {1: nn.ReLU(), 3: nn.Softmax(dim=1)}}
-    out = {}
-    for attr, key in (("mlp_opacity", "opacity_mlp"), ("mlp_cov", "cov_mlp"), ("mlp_color", "color_mlp"),
-                      ("mlp_feature_bank", "feature_bank_mlp")):
-        if key not in sd:
-            if attr == "mlp_feature_bank":
-                continue
-            raise FileFormatError(f"{unite}: missing entry {key!r} (has {sorted(sd)})")
-        out[attr] = mlp_from_state_dict(sd[key], acts[attr], name=key, source=str(unite))
-    if "appearance" in sd:
-        w = [v for k, v in sd["appearance"].items() if k.endswith("weight")]
-        if len(w) != 1:
-            raise FileFormatError(f"{unite}: entry 'appearance' must hold one embedding table")
-        out["embedding_appearance"] = nn.Embedding.from_pretrained(w[0].float().clone())
-    return out
 
 
 def load_octree_gs_dir(path: str | Path, iteration: int | None = None, *, trust_code: bool = False) -> OctreeGSModel:
@@ -349,7 +292,7 @@ def _read_anchor_ply(ply: Path, feat_dim: int, n_offsets: int, config: str) -> t
     if feat.shape[1] != feat_dim:
         raise FileFormatError(f"{src}: {feat.shape[1]} f_anchor_feat_* fields, {config} says feat_dim={feat_dim}")
     t = {
-        "anchor": torch.from_numpy(np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float32)),
+        "anchor": torch.from_numpy(ply_xyz(fields)),
         "offset": torch.from_numpy(ply_offsets(fields, n_offsets, source=src)), "anchor_feat": torch.from_numpy(feat),
         "scaling": torch.from_numpy(ply_columns(fields, "scale_", count=6, source=src)),
         "level": torch.from_numpy(fields["level"].astype(np.int32)[:, None]),
@@ -385,7 +328,7 @@ def _load_octree_gs(root: Path, iteration: int | None, trust_code: bool) -> Octr
     model = OctreeGSModel(voxel_size=float(info[0]), standard_dist=float(info[1]), fork=int(cfg["fork"]),
                           dist2level=str(cfg["dist2level"]), add_level=bool(cfg["add_level"]),
                           add_opacity_dist=bool(cfg["add_opacity_dist"]), add_cov_dist=bool(cfg["add_cov_dist"]),
-                          add_color_dist=bool(cfg["add_color_dist"]), **t, **_load_decoders(folder, trust_code))
+                          add_color_dist=bool(cfg["add_color_dist"]), **t, **Decoders(folder, trust_code).modules())
     return _checked(model, f"{folder} + {cfg_path}")
 
 
@@ -414,5 +357,5 @@ def _load_octree_anygs(root: Path, iteration: int | None, trust_code: bool) -> O
         raise FileFormatError(f"{ply}: the header must carry 'obj_info standard_dist <v>' and 'obj_info levels <v>' "
                               f"(Octree-AnyGS's LOD metadata); got {comments}") from e
     model = OctreeGSModel(voxel_size=0.0, standard_dist=standard_dist, levels=levels, fork=int(get("fork", 2)),
-                          dist2level=str(get("dist2level", "round")), voxel_centre=False, **t, **_load_decoders(folder, trust_code))
+                          dist2level=str(get("dist2level", "round")), voxel_centre=False, **t, **Decoders(folder, trust_code).modules())
     return _checked(model, f"{folder} + {yaml_path}")

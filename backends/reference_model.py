@@ -20,46 +20,18 @@ Besides the tensors, the model carries Scaffold-GS's accessor names (``get_ancho
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import InputValueError, ShapeError
-from controlgs_adapter.rasterizers import rasterize_gaussians
 from controlgs_adapter.state import Camera
 
-from .splatter import NEAR_PLANE, RasterOutput, project_gaussians
+from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, assemble_gaussians, feature_bank
 
 __all__ = ["NeuralGaussianModel", "NeuralGaussians", "AppearanceEmbedding", "median_spacing"]
-
-
-@dataclass
-class NeuralGaussians:
-    """Gaussians decoded for one camera (``G`` = number kept by the opacity > 0 mask).
-
-    Attributes:
-        means: ``[G, 3]`` world positions.
-        scales: ``[G, 3]`` linear standard deviations (world units).
-        rotations: ``[G, 4]`` unit quaternions (w, x, y, z).
-        opacities: ``[G]`` neural opacities in (0, 1].
-        colors: ``[G, 3]`` colours in [0, 1] (sRGB-encoded, as the backbone was trained).
-        anchor_of: ``[G]`` (long) the anchor each Gaussian came from.
-        offset_of: ``[G]`` (long) which of the anchor's K offsets it is.
-        visible_ids: ``[R]`` (long) the anchors that were decoded; row ``i`` of every decoder input.
-        neural_opacity: ``[R * K]`` every decoded opacity before the mask (anchor-major).
-    """
-
-    means: torch.Tensor
-    scales: torch.Tensor
-    rotations: torch.Tensor
-    opacities: torch.Tensor
-    colors: torch.Tensor
-    anchor_of: torch.Tensor
-    offset_of: torch.Tensor
-    visible_ids: torch.Tensor
-    neural_opacity: torch.Tensor
 
 
 class AppearanceEmbedding(nn.Module):
@@ -78,7 +50,7 @@ def _mlp(d_in: int, d_hidden: int, d_out: int, out_act: nn.Module | None) -> nn.
     return nn.Sequential(*layers, *([out_act] if out_act is not None else []))
 
 
-class NeuralGaussianModel(nn.Module):
+class NeuralGaussianModel(AnchorModel):
     """Scaffold-GS's anchor model (``scene/gaussian_model.py``) as an ``nn.Module``.
 
     Args:
@@ -242,58 +214,25 @@ class NeuralGaussianModel(nn.Module):
     # ----------------------------------------------------------------- visibility (prefilter)
     @torch.no_grad()
     def visible_anchors(self, camera: Camera) -> torch.Tensor:
-        """``BoolTensor[A]``: anchors whose footprint can touch the image (Scaffold-GS's ``prefilter_voxel``).
-
-        Each anchor is treated as a Gaussian with mean ``get_anchor``, scales ``get_scaling[:, :3]``
-        and rotation ``get_rotation`` and projected as the 3DGS rasteriser does
-        (:func:`~controlgs_adapter.backends.splatter.project_gaussians`: EWA 2D covariance plus the
-        0.3 px^2 low-pass), with radius ``ceil(3 * sqrt(largest eigenvalue))`` px (eigenvalue gap
-        floored at 0.1 as in 3DGS). An anchor is visible iff its camera-space depth is ``>
-        NEAR_PLANE`` (0.2, 3DGS's ``in_frustum``) and the square of half-width ``radius`` about its
-        projected centre overlaps the image rectangle ``[0, W] x [0, H]``.
-
-        Difference from Scaffold-GS: its CUDA ``visible_filter`` tests that overlap in 16 px tile
-        units, so it may also keep anchors whose square ends up to one tile beyond the right/bottom
-        edge; the set kept here is contained in that one, and both keep every anchor whose
-        footprint touches the image. Which anchors are decoded only changes which Gaussians reach
-        the splatter, never their attributes (decoding is per anchor).
-        """
-        means = self.get_anchor.detach()
-        w2c = camera.world_to_camera.to(means)
-        pc = camera.to_camera(means)  # [A, 3]
-        visible = pc[:, 2] > NEAR_PLANE
-        front = visible.nonzero().squeeze(1)
-        uv, cov2d, _ = project_gaussians(pc[front], self.get_scaling.detach()[front, :3], self._rotation.detach()[front],
-                                         w2c, camera.intrinsics.to(means), camera.width, camera.height)
-        a, b, c = cov2d.unbind(-1)
-        mid = 0.5 * (a + c)
-        radius = torch.ceil(3.0 * torch.sqrt(mid + torch.sqrt((mid * mid - (a * c - b * b)).clamp_min(0.1))))
-        u, v = uv.unbind(-1)
-        inside = (u + radius > 0) & (u - radius < camera.width) & (v + radius > 0) & (v - radius < camera.height)
-        visible[front] = inside & (a * c - b * b > 0)
-        return visible
+        """``BoolTensor[A]``: anchors whose footprint can touch the image (Scaffold-GS's
+        ``prefilter_voxel``): each anchor as a Gaussian with mean ``get_anchor``, scales
+        ``get_scaling[:, :3]`` and rotation ``_rotation``, kept by the rule of
+        :func:`~controlgs_adapter.backends.anchor_model.anchor_visibility`."""
+        return anchor_visibility(camera, self.get_anchor, self.get_scaling, self._rotation)
 
     # ----------------------------------------------------------------- decoding
     def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None) -> NeuralGaussians:
         """Decode the Gaussians of the anchors in ``visible_mask`` (``BoolTensor[A]``; None = all)
         for ``camera``: exactly Scaffold-GS's ``generate_neural_gaussians`` (module docstring)."""
-        a, k = self.num_anchors, self.n_offsets
         anchor_all = self.get_anchor
-        if visible_mask is None:
-            visible_mask = torch.ones(a, dtype=torch.bool, device=anchor_all.device)
-        check_tensor("visible_mask", visible_mask, [a], dtypes=(torch.bool,))
-        ids = visible_mask.nonzero().squeeze(1)  # [R] ascending
-        feat = self._anchor_feat[visible_mask]  # [R, F]
-        anchor = anchor_all[visible_mask]  # [R, 3]
-        offsets = self._offset[visible_mask]  # [R, K, 3]
-        scaling = self.get_scaling[visible_mask]  # [R, 6]
+        ids = self.decoded_ids(visible_mask, anchor_all)  # [R] ascending
+        feat = self._anchor_feat[ids]  # [R, F]
+        anchor = anchor_all[ids]  # [R, 3]
         ob_view = anchor - camera.center.to(anchor)
         ob_dist = ob_view.norm(dim=1, keepdim=True)  # [R, 1]
         ob_view = ob_view / ob_dist  # [R, 3]
         if self.use_feat_bank:
-            bank = self.mlp_feature_bank(torch.cat([ob_view, ob_dist], dim=1))  # [R, 3]
-            feat = (feat[:, ::4].repeat(1, 4) * bank[:, :1] + feat[:, ::2].repeat(1, 2) * bank[:, 1:2]
-                    + feat * bank[:, 2:])
+            feat = feature_bank(feat, self.mlp_feature_bank(torch.cat([ob_view, ob_dist], dim=1)))
         with_dist = torch.cat([feat, ob_view, ob_dist], dim=1)  # [R, F+4]
         without_dist = torch.cat([feat, ob_view], dim=1)  # [R, F+3]
         neural_opacity = self.mlp_opacity(with_dist if self.add_opacity_dist else without_dist).reshape(-1)  # [R*K]
@@ -304,26 +243,8 @@ class NeuralGaussianModel(nn.Module):
             color_in = torch.cat([color_in, appearance], dim=1)
         color = self.mlp_color(color_in).reshape(-1, 3)  # [R*K, 3]
         scale_rot = self.mlp_cov(with_dist if self.add_cov_dist else without_dist).reshape(-1, 7)  # [R*K, 7]
-        keep = neural_opacity > 0.0  # [R*K]
-        flat = keep.nonzero().squeeze(1)  # [G]
-        row = flat // k
-        scaling_g = scaling[row]  # [G, 6]
-        means = anchor[row] + offsets.reshape(-1, 3)[flat] * scaling_g[:, :3]
-        scales = scaling_g[:, 3:] * torch.sigmoid(scale_rot[flat, :3])
-        rotations = F.normalize(scale_rot[flat, 3:7], dim=-1)
-        return NeuralGaussians(means=means, scales=scales, rotations=rotations, opacities=neural_opacity[flat],
-                               colors=color[flat], anchor_of=ids[row], offset_of=flat % k, visible_ids=ids,
-                               neural_opacity=neural_opacity)
-
-    def render(self, camera: Camera, visible_mask: torch.Tensor | None = None,
-               background: torch.Tensor | None = None) -> RasterOutput:
-        """Prefilter (``visible_mask=None`` -> :meth:`visible_anchors`), decode and splat with the
-        rasterizer chosen for the model's device (:func:`controlgs_adapter.rasterizers.rasterize_gaussians`:
-        the pure-torch splatter, gsplat on CUDA when installed). Returns its ``RasterOutput``."""
-        if visible_mask is None:
-            visible_mask = self.visible_anchors(camera)
-        g = self.decode(camera, visible_mask)
-        return rasterize_gaussians(g.means, g.scales, g.rotations, g.opacities, g.colors, camera, background)
+        return assemble_gaussians(ids, self.n_offsets, anchor, self._offset[ids].reshape(-1, 3), self.get_scaling[ids],
+                                  neural_opacity, color, scale_rot, neural_opacity > 0.0)
 
     def extra_repr(self) -> str:
         return (f"anchors={self.num_anchors}, feat_dim={self.feat_dim}, n_offsets={self.n_offsets}, "

@@ -35,22 +35,13 @@ from torch import nn
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.io import atomic_write, folder_mode
 
-from .formats import (load_state_dict_file, load_torchscript, load_torchscript_tensors, ply_field_names, read_cfg_args,
-                      read_ply, require_fields, write_ply)
-from .family_common import iteration_dir
+from .decoders import MLP_FILES, UNITE_FILE, Decoders
+from .formats import ply_columns, ply_field_names, ply_offsets, ply_xyz, read_cfg_args, read_ply, require_fields, write_ply
+from .layout import iteration_dir
 from .reference_model import NeuralGaussianModel, median_spacing
 
 __all__ = ["save_scaffold_dir", "load_scaffold_dir", "latest_iteration", "MLP_FILES"]
 
-#: decoder attribute -> (TorchScript file in 'split' mode, key of checkpoints.pth in 'unite' mode)
-MLP_FILES: dict[str, tuple[str, str]] = {
-    "mlp_opacity": ("opacity_mlp.pt", "opacity_mlp"),
-    "mlp_cov": ("cov_mlp.pt", "cov_mlp"),
-    "mlp_color": ("color_mlp.pt", "color_mlp"),
-    "mlp_feature_bank": ("feature_bank_mlp.pt", "feature_bank_mlp"),
-    "embedding_appearance": ("embedding_appearance.pt", "appearance"),
-}
-_UNITE_FILE = "checkpoints.pth"
 _OPTION_KEYS = ("feat_dim", "n_offsets", "use_feat_bank", "appearance_dim", "add_opacity_dist", "add_cov_dist",
                 "add_color_dist")
 
@@ -128,7 +119,7 @@ def save_scaffold_dir(model: NeuralGaussianModel, path: str | os.PathLike, itera
         else:
             state = {MLP_FILES[name][1]: {k: v.detach().to("cpu", torch.float32) for k, v in m.state_dict().items()}
                      for name, m in modules.items()}
-            torch.save(state, tmp / _UNITE_FILE)
+            torch.save(state, tmp / UNITE_FILE)
         backup = None
         if final.exists():
             backup = Path(tempfile.mkdtemp(prefix=f".{final.name}.old.", dir=parent))
@@ -151,16 +142,6 @@ def latest_iteration(path: str | os.PathLike) -> int:
     return int(iteration_dir(path, None, family="Scaffold-GS").name.removeprefix("iteration_"))
 
 
-def _indexed(fields: dict[str, np.ndarray], prefix: str, source: str) -> list[np.ndarray]:
-    """Columns ``prefix0 .. prefix{n-1}`` sorted by index (Scaffold-GS sorts by the integer suffix)."""
-    idx = sorted(int(n[len(prefix):]) for n in fields if n.startswith(prefix) and n[len(prefix):].isdigit())
-    if idx != list(range(len(idx))):
-        missing = sorted(set(range(max(idx, default=-1) + 1)) - set(idx))
-        raise FileFormatError(f"{source}: PLY fields {prefix}* are not numbered 0..n-1 (missing {prefix}{missing[0]})"
-                              if missing else f"{source}: no PLY fields {prefix}*")
-    return [fields[f"{prefix}{i}"] for i in idx]
-
-
 def _read_anchors(ply: Path) -> dict[str, np.ndarray]:
     fields, _ = read_ply(ply)
     src = str(ply)
@@ -172,23 +153,20 @@ def _read_anchors(ply: Path) -> dict[str, np.ndarray]:
         bad = int((~np.isfinite(col)).sum())
         if bad:
             raise FileFormatError(f"{src}: PLY field {name!r} holds {bad} non-finite value(s)")
-    offsets = _indexed(fields, "f_offset_", src)
-    if len(offsets) % 3:
-        raise FileFormatError(f"{src}: {len(offsets)} PLY fields f_offset_* is not 3 x n_offsets")
-    scales = _indexed(fields, "scale_", src)
-    rots = _indexed(fields, "rot_", src)
-    if len(scales) != 6 or len(rots) != 4:
+    n_offset = ply_columns(fields, "f_offset_", source=src).shape[1]
+    if n_offset % 3:
+        raise FileFormatError(f"{src}: {n_offset} PLY fields f_offset_* is not 3 x n_offsets")
+    scales, rots = ply_columns(fields, "scale_", source=src), ply_columns(fields, "rot_", source=src)
+    if scales.shape[1] != 6 or rots.shape[1] != 4:
         raise FileFormatError(f"{src}: expected PLY fields scale_0..scale_5 and rot_0..rot_3, got "
-                              f"{len(scales)} scale_* and {len(rots)} rot_*")
-    k = len(offsets) // 3
-    stack = lambda cols: np.stack(cols, axis=1).astype(np.float32)  # noqa: E731
+                              f"{scales.shape[1]} scale_* and {rots.shape[1]} rot_*")
     return {
-        "anchor": stack([fields["x"], fields["y"], fields["z"]]),
-        "offset": stack(offsets).reshape(-1, 3, k).transpose(0, 2, 1),  # [A, K, 3]
-        "feat": stack(_indexed(fields, "f_anchor_feat_", src)),
-        "opacity": stack([fields["opacity"]]),
-        "scaling": stack(scales),
-        "rotation": stack(rots),
+        "anchor": ply_xyz(fields),
+        "offset": ply_offsets(fields, n_offset // 3, source=src),  # [A, K, 3]
+        "feat": ply_columns(fields, "f_anchor_feat_", source=src),
+        "opacity": fields["opacity"].astype(np.float32)[:, None],
+        "scaling": scales,
+        "rotation": rots,
     }
 
 
@@ -204,58 +182,7 @@ def _expected_layers(name: str, opts: dict[str, Any]) -> list[tuple[str, tuple[i
     return [("Linear", (d_in, f)), ("ReLU", None), ("Linear", (f, d_out)), *([(act, None)] if act else [])]
 
 
-def _describe(module: nn.Module) -> list[tuple[str, tuple[int, int] | None]]:
-    return [(type(m).__name__, (m.in_features, m.out_features) if isinstance(m, nn.Linear) else None)
-            for m in (module.children() if isinstance(module, nn.Sequential) else [module])]
-
-
-class _Decoders:
-    """The decoders of one iteration folder as state dicts, in either mode, before any width check."""
-
-    def __init__(self, folder: Path, trust_code: bool = False) -> None:
-        split = {n: folder / f for n, (f, _) in MLP_FILES.items()}
-        self.mode = "split" if any(p.is_file() for p in split.values()) else "unite"
-        self.state: dict[str, dict[str, torch.Tensor]] = {}
-        self.layers: dict[str, list] = {}  # split mode: rebuilt layer list, checked against the options
-        self.source: dict[str, str] = {}
-        if self.mode == "split":
-            for name, p in split.items():
-                if not p.is_file():
-                    continue
-                self.source[name] = str(p)
-                if name == "embedding_appearance":
-                    self.state[name] = load_torchscript_tensors(p, trust_code=trust_code)
-                    continue
-                eager = load_torchscript(p, trust_code=trust_code)
-                self.layers[name] = _describe(eager)
-                self.state[name] = eager.state_dict()
-            missing = [MLP_FILES[n][0] for n in ("mlp_opacity", "mlp_cov", "mlp_color") if n not in self.state]
-            if missing:
-                raise FileFormatError(f"{folder}: missing MLP file(s) {missing} (split mode: TorchScript traces)")
-        else:
-            unite = folder / _UNITE_FILE
-            if not unite.is_file():
-                raise FileFormatError(
-                    f"{folder}: missing MLPs: neither the TorchScript traces {[f for f, _ in MLP_FILES.values()][:3]} "
-                    f"nor {_UNITE_FILE} is there")
-            blob = load_state_dict_file(unite)
-            for name, (_, key) in MLP_FILES.items():
-                if key in blob:
-                    if not isinstance(blob[key], dict):
-                        raise FileFormatError(f"{unite}: entry {key!r} is not a state dict")
-                    self.state[name], self.source[name] = blob[key], f"{unite} [{key!r}]"
-            missing = [MLP_FILES[n][1] for n in ("mlp_opacity", "mlp_cov", "mlp_color") if n not in self.state]
-            if missing:
-                raise FileFormatError(f"{unite}: missing MLP entr(y/ies) {missing}")
-
-    def weight(self, name: str, key: str) -> torch.Tensor:
-        sd = self.state[name]
-        if key not in sd or not isinstance(sd[key], torch.Tensor):
-            raise FileFormatError(f"{self.source[name]}: decoder {name!r} has no tensor {key!r} (keys: {sorted(sd)})")
-        return sd[key]
-
-
-def _infer_options(anchors: dict[str, np.ndarray], dec: _Decoders, cfg: dict[str, Any], cfg_src: str) -> dict[str, Any]:
+def _infer_options(anchors: dict[str, np.ndarray], dec: Decoders, cfg: dict[str, Any], cfg_src: str) -> dict[str, Any]:
     """Widths/options from cfg_args where present, else from the files; then every width is checked."""
     f, k = anchors["feat"].shape[1], anchors["offset"].shape[1]
     emb = dec.weight("embedding_appearance", "embedding.weight") if "embedding_appearance" in dec.state else None
@@ -337,7 +264,7 @@ def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
     cfg = read_cfg_args(cfg_path) if cfg_path.is_file() else {}
     _refuse_octree(root, folder / "point_cloud.ply", cfg)
     anchors = _read_anchors(folder / "point_cloud.ply")
-    dec = _Decoders(folder, trust_code)
+    dec = Decoders(folder, trust_code)
     opts = _infer_options(anchors, dec, cfg, str(cfg_path))
     voxel = float(cfg.get("voxel_size", 0) or 0)
     if voxel <= 0:  # Scaffold-GS picks it from the point cloud when the argument is <= 0

@@ -8,14 +8,14 @@ Built-in backends live in ``controlgs_adapter.backends`` and register through
 from __future__ import annotations
 
 import hashlib
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Sequence
 
 import torch
 from torch import nn
 
 from .errors import TargetError
 
-__all__ = ["Backend", "get_attr_path", "set_attr_path"]
+__all__ = ["Backend", "get_attr_path", "set_attr_path", "has_attrs"]
 
 
 def get_attr_path(obj: Any, path: str) -> Any:
@@ -23,6 +23,17 @@ def get_attr_path(obj: Any, path: str) -> Any:
     for part in path.split("."):
         obj = obj[int(part)] if part.isdigit() and not hasattr(obj, part) else getattr(obj, part)
     return obj
+
+
+def has_attrs(obj: object, names: Sequence[str]) -> bool:
+    """True if every dotted name resolves on ``obj`` (values may be None)."""
+    for name in names:
+        cur = obj
+        for part in name.split("."):
+            if not hasattr(cur, part):
+                return False
+            cur = getattr(cur, part)
+    return True
 
 
 def set_attr_path(obj: Any, path: str, value: Any) -> None:

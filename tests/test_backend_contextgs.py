@@ -234,7 +234,7 @@ def test_prefilter_uses_anchor_zero_rotation():
     """ContextGS's prefilter_voxel passes rotations[[0]] for every anchor; the stand-in does the same
     (kept from the file's row 0 even when that anchor is dropped)."""
     from _family_checks import make_camera
-    from controlgs_adapter.backends.family_common import anchor_visibility
+    from controlgs_adapter.backends.anchor_model import anchor_visibility
 
     arr = _arrays(9, decoded=True)
     arr["anchor"][: A - PAD] = np.array([[0.5, 0.0, 0.0]], np.float32) + np.arange(A - PAD, dtype=np.float32)[:, None] * \

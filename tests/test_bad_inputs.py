@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from controlgs_adapter import cli
-from controlgs_adapter.backends.family_common import read_yaml_scalars
+from controlgs_adapter.backends.formats import read_yaml_scalars
 from controlgs_adapter.backends.formats import load_state_dict_file, parse_cfg_args, read_cfg_args, read_ply
 from controlgs_adapter.controlgs import ADAPTER_KIND, ControlGS
 from controlgs_adapter.downstream.optics.bank import BANK_KIND, PSFBank
