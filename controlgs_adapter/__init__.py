@@ -19,11 +19,13 @@ from .schedules import DisplaySchedule, FoveationSchedule, LensSchedule, Resampl
 from .state import Camera, RuntimeState
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .backends.model_dir import load_model_dir
-    from .datasets.detect import load_dataset
-    from .downstream.pipeline import Pipeline
-    from .evaluation import GridResult, evaluate_grid
-    from .training import TrainConfig, Trainer
+    from .backends.model_dir import load_model_dir as load_model_dir
+    from .datasets.detect import load_dataset as load_dataset
+    from .downstream.pipeline import Pipeline as Pipeline
+    from .evaluation import GridResult as GridResult
+    from .evaluation import evaluate_grid as evaluate_grid
+    from .training import TrainConfig as TrainConfig
+    from .training import Trainer as Trainer
 
 #: public names loaded on first access: name -> module
 _LAZY: dict[str, str] = {

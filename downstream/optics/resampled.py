@@ -437,7 +437,7 @@ class GatherBucket:
 def _build_gather(rb: "ResampledBank", zone: int, tol: float, max_rank: int | None) -> list[list[GatherBucket]]:
     Gy, Gx = rb.bank.psf.shape[1:3]
     kern = rb.kernels.double()
-    H, W, m, N = rb.H, rb.W, rb.m, rb.H * rb.W
+    W, m, N = rb.W, rb.m, rb.H * rb.W
     nzx, nzy = (Gx + zone - 1) // zone, (Gy + zone - 1) // zone
     cdt = torch.complex64 if rb.dtype == torch.float32 else torch.complex128
     dev = rb.device
