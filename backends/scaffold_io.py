@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.io import atomic_write, folder_mode
