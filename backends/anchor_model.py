@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from controlgs_adapter.checks import check_tensor
+from controlgs_adapter.backend import anchor_ids_from_mask
 from controlgs_adapter.rasterizers import rasterize_gaussians
 from controlgs_adapter.state import Camera
 
@@ -49,13 +49,6 @@ class NeuralGaussians:
     offset_of: torch.Tensor
     visible_ids: torch.Tensor
     neural_opacity: torch.Tensor
-
-
-def anchor_ids_from_mask(mask: torch.Tensor, num_anchors: int | None = None, *, name: str = "visible_mask") -> torch.Tensor:
-    """``[A]`` bool mask -> ``[R]`` ascending anchor ids: the order boolean indexing gives, i.e.
-    row ``i`` of a decoder input sliced with ``mask`` is anchor ``ids[i]``."""
-    check_tensor(name, mask, ["A"] if num_anchors is None else [num_anchors], dtypes=(torch.bool,))
-    return mask.nonzero().squeeze(1)
 
 
 def as_param(x: np.ndarray | torch.Tensor, requires_grad: bool = False) -> nn.Parameter:

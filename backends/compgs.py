@@ -37,7 +37,7 @@ from torch import nn
 
 from controlgs_adapter.backend import Backend, has_attrs
 from controlgs_adapter.checks import check_tensor
-from controlgs_adapter.errors import FileFormatError, TargetError
+from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.state import Camera
 
 from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians
@@ -105,14 +105,6 @@ class CompGSBackend(Backend):
         if decoder_path.endswith(("opacity_pred_mlp", "color_pred_mlp")):
             layout += [("view", 3), ("dist", 1)]
         return layout
-
-    def check_decoder(self, model: Any, decoder_path: str) -> nn.Linear | torch.jit.ScriptModule:
-        fc1 = super().check_decoder(model, decoder_path)
-        want = sum(w for _, w in self.input_layout(model, decoder_path))
-        if fc1.weight.shape[1] != want:
-            raise TargetError(f"{self.name}: {decoder_path}.net[0] takes {fc1.weight.shape[1]} inputs, the anchor features "
-                              f"give {want} ({self.input_layout(model, decoder_path)})")
-        return fc1
 
     def anchor_positions(self, model: Any) -> torch.Tensor:
         means = model.gaussian_params.means

@@ -36,7 +36,7 @@ from torch import nn
 
 from controlgs_adapter.backend import has_attrs
 from controlgs_adapter.checks import check_tensor
-from controlgs_adapter.errors import FileFormatError, InputValueError, TargetError
+from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.state import Camera
 
 from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
@@ -72,18 +72,12 @@ class HACBackend(ScaffoldGSBackend):
         """``[A]`` bool: anchors with at least one offset switched on (the family's ``get_mask_anchor``)."""
         return _valid_from_mask(model.get_mask)
 
-    def input_layout(self, model: Any, decoder_path: str) -> list[tuple[str, int]]:
-        """Inputs of the attribute decoders' FC1, in order."""
+    def input_layout(self, model: Any, decoder_path: str) -> list[tuple[str, int]] | None:
+        """Inputs of the attribute decoders' FC1, in order: ``[feat, view, dist]`` (None for the
+        feature bank or a model without ``feat_dim``)."""
+        if decoder_path not in ATTRIBUTE_DECODERS or not hasattr(model, "feat_dim"):
+            return None
         return [("feat", int(model.feat_dim)), ("view", 3), ("dist", 1)]
-
-    def check_decoder(self, model: Any, decoder_path: str) -> nn.Linear | torch.jit.ScriptModule:
-        fc1 = super().check_decoder(model, decoder_path)
-        if decoder_path != "mlp_feature_bank" and hasattr(model, "feat_dim"):
-            want = int(model.feat_dim) + 4
-            if fc1.weight.shape[1] != want:
-                raise TargetError(f"{self.name}: {decoder_path}[0] takes {fc1.weight.shape[1]} inputs, expected "
-                                  f"feat_dim + 4 = {want} ([feat, view, dist])")
-        return fc1
 
 
 def _valid_from_mask(mask: torch.Tensor) -> torch.Tensor:

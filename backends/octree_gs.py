@@ -29,7 +29,7 @@ from torch import nn
 
 from controlgs_adapter.backend import has_attrs
 from controlgs_adapter.checks import check_tensor
-from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError, TargetError
+from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError
 from controlgs_adapter.state import Camera
 
 from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
@@ -96,29 +96,11 @@ class OctreeGSBackend(ScaffoldGSBackend):
             raise InputValueError("model has no _anchor_mask: call model.set_anchor_mask(cam_center, iteration, resolution_scale) first")
         return lod_anchor_ids(anchor_mask, visible_mask)
 
-    def input_layout(self, model: Any, decoder_path: str) -> list[tuple[str, int]]:
-        """The inputs of a decoder's FC1 in order, from the model's configuration attributes."""
-        feat, add_level = int(model.feat_dim), bool(getattr(model, "add_level", False))
-        app = int(getattr(model, "appearance_dim", 0) or 0)
-        dist = {"mlp_opacity": "add_opacity_dist", "mlp_cov": "add_cov_dist", "mlp_color": "add_color_dist"}[decoder_path]
-        layout = [("feat", feat), ("view", 3)]
-        if getattr(model, dist, False):
-            layout.append(("dist", 1))
-        if add_level:
-            layout.append(("level", 1))
-        if decoder_path == "mlp_color" and app > 0:
-            layout.append(("appearance", app))
-        return layout
+    rows_for = anchor_ids
 
-    def check_decoder(self, model: Any, decoder_path: str) -> nn.Linear | torch.jit.ScriptModule:
-        fc1 = super().check_decoder(model, decoder_path)
-        if decoder_path in ("mlp_opacity", "mlp_cov", "mlp_color") and hasattr(model, "feat_dim"):
-            layout = self.input_layout(model, decoder_path)
-            want = sum(w for _, w in layout)
-            if fc1.weight.shape[1] != want:
-                raise TargetError(f"{self.name}: {decoder_path}[0] takes {fc1.weight.shape[1]} inputs, the model's "
-                                  f"configuration gives {want} ({layout})")
-        return fc1
+    def extra_inputs(self, model: Any) -> list[tuple[str, int]]:
+        """The level scalar after ``[feat, view, (dist)]`` when the model has ``add_level``."""
+        return [("level", 1)] if getattr(model, "add_level", False) else []
 
 
 class OctreeGSModel(AnchorModel):
@@ -308,7 +290,7 @@ def _read_anchor_ply(ply: Path, feat_dim: int, n_offsets: int, config: str) -> t
 def _checked(model: OctreeGSModel, source: str) -> OctreeGSModel:
     backend = OctreeGSBackend()
     for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
-        layout = backend.input_layout(model, dec)
+        layout = backend.input_layout(model, dec) or []
         check_first_width(getattr(model, dec), sum(w for _, w in layout), name=dec, source=source,
                           layout=", ".join(f"{n} {w}" for n, w in layout))
     return model

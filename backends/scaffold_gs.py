@@ -18,13 +18,14 @@ from typing import Any
 import torch
 from torch import nn
 
-from controlgs_adapter.backend import Backend
+from controlgs_adapter.backend import Backend, anchor_ids_from_mask
 from controlgs_adapter.checks import check_tensor
-from controlgs_adapter.errors import InputValueError
+
+from .decoders import ATTRIBUTE_DECODERS
 
 __all__ = ["ScaffoldGSBackend"]
 
-ATTRIBUTE_DECODERS: tuple[str, ...] = ("mlp_opacity", "mlp_cov", "mlp_color")
+
 FEATURE_BANK = "mlp_feature_bank"
 
 
@@ -53,6 +54,25 @@ class ScaffoldGSBackend(Backend):
     def default_targets(self, model: Any) -> list[str]:
         return list(ATTRIBUTE_DECODERS)
 
+    def input_layout(self, model: Any, decoder_path: str) -> list[tuple[str, int]] | None:
+        """``[feat F, view 3, (dist 1), (appearance A, colour only)]`` from the model's configuration
+        attributes (``feat_dim``, ``add_<x>_dist``, ``appearance_dim``); None for the feature bank or a
+        model without ``feat_dim``."""
+        if decoder_path not in ATTRIBUTE_DECODERS or not hasattr(model, "feat_dim"):
+            return None
+        layout = [("feat", int(model.feat_dim)), ("view", 3)]
+        if getattr(model, f"add_{decoder_path.removeprefix('mlp_')}_dist", False):
+            layout.append(("dist", 1))
+        layout += self.extra_inputs(model)
+        app = int(getattr(model, "appearance_dim", 0) or 0)
+        if decoder_path == "mlp_color" and app > 0:
+            layout.append(("appearance", app))
+        return layout
+
+    def extra_inputs(self, model: Any) -> list[tuple[str, int]]:
+        """Inputs a variant adds after ``[feat, view, (dist)]`` (Octree-GS: the level)."""
+        return []
+
     def anchor_positions(self, model: Any) -> torch.Tensor:
         anchors = getattr(model, "get_anchor", None)
         if anchors is None:
@@ -66,7 +86,4 @@ class ScaffoldGSBackend(Backend):
     def visible_rows_to_anchor_ids(visible_mask: torch.Tensor) -> torch.Tensor:
         """``[A]`` bool visibility mask -> ``[R]`` long ids (row i = i-th visible anchor, ascending),
         exactly the order in which Scaffold-GS's renderer feeds the decoders."""
-        check_tensor("visible_mask", visible_mask, ["A"])
-        if visible_mask.dtype != torch.bool:
-            raise InputValueError(f"visible_mask must be a bool tensor, got {visible_mask.dtype}")
-        return visible_mask.nonzero().squeeze(1)
+        return anchor_ids_from_mask(visible_mask)

@@ -8,14 +8,16 @@ Built-in backends live in ``controlgs_adapter.backends`` and register through
 from __future__ import annotations
 
 import hashlib
+import re
 from typing import Any, ClassVar, Sequence
 
 import torch
 from torch import nn
 
+from .checks import check_tensor
 from .errors import TargetError
 
-__all__ = ["Backend", "get_attr_path", "set_attr_path", "has_attrs"]
+__all__ = ["Backend", "get_attr_path", "set_attr_path", "has_attrs", "anchor_ids_from_mask"]
 
 
 def get_attr_path(obj: Any, path: str) -> Any:
@@ -44,6 +46,13 @@ def set_attr_path(obj: Any, path: str, value: Any) -> None:
         parent[int(last)] = value
     else:
         setattr(parent, last, value)
+
+
+def anchor_ids_from_mask(mask: torch.Tensor, num_anchors: int | None = None, *, name: str = "visible_mask") -> torch.Tensor:
+    """``[A]`` bool mask -> ``[R]`` ascending anchor ids: the order boolean indexing gives, i.e.
+    row ``i`` of a decoder input sliced with ``mask`` is anchor ``ids[i]``."""
+    check_tensor(name, mask, ["A"] if num_anchors is None else [num_anchors], dtypes=(torch.bool,))
+    return mask.nonzero().squeeze(1)
 
 
 class Backend:
@@ -86,6 +95,18 @@ class Backend:
         """How many consecutive decoder rows belong to one anchor (CompGS: K; Scaffold-GS: 1)."""
         return 1
 
+    def rows_for(self, model: Any, mask: torch.Tensor) -> torch.Tensor:
+        """A view's ``[A]`` bool visibility mask (what the family's prefilter returns) -> ``[R]``
+        ascending ids of the anchors whose rows the decoders get: rows ``i * K .. i * K + K - 1``
+        (K = :meth:`rows_per_anchor`) belong to anchor ``ids[i]``. Default: ``mask.nonzero()``."""
+        return anchor_ids_from_mask(mask, self.num_anchors(model))
+
+    def input_layout(self, model: Any, decoder_path: str) -> list[tuple[str, int]] | None:
+        """The inputs of a decoder's FC1 in order, ``[(name, width)]`` (e.g. ``[("feat", 32),
+        ("view", 3)]``), or None where the backend does not know them. :meth:`check_decoder`
+        checks FC1's width against it."""
+        return None
+
     def make_hookable(self, model: Any, decoder_path: str) -> nn.Module | None:
         """Make a decoder take hooks (e.g. rebuild a TorchScript decoder as an eager module with
         identical outputs) and install it on the model. Return the original module (to restore on
@@ -109,6 +130,11 @@ class Backend:
         )
         if not ok:
             raise TargetError(f"{self.name}: first layer of {decoder_path!r} must be a Linear, got {type(fc1).__name__}")
+        layout = self.input_layout(model, decoder_path)
+        if layout is not None and fc1.weight.shape[1] != sum(w for _, w in layout):
+            where = re.sub(r"\.(\d+)$", r"[\1]", self.first_linear_path(model, decoder_path))
+            raise TargetError(f"{self.name}: {where} takes {fc1.weight.shape[1]} inputs, the model's configuration gives "
+                              f"{sum(w for _, w in layout)} ({layout})")
         return fc1
 
     def renderer(self, model: Any) -> Any:
