@@ -280,14 +280,17 @@ class _Pairs:
         return sum(t.numel() * t.element_size() for t in vars(self).values())
 
 
-_PASS_RANKS = (32, 128, 512)  # depth ranks (within a tile) where a chunk's passes end, with early termination
+_PASS_FIRST = 64  # with early termination, a chunk's first pass takes each tile's first records up to this depth
+# rank, each further pass twice as many
 
 
 def _record_pairs(
-    tiling: _Tiling, recs: slice | torch.Tensor, means2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor
+    tiling: _Tiling, recs: slice | torch.Tensor, means2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor,
+    done: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The pairs with ``o G >= ALPHA_MIN`` of the records ``recs`` (a slice or ascending int64 indices),
-    record-major: chunk-local key (int32), Gaussian (int32), ``o G`` (unclamped)."""
+    """The pairs with ``o G >= ALPHA_MIN`` of the records ``recs`` (a slice or ascending int64 indices)
+    whose pixel is not ``done`` (``[chunk pixels]`` bool or None), record-major: chunk-local key (int32),
+    Gaussian (int32), ``o G`` (unclamped)."""
     take = (lambda t: t[recs]) if isinstance(recs, slice) else (lambda t: t.index_select(0, recs))
     dev, dtype = means2d.device, means2d.dtype
     ts = tiling.tile_size
@@ -311,6 +314,10 @@ def _record_pairs(
     lx = local.sub_(ly * wx_p)
     del wx_p
     key = key0.index_select(0, rec).add_(ly * ts).add_(lx)
+    if done is not None:  # terminated pixels: no offsets, no exp
+        live = (~done).index_select(0, key).nonzero().squeeze(1)
+        rec, key, lx, ly = (t.index_select(0, live) for t in (rec, key, lx, ly))
+        del live
     dx = ox.index_select(0, rec).add_(lx)
     dy = oy.index_select(0, rec).add_(ly)
     del lx, ly
@@ -337,9 +344,10 @@ def _expand_pairs(
     Per pass: expand the pairs, drop those with alpha < 1/255, stable-sort them by pixel (int16 keys;
     each pixel's run stays in depth order) and get every pair's transmittance from one segmented scan
     of ``log(1 - alpha)`` (float64 prefix sums), continuing the pixel's transmittance from the earlier
-    passes. With ``transmittance_min > 0`` the tile's records are taken in passes of increasing depth
-    rank (``_PASS_RANKS``); the pairs behind a pixel's termination point are dropped, and a tile whose
-    pixels have all terminated expands none of its later records (the 3DGS block's early exit).
+    passes. With ``transmittance_min > 0`` each tile's records are taken in passes of increasing depth
+    rank (``_PASS_FIRST``, then doubling); the pairs behind a pixel's termination point are dropped
+    (later passes skip a terminated pixel before its exp), and a tile whose pixels have all terminated
+    expands none of its later records (the 3DGS block's early exit).
     """
     r0, r1, t0, t1 = chunk
     dtype = means2d.dtype
@@ -349,20 +357,19 @@ def _expand_pairs(
     log_t_pix: torch.Tensor | None = None  # [n_keys] float64 log T of every pixel after the passes so far
     done: torch.Tensor | None = None  # [n_keys] bool: pixel terminated
     parts: list[tuple[torch.Tensor, ...]] = []
-    lo = 0
-    for hi in (*(_PASS_RANKS if transmittance_min > 0 else ()), None):
-        rank = tiling.rank[r0:r1]
-        if lo == 0 and (hi is None or int(rank.max()) < hi):
+    rank = tiling.rank[r0:r1]
+    max_rank = int(rank.max())
+    lo, hi = 0, (_PASS_FIRST if transmittance_min > 0 else max_rank + 1)
+    while lo <= max_rank:
+        last = hi > max_rank
+        if lo == 0 and last:
             recs: slice | torch.Tensor = slice(r0, r1)
         else:
-            sel = (rank >= lo) if hi is None else (rank >= lo) & (rank < hi)
+            sel = (rank >= lo) & (rank < hi)
             if done is not None:
                 sel &= ~done.view(-1, tp).all(1).index_select(0, tiling.tile[r0:r1] - t0)
             recs = sel.nonzero().squeeze(1).add_(r0)
-        key, gauss, raw = _record_pairs(tiling, recs, means2d, conic, opacity)
-        if done is not None:
-            live = (~done).index_select(0, key).nonzero().squeeze(1)
-            key, gauss, raw = key.index_select(0, live), gauss.index_select(0, live), raw.index_select(0, live)
+        key, gauss, raw = _record_pairs(tiling, recs, means2d, conic, opacity, done)
         key, order = _sort_by_pixel(key, n_keys)
         gauss, raw = gauss.index_select(0, order), raw.index_select(0, order)
         del order
@@ -385,13 +392,13 @@ def _expand_pairs(
                 drawn = (~stop).nonzero().squeeze(1)
                 key, gauss, alpha, frozen, log_before, log_t = (
                     t.index_select(0, drawn) for t in (key, gauss, alpha, frozen, log_before, log_t))
-            if hi is not None:
+            if not last:
                 log_t_pix = log_t.new_zeros(n_keys) if log_t_pix is None else log_t_pix
                 log_t_pix.index_add_(0, key, log_t)
         parts.append((key, gauss, alpha, frozen, log_before))
-        if hi is None or int(rank.max()) < hi or (done is not None and bool(done.all())):
+        if done is not None and bool(done.all()):
             break
-        lo = hi
+        lo, hi = hi, 2 * hi
     key, gauss, alpha, frozen, log_before = (torch.cat(t) for t in zip(*parts)) if len(parts) > 1 else parts[0]
     if len(parts) > 1:  # each pass's pairs lie behind the earlier passes' ones: a stable sort merges them
         key, order = _sort_by_pixel(key, n_keys)

@@ -60,10 +60,10 @@ def camera(width: int) -> Camera:
     return Camera(torch.eye(4), k, width, height)
 
 
-def make_model(anchors: int, seed: int = 0, scale: float = 1.0, opacity_bias: float = 0.3) -> NeuralGaussianModel:
+def make_model(anchors: int, seed: int = 0, scale: float = 1.0, opacity_gain: float = 1.0) -> NeuralGaussianModel:
     """Reference model with ``anchors`` anchors on the room's surfaces (see the module docstring);
-    ``scale`` multiplies the Gaussians' size (not their offsets), ``opacity_bias`` is the
-    bias of the opacity MLP's last layer (higher: more and more opaque Gaussians)."""
+    ``scale`` multiplies the Gaussians' size (not their offsets), ``opacity_gain`` the pre-activation of
+    the opacity MLP's tanh (higher: more opaque Gaussians, the same ones kept)."""
     g = torch.Generator().manual_seed(seed)
 
     def u(n: int, lo: float, hi: float) -> torch.Tensor:
@@ -92,7 +92,9 @@ def make_model(anchors: int, seed: int = 0, scale: float = 1.0, opacity_bias: fl
                 if isinstance(layer, torch.nn.Linear):
                     layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) / math.sqrt(layer.in_features))
                     layer.bias.zero_()
-        model.mlp_opacity[-2].bias.fill_(opacity_bias)
+        model.mlp_opacity[-2].bias.fill_(0.3)
+        model.mlp_opacity[-2].weight.mul_(opacity_gain)
+        model.mlp_opacity[-2].bias.mul_(opacity_gain)
     return model
 
 
@@ -118,7 +120,7 @@ def measure_case(anchors: int, width: int, args: argparse.Namespace, baseline: s
     rasterize = load_rasterize(baseline)
     if not baseline and args.transmittance_min is not None:
         rasterize = functools.partial(rasterize, transmittance_min=args.transmittance_min)
-    model = make_model(anchors, scale=args.scale, opacity_bias=args.opacity_bias)
+    model = make_model(anchors, scale=args.scale, opacity_gain=args.opacity_gain)
     cam = camera(width)
     cgs = ControlGS.wrap(model, modules=modules_for(DEFAULT_EFFECTS))
     pipeline = Pipeline.from_config(DEFAULT_EFFECTS)
@@ -175,7 +177,7 @@ def measure_case(anchors: int, width: int, args: argparse.Namespace, baseline: s
 
 def run_case_subprocess(anchors: int, width: int, args: argparse.Namespace, baseline: str | None) -> dict:
     cmd = [sys.executable, __file__, "--case", str(anchors), str(width), "--reps", str(args.reps),
-           "--threads", str(args.threads), "--scale", str(args.scale), "--opacity-bias", str(args.opacity_bias)]
+           "--threads", str(args.threads), "--scale", str(args.scale), "--opacity-gain", str(args.opacity_gain)]
     if args.transmittance_min is not None:
         cmd += ["--transmittance-min", str(args.transmittance_min)]
     if baseline:
@@ -198,7 +200,7 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true", help="also profile the splatter's phases (one more step)")
     ap.add_argument("--scale", type=float, default=1.0,
                     help="Gaussian size factor (1: light scene, ~37 pairs/px; 3: dense scene, see docs/benchmarks-step.md)")
-    ap.add_argument("--opacity-bias", type=float, default=0.3, help="bias of the opacity MLP's last layer")
+    ap.add_argument("--opacity-gain", type=float, default=1.0, help="gain of the opacity MLP's tanh pre-activation")
     ap.add_argument("--transmittance-min", type=float,
                     help="rasterize's early-termination threshold for this tree's splatter (default: its default)")
     ap.add_argument("--out", type=Path, help="write the tables to this markdown file")
