@@ -381,20 +381,20 @@ def _expand_pairs(
         log_t = torch.log1p(-alpha).double()  # transcendentals in the working dtype (float64 ones are slow)
         log_before = torch.cumsum(log_t, 0).sub_(log_t)
         log_before.sub_(log_before.index_select(0, first.index_select(0, key)))
-        del first
         if log_t_pix is not None:
             log_before.add_(log_t_pix.index_select(0, key))
         if transmittance_min > 0:
             stop = (log_before + log_t) < log_t_min  # monotone along a pixel's run: a suffix of it
-            if bool(stop.any()):
-                done = torch.zeros(n_keys, dtype=torch.bool, device=key.device) if done is None else done
-                done[key[stop]] = True
+            if bool(stop.any()):  # a pixel stopped iff its run's last pair did; O(pixels), not O(pairs)
+                last_stop = stop.index_select(0, (first[1:] - 1).clamp_(min=0)) & (first[1:] > first[:-1])
+                done = last_stop if done is None else done.logical_or_(last_stop)
                 drawn = (~stop).nonzero().squeeze(1)
                 key, gauss, alpha, frozen, log_before, log_t = (
                     t.index_select(0, drawn) for t in (key, gauss, alpha, frozen, log_before, log_t))
             if not last:
                 log_t_pix = log_t.new_zeros(n_keys) if log_t_pix is None else log_t_pix
                 log_t_pix.index_add_(0, key, log_t)
+        del first
         parts.append((key, gauss, alpha, frozen, log_before))
         if done is not None and bool(done.all()):
             break
