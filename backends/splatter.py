@@ -22,12 +22,16 @@ How it is fast (2 CPU cores, no compiled extension; profiler labels ``splatter.*
 3. [expand_pairs] per chunk, expand the records into their (pixel, Gaussian) pairs, drop those with
    alpha < 1/255, stable-sort them by pixel with int16 keys (each pixel's run stays in depth order)
    and get every pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix
-   sums); per-chunk work is proportional to the chunk's pairs and pixels, never to the image;
+   sums); per-chunk work is proportional to the chunk's pairs and pixels, never to the image. Early
+   termination (``transmittance_min``, 3DGS's ``T < 1e-4``): the records are taken in passes of
+   doubling depth rank per tile, the pairs behind each pixel's termination point are dropped here,
+   before anything is accumulated or kept for backward, terminated pixels are skipped before the
+   exp of later passes and terminated tiles expand no further records;
 4. [accumulate] ``sum_i w_i f_i`` per pixel is one sparse CSR [chunk pixels x Gaussians] @
    [Gaussians x 5] product (colour, depth, alpha);
 5. [backward_pairs] the compositing is a ``torch.autograd.Function`` with a hand-written backward
    (the 3DGS back-to-front suffix sums as a reverse segmented scan, then scatter-adds to the
-   Gaussians); a chunk's pairs (17 bytes each: Gaussian, pixel, alpha, weight, clamp flag; offsets
+   Gaussians); a chunk's drawn pairs (17 bytes each: Gaussian, pixel, alpha, weight, clamp flag; offsets
    recomputed from the pixel) are kept for it while they fit in ``_CACHE_BYTES``, the others are
    recomputed (as the CUDA kernel does).
 """
@@ -66,7 +70,7 @@ ALPHA_MAX = 0.99  # per-splat alpha clamp
 ALPHA_MIN = 1.0 / 255.0  # splats with alpha below this are skipped
 TRANSMITTANCE_MIN = 1e-4  # default of rasterize's transmittance_min (early termination, as 3DGS)
 
-_PAIR_BUDGET = 1 << 20  # (pixel, Gaussian) pairs expanded at once (~150 bytes of temporaries each)
+_PAIR_BUDGET = 1 << 20  # candidate (pixel, Gaussian) pairs expanded at once (~50 bytes of temporaries each)
 _CACHE_BYTES = 512 << 20  # pair data kept from forward for backward; chunks beyond it are recomputed
 
 

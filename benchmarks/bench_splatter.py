@@ -284,7 +284,7 @@ def main() -> None:
         "idle, which is why the paper's Tbl. S2 finds supersampling about as fast or faster there.",
         "- With more torch threads than free cores (a shared machine), every parallel operator waits "
         "for a busy core: use `--threads 1` there (and `torch.set_num_threads(1)` when training).",
-        "- Peak memory is bounded by the chunk size (`_PAIR_BUDGET`, ~150 bytes per candidate pair) and by "
+        "- Peak memory is bounded by the chunk size (`_PAIR_BUDGET`, ~50 bytes of int32/float32 temporaries per candidate pair, counted, not measured) and by "
         "the pairs kept for the backward pass (`_CACHE_BYTES`, 512 MiB; beyond it backward recomputes).",
     ]
     text = "\n".join(lines) + "\n"
