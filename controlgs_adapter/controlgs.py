@@ -32,11 +32,12 @@ from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
 from .torchscript import eager_from_script
 
-__all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION"]
+__all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
 
 ADAPTER_KIND = "controlgs_adapter"
 ADAPTER_FORMAT_VERSION = 1
 DEFAULT_MODULES = ("lens", "resample", "display")
+DEFAULT_ADAPTER = "default"
 
 # FC1 modules that carry a live injector hook -> the ControlGS that owns it (wrapping twice is an error)
 _ATTACHED: "weakref.WeakKeyDictionary[nn.Module, ControlGS]" = weakref.WeakKeyDictionary()
@@ -61,6 +62,16 @@ class Target:
 
     def as_header(self) -> dict[str, Any]:
         return {"decoder": self.decoder, "fc1": self.fc1, "in_features": self.in_features, "out_features": self.out_features}
+
+
+@dataclass
+class _Adapter:
+    """One named parameter set of a wrapped model: its injector, schedules and what its load skipped."""
+
+    injector: ConditionInjector
+    schedules: dict[str, StrengthSchedule]
+    state_blind: bool
+    skipped: list[str]
 
 
 @dataclass
@@ -177,7 +188,9 @@ class ControlGS:
 
     Build with :meth:`wrap` or :meth:`load`. Attributes: ``model``, ``backend``, ``injector``,
     ``targets`` (what it attached to), ``modules``, ``schedules``, ``state_blind``,
-    ``num_anchors``, ``rows_per_anchor``, ``fingerprint`` (of the backbone), ``placement``.
+    ``num_anchors``, ``rows_per_anchor``, ``fingerprint`` (of the backbone), ``placement``,
+    ``adapters`` (names of the loaded parameter sets), ``active_adapter`` (the injected one; ``injector``,
+    ``schedules`` and ``state_blind`` are its), ``skipped`` (what a non-strict load of it left out).
     """
 
     #: where the image sits on the headset display for the per-anchor strengths (``"fit"`` or
@@ -187,11 +200,14 @@ class ControlGS:
 
     def __init__(self, model: Any, backend: Backend, injector: ConditionInjector, targets: list[Target],
                  schedules: dict[str, StrengthSchedule], state_blind: bool, fingerprint: str,
-                 originals: dict[str, nn.Module], grad_flags: list[tuple[torch.Tensor, bool]]) -> None:
+                 originals: dict[str, nn.Module], grad_flags: list[tuple[torch.Tensor, bool]],
+                 name: str = DEFAULT_ADAPTER) -> None:
         self.model, self.backend, self.injector = model, backend, injector
         self.targets = tuple(targets)
         self.schedules = dict(schedules)
         self.state_blind = bool(state_blind)
+        self._adapters = {name: _Adapter(injector, self.schedules, self.state_blind, [])}
+        self.active_adapter = name
         self.num_anchors = injector.num_anchors
         self.rows_per_anchor = backend.rows_per_anchor(model)
         self.fingerprint = fingerprint
@@ -203,7 +219,8 @@ class ControlGS:
     @classmethod
     def wrap(cls, model: Any, modules: Sequence[str] = DEFAULT_MODULES, cond_dim: int = 8,
              backend: str | Backend | None = None, targets: Sequence[str] | None = None,
-             endpoints: Mapping[str, Sequence[float]] | None = None, state_blind: bool = False) -> "ControlGS":
+             endpoints: Mapping[str, Sequence[float]] | None = None, state_blind: bool = False,
+             name: str = DEFAULT_ADAPTER) -> "ControlGS":
         """Attach a condition injector to every target decoder of ``model``.
 
         Args:
@@ -216,11 +233,13 @@ class ControlGS:
             targets: decoder paths to inject into; None = the backend's defaults.
             endpoints: ``{module: (lo, hi)}`` control values of zero and full strength.
             state_blind: ablation: strength 1 for every module, whatever the state.
+            name: name of this parameter set (more are added with :meth:`load_adapter`).
 
         Raises:
             NoMatchingBackendError, TargetError, InputValueError, ShapeError: before anything on the
             model has changed.
         """
+        _check_name(name)
         chosen = _select_backend(model, backend)
         schedules = _check_modules(modules, cond_dim, endpoints)
         if targets is None:
@@ -263,7 +282,7 @@ class ControlGS:
         for t, _ in grad_flags:
             t.requires_grad_(False)
         cgs = cls(model, chosen, injector, [p.target for p in plans], schedules, state_blind, fingerprint,
-                  originals, grad_flags)
+                  originals, grad_flags, name)
         for p, fc1 in zip(plans, fc1s):
             injector.attach(p.target.decoder, fc1)
             _ATTACHED[fc1] = cgs
@@ -454,7 +473,7 @@ class ControlGS:
             "schedules": {m: {"class": type(s).__qualname__, "per_anchor": s.per_anchor, **s.endpoints()}
                           for m, s in self.schedules.items()},
             "state_blind": self.state_blind,
-            "targets": [t.as_header() for t in self.targets],
+            "targets": [t.as_header() for t in self.targets if t.decoder in self.injector.widths],
             "num_anchors": self.num_anchors,
             "rows_per_anchor": self.rows_per_anchor,
             "fingerprint": self.fingerprint,
@@ -483,54 +502,78 @@ class ControlGS:
         return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
 
     @classmethod
-    def load(cls, path: str | Path, model: Any) -> "ControlGS":
-        """Wrap ``model`` and load the adapter saved at ``path`` onto it.
+    def load(cls, path: str | Path, model: Any, *, strict: bool = True, name: str = DEFAULT_ADAPTER) -> "ControlGS":
+        """Wrap ``model`` and load the adapter saved at ``path`` onto it (as adapter ``name``).
+
+        Args:
+            strict: True: any mismatch raises. False (PEFT's ``strict=False``): what does not fit is
+                skipped and listed in ``cgs.skipped`` (a RuntimeWarning says so): file targets the
+                model lacks or has with other widths, tensors missing from the file (left at their
+                initial values; conditions start at zero, i.e. inert), unexpected ones, tensors of the
+                wrong shape or with NaN/Inf, and the conditions on an anchor-count mismatch. Another
+                backbone fingerprint or rows per anchor is only warned about. Another backend, or no
+                target left, still raises.
 
         Raises:
             FileFormatError: the file is missing, truncated, foreign or of a newer format.
             IncompatibleAdapterError: listing every mismatch with the model (backend, anchor count,
                 decoder widths, backbone fingerprint, tensors).
         """
-        header = read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
-        spec = _header_spec(path, header)
-        problems: list[str] = []
-        registered = plugins.backends()
-        backend = None
-        if spec["backend"] not in registered:
-            problems.append(f"backend: the adapter was made for {spec['backend']!r}, which is not registered "
-                            f"(registered: {sorted(registered)})")
-        else:
-            backend = registered[spec["backend"]].obj
-            if not backend.matches(model):
-                try:
-                    other = _select_backend(model, None).name
-                except NoMatchingBackendError:
-                    other = "no registered backend"
-                problems.append(f"backend: the adapter was made for {spec['backend']!r}; this model is recognised by {other}")
-                backend = None
-        rows = None
-        if backend is not None:
-            rows = _row_map(model, backend, spec)
-            problems += _model_mismatches(model, backend, spec, mapped=rows is not None)
-        tensors, _ = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
-        problems += _tensor_mismatches(tensors, spec)
-        if problems:
-            raise IncompatibleAdapterError(f"{path}: the adapter does not fit this model:\n  - " + "\n  - ".join(problems))
-        cgs = cls.wrap(model, modules=spec["modules"], cond_dim=spec["cond_dim"], backend=backend,
-                       targets=[t["decoder"] for t in spec["targets"]],
-                       endpoints={m: (s["lo"], s["hi"]) for m, s in spec["schedules"].items()},
-                       state_blind=spec["state_blind"])
-        state = cgs.injector.state_dict()
-        if rows is not None:
-            saved, (kind, index) = tensors["conditions"], rows
-            if kind == "gather":
-                tensors["conditions"] = saved.index_select(0, index.to(saved.device))
-            else:
-                full = saved.new_zeros((cgs.num_anchors, *saved.shape[1:]))
-                full[index.to(saved.device)] = saved
-                tensors["conditions"] = full
-        cgs.injector.load_state_dict({k: v.to(state[k].dtype) for k, v in tensors.items()})
+        _check_name(name)
+        plan = _read_adapter(path, model, strict=strict)
+        spec = plan.spec
+        cgs = cls.wrap(model, modules=spec["modules"], cond_dim=spec["cond_dim"], backend=plan.backend,
+                       targets=plan.targets, endpoints=_spec_endpoints(spec), state_blind=spec["state_blind"],
+                       name=name)
+        _load_into(cgs.injector, plan.tensors)
+        cgs._adapters[name].skipped = plan.skipped
         return cgs
+
+    def load_adapter(self, path: str | Path, name: str, *, strict: bool = True) -> list[str]:
+        """Load another adapter of this backbone as parameter set ``name`` (not activated: see
+        :meth:`set_adapter`). Its targets must be among the wrapped ones; ``strict`` as in :meth:`load`.
+        Returns what a non-strict load skipped (also ``skipped`` while it is active)."""
+        self._check_live()
+        _check_name(name)
+        if name in self._adapters:
+            raise InputValueError(f"an adapter named {name!r} is already loaded; loaded adapters: {list(self._adapters)}")
+        plan = _read_adapter(path, self.model, strict=strict, wrapped=self)
+        spec = plan.spec
+        schedules = _check_modules(spec["modules"], spec["cond_dim"], _spec_endpoints(spec))
+        widths = {t.decoder: t.out_features for t in self.targets if t.decoder in plan.targets}
+        injector = ConditionInjector(self.num_anchors, spec["modules"], spec["cond_dim"], widths,
+                                     device=self.injector.conditions.device, dtype=self.injector.dtype)
+        _load_into(injector, plan.tensors)
+        self._adapters[name] = _Adapter(injector, schedules, bool(spec["state_blind"]), plan.skipped)
+        return list(plan.skipped)
+
+    @property
+    def adapters(self) -> tuple[str, ...]:
+        """Names of the loaded parameter sets, in loading order."""
+        return tuple(self._adapters)
+
+    @property
+    def skipped(self) -> list[str]:
+        """What the non-strict load of the active adapter skipped (empty after a strict load or a wrap)."""
+        return list(self._adapters[self.active_adapter].skipped)
+
+    def set_adapter(self, name: str) -> None:
+        """Inject parameter set ``name`` from now on (``injector``, ``schedules``, ``state_blind``,
+        ``trainable_parameters()`` and :meth:`save` follow it). Not inside a ``conditioned`` block."""
+        self._check_live()
+        if name not in self._adapters:
+            raise InputValueError(f"unknown adapter {name!r}; loaded adapters: {list(self._adapters)}")
+        if self.injector.context is not None:
+            raise LifecycleError("set_adapter inside a conditioned block: leave the block first")
+        if name == self.active_adapter:
+            return
+        new = self._adapters[name]
+        self.injector.detach()
+        for t in self.targets:
+            if t.decoder in new.injector.widths:
+                new.injector.attach(t.decoder, get_attr_path(self.model, t.fc1))
+        self.injector, self.schedules, self.state_blind = new.injector, new.schedules, new.state_blind
+        self.active_adapter = name
 
     # ------------------------------------------------------------------ reporting
     def summary(self) -> str:
@@ -582,6 +625,97 @@ def _header_spec(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
     return header
 
 
+def _check_name(name: str) -> None:
+    if not isinstance(name, str) or not name:
+        raise InputValueError(f"an adapter name must be a non-empty str, got {name!r}")
+
+
+def _spec_endpoints(spec: dict[str, Any]) -> dict[str, tuple[float, float]]:
+    return {m: (s["lo"], s["hi"]) for m, s in spec["schedules"].items()}
+
+
+# what a non-strict load leaves out for one mismatch: tensor keys, ("target", decoder), "conditions",
+# None (only reported: the adapter still loads) or "fatal" (cannot be skipped)
+_Skip = frozenset[str] | tuple[str, str] | str | None
+_Problem = tuple[str, _Skip]
+
+
+@dataclass
+class _LoadPlan:
+    spec: dict[str, Any]
+    backend: Backend
+    targets: list[str]  # decoders that get this adapter
+    tensors: dict[str, torch.Tensor]  # what loads (conditions already mapped onto the model's anchors)
+    skipped: list[str]
+
+
+def _read_adapter(path: str | Path, model: Any, *, strict: bool, wrapped: ControlGS | None = None) -> _LoadPlan:
+    """Read and check the adapter at ``path`` against ``model`` (or the live ``wrapped``) without
+    changing anything; strict: raise on any mismatch, else say what is left out."""
+    header = read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+    spec = _header_spec(path, header)
+    problems: list[_Problem] = []
+    registered = plugins.backends()
+    backend = None
+    if spec["backend"] not in registered:
+        problems.append((f"backend: the adapter was made for {spec['backend']!r}, which is not registered "
+                         f"(registered: {sorted(registered)})", "fatal"))
+    else:
+        backend = registered[spec["backend"]].obj
+        if wrapped is not None and wrapped.backend.name != spec["backend"]:
+            problems.append((f"backend: the adapter was made for {spec['backend']!r}; this model is wrapped with "
+                             f"{wrapped.backend.name}", "fatal"))
+            backend = None
+        elif not backend.matches(model):
+            try:
+                other = _select_backend(model, None).name
+            except NoMatchingBackendError:
+                other = "no registered backend"
+            problems.append((f"backend: the adapter was made for {spec['backend']!r}; this model is recognised by {other}",
+                             "fatal"))
+            backend = None
+    rows = None
+    if backend is not None:
+        rows = _row_map(model, backend, spec)
+        problems += _model_mismatches(model, backend, spec, mapped=rows is not None, wrapped=wrapped)
+    tensors, _ = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+    problems += _tensor_mismatches(tensors, spec)
+    skip_targets = {s[1] for _, s in problems if isinstance(s, tuple)}
+    targets = [t["decoder"] for t in spec["targets"] if t["decoder"] not in skip_targets]
+    if backend is not None and not targets:
+        problems.append(("targets: none of the adapter's targets fits this model", "fatal"))
+    if problems and (strict or any(s == "fatal" for _, s in problems)):
+        raise IncompatibleAdapterError(f"{path}: the adapter does not fit this model:\n  - "
+                                       + "\n  - ".join(m for m, _ in problems))
+    assert backend is not None
+    skipped = [m for m, s in problems if s is not None]
+    if problems:
+        warnings.warn(f"{path}: non-strict load skipped what does not fit this model:\n  - "
+                      + "\n  - ".join(m if s is not None else m + " (loaded anyway)" for m, s in problems),
+                      RuntimeWarning, stacklevel=3)
+    for _, s in problems:
+        if isinstance(s, (set, frozenset)):
+            for k in s:
+                tensors.pop(k, None)
+        elif s == "conditions":
+            tensors.pop("conditions", None)
+    if rows is not None and "conditions" in tensors:
+        saved, (kind, index) = tensors["conditions"], rows
+        if kind == "gather":
+            tensors["conditions"] = saved.index_select(0, index.to(saved.device))
+        else:
+            full = saved.new_zeros((backend.num_anchors(model), *saved.shape[1:]))
+            full[index.to(saved.device)] = saved
+            tensors["conditions"] = full
+    return _LoadPlan(spec, backend, targets, tensors, skipped)
+
+
+def _load_into(injector: ConditionInjector, tensors: Mapping[str, torch.Tensor]) -> None:
+    """Copy the loadable ``tensors`` into ``injector`` (the others keep their initial values)."""
+    state = injector.state_dict()
+    injector.load_state_dict({**state, **{k: v.to(state[k].dtype) for k, v in tensors.items() if k in state}})
+
+
 def _valid_fingerprint(model: Any, backend: Backend) -> str | None:
     """Fingerprint over the anchors that produce Gaussians, for backends that tell them
     (``valid_anchors``: HAC, ContextGS); None for the others."""
@@ -611,52 +745,62 @@ def _row_map(model: Any, backend: Backend, spec: dict[str, Any]) -> tuple[str, t
     return None
 
 
-def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any], *, mapped: bool = False) -> list[str]:
-    """What does not fit; ``mapped``: the anchors were matched by :func:`_row_map` (count and
-    fingerprint already checked over the valid anchors)."""
-    problems = []
+def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any], *, mapped: bool = False,
+                      wrapped: ControlGS | None = None) -> list[_Problem]:
+    """What does not fit, with what a non-strict load skips for each; ``mapped``: the anchors were
+    matched by :func:`_row_map` (count and fingerprint already checked over the valid anchors);
+    ``wrapped``: check against this live wrapper's targets (:meth:`ControlGS.load_adapter`)."""
+    problems: list[_Problem] = []
     a = backend.num_anchors(model)
     if a != spec["num_anchors"] and not mapped:
-        problems.append(f"anchor count: the adapter has {spec['num_anchors']} anchors, the model {a}")
+        problems.append((f"anchor count: the adapter has {spec['num_anchors']} anchors, the model {a}", "conditions"))
     rpa = backend.rows_per_anchor(model)
     if rpa != spec["rows_per_anchor"]:
-        problems.append(f"rows per anchor: the adapter expects {spec['rows_per_anchor']}, the model has {rpa}")
+        problems.append((f"rows per anchor: the adapter expects {spec['rows_per_anchor']}, the model has {rpa}", None))
+    have = {t.decoder: t for t in wrapped.targets} if wrapped is not None else {}
     for t in spec["targets"]:
-        try:
-            got = _inspect_target(model, backend, t["decoder"]).target
-        except TargetError as e:
-            problems.append(f"target {t['decoder']!r}: {e}")
-            continue
+        skip = ("target", t["decoder"])
+        if wrapped is not None:
+            if t["decoder"] not in have:
+                problems.append((f"target {t['decoder']!r}: not wrapped (wrapped: {list(have)})", skip))
+                continue
+            got = have[t["decoder"]]
+        else:
+            try:
+                got = _inspect_target(model, backend, t["decoder"]).target
+            except TargetError as e:
+                problems.append((f"target {t['decoder']!r}: {e}", skip))
+                continue
         if (got.in_features, got.out_features) != (t["in_features"], t["out_features"]):
-            problems.append(f"target {t['decoder']!r}: the adapter was made for Linear({t['in_features']} -> "
-                            f"{t['out_features']}), the model has Linear({got.in_features} -> {got.out_features})")
-    fp = backend.fingerprint(model)
+            problems.append((f"target {t['decoder']!r}: the adapter was made for Linear({t['in_features']} -> "
+                             f"{t['out_features']}), the model has Linear({got.in_features} -> {got.out_features})", skip))
+    fp = wrapped.fingerprint if wrapped is not None else backend.fingerprint(model)
     if fp != spec["fingerprint"] and not mapped:
-        problems.append(f"backbone fingerprint: the adapter was trained on backbone {spec['fingerprint']}, "
-                        f"this model is {fp} (other anchors or decoder weights)")
+        problems.append((f"backbone fingerprint: the adapter was trained on backbone {spec['fingerprint']}, "
+                         f"this model is {fp} (other anchors or decoder weights)", None))
     return problems
 
 
-def _tensor_mismatches(tensors: dict[str, torch.Tensor], spec: dict[str, Any]) -> list[str]:
+def _tensor_mismatches(tensors: dict[str, torch.Tensor], spec: dict[str, Any]) -> list[_Problem]:
     n, a = spec["cond_dim"], spec["num_anchors"]
     widths = sorted({t["out_features"] for t in spec["targets"]})
     expected: dict[str, tuple[int, ...]] = {"conditions": (a, len(spec["modules"]), n)}
     for m in spec["modules"]:
         for d1 in widths:
             expected[f"projections.{m}.d{d1}.weight"] = (d1, n)
-    problems = []
+    problems: list[_Problem] = []
     missing = sorted(set(expected) - set(tensors))
     unexpected = sorted(set(tensors) - set(expected))
     if missing:
-        problems.append(f"tensors missing from the file: {missing}")
+        problems.append((f"tensors missing from the file: {missing}", frozenset(missing)))
     if unexpected:
-        problems.append(f"unexpected tensors in the file: {unexpected}")
+        problems.append((f"unexpected tensors in the file: {unexpected}", frozenset(unexpected)))
     for k in sorted(set(expected) & set(tensors)):
         v = tensors[k]
         if tuple(v.shape) != expected[k]:
-            problems.append(f"tensor {k!r}: shape {list(v.shape)}, expected {list(expected[k])}")
+            problems.append((f"tensor {k!r}: shape {list(v.shape)}, expected {list(expected[k])}", frozenset({k})))
         elif not v.is_floating_point():
-            problems.append(f"tensor {k!r}: dtype {v.dtype}, expected a floating-point type")
+            problems.append((f"tensor {k!r}: dtype {v.dtype}, expected a floating-point type", frozenset({k})))
         elif not bool(torch.isfinite(v).all()):
-            problems.append(f"tensor {k!r}: contains NaN/Inf")
+            problems.append((f"tensor {k!r}: contains NaN/Inf", frozenset({k})))
     return problems
