@@ -88,19 +88,26 @@ class UserScene:
                 "white_background": bool(args.white_background), "resolution": self.resolution, **extra}
 
 
+def parse_device(name: str) -> Any:
+    """``--device`` as a ``torch.device``, refused (one line) when unknown or when CUDA is missing."""
+    import torch
+
+    try:
+        device = torch.device(name)
+    except RuntimeError as e:
+        raise InputValueError(f"--device {name!r}: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputValueError(f"--device {name}: CUDA is not available on this machine")
+    return device
+
+
 def load_user_scene(args: argparse.Namespace) -> UserScene:
     """Load ``--model`` (family detected unless ``--family``) onto ``--device`` and read ``--data``."""
-    import torch
 
     from ..backends.model_dir import detect_family, load_model_dir
     from ..datasets.detect import load_dataset
 
-    try:
-        device = torch.device(args.device)
-    except RuntimeError as e:
-        raise InputValueError(f"--device {args.device!r}: {e}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise InputValueError(f"--device {args.device}: CUDA is not available on this machine")
+    device = parse_device(args.device)
     if args.resolution is None:
         args.resolution = DEFAULT_DATA_RESOLUTION
     if args.holdout is None:

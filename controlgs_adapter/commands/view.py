@@ -10,7 +10,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
-from .common import add_data_arguments, apply_run_defaults, cache_bytes, user_scene
+from .common import add_data_arguments, apply_run_defaults, cache_bytes, parse_device, user_scene
 
 #: the built-in scene's default resolution in the viewer (the latency benchmark's 128 px)
 VIEW_RESOLUTION = 128
@@ -99,12 +99,7 @@ def run(args: argparse.Namespace) -> int:
 
             from .demo import DEFAULT_RESOLUTION, first_views
 
-            try:
-                device = torch.device(args.device)
-            except RuntimeError as e:
-                raise InputValueError(f"--device {args.device!r}: {e}") from None
-            if device.type == "cuda" and not torch.cuda.is_available():
-                raise InputValueError(f"--device {args.device}: CUDA is not available on this machine")
+            device = parse_device(args.device)
             builtin = load_builtin_scene(args.variant, args.resolution or VIEW_RESOLUTION, cache=True)
             model, name = load_builtin_backbone(args.variant).to(device), builtin.name
             views = first_views(builtin.data, "test", args.test_views)
