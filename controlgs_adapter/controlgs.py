@@ -24,18 +24,17 @@ from torch import nn
 
 from . import plugins
 from .backend import Backend, get_attr_path, set_attr_path
-from .errors import (FileFormatError, IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
-                     LifecycleError, NonFiniteError, ShapeError, TargetError)
+from .errors import (IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
+                     LifecycleError, ShapeError, TargetError)
 from .injector import ConditionInjector, InjectionContext
-from .io import load_tensors, read_header, save_tensors
+from .adapter_file import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, Problem, build_header, fingerprint_mismatch,
+                           map_conditions, read_spec, read_tensors, row_map, tensor_mismatches, write_adapter)
 from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
 from .torchscript import eager_from_script
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
 
-ADAPTER_KIND = "controlgs_adapter"
-ADAPTER_FORMAT_VERSION = 1
 DEFAULT_MODULES = ("lens", "resample", "display")
 DEFAULT_ADAPTER = "default"
 
@@ -466,22 +465,10 @@ class ControlGS:
     # ------------------------------------------------------------------ files
     def header(self) -> dict[str, Any]:
         """The JSON header :meth:`save` writes (without the fields io adds)."""
-        return {
-            "backend": self.backend.name,
-            "modules": list(self.modules),
-            "cond_dim": self.injector.cond_dim,
-            "schedules": {m: {"class": type(s).__qualname__, "per_anchor": s.per_anchor, **s.endpoints()}
-                          for m, s in self.schedules.items()},
-            "state_blind": self.state_blind,
-            "targets": [t.as_header() for t in self.targets if t.decoder in self.injector.widths],
-            "num_anchors": self.num_anchors,
-            "rows_per_anchor": self.rows_per_anchor,
-            "fingerprint": self.fingerprint,
-            **({} if (fp := _valid_fingerprint(self.model, self.backend)) is None else {"valid_fingerprint": fp}),
-        }
+        return build_header(self)
 
     def save(self, path: str | Path, dtype: torch.dtype | None = None) -> Path:
-        """Write the adapter to one ``.safetensors`` file (atomically).
+        """Write the active adapter to one ``.safetensors`` file (atomically).
 
         Args:
             dtype: storage dtype of the conditions: None (as trained, float32) or
@@ -489,17 +476,7 @@ class ControlGS:
                 Projections are always stored as trained.
         """
         self._check_live()
-        if dtype not in (None, torch.float16, torch.float32):
-            raise InputValueError(f"dtype must be None, torch.float16 or torch.float32, got {dtype!r}")
-        tensors = dict(self.injector.state_dict())
-        peak = float(tensors["conditions"].abs().max()) if tensors["conditions"].numel() else 0.0
-        if dtype == torch.float16 and peak > torch.finfo(torch.float16).max:
-            raise NonFiniteError(f"{path}: conditions reach |{peak:.4g}|, beyond float16's range "
-                                 f"({torch.finfo(torch.float16).max:g}): save them as float32 (dtype=None)")
-        if dtype is not None:
-            tensors["conditions"] = tensors["conditions"].to(dtype)
-        header = {**self.header(), "condition_dtype": str(tensors["conditions"].dtype).removeprefix("torch.")}
-        return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
+        return write_adapter(path, dict(self.injector.state_dict()), self.header(), dtype)
 
     @classmethod
     def load(cls, path: str | Path, model: Any, *, strict: bool = True, name: str = DEFAULT_ADAPTER) -> "ControlGS":
@@ -603,28 +580,6 @@ class ControlGS:
                 + (", state_blind=True" if self.state_blind else "") + ("" if self._wrapped else ", unwrapped") + ")")
 
 
-_HEADER_FIELDS: dict[str, type | tuple[type, ...]] = {
-    "backend": str, "modules": list, "cond_dim": int, "schedules": dict, "state_blind": bool, "targets": list,
-    "num_anchors": int, "rows_per_anchor": int, "fingerprint": str,
-}
-
-
-def _header_spec(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
-    bad = [k for k, t in _HEADER_FIELDS.items() if not isinstance(header.get(k), t)]
-    if not bad:
-        for m in header["modules"]:
-            s = header["schedules"].get(m)
-            if not isinstance(s, dict) or not all(isinstance(s.get(k), (int, float)) for k in ("lo", "hi")):
-                bad.append(f"schedules.{m}")
-        for i, t in enumerate(header["targets"]):
-            if not isinstance(t, dict) or not isinstance(t.get("decoder"), str) or not all(
-                    isinstance(t.get(k), int) for k in ("in_features", "out_features")):
-                bad.append(f"targets[{i}]")
-    if bad:
-        raise FileFormatError(f"{path}: adapter header is missing or has malformed field(s) {bad}")
-    return header
-
-
 def _check_name(name: str) -> None:
     if not isinstance(name, str) or not name:
         raise InputValueError(f"an adapter name must be a non-empty str, got {name!r}")
@@ -632,12 +587,6 @@ def _check_name(name: str) -> None:
 
 def _spec_endpoints(spec: dict[str, Any]) -> dict[str, tuple[float, float]]:
     return {m: (s["lo"], s["hi"]) for m, s in spec["schedules"].items()}
-
-
-# what a non-strict load leaves out for one mismatch: tensor keys, ("target", decoder), "conditions",
-# None (only reported: the adapter still loads) or "fatal" (cannot be skipped)
-_Skip = frozenset[str] | tuple[str, str] | str | None
-_Problem = tuple[str, _Skip]
 
 
 @dataclass
@@ -652,9 +601,8 @@ class _LoadPlan:
 def _read_adapter(path: str | Path, model: Any, *, strict: bool, wrapped: ControlGS | None = None) -> _LoadPlan:
     """Read and check the adapter at ``path`` against ``model`` (or the live ``wrapped``) without
     changing anything; strict: raise on any mismatch, else say what is left out."""
-    header = read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
-    spec = _header_spec(path, header)
-    problems: list[_Problem] = []
+    spec = read_spec(path)
+    problems: list[Problem] = []
     registered = plugins.backends()
     backend = None
     if spec["backend"] not in registered:
@@ -676,10 +624,10 @@ def _read_adapter(path: str | Path, model: Any, *, strict: bool, wrapped: Contro
             backend = None
     rows = None
     if backend is not None:
-        rows = _row_map(model, backend, spec)
+        rows = row_map(model, backend, spec)
         problems += _model_mismatches(model, backend, spec, mapped=rows is not None, wrapped=wrapped)
-    tensors, _ = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
-    problems += _tensor_mismatches(tensors, spec)
+    tensors = read_tensors(path)
+    problems += tensor_mismatches(tensors, spec)
     skip_targets = {s[1] for _, s in problems if isinstance(s, tuple)}
     targets = [t["decoder"] for t in spec["targets"] if t["decoder"] not in skip_targets]
     if backend is not None and not targets:
@@ -700,13 +648,7 @@ def _read_adapter(path: str | Path, model: Any, *, strict: bool, wrapped: Contro
         elif s == "conditions":
             tensors.pop("conditions", None)
     if rows is not None and "conditions" in tensors:
-        saved, (kind, index) = tensors["conditions"], rows
-        if kind == "gather":
-            tensors["conditions"] = saved.index_select(0, index.to(saved.device))
-        else:
-            full = saved.new_zeros((backend.num_anchors(model), *saved.shape[1:]))
-            full[index.to(saved.device)] = saved
-            tensors["conditions"] = full
+        tensors["conditions"] = map_conditions(tensors["conditions"], rows, backend.num_anchors(model))
     return _LoadPlan(spec, backend, targets, tensors, skipped)
 
 
@@ -716,41 +658,12 @@ def _load_into(injector: ConditionInjector, tensors: Mapping[str, torch.Tensor])
     injector.load_state_dict({**state, **{k: v.to(state[k].dtype) for k, v in tensors.items() if k in state}})
 
 
-def _valid_fingerprint(model: Any, backend: Backend) -> str | None:
-    """Fingerprint over the anchors that produce Gaussians, for backends that tell them
-    (``valid_anchors``: HAC, ContextGS); None for the others."""
-    valid = getattr(backend, "valid_anchors", None)
-    if valid is None:
-        return None
-    return backend.fingerprint(model, valid(model).nonzero().squeeze(1))
-
-
-def _row_map(model: Any, backend: Backend, spec: dict[str, Any]) -> tuple[str, torch.Tensor] | None:
-    """How the saved condition rows map onto ``model``'s anchors when the adapter was trained on the
-    same scene with or without its invalid anchors (a live zero-padded HAC/ContextGS model vs the
-    loaded stand-in, which drops them and keeps each anchor's file row in ``source_index``):
-    ``("gather", rows)``: model anchor i takes saved row ``rows[i]``; ``("scatter", ids)``: saved
-    row j goes to model anchor ``ids[j]`` (the others stay zero, inert). None: no mapping (the
-    anchor counts agree, or nothing proves it is the same scene)."""
-    want, a, saved = spec.get("valid_fingerprint"), backend.num_anchors(model), spec["num_anchors"]
-    if not isinstance(want, str) or a == saved or getattr(backend, "valid_anchors", None) is None:
-        return None
-    source = getattr(model, "source_index", None)
-    if (isinstance(source, torch.Tensor) and source.shape == (a,) and a < saved and int(source.max()) < saved
-            and _valid_fingerprint(model, backend) == want and bool(backend.valid_anchors(model).all())):
-        return "gather", source.long()
-    ids = backend.valid_anchors(model).nonzero().squeeze(1)
-    if ids.numel() == saved and backend.fingerprint(model, ids) == want:
-        return "scatter", ids
-    return None
-
-
 def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any], *, mapped: bool = False,
-                      wrapped: ControlGS | None = None) -> list[_Problem]:
+                      wrapped: ControlGS | None = None) -> list[Problem]:
     """What does not fit, with what a non-strict load skips for each; ``mapped``: the anchors were
-    matched by :func:`_row_map` (count and fingerprint already checked over the valid anchors);
+    matched by :func:`~controlgs_adapter.adapter_file.row_map` (count and fingerprint already checked over the valid anchors);
     ``wrapped``: check against this live wrapper's targets (:meth:`ControlGS.load_adapter`)."""
-    problems: list[_Problem] = []
+    problems: list[Problem] = []
     a = backend.num_anchors(model)
     if a != spec["num_anchors"] and not mapped:
         problems.append((f"anchor count: the adapter has {spec['num_anchors']} anchors, the model {a}", "conditions"))
@@ -774,33 +687,6 @@ def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any], *, map
         if (got.in_features, got.out_features) != (t["in_features"], t["out_features"]):
             problems.append((f"target {t['decoder']!r}: the adapter was made for Linear({t['in_features']} -> "
                              f"{t['out_features']}), the model has Linear({got.in_features} -> {got.out_features})", skip))
-    fp = wrapped.fingerprint if wrapped is not None else backend.fingerprint(model)
-    if fp != spec["fingerprint"] and not mapped:
-        problems.append((f"backbone fingerprint: the adapter was trained on backbone {spec['fingerprint']}, "
-                         f"this model is {fp} (other anchors or decoder weights)", None))
-    return problems
-
-
-def _tensor_mismatches(tensors: dict[str, torch.Tensor], spec: dict[str, Any]) -> list[_Problem]:
-    n, a = spec["cond_dim"], spec["num_anchors"]
-    widths = sorted({t["out_features"] for t in spec["targets"]})
-    expected: dict[str, tuple[int, ...]] = {"conditions": (a, len(spec["modules"]), n)}
-    for m in spec["modules"]:
-        for d1 in widths:
-            expected[f"projections.{m}.d{d1}.weight"] = (d1, n)
-    problems: list[_Problem] = []
-    missing = sorted(set(expected) - set(tensors))
-    unexpected = sorted(set(tensors) - set(expected))
-    if missing:
-        problems.append((f"tensors missing from the file: {missing}", frozenset(missing)))
-    if unexpected:
-        problems.append((f"unexpected tensors in the file: {unexpected}", frozenset(unexpected)))
-    for k in sorted(set(expected) & set(tensors)):
-        v = tensors[k]
-        if tuple(v.shape) != expected[k]:
-            problems.append((f"tensor {k!r}: shape {list(v.shape)}, expected {list(expected[k])}", frozenset({k})))
-        elif not v.is_floating_point():
-            problems.append((f"tensor {k!r}: dtype {v.dtype}, expected a floating-point type", frozenset({k})))
-        elif not bool(torch.isfinite(v).all()):
-            problems.append((f"tensor {k!r}: contains NaN/Inf", frozenset({k})))
+    if not mapped:
+        problems += fingerprint_mismatch(spec, wrapped.fingerprint if wrapped is not None else backend.fingerprint(model))
     return problems

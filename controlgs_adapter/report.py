@@ -22,6 +22,7 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
+from .ablations import ABLATIONS
 from .errors import InputValueError
 from .evaluation import IDEAL, GridResult
 from .io import atomic_write
@@ -39,13 +40,6 @@ METHOD_LABELS: dict[str, str] = {
     "wo_resample": "w/o Resampling",
     "state_blind": "w/o State-Aware",
     IDEAL: "Ideal render (GT through E_s)",
-}
-#: ablation name -> (modules trained, state_blind), paper Tbl. 4
-ABLATIONS: dict[str, tuple[tuple[str, ...], bool]] = {
-    "wo_lens": (("resample", "display"), False),
-    "wo_display": (("lens", "resample"), False),
-    "wo_resample": (("lens", "display"), False),
-    "state_blind": (("lens", "resample", "display"), True),
 }
 #: a difference of seed means "exceeds the spread" when larger than this many pooled std over seeds
 SPREAD_FACTOR = 2.0

@@ -12,19 +12,10 @@ from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
 from controlgs_adapter.errors import FileFormatError, IncompatibleAdapterError
 from controlgs_adapter.io import load_tensors, read_header, save_tensors
 
-from _rawfiles import write_raw
+from _adapter_files import rewrite, trained
 from scaffold_standin import ScaffoldStandIn, make_camera, script_decoders
 
 STATE = RuntimeState(downsample=5.0, power_saving=0.55)
-
-
-def trained(model, **kw) -> ControlGS:
-    cgs = ControlGS.wrap(model, **kw)
-    g = torch.Generator().manual_seed(7)
-    with torch.no_grad():
-        for p in cgs.trainable_parameters():
-            p.copy_(torch.randn(p.shape, generator=g))
-    return cgs
 
 
 def conditioned_outputs(cgs, model, cam, x):
@@ -121,26 +112,16 @@ def test_other_backbone_weights_is_a_fingerprint_mismatch_only(saved):
     assert not any(getattr(other, d)[0]._forward_hooks for d in ("mlp_opacity", "mlp_cov", "mlp_color"))
 
 
-def _rewrite(path, header_changes=None, tensor_changes=None, drop=()):
-    tensors, header = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
-    header = {k: v for k, v in header.items() if k not in ("kind", "format_version", "library_version")}
-    header.update(header_changes or {})
-    tensors.update(tensor_changes or {})
-    for k in drop:
-        tensors.pop(k)
-    write_raw(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)  # damage allowed
-
-
 def test_other_backend_is_named(saved):
-    _rewrite(saved, {"backend": "octree_gs"})
+    rewrite(saved, {"backend": "octree_gs"})
     msg = _load_error(saved, ScaffoldStandIn(30, seed=0))
     assert "'octree_gs'" in msg and "recognised by scaffold_gs" in msg
-    _rewrite(saved, {"backend": "no_such_family"})
+    rewrite(saved, {"backend": "no_such_family"})
     assert "'no_such_family', which is not registered" in _load_error(saved, ScaffoldStandIn(30, seed=0))
 
 
 def test_missing_unexpected_and_misshapen_tensors_are_listed_together(saved):
-    _rewrite(saved, tensor_changes={"extra.bias": torch.zeros(3), "conditions": torch.zeros(30, 3, 7)},
+    rewrite(saved, tensor_changes={"extra.bias": torch.zeros(3), "conditions": torch.zeros(30, 3, 7)},
              drop=("projections.display.d32.weight",))
     msg = _load_error(saved, ScaffoldStandIn(30, seed=0))
     assert "missing from the file: ['projections.display.d32.weight']" in msg
@@ -151,7 +132,7 @@ def test_missing_unexpected_and_misshapen_tensors_are_listed_together(saved):
 def test_non_finite_tensor_is_refused(saved):
     bad = torch.zeros(30, 3, 8)
     bad[3, 1, 2] = float("nan")
-    _rewrite(saved, tensor_changes={"conditions": bad})
+    rewrite(saved, tensor_changes={"conditions": bad})
     assert "'conditions': contains NaN/Inf" in _load_error(saved, ScaffoldStandIn(30, seed=0))
 
 
@@ -176,9 +157,9 @@ def test_truncated_foreign_and_other_kind_files(saved, tmp_path):
 
 
 def test_malformed_header_is_a_file_format_error(saved):
-    _rewrite(saved, {"targets": "mlp_opacity", "num_anchors": "30"})
+    rewrite(saved, {"targets": "mlp_opacity", "num_anchors": "30"})
     with pytest.raises(FileFormatError, match=r"\['targets', 'num_anchors'\]|\['num_anchors', 'targets'\]"):
         ControlGS.load(saved, ScaffoldStandIn(30, seed=0))
-    _rewrite(saved, {"targets": [{"decoder": "mlp_opacity"}], "num_anchors": 30})
+    rewrite(saved, {"targets": [{"decoder": "mlp_opacity"}], "num_anchors": 30})
     with pytest.raises(FileFormatError, match=r"targets\[0\]"):
         ControlGS.load(saved, ScaffoldStandIn(30, seed=0))

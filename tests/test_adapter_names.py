@@ -10,20 +10,11 @@ from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
 from controlgs_adapter.errors import IncompatibleAdapterError, InputValueError, LifecycleError
 from controlgs_adapter.io import load_tensors
 
-from _rawfiles import write_raw
+from _adapter_files import rewrite, trained
 from scaffold_standin import ScaffoldStandIn, make_camera
 
 STATE = RuntimeState(downsample=5.0, power_saving=0.55)
 DECODERS = ("mlp_opacity", "mlp_cov", "mlp_color")
-
-
-def trained(model, seed: int = 7, **kw) -> ControlGS:
-    cgs = ControlGS.wrap(model, **kw)
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in cgs.trainable_parameters():
-            p.copy_(torch.randn(p.shape, generator=g))
-    return cgs
 
 
 def outputs(cgs, model, cam, x):
@@ -37,17 +28,6 @@ def saved_adapter(tmp_path, seed: int = 7, file: str = "a.safetensors", **kw):
     path = cgs.save(tmp_path / file)
     cgs.unwrap()
     return path
-
-
-def rewrite(path, header_changes=None, tensor_changes=None, drop=()):
-    tensors, header = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
-    header = {k: v for k, v in header.items() if k not in ("kind", "format_version", "library_version")}
-    header.update(header_changes or {})
-    tensors.update(tensor_changes or {})
-    for k in drop:
-        tensors.pop(k)
-    write_raw(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
-    return tensors
 
 
 def test_non_strict_skips_extra_and_missing_modules_and_loads_the_rest_exactly(tmp_path):

@@ -129,7 +129,7 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
     :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files). ``trained``, if
     given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked).
     ``seed``: the training seed (default ``args.seed``)."""
-    from controlgs_adapter.report import ABLATIONS
+    from controlgs_adapter.ablations import ABLATIONS
     from controlgs_adapter.training import TrainConfig, Trainer
 
     paths = {}
@@ -172,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     import torch
 
-    from controlgs_adapter.report import ABLATIONS, seed_summary, write_report
+    from controlgs_adapter.ablations import ABLATIONS
+    from controlgs_adapter.report import seed_summary, write_report
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
     out = Path(args.out)

@@ -31,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from controlgs_adapter.errors import InputValueError
-    from controlgs_adapter.report import ABLATIONS, write_report
+    from controlgs_adapter.ablations import ABLATIONS
+    from controlgs_adapter.report import write_report
 
     run_dir = Path(args.run)
     adapters = {seed: {n: folder / f"{n}.controlgs.safetensors" for n in ("controlgs", *ABLATIONS)

@@ -1,0 +1,171 @@
+"""The adapter file: one safetensors file holding an adapter's tensors and a JSON header.
+
+Building and checking the header, comparing a model's backbone fingerprint with the file's,
+mapping saved condition rows onto a model's anchors, and reading / writing the tensors.
+``ControlGS.save`` / ``ControlGS.load`` (:mod:`controlgs_adapter.controlgs`) are the public API;
+the format is described in docs/adapter.md.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from .backend import Backend
+from .errors import FileFormatError, InputValueError, NonFiniteError
+from .io import load_tensors, read_header, save_tensors
+
+if TYPE_CHECKING:
+    from .controlgs import ControlGS
+
+__all__ = ["ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "Problem", "build_header", "check_header", "read_spec",
+           "read_tensors", "write_adapter", "valid_fingerprint", "row_map", "map_conditions", "fingerprint_mismatch",
+           "tensor_mismatches"]
+
+ADAPTER_KIND = "controlgs_adapter"
+ADAPTER_FORMAT_VERSION = 1
+
+# what a non-strict load leaves out for one mismatch: tensor keys, ("target", decoder), "conditions",
+# None (only reported: the adapter still loads) or "fatal" (cannot be skipped)
+Skip = frozenset[str] | tuple[str, str] | str | None
+Problem = tuple[str, Skip]
+
+
+def build_header(cgs: ControlGS) -> dict[str, Any]:
+    """The JSON header of ``cgs``'s active adapter (without the fields io adds)."""
+    return {
+        "backend": cgs.backend.name,
+        "modules": list(cgs.modules),
+        "cond_dim": cgs.injector.cond_dim,
+        "schedules": {m: {"class": type(s).__qualname__, "per_anchor": s.per_anchor, **s.endpoints()}
+                      for m, s in cgs.schedules.items()},
+        "state_blind": cgs.state_blind,
+        "targets": [t.as_header() for t in cgs.targets if t.decoder in cgs.injector.widths],
+        "num_anchors": cgs.num_anchors,
+        "rows_per_anchor": cgs.rows_per_anchor,
+        "fingerprint": cgs.fingerprint,
+        **({} if (fp := valid_fingerprint(cgs.model, cgs.backend)) is None else {"valid_fingerprint": fp}),
+    }
+
+
+def write_adapter(path: str | Path, tensors: dict[str, torch.Tensor], header: dict[str, Any],
+                  dtype: torch.dtype | None = None) -> Path:
+    """Write an injector's ``tensors`` with ``header`` (atomically); ``dtype``: storage dtype of the
+    conditions (None = as trained, or ``torch.float16``)."""
+    if dtype not in (None, torch.float16, torch.float32):
+        raise InputValueError(f"dtype must be None, torch.float16 or torch.float32, got {dtype!r}")
+    peak = float(tensors["conditions"].abs().max()) if tensors["conditions"].numel() else 0.0
+    if dtype == torch.float16 and peak > torch.finfo(torch.float16).max:
+        raise NonFiniteError(f"{path}: conditions reach |{peak:.4g}|, beyond float16's range "
+                             f"({torch.finfo(torch.float16).max:g}): save them as float32 (dtype=None)")
+    if dtype is not None:
+        tensors = {**tensors, "conditions": tensors["conditions"].to(dtype)}
+    header = {**header, "condition_dtype": str(tensors["conditions"].dtype).removeprefix("torch.")}
+    return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
+
+
+def read_spec(path: str | Path) -> dict[str, Any]:
+    """The checked header of the adapter file at ``path`` (FileFormatError if unreadable or malformed)."""
+    return check_header(path, read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION))
+
+
+def read_tensors(path: str | Path) -> dict[str, torch.Tensor]:
+    """The tensors of the adapter file at ``path``."""
+    return load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)[0]
+
+
+_HEADER_FIELDS: dict[str, type | tuple[type, ...]] = {
+    "backend": str, "modules": list, "cond_dim": int, "schedules": dict, "state_blind": bool, "targets": list,
+    "num_anchors": int, "rows_per_anchor": int, "fingerprint": str,
+}
+
+
+def check_header(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
+    bad = [k for k, t in _HEADER_FIELDS.items() if not isinstance(header.get(k), t)]
+    if not bad:
+        for m in header["modules"]:
+            s = header["schedules"].get(m)
+            if not isinstance(s, dict) or not all(isinstance(s.get(k), (int, float)) for k in ("lo", "hi")):
+                bad.append(f"schedules.{m}")
+        for i, t in enumerate(header["targets"]):
+            if not isinstance(t, dict) or not isinstance(t.get("decoder"), str) or not all(
+                    isinstance(t.get(k), int) for k in ("in_features", "out_features")):
+                bad.append(f"targets[{i}]")
+    if bad:
+        raise FileFormatError(f"{path}: adapter header is missing or has malformed field(s) {bad}")
+    return header
+
+
+def valid_fingerprint(model: Any, backend: Backend) -> str | None:
+    """Fingerprint over the anchors that produce Gaussians, for backends that tell them
+    (``valid_anchors``: HAC, ContextGS); None for the others."""
+    valid = getattr(backend, "valid_anchors", None)
+    if valid is None:
+        return None
+    return backend.fingerprint(model, valid(model).nonzero().squeeze(1))
+
+
+def row_map(model: Any, backend: Backend, spec: dict[str, Any]) -> tuple[str, torch.Tensor] | None:
+    """How the saved condition rows map onto ``model``'s anchors when the adapter was trained on the
+    same scene with or without its invalid anchors (a live zero-padded HAC/ContextGS model vs the
+    loaded stand-in, which drops them and keeps each anchor's file row in ``source_index``):
+    ``("gather", rows)``: model anchor i takes saved row ``rows[i]``; ``("scatter", ids)``: saved
+    row j goes to model anchor ``ids[j]`` (the others stay zero, inert). None: no mapping (the
+    anchor counts agree, or nothing proves it is the same scene)."""
+    want, a, saved = spec.get("valid_fingerprint"), backend.num_anchors(model), spec["num_anchors"]
+    valid = getattr(backend, "valid_anchors", None)
+    if not isinstance(want, str) or a == saved or valid is None:
+        return None
+    source = getattr(model, "source_index", None)
+    if (isinstance(source, torch.Tensor) and source.shape == (a,) and a < saved and int(source.max()) < saved
+            and valid_fingerprint(model, backend) == want and bool(valid(model).all())):
+        return "gather", source.long()
+    ids = valid(model).nonzero().squeeze(1)
+    if ids.numel() == saved and backend.fingerprint(model, ids) == want:
+        return "scatter", ids
+    return None
+
+
+def map_conditions(saved: torch.Tensor, rows: tuple[str, torch.Tensor], num_anchors: int) -> torch.Tensor:
+    """The saved condition table mapped onto the model's ``num_anchors`` anchors by :func:`row_map`'s result."""
+    kind, index = rows
+    if kind == "gather":
+        return saved.index_select(0, index.to(saved.device))
+    full = saved.new_zeros((num_anchors, *saved.shape[1:]))
+    full[index.to(saved.device)] = saved
+    return full
+
+
+def fingerprint_mismatch(spec: dict[str, Any], fingerprint: str) -> list[Problem]:
+    """The backbone-fingerprint mismatch between the file and a model (reported only: a non-strict load goes on)."""
+    if fingerprint == spec["fingerprint"]:
+        return []
+    return [(f"backbone fingerprint: the adapter was trained on backbone {spec['fingerprint']}, "
+             f"this model is {fingerprint} (other anchors or decoder weights)", None)]
+
+
+def tensor_mismatches(tensors: dict[str, torch.Tensor], spec: dict[str, Any]) -> list[Problem]:
+    n, a = spec["cond_dim"], spec["num_anchors"]
+    widths = sorted({t["out_features"] for t in spec["targets"]})
+    expected: dict[str, tuple[int, ...]] = {"conditions": (a, len(spec["modules"]), n)}
+    for m in spec["modules"]:
+        for d1 in widths:
+            expected[f"projections.{m}.d{d1}.weight"] = (d1, n)
+    problems: list[Problem] = []
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    if missing:
+        problems.append((f"tensors missing from the file: {missing}", frozenset(missing)))
+    if unexpected:
+        problems.append((f"unexpected tensors in the file: {unexpected}", frozenset(unexpected)))
+    for k in sorted(set(expected) & set(tensors)):
+        v = tensors[k]
+        if tuple(v.shape) != expected[k]:
+            problems.append((f"tensor {k!r}: shape {list(v.shape)}, expected {list(expected[k])}", frozenset({k})))
+        elif not v.is_floating_point():
+            problems.append((f"tensor {k!r}: dtype {v.dtype}, expected a floating-point type", frozenset({k})))
+        elif not bool(torch.isfinite(v).all()):
+            problems.append((f"tensor {k!r}: contains NaN/Inf", frozenset({k})))
+    return problems
