@@ -37,7 +37,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
 def _adapters(run_dir: Path) -> dict[str, Path]:
     from controlgs_adapter.errors import InputValueError
-    from controlgs_adapter.report import ABLATIONS
+    from controlgs_adapter.ablations import ABLATIONS
 
     found = {n: run_dir / f"{n}.controlgs.safetensors" for n in ("controlgs", *ABLATIONS)}
     found = {n: p for n, p in found.items() if p.is_file()}
