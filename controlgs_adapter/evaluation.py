@@ -31,7 +31,7 @@ from .rendering import Renderer, as_renderer, model_device, render_view
 from .training import DEFAULT_EFFECTS, Views
 
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
-           "side_by_side", "condition_response"]
+           "side_by_side", "condition_response", "scores"]
 
 GRID_DOWNSAMPLE: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
 GRID_POWER_SAVING: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
@@ -125,7 +125,9 @@ def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "
     return pipeline.eval()
 
 
-def _scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> dict[str, float]:
+def scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> dict[str, float]:
+    """The grid's metrics of one eye image ``[3, H, W]`` (clamped to [0, 1], as a display holds it) vs
+    the ground truth: PSNR, SSIM and each ``extra`` ``{name: fn(eye, gt)}``."""
     e, g = eye.detach().clamp(0.0, 1.0).double(), gt.double()
     out = {"psnr": float(psnr(e, g)), "ssim": float(ssim(e, g))}
     for name, fn in extra.items():
@@ -175,7 +177,7 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
 
     def score(name: str, i: int, j: int, v: int, rendered: torch.Tensor, state: RuntimeState, gt: torch.Tensor) -> None:
         eye = pipeline(rendered, state, reference=gt)
-        for k, value in _scores(eye, gt, extra).items():
+        for k, value in scores(eye, gt, extra).items():
             result[name][k][i, j, v] = value
         bar.update(1)
 
@@ -228,7 +230,7 @@ def side_by_side(model: Any, adapter: str | Path, camera: Camera, gt: torch.Tens
 
     def add(name: str, rendered: torch.Tensor, state: RuntimeState) -> None:
         eye = pipeline(rendered, state, reference=gt).clamp(0.0, 1.0)
-        sc = _scores(eye, gt, {})
+        sc = scores(eye, gt, {})
         rows[name].append((rendered, eye, sc["psnr"], sc["ssim"]))
 
     for d, rho in settings:

@@ -16,7 +16,7 @@ from controlgs_adapter.backends.formats import read_ply
 from controlgs_adapter.downstream.display import DisplayMapping, display_mapping, display_power, display_power_watts
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.stage import Stage, StageContext
-from controlgs_adapter.evaluation import _scores
+from controlgs_adapter.evaluation import scores
 
 from scaffold_standin import ScaffoldStandIn, make_camera
 
@@ -116,7 +116,7 @@ def test_metrics_clamp_the_eye_image():
     err[:, :8] = 0.1
     err[0, 8:, :2] = 0.9
     want = 10 * math.log10(1.0 / float((err ** 2).mean()))
-    got = _scores(eye, gt, {})
+    got = scores(eye, gt, {})
     assert got["psnr"] == pytest.approx(want, abs=1e-9)
     assert got["psnr"] == pytest.approx(16.60051938305649, abs=1e-9)  # = 10 log10(768 / 16.8)
 

@@ -27,7 +27,8 @@ from ..checks import check_number
 from ..controlgs import ControlGS
 from ..downstream.oled import oled_emission
 from ..errors import InputValueError
-from ..evaluation import BASELINES, _scores, make_pipeline
+from ..evaluation import BASELINES, make_pipeline, scores
+from ..report import METHOD_LABELS
 from ..metrics import optional_metrics
 from ..rendering import Renderer, model_device, render_view, renderer_for
 from ..state import Camera, RuntimeState
@@ -46,8 +47,6 @@ AZIMUTH_RANGE = (-180.0, 180.0)
 ELEVATION_RANGE = (-80.0, 80.0)
 #: difference images show |eye - ground truth| times this
 DIFF_GAIN = 2.0
-LABELS = {"no_ss": "Backbone (no SS)", "ss": "SS-backbone", "controlgs": "ControlGS", "wo_lens": "w/o Lens",
-          "wo_display": "w/o Display Mapping", "wo_resample": "w/o Resampling", "state_blind": "w/o State-Aware"}
 _FIELDS = ("view", "azimuth", "elevation", "downsample", "power_saving", "optics", "stages", "gaze")
 
 
@@ -278,7 +277,7 @@ class ViewerSession:
     def info(self) -> dict[str, Any]:
         """What the page needs to build its controls."""
         return {"name": self.name, "views": [f"test view {i} ({c.width}x{c.height})" for i, c in enumerate(self.cameras)],
-                "methods": [{"name": m, "label": LABELS.get(m, m)} for m in self.methods],
+                "methods": [{"name": m, "label": METHOD_LABELS.get(m, m)} for m in self.methods],
                 "stages": list(STAGES), "optics_modes": list(OPTICS_MODES), "defaults": ViewState().to_json(),
                 "ranges": {"downsample": DOWNSAMPLE_RANGE, "power_saving": POWER_SAVING_RANGE,
                            "azimuth": AZIMUTH_RANGE, "elevation": ELEVATION_RANGE},
@@ -341,11 +340,11 @@ class ViewerSession:
                     eye = oled_emission(eye, tuple(reference.shape[-2:]))
                 eye = eye.clamp(0.0, 1.0)
                 eyes[method] = eye
-                entry = {"name": method, "label": LABELS.get(method, method), "rendered": png, "eye": encode_png(eye),
+                entry = {"name": method, "label": METHOD_LABELS.get(method, method), "rendered": png, "eye": encode_png(eye),
                          "rendered_size": [rendered.shape[-1], rendered.shape[-2]], "strengths": strengths,
                          "overlay": overlay, "stages_run": record["stages_run"], "metrics": None, "diff": None}
                 if gt is not None:
-                    entry["metrics"] = {k: v if math.isfinite(v) else None for k, v in _scores(eye, gt, {}).items()}
+                    entry["metrics"] = {k: v if math.isfinite(v) else None for k, v in scores(eye, gt, {}).items()}
                     entry["diff"] = encode_png(((eye - gt).abs() * DIFF_GAIN).clamp(0.0, 1.0))
                 out["methods"].append(entry)
                 check()
