@@ -40,9 +40,9 @@ from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.state import Camera
 
-from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians
-from .formats import load_state_dict_file, ply_columns, ply_xyz, read_ply, require_fields
-from .layout import iteration_dir
+from controlgs_adapter.backends.models.anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians
+from controlgs_adapter.formats.backbone import load_state_dict_file, ply_columns, ply_xyz, read_ply, require_fields
+from controlgs_adapter.formats.layout import iteration_dir
 
 __all__ = ["CompGSBackend", "CompGSModel", "ResidualMLP", "load_compgs_dir", "COMPGS_DECODERS"]
 

@@ -34,10 +34,10 @@ from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.state import Camera
 
-from .anchor_model import anchor_visibility, as_param
-from .decoders import check_first_width
-from .formats import load_state_dict_file, read_cfg_args
-from .layout import iteration_dir
+from controlgs_adapter.backends.models.anchor_model import anchor_visibility, as_param
+from controlgs_adapter.formats.decoders import check_first_width
+from controlgs_adapter.formats.backbone import load_state_dict_file, read_cfg_args
+from controlgs_adapter.formats.layout import iteration_dir
 from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, anchor_tensors, decoders_from_checkpoint,
                   drop_invalid, read_masked_anchor_ply, resolve_decoded)
 from .scaffold_gs import ATTRIBUTE_DECODERS, ScaffoldGSBackend

@@ -39,10 +39,10 @@ from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.state import Camera
 
-from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
-from .decoders import DECODER_ACTIVATIONS, ATTRIBUTE_DECODERS, check_first_width, decoders_from_state_dicts
-from .formats import load_state_dict_file, ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply, require_fields
-from .layout import iteration_dir
+from controlgs_adapter.backends.models.anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
+from controlgs_adapter.formats.decoders import DECODER_ACTIVATIONS, ATTRIBUTE_DECODERS, check_first_width, decoders_from_state_dicts
+from controlgs_adapter.formats.backbone import load_state_dict_file, ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply, require_fields
+from controlgs_adapter.formats.layout import iteration_dir
 from .scaffold_gs import ScaffoldGSBackend
 
 __all__ = ["HACBackend", "HACModel", "MaskedAnchorModel", "load_hac_dir", "infer_decoded", "DECODER_ACTIVATIONS"]

@@ -20,8 +20,8 @@ from typing import Any
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
 
-from .layout import bitstreams_only, iteration_dirs
-from .formats import ply_field_names
+from controlgs_adapter.formats.layout import bitstreams_only, iteration_dirs
+from controlgs_adapter.formats.backbone import ply_field_names
 
 __all__ = ["FAMILIES", "detect_family", "load_model_dir"]
 

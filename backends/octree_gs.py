@@ -32,10 +32,10 @@ from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError
 from controlgs_adapter.state import Camera
 
-from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
-from .decoders import Decoders, check_first_width
-from .formats import ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply, read_yaml_scalars, require_fields
-from .layout import iteration_dir
+from controlgs_adapter.backends.models.anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
+from controlgs_adapter.formats.decoders import Decoders, check_first_width
+from controlgs_adapter.formats.backbone import ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply, read_yaml_scalars, require_fields
+from controlgs_adapter.formats.layout import iteration_dir
 from .scaffold_gs import ScaffoldGSBackend
 
 __all__ = ["OctreeGSBackend", "OctreeGSModel", "lod_anchor_ids", "load_octree_gs_dir"]

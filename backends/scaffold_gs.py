@@ -21,7 +21,7 @@ from torch import nn
 from controlgs_adapter.backend import Backend, anchor_ids_from_mask
 from controlgs_adapter.checks import check_tensor
 
-from .decoders import ATTRIBUTE_DECODERS
+from controlgs_adapter.formats.decoders import ATTRIBUTE_DECODERS
 
 __all__ = ["ScaffoldGSBackend"]
 

@@ -13,7 +13,7 @@ Layout (exactly as Scaffold-GS's ``Scene.save`` / ``train.py`` write it)::
 
 ``f_offset_{c * K + k}`` is coordinate ``c`` of offset ``k`` (Scaffold-GS saves
 ``_offset.transpose(1, 2).flatten(1)``). Nothing in the folder is run or unpickled: TorchScript
-archives are read as data (:func:`controlgs_adapter.torchscript.eager_from_archive`; ``torch.jit.load``
+archives are read as data (:func:`controlgs_adapter.formats.torchscript.eager_from_archive`; ``torch.jit.load``
 only with ``trust_code=True``), state dicts go through ``torch.load(weights_only=True)``,
 ``cfg_args`` through an ``ast`` literal parser. See ``docs/reference-model.md``.
 """
@@ -32,12 +32,12 @@ import numpy as np
 import torch
 
 from controlgs_adapter.errors import FileFormatError
-from controlgs_adapter.io import atomic_write, folder_mode
+from controlgs_adapter.formats.safetensors import atomic_write, folder_mode
 
-from .decoders import MLP_FILES, UNITE_FILE, Decoders
-from .formats import ply_columns, ply_field_names, ply_offsets, ply_xyz, read_cfg_args, read_ply, require_fields, write_ply
-from .layout import iteration_dir
-from .reference_model import NeuralGaussianModel, median_spacing
+from controlgs_adapter.formats.decoders import MLP_FILES, UNITE_FILE, Decoders
+from controlgs_adapter.formats.backbone import ply_columns, ply_field_names, ply_offsets, ply_xyz, read_cfg_args, read_ply, require_fields, write_ply
+from controlgs_adapter.formats.layout import iteration_dir
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel, median_spacing
 
 __all__ = ["save_scaffold_dir", "load_scaffold_dir", "latest_iteration", "MLP_FILES"]
 
@@ -248,7 +248,7 @@ def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
     use_feat_bank, add_{opacity,cov,color}_dist, voxel_size``) and are checked against the PLY and
     every decoder's layer types and shapes; keys missing from ``cfg_args`` (or a missing
     ``cfg_args``) are inferred from the files. TorchScript decoders are read as data, never run,
-    and rebuilt as eager ``nn.Sequential`` s (:func:`controlgs_adapter.torchscript.eager_from_archive`).
+    and rebuilt as eager ``nn.Sequential`` s (:func:`controlgs_adapter.formats.torchscript.eager_from_archive`).
 
     Raises:
         FileFormatError: naming the file and the field: no iteration folder, missing/truncated

@@ -53,7 +53,7 @@ def _worker_train(a: argparse.Namespace) -> None:
     from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
     from controlgs_adapter.datasets.memory import posed_images
     from controlgs_adapter.distributed import init_distributed
-    from controlgs_adapter.io import load_tensors
+    from controlgs_adapter.formats.safetensors import load_tensors
     from controlgs_adapter.state import Camera
     from controlgs_adapter.training import TrainConfig, Trainer
 
@@ -133,9 +133,9 @@ def _launch(nproc: int, argv: list[str]) -> dict:
 
 
 def _prepare(data: Path, variant: str, resolution: int, spacing: float) -> str:
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
     from controlgs_adapter.backends.scaffold_io import save_scaffold_dir
-    from controlgs_adapter.io import save_tensors
+    from controlgs_adapter.formats.safetensors import save_tensors
     from controlgs_adapter.scene import load_builtin_scene
 
     scene = load_builtin_scene(variant, resolution)

@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 
 from controlgs_adapter import Camera, ControlGS, RuntimeState, __version__
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.scaffold_io import save_scaffold_dir
 
 MODULE_SETS = {1: ("lens",), 2: ("lens", "resample"), 3: ("lens", "resample", "display")}

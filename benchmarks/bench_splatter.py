@@ -1,4 +1,4 @@
-"""Speed and memory of the CPU splatter (``controlgs_adapter.backends.splatter.rasterize``).
+"""Speed and memory of the CPU splatter (``controlgs_adapter.rendering.splatter.rasterize``).
 
 Measures, on a synthetic scene whose Gaussians fill the view (projected standard deviations
 log-normal around ``sqrt(50k / N)`` px at 256^2, opacities U(0.05, 0.95), random rotations):
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from controlgs_adapter.backends.splatter import rasterize
+from controlgs_adapter.rendering.splatter import rasterize
 from controlgs_adapter.state import Camera
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -106,7 +106,7 @@ def run_case_subprocess(n: int, size: int, reps: int, threads: int) -> dict:
 
 def measure_reference(n: int, size: int) -> list[tuple[float, float]]:
     """(wall, CPU) forward+backward seconds of the tiled splatter and of the brute-force reference."""
-    from controlgs_adapter.backends.splatter_reference import rasterize_reference
+    from controlgs_adapter.rendering.splatter_reference import rasterize_reference
 
     params, cam = make_scene(n, size)
     times = []

@@ -40,8 +40,8 @@ from pathlib import Path
 import torch
 
 from controlgs_adapter import ControlGS
-from controlgs_adapter.backends import splatter
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.rendering import splatter
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.losses import LossWeights, image_loss
 from controlgs_adapter.state import Camera, RuntimeState

@@ -111,7 +111,7 @@ class Backend:
         """Make a decoder take hooks (e.g. rebuild a TorchScript decoder as an eager module with
         identical outputs) and install it on the model. Return the original module (to restore on
         unwrap) or None if nothing changed. Called only after every check passed."""
-        from .torchscript import eager_from_script  # local: only needed for TorchScript decoders
+        from controlgs_adapter.formats.torchscript import eager_from_script  # local: only needed for TorchScript decoders
 
         module = get_attr_path(model, decoder_path)
         if isinstance(module, torch.jit.ScriptModule):
@@ -138,11 +138,11 @@ class Backend:
         return fc1
 
     def renderer(self, model: Any) -> Any:
-        """The :class:`~controlgs_adapter.rendering.Renderer` of this family for ``model``, or None
+        """The :class:`~controlgs_adapter.rendering.protocol.Renderer` of this family for ``model``, or None
         when the model cannot render itself (the user passes one). Default: a
-        :class:`~controlgs_adapter.rendering.ModelRenderer` when the model has ``visible_anchors``
+        :class:`~controlgs_adapter.rendering.protocol.ModelRenderer` when the model has ``visible_anchors``
         and ``render`` (every family the library loads)."""
-        from .rendering import ModelRenderer  # local: rendering imports this module's users
+        from controlgs_adapter.rendering.protocol import ModelRenderer  # local: rendering imports this module's users
 
         return ModelRenderer() if ModelRenderer.fits(model) else None
 

@@ -27,11 +27,11 @@ from .backend import Backend, get_attr_path, set_attr_path
 from .errors import (IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
                      LifecycleError, ShapeError, TargetError)
 from .injector import ConditionInjector, InjectionContext
-from .adapter_file import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, Problem, build_header, fingerprint_mismatch,
+from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, Problem, build_header, fingerprint_mismatch,
                            map_conditions, read_spec, read_tensors, row_map, tensor_mismatches, write_adapter)
 from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
-from .torchscript import eager_from_script
+from controlgs_adapter.formats.torchscript import eager_from_script
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
 
@@ -661,7 +661,7 @@ def _load_into(injector: ConditionInjector, tensors: Mapping[str, torch.Tensor])
 def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any], *, mapped: bool = False,
                       wrapped: ControlGS | None = None) -> list[Problem]:
     """What does not fit, with what a non-strict load skips for each; ``mapped``: the anchors were
-    matched by :func:`~controlgs_adapter.adapter_file.row_map` (count and fingerprint already checked over the valid anchors);
+    matched by :func:`~controlgs_adapter.formats.adapter.row_map` (count and fingerprint already checked over the valid anchors);
     ``wrapped``: check against this live wrapper's targets (:meth:`ControlGS.load_adapter`)."""
     problems: list[Problem] = []
     a = backend.num_anchors(model)

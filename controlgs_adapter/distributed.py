@@ -27,7 +27,7 @@ Every process (rank) holds a full replica of the adapter. Per step:
 
   Afterwards every rank holds the same summed gradients (``None`` where no rank had one, as in
   a single process), and the same optimizer step keeps the replicas identical.
-* **Checkpoints** are written by rank 0 only (atomically, :mod:`controlgs_adapter.io`).
+* **Checkpoints** are written by rank 0 only (atomically, :mod:`controlgs_adapter.formats.safetensors`).
 
 Bytes are counted as what one rank sends under the ring algorithms (all-reduce of ``n`` bytes:
 ``2 (W-1)/W n``; all-gather of ``n`` bytes per rank: ``(W-1) n``); :class:`CommStats` keeps them,

@@ -27,7 +27,7 @@ from .controlgs import ControlGS
 from .errors import InputValueError
 from .metrics import optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
-from .rendering import Renderer, as_renderer, model_device, render_view
+from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .training import DEFAULT_EFFECTS, Views
 
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
@@ -146,7 +146,7 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
     :class:`~controlgs_adapter.training.Views` dataset: ``(camera, image [3, H, W])`` per view, any
     size; its ``background`` is the renders'). ``model`` must not be wrapped; each adapter is loaded
     onto it in turn and removed afterwards. Everything runs on the model's device. ``renderer``:
-    how views are rendered (:mod:`controlgs_adapter.rendering`; default the model's own).
+    how views are rendered (:mod:`controlgs_adapter.rendering.protocol`; default the model's own).
 
     The renders that do not depend on the state are made once per view (``ss``) or once per d
     (``no_ss``); the pipeline runs for every (method, view, d, rho). ``result.info`` holds the

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from .errors import FileWriteError, RunLockedError
-from .io import as_path, file_mode
+from controlgs_adapter.formats.safetensors import as_path, file_mode
 
 __all__ = ["run_lock", "lock_holder", "LOCK_NAME"]
 

@@ -35,7 +35,7 @@ BUILTIN_PLUGINS: tuple[str, ...] = (
     "controlgs_adapter.schedules",
     "controlgs_adapter.backends.builtin",
     "controlgs_adapter.downstream.builtin",
-    "controlgs_adapter.rasterizers",
+    "controlgs_adapter.rendering.rasterizers",
 )
 
 

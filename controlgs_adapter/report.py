@@ -25,7 +25,7 @@ import torch
 from .ablations import ABLATIONS
 from .errors import InputValueError
 from .evaluation import IDEAL, GridResult
-from .io import atomic_write
+from controlgs_adapter.formats.safetensors import atomic_write
 from .metrics import FLIP_PPD
 
 __all__ = ["METHOD_LABELS", "ABLATIONS", "SPREAD_FACTOR", "markdown_tables", "plot_heatmaps", "plot_comparison",

@@ -32,9 +32,9 @@ from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
 from .errors import FileFormatError, InputValueError, NonFiniteError
-from .io import load_tensors, save_tensors
+from controlgs_adapter.formats.safetensors import load_tensors, save_tensors
 from .losses import LossWeights, image_loss
-from .rendering import Renderer, as_renderer, model_device, render_view
+from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .state import Camera, RuntimeState
 
 __all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "views_fingerprint", "CHECKPOINT_KIND"]
@@ -173,8 +173,8 @@ class Trainer:
         checkpoint: path of the checkpoint file to write (and to resume from, see :meth:`resume`).
         dist: this process's place in a data-parallel run (:func:`~controlgs_adapter.distributed.init_distributed`);
             default a single process.
-        renderer: how a view is rendered (:mod:`controlgs_adapter.rendering`: a ``Renderer`` or a
-            render function); default the model's own (:func:`~controlgs_adapter.rendering.renderer_for`).
+        renderer: how a view is rendered (:mod:`controlgs_adapter.rendering.protocol`: a ``Renderer`` or a
+            render function); default the model's own (:func:`~controlgs_adapter.rendering.protocol.renderer_for`).
 
     Everything runs on the model's device; inside a step the per-tensor value checks (NaN/Inf,
     ranges: host syncs) are off, and the loss and the updated parameters are checked once instead.

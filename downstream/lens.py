@@ -43,7 +43,7 @@ from torch import nn
 
 from controlgs_adapter.checks import check_image, check_same_device, check_tensor
 from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError
-from controlgs_adapter.io import load_tensors, save_tensors
+from controlgs_adapter.formats.safetensors import load_tensors, save_tensors
 from controlgs_adapter.state import RuntimeState
 
 from .color import primaries_to_rgb, rgb_to_primaries

@@ -25,8 +25,8 @@ from torch import nn
 from controlgs_adapter import Camera
 from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
 from controlgs_adapter.errors import InjectionMissedError
-from controlgs_adapter.rasterizers import rasterize_gaussians
-from controlgs_adapter.rendering import FunctionRenderer, render_view
+from controlgs_adapter.rendering.rasterizers import rasterize_gaussians
+from controlgs_adapter.rendering.protocol import FunctionRenderer, render_view
 from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
 from controlgs_adapter.training import TrainConfig, Trainer
 

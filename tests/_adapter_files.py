@@ -6,7 +6,7 @@ import torch
 
 from controlgs_adapter import ControlGS
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
-from controlgs_adapter.io import load_tensors
+from controlgs_adapter.formats.safetensors import load_tensors
 
 from _rawfiles import write_raw
 

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import torch
 
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.datasets.memory import posed_images
 from controlgs_adapter.distributed import DistContext, init_distributed
-from controlgs_adapter.io import load_tensors, save_tensors
+from controlgs_adapter.formats.safetensors import load_tensors, save_tensors
 from controlgs_adapter.state import Camera
 from controlgs_adapter.training import TrainConfig, Trainer
 

@@ -11,7 +11,7 @@ import torch
 from controlgs_adapter import RuntimeState
 from controlgs_adapter.backend import get_attr_path
 from controlgs_adapter.controlgs import ControlGS
-from controlgs_adapter.rendering import ModelRenderer, renderer_for
+from controlgs_adapter.rendering.protocol import ModelRenderer, renderer_for
 
 STATE = RuntimeState(downsample=1, power_saving=0.4)  # display strength 0.5 for every anchor
 
@@ -79,10 +79,10 @@ def make_camera(width: int = 64, height: int = 48):
 
 
 def reference_scaffold(anchor, offset, feat, log_scaling, decoders, *, dist: bool):
-    """The reference Scaffold-GS model (backends/reference_model.py) holding the given tensors."""
+    """The reference Scaffold-GS model (backends/models/reference_model.py) holding the given tensors."""
     import copy
 
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 
     a, k, _ = offset.shape
     ref = NeuralGaussianModel(a, feat_dim=feat.shape[1], n_offsets=k, add_opacity_dist=dist, add_cov_dist=dist,

@@ -10,7 +10,7 @@ from safetensors.torch import save_file
 from controlgs_adapter import ControlGS, RuntimeState, __version__
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
 from controlgs_adapter.errors import FileFormatError, IncompatibleAdapterError
-from controlgs_adapter.io import load_tensors, read_header, save_tensors
+from controlgs_adapter.formats.safetensors import load_tensors, read_header, save_tensors
 
 from _adapter_files import rewrite, trained
 from scaffold_standin import ScaffoldStandIn, make_camera, script_decoders

@@ -8,7 +8,7 @@ import torch
 from controlgs_adapter import ControlGS, RuntimeState
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
 from controlgs_adapter.errors import IncompatibleAdapterError, InputValueError, LifecycleError
-from controlgs_adapter.io import load_tensors
+from controlgs_adapter.formats.safetensors import load_tensors
 
 from _adapter_files import rewrite, trained
 from scaffold_standin import ScaffoldStandIn, make_camera

@@ -11,7 +11,7 @@ import torch
 from _family_checks import STATE, check_wrap_identity_and_rows, outputs
 from controlgs_adapter.backend import get_attr_path
 from controlgs_adapter.backends.compgs import COMPGS_DECODERS, CompGSBackend, CompGSModel, load_compgs_dir
-from controlgs_adapter.backends.formats import write_ply
+from controlgs_adapter.formats.backbone import write_ply
 from controlgs_adapter.backends.contextgs import ContextGSBackend
 from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend

@@ -10,7 +10,7 @@ from torch import nn
 
 from _family_checks import check_wrap_identity_and_rows, outputs, write_cfg_args
 from controlgs_adapter.backends.contextgs import ContextGSBackend, ContextGSModel, load_contextgs_dir, quantize_anchor
-from controlgs_adapter.backends.formats import read_ply, write_ply
+from controlgs_adapter.formats.backbone import read_ply, write_ply
 from controlgs_adapter.backends.compgs import CompGSBackend
 from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend
@@ -234,7 +234,7 @@ def test_prefilter_uses_anchor_zero_rotation():
     """ContextGS's prefilter_voxel passes rotations[[0]] for every anchor; the stand-in does the same
     (kept from the file's row 0 even when that anchor is dropped)."""
     from _family_checks import make_camera
-    from controlgs_adapter.backends.anchor_model import anchor_visibility
+    from controlgs_adapter.backends.models.anchor_model import anchor_visibility
 
     arr = _arrays(9, decoded=True)
     arr["anchor"][: A - PAD] = np.array([[0.5, 0.0, 0.0]], np.float32) + np.arange(A - PAD, dtype=np.float32)[:, None] * \

@@ -12,7 +12,7 @@ from torch import nn
 
 from _family_checks import check_wrap_identity_and_rows, outputs, write_cfg_args
 from controlgs_adapter import Camera
-from controlgs_adapter.backends.formats import write_ply
+from controlgs_adapter.formats.backbone import write_ply
 from controlgs_adapter.backends.compgs import CompGSBackend
 from controlgs_adapter.backends.contextgs import ContextGSBackend
 from controlgs_adapter.backends.hac import HACBackend

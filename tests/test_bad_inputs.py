@@ -19,15 +19,15 @@ import pytest
 import torch
 
 from controlgs_adapter import cli
-from controlgs_adapter.backends.formats import read_yaml_scalars
-from controlgs_adapter.backends.formats import load_state_dict_file, parse_cfg_args, read_cfg_args, read_ply
+from controlgs_adapter.formats.backbone import read_yaml_scalars
+from controlgs_adapter.formats.backbone import load_state_dict_file, parse_cfg_args, read_cfg_args, read_ply
 from controlgs_adapter.controlgs import ADAPTER_KIND, ControlGS
 from controlgs_adapter.downstream.optics.bank import BANK_KIND, PSFBank
 from controlgs_adapter.downstream.optics.generate import build_bank
 from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
 from controlgs_adapter.errors import (ControlGSError, FileFormatError, FileWriteError, InputValueError,
                                       NonFiniteError, RunLockedError, ShapeError, StateError)
-from controlgs_adapter.io import atomic_write, file_mode, load_tensors, read_header, save_tensors
+from controlgs_adapter.formats.safetensors import atomic_write, file_mode, load_tensors, read_header, save_tensors
 from controlgs_adapter.lock import run_lock
 from controlgs_adapter.losses import LossWeights
 from controlgs_adapter.state import Camera, RuntimeState
@@ -433,7 +433,7 @@ def test_yaml_config_size_is_bounded(tmp_path):
 @pytest.fixture(scope="module")
 def ckpt_setup(tmp_path_factory):
     pytest.importorskip("skimage")
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
     from controlgs_adapter.scene import load_builtin_scene
 
     scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
@@ -591,7 +591,7 @@ def test_cli_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
         Path(tmp).write_bytes(b"half")
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr("controlgs_adapter.io.save_file", full)
+    monkeypatch.setattr("controlgs_adapter.formats.safetensors.save_file", full)
     monkeypatch.setattr("controlgs_adapter.downstream.optics.generate.build_bank", lambda *a, **k: tiny_bank())
     line = _cli(["optics", "build-bank", "--out", str(tmp_path / "b.safetensors")], capsys)
     assert "No space left" in line and "b.safetensors" in line
@@ -687,7 +687,7 @@ def test_files_get_the_umask_mode(tmp_path, cgs):
 
 
 def test_saved_model_folders_get_the_umask_mode(tmp_path):
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
     from controlgs_adapter.backends.scaffold_io import save_scaffold_dir
 
     old = os.umask(0o022)
@@ -737,7 +737,7 @@ def test_a_failed_write_leaves_no_tmp(tmp_path):
 
 
 def test_killed_writer_leaves_a_tmp_that_the_next_write_removes(tmp_path):
-    script = ("import os, sys, signal\nfrom pathlib import Path\nfrom controlgs_adapter.io import atomic_write\n"
+    script = ("import os, sys, signal\nfrom pathlib import Path\nfrom controlgs_adapter.formats.safetensors import atomic_write\n"
               "def w(t):\n    Path(t).write_bytes(b'half')\n    os.kill(os.getpid(), signal.SIGKILL)\n"
               "atomic_write(sys.argv[1], w)\n")
     r = subprocess.run([sys.executable, "-c", script, str(tmp_path / "x.bin")], cwd=ROOT, timeout=120)

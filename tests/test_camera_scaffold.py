@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from controlgs_adapter import Camera
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.errors import InputValueError
 
 

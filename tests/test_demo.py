@@ -71,7 +71,7 @@ def test_grid_invariants_zero_adapter_equals_ss(tmp_path):
     """An adapter at initialisation (zero conditions) is the backbone: its grid equals the
     SS-backbone's exactly; at d = 1 the no-SS render is the SS render."""
     from controlgs_adapter import ControlGS
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
     from controlgs_adapter.evaluation import evaluate_grid
     from controlgs_adapter.scene import load_builtin_scene
 

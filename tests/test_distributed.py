@@ -25,7 +25,7 @@ import torch
 
 from controlgs_adapter.distributed import DistContext, DistributedError, init_distributed, shard_scenes
 from controlgs_adapter.errors import InputValueError
-from controlgs_adapter.io import load_tensors
+from controlgs_adapter.formats.safetensors import load_tensors
 
 sys.path.insert(0, str(Path(__file__).parent))
 import _dist_worker as worker  # noqa: E402
@@ -72,7 +72,7 @@ def _torchrun(nproc: int, *args: str, nodes: int = 1) -> tuple[list[subprocess.C
 def fixture_path(tmp_path_factory) -> Path:
     """A tiny backbone on the built-in scene plus FAR anchors that no view sees (as in a large
     scene, where each view touches a fraction of the anchors)."""
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
     from controlgs_adapter.scene import load_builtin_scene
 
     scene = load_builtin_scene("ar", resolution=16, views=6, test_every=3, samples=1)

@@ -5,7 +5,7 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from controlgs_adapter.backends.formats import (load_state_dict_file, parse_cfg_args, read_ply, write_ply,
+from controlgs_adapter.formats.backbone import (load_state_dict_file, parse_cfg_args, read_ply, write_ply,
                                                  load_torchscript)
 from controlgs_adapter.errors import FileFormatError
 

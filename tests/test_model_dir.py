@@ -15,7 +15,7 @@ from controlgs_adapter.backends.compgs import CompGSModel
 from controlgs_adapter.backends.contextgs import ContextGSModel
 from controlgs_adapter.backends.hac import HACModel
 from controlgs_adapter.backends.octree_gs import OctreeGSModel
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.errors import FileFormatError, InputValueError
 from scaffold_oracle import make_raw_model, write_scaffold_dir_by_hand
 
@@ -52,7 +52,7 @@ def test_every_family_is_detected_and_loaded(tmp_path):
 def test_detection_reads_no_decoder(tmp_path, monkeypatch):
     """Detection opens only the PLY header: no torch.load, no TorchScript, no PLY body."""
     folders = _folders(tmp_path)
-    import controlgs_adapter.backends.formats as formats
+    import controlgs_adapter.formats.backbone as formats
 
     def boom(*a, **k):
         raise AssertionError("detection loaded a file")

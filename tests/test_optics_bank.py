@@ -7,7 +7,7 @@ import torch
 
 from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.errors import FileFormatError, InputValueError
-from controlgs_adapter.io import save_tensors
+from controlgs_adapter.formats.safetensors import save_tensors
 
 from _rawfiles import write_raw
 

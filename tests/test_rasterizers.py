@@ -7,11 +7,12 @@ import types
 import pytest
 import torch
 
-from controlgs_adapter import plugins, rasterizers
-from controlgs_adapter.backends.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE, rasterize
+from controlgs_adapter import plugins
+from controlgs_adapter.rendering import rasterizers
+from controlgs_adapter.rendering.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE, rasterize
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.hookspecs import hookimpl
-from controlgs_adapter.rasterizers import (GsplatRasterizer, Rasterizer, TorchSplatter, gsplat_alpha_max,
+from controlgs_adapter.rendering.rasterizers import (GsplatRasterizer, Rasterizer, TorchSplatter, gsplat_alpha_max,
                                            rasterize_gaussians, select_rasterizer, use_rasterizer)
 from controlgs_adapter.state import Camera
 
@@ -174,7 +175,7 @@ def test_gsplat_agrees_with_the_project_splatter_on_cuda():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (none here): a training step on cuda")
 def test_a_training_step_runs_on_cuda():
     pytest.importorskip("skimage")
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
     from controlgs_adapter.scene import load_builtin_scene
     from controlgs_adapter.training import TrainConfig, Trainer
 

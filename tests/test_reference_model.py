@@ -9,9 +9,9 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel, median_spacing
-from controlgs_adapter.backends.splatter import rasterize
-from controlgs_adapter.backends.train_backbone import grid_points, train_reference_model
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel, median_spacing
+from controlgs_adapter.rendering.splatter import rasterize
+from controlgs_adapter.backends.models.train_backbone import grid_points, train_reference_model
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import Camera
 from scaffold_oracle import camera_looking_down_z, decode_by_hand

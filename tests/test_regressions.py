@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from controlgs_adapter import ControlGS, RuntimeState
-from controlgs_adapter.backends.formats import read_ply
+from controlgs_adapter.formats.backbone import read_ply
 from controlgs_adapter.downstream.display import DisplayMapping, display_mapping, display_power, display_power_watts
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.stage import Stage, StageContext

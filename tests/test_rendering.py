@@ -12,13 +12,13 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from controlgs_adapter import ControlGS, RuntimeState
 from controlgs_adapter.errors import InjectionMissedError, InputValueError, ShapeError
-from controlgs_adapter.rendering import (FunctionRenderer, ModelRenderer, Renderer, as_renderer, model_device,
+from controlgs_adapter.rendering.protocol import (FunctionRenderer, ModelRenderer, Renderer, as_renderer, model_device,
                                          render_view, renderer_for)
 from scaffold_standin import ScaffoldStandIn, make_camera, script_decoders
 
 pytest.importorskip("skimage")
 
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel  # noqa: E402
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel  # noqa: E402
 from controlgs_adapter.scene import load_builtin_scene  # noqa: E402
 from controlgs_adapter.training import TrainConfig, Trainer  # noqa: E402
 
@@ -175,7 +175,7 @@ def test_training_step_host_syncs(tiny):
     for stack in mode.calls:
         where = " ".join(stack)
         kind = ("sampling" if ":sample:" in where else "optimizer" if "optimizer.step()" in where else
-                "rasterizer" if "backends/splatter.py" in where else
+                "rasterizer" if "controlgs_adapter/rendering/splatter.py" in where else
                 "loss log" if stack[-1].endswith("value += float(loss.detach())  # the loss log: the step's one device "
                                                  "sync besides the check below") else "step")
         kinds[kind] += 1

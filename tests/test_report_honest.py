@@ -41,7 +41,7 @@ def test_ideal_bound_is_the_ground_truth_through_the_pipeline():
     from controlgs_adapter.state import RuntimeState
     from controlgs_adapter.training import DEFAULT_EFFECTS
 
-    from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 
     scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=1)
     views = scene.views("test")

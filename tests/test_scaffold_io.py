@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from controlgs_adapter.backends.formats import read_ply
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.formats.backbone import read_ply
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.scaffold_io import latest_iteration, load_scaffold_dir, save_scaffold_dir
 from controlgs_adapter.errors import FileFormatError
 from scaffold_oracle import camera_looking_down_z, decode_by_hand, make_raw_model, write_ply_by_hand, \
@@ -170,7 +170,7 @@ def test_missing_ply_field_names_it(tmp_path, drop):
     ply = folder / "point_cloud.ply"
     fields, _ = read_ply(ply)
     del fields[drop]
-    from controlgs_adapter.backends.formats import write_ply
+    from controlgs_adapter.formats.backbone import write_ply
 
     write_ply(ply, fields)
     with pytest.raises(FileFormatError, match=rf"point_cloud\.ply.*{drop}"):
@@ -230,7 +230,7 @@ def test_offset_fields_not_numbered_contiguously_are_refused(tmp_path):
     ply = folder / "point_cloud.ply"
     fields, _ = read_ply(ply)
     fields = {("f_offset_99" if n == "f_offset_2" else n): v for n, v in fields.items()}
-    from controlgs_adapter.backends.formats import write_ply
+    from controlgs_adapter.formats.backbone import write_ply
 
     write_ply(ply, fields)
     with pytest.raises(FileFormatError, match=r"point_cloud\.ply.*f_offset_2"):

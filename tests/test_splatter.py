@@ -10,9 +10,9 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controlgs_adapter.backends import splatter
-from controlgs_adapter.backends.splatter import rasterize
-from controlgs_adapter.backends.splatter_reference import rasterize_reference
+from controlgs_adapter.rendering import splatter
+from controlgs_adapter.rendering.splatter import rasterize
+from controlgs_adapter.rendering.splatter_reference import rasterize_reference
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import Camera
 

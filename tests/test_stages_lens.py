@@ -282,7 +282,7 @@ def test_lut_file_round_trip(tmp_path):
     with pytest.raises(InputValueError, match="size"):
         LensPrewarp().save_lut(tmp_path / "x.safetensors")
     from controlgs_adapter.errors import FileFormatError
-    from controlgs_adapter.io import save_tensors
+    from controlgs_adapter.formats.safetensors import save_tensors
 
     other = save_tensors(tmp_path / "other.safetensors", {"x": torch.zeros(1)}, {}, kind="something-else", format_version=1)
     with pytest.raises(FileFormatError, match="expected a 'controlgs-prewarp-lut'"):

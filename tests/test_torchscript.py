@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from controlgs_adapter.errors import TargetError
-from controlgs_adapter.torchscript import eager_from_script
+from controlgs_adapter.formats.torchscript import eager_from_script
 
 
 def _roundtrip(module: nn.Module, mode: str, in_features: int) -> torch.jit.ScriptModule:

@@ -22,13 +22,13 @@ import pytest
 import torch
 from torch import nn
 
-import controlgs_adapter.torchscript as ts
-from controlgs_adapter.backends.formats import load_torchscript, load_torchscript_tensors
+import controlgs_adapter.formats.torchscript as ts
+from controlgs_adapter.formats.backbone import load_torchscript, load_torchscript_tensors
 from controlgs_adapter.backends.octree_gs import load_octree_gs_dir
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.scaffold_io import load_scaffold_dir, save_scaffold_dir
 from controlgs_adapter.errors import FileFormatError
-from controlgs_adapter.torchscript import eager_from_archive, tensors_from_archive
+from controlgs_adapter.formats.torchscript import eager_from_archive, tensors_from_archive
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.*: the format under test
 

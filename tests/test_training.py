@@ -7,7 +7,7 @@ import torch
 
 pytest.importorskip("skimage")
 
-from controlgs_adapter.backends.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.scene import load_builtin_scene
 from controlgs_adapter.training import DEFAULT_EFFECTS, TrainConfig, Trainer, modules_for

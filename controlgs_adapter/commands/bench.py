@@ -124,7 +124,7 @@ def phase_times(model: Any, scene: Any, modes: tuple[str, ...], steps: int, seed
     Every sampled (view, state) is stepped once per mode in turn (the order rotates), so that the
     modes see the same inputs and the same machine load; the first sample is a warm-up.
     """
-    from controlgs_adapter.backends.splatter import rasterize
+    from controlgs_adapter.rendering.splatter import rasterize
     from controlgs_adapter.losses import image_loss
     from controlgs_adapter.training import TrainConfig, Trainer
 
@@ -223,7 +223,7 @@ def knob_results(model: Any, scene: Any, s: BenchSettings, workdir: Path, progre
 def ss_rows(model: Any, scene: Any, result: Any, s: BenchSettings) -> list[dict[str, float]]:
     """SS factor: render time at S/d (no SS) and at S (SS) and PSNR at rho = 0 of no-SS,
     SS-backbone and the reference adapter (``k0`` of ``result``), per d of the grid."""
-    from controlgs_adapter.rendering import render_view
+    from controlgs_adapter.rendering.protocol import render_view
 
     cam = scene.test_cameras[0]
     j = list(result.power_saving).index(0.0)
@@ -244,7 +244,7 @@ def render_overhead(model: Any, scene: Any, adapter: Path, workdir: Path, repeat
     from controlgs_adapter.controlgs import ControlGS
     from controlgs_adapter.scene import builtin_backbone_dir
     from controlgs_adapter.state import RuntimeState
-    from controlgs_adapter.rendering import render_view
+    from controlgs_adapter.rendering.protocol import render_view
 
     cam = scene.test_cameras[0]
     state = RuntimeState(downsample=2.0, power_saving=0.4)
@@ -388,7 +388,7 @@ def format_report(r: BenchResult, command: str) -> str:
 
 def write_report(text: str, path: str | Path) -> Path:
     """Write ``text`` to ``path`` atomically."""
-    from controlgs_adapter.io import atomic_write
+    from controlgs_adapter.formats.safetensors import atomic_write
 
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 

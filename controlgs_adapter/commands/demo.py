@@ -235,7 +235,7 @@ def report_figures(model: Any, adapter: Path, views: Any, *, effects: dict[str, 
     """The report's comparison (:func:`side_by_side`) and condition strip (:func:`condition_response`) on the
     first of ``views``, on the model's device."""
     from controlgs_adapter.evaluation import condition_response, side_by_side
-    from controlgs_adapter.rendering import model_device
+    from controlgs_adapter.rendering.protocol import model_device
 
     device = model_device(model)
     cam, gt = views[0]

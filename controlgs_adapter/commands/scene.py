@@ -40,7 +40,7 @@ def run_export(args: argparse.Namespace) -> int:
 
     import matplotlib.image
 
-    from controlgs_adapter.io import atomic_write
+    from controlgs_adapter.formats.safetensors import atomic_write
     from controlgs_adapter.scene import load_builtin_scene
 
     scene = load_builtin_scene(args.variant, args.resolution, cache=True)

@@ -87,7 +87,7 @@ def _run(args: argparse.Namespace) -> int:
 def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
     """Train on ``--model`` / ``--data``: load, check the scene, record ``run.json``, train."""
     from controlgs_adapter.datasets.sanity import check_scene
-    from controlgs_adapter.io import atomic_write
+    from controlgs_adapter.formats.safetensors import atomic_write
     from .demo import effects_from
 
     runs = seed_runs(out, args.seed, args.seeds)

@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from ..errors import FileFormatError, InputValueError
-from ..io import atomic_write
+from controlgs_adapter.formats.safetensors import atomic_write
 from .diorama import VARIANTS, load_builtin_scene
 
 __all__ = ["builtin_backbone_dir", "load_builtin_backbone", "build_builtin_backbone"]
@@ -48,7 +48,7 @@ def build_builtin_backbone(variant: str = "ar", *, out: str | Path, resolution: 
     backbones are ``controlgs_adapter/data/builtin_scene/<variant>`` of a checkout), with a
     ``build.json`` that records the arguments, time and the test-view PSNR of the bare backbone."""
     from ..backends.scaffold_io import save_scaffold_dir
-    from ..backends.train_backbone import train_reference_model
+    from controlgs_adapter.backends.models.train_backbone import train_reference_model
     from ..metrics import psnr, ssim
 
     scene = load_builtin_scene(variant, resolution, cache=True)

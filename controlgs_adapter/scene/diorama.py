@@ -19,7 +19,7 @@ import torch
 from ..datasets.base import PosedImages, SceneData
 from ..datasets.memory import tensor_frames
 from ..errors import FileFormatError, InputValueError
-from ..io import load_tensors, save_tensors
+from controlgs_adapter.formats.safetensors import load_tensors, save_tensors
 from ..state import Camera
 from .cameras import arc_cameras
 from .planes import TexturedPlane, plane_points, render_planes

@@ -30,7 +30,7 @@ from ..errors import InputValueError
 from ..evaluation import BASELINES, make_pipeline, scores
 from ..report import METHOD_LABELS
 from ..metrics import optional_metrics
-from ..rendering import Renderer, model_device, render_view, renderer_for
+from controlgs_adapter.rendering.protocol import Renderer, model_device, render_view, renderer_for
 from ..state import Camera, RuntimeState
 from ..training import view_cameras
 
@@ -239,7 +239,7 @@ class ViewerSession:
         truth: ground truth of any camera (the built-in scene renders it exactly), used for orbit
             views; None: orbit views have no ground truth (the SS-backbone stands in as the display's
             power reference and no metrics are shown).
-        renderer: how the model renders (default :func:`~controlgs_adapter.rendering.renderer_for`).
+        renderer: how the model renders (default :func:`~controlgs_adapter.rendering.protocol.renderer_for`).
         name: the scene's name, shown on the page.
     """
 

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
-from controlgs_adapter.io import load_tensors, save_tensors
+from controlgs_adapter.formats.safetensors import load_tensors, save_tensors
 
 from ..placement import Placement, image_region
 

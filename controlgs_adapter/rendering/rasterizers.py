@@ -4,7 +4,7 @@ Every family of the library decodes its anchors into Gaussians and calls :func:`
 which runs the rasterizer chosen for the tensors' device and dtype (:func:`select_rasterizer`):
 
 * ``torch`` (built-in, the default and the reference): the pure-PyTorch EWA splatter of
-  :mod:`controlgs_adapter.backends.splatter`; any device, float32 or float64.
+  :mod:`controlgs_adapter.rendering.splatter`; any device, float32 or float64.
 * ``gsplat`` (built-in, optional): gsplat's CUDA ``rasterization``; chosen on CUDA devices for
   float32 when ``gsplat`` imports (``pip install --no-deps gsplat``, docs/rendering.md). It follows
   the project's conventions where gsplat lets it (near plane, low-pass, the 0.99 alpha clamp);
@@ -27,9 +27,9 @@ from typing import Any, ClassVar, Iterator
 
 import torch
 
-from .errors import InputValueError
-from .hookspecs import hookimpl
-from .state import Camera
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.hookspecs import hookimpl
+from controlgs_adapter.state import Camera
 
 __all__ = ["Rasterizer", "TorchSplatter", "GsplatRasterizer", "rasterize_gaussians", "select_rasterizer",
            "use_rasterizer", "RASTERIZER_ENV", "gsplat_alpha_max"]
@@ -42,7 +42,7 @@ _CHOICE: contextvars.ContextVar["str | Rasterizer | None"] = contextvars.Context
 
 class Rasterizer:
     """Base class of rasterizer plug-ins: set :attr:`name`, implement :meth:`unavailable` and
-    :meth:`__call__` with the conventions of :func:`controlgs_adapter.backends.splatter.rasterize`
+    :meth:`__call__` with the conventions of :func:`controlgs_adapter.rendering.splatter.rasterize`
     (OpenCV camera, pixel centres at +0.5, quaternions ``(w, x, y, z)``, linear scales)."""
 
     name: ClassVar[str] = ""
@@ -56,7 +56,7 @@ class Rasterizer:
         """Render ``N`` Gaussians: means ``[N, 3]`` (world), scales ``[N, 3]`` (linear std-devs),
         rotations ``[N, 4]`` ``(w, x, y, z)``, opacities ``[N]`` in [0, 1], colors ``[N, 3]``,
         background ``[3]`` or None (black). Returns a
-        :class:`~controlgs_adapter.backends.splatter.RasterOutput` (color ``[3, H, W]``, alpha and
+        :class:`~controlgs_adapter.rendering.splatter.RasterOutput` (color ``[3, H, W]``, alpha and
         depth ``[1, H, W]``, visible ``[N]`` bool)."""
         raise NotImplementedError
 
@@ -73,7 +73,7 @@ class TorchSplatter(Rasterizer):
         return None if dtype in (torch.float32, torch.float64) else f"needs float32 or float64, got {dtype}"
 
     def __call__(self, means, scales, rotations, opacities, colors, camera, background=None):  # noqa: D102
-        from .backends.splatter import rasterize
+        from controlgs_adapter.rendering.splatter import rasterize
 
         return rasterize(means, scales, rotations, opacities, colors, camera, background)
 
@@ -108,7 +108,7 @@ class GsplatRasterizer(Rasterizer):
         return mod if isinstance(mod, str) else None
 
     def __call__(self, means, scales, rotations, opacities, colors, camera, background=None):  # noqa: D102
-        from .backends.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE, RasterOutput
+        from controlgs_adapter.rendering.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE, RasterOutput
 
         gsplat = _import_gsplat()
         if isinstance(gsplat, str):
@@ -160,7 +160,7 @@ def select_rasterizer(device: torch.device | str, dtype: torch.dtype = torch.flo
     Raises:
         InputValueError: the named rasterizer is not registered or cannot run these tensors (why).
     """
-    from . import plugins
+    from controlgs_adapter import plugins
 
     device = torch.device(device)
     choice = rasterizer if rasterizer is not None else _CHOICE.get()

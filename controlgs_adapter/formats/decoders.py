@@ -17,7 +17,7 @@ from torch import nn
 
 from controlgs_adapter.errors import FileFormatError
 
-from .formats import load_state_dict_file, load_torchscript, load_torchscript_tensors
+from controlgs_adapter.formats.backbone import load_state_dict_file, load_torchscript, load_torchscript_tensors
 
 __all__ = ["MLP_FILES", "UNITE_FILE", "ATTRIBUTE_DECODERS", "DECODER_ACTIVATIONS", "Decoders", "build_mlp",
            "decoders_from_state_dicts", "mlp_from_state_dict", "check_first_width"]

@@ -13,12 +13,12 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from .backend import Backend
-from .errors import FileFormatError, InputValueError, NonFiniteError
-from .io import load_tensors, read_header, save_tensors
+from controlgs_adapter.backend import Backend
+from controlgs_adapter.errors import FileFormatError, InputValueError, NonFiniteError
+from controlgs_adapter.formats.safetensors import load_tensors, read_header, save_tensors
 
 if TYPE_CHECKING:
-    from .controlgs import ControlGS
+    from controlgs_adapter.controlgs import ControlGS
 
 __all__ = ["ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "Problem", "build_header", "check_header", "read_spec",
            "read_tensors", "write_adapter", "valid_fingerprint", "row_map", "map_conditions", "fingerprint_mismatch",

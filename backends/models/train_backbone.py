@@ -27,8 +27,8 @@ from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.metrics import ssim
 from controlgs_adapter.state import Camera
 
-from .reference_model import NeuralGaussianModel, median_spacing
-from .splatter import rasterize
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel, median_spacing
+from controlgs_adapter.rendering.splatter import rasterize
 
 __all__ = ["train_reference_model", "grid_points", "camera_target"]
 

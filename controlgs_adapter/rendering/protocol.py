@@ -29,9 +29,9 @@ from typing import Any, Callable, Protocol, Sequence, runtime_checkable
 import torch
 from torch import nn
 
-from .controlgs import ControlGS, _select_backend
-from .errors import InputValueError, NoMatchingBackendError, ShapeError
-from .state import Camera, RuntimeState
+from controlgs_adapter.controlgs import ControlGS, _select_backend
+from controlgs_adapter.errors import InputValueError, NoMatchingBackendError, ShapeError
+from controlgs_adapter.state import Camera, RuntimeState
 
 __all__ = ["Renderer", "ModelRenderer", "FunctionRenderer", "renderer_for", "as_renderer", "render_view",
            "model_device"]

@@ -31,7 +31,7 @@ from typing import Any, Callable
 import torch
 from torch import nn
 
-from .errors import FileFormatError, TargetError
+from controlgs_adapter.errors import FileFormatError, TargetError
 
 __all__ = ["eager_from_script", "eager_from_archive", "tensors_from_archive", "SUPPORTED_LAYERS", "ARCHIVE_LAYERS"]
 

@@ -1,4 +1,4 @@
-"""Brute-force float64 Gaussian splatter: the test oracle for ``backends.splatter.rasterize``.
+"""Brute-force float64 Gaussian splatter: the test oracle for ``controlgs_adapter.rendering.splatter.rasterize``.
 
 Written independently of the fast path (gsplat ``_torch_impl`` style): explicit 3x3 matrices and
 ``torch.linalg``, every pixel against every Gaussian (a dense ``[H*W, N]`` tensor, so only for small
@@ -12,7 +12,7 @@ import torch
 
 from controlgs_adapter.state import Camera
 
-from .splatter import (
+from controlgs_adapter.rendering.splatter import (
     ALPHA_MAX,
     ALPHA_MIN,
     EXTENT_SIGMAS,

@@ -19,8 +19,8 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
-from ._version import __version__
-from .errors import FileFormatError, FileWriteError, InputValueError, NonFiniteError
+from controlgs_adapter._version import __version__
+from controlgs_adapter.errors import FileFormatError, FileWriteError, InputValueError, NonFiniteError
 
 __all__ = ["HEADER_KEY", "atomic_write", "save_tensors", "load_tensors", "read_header"]
 

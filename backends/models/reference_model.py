@@ -29,7 +29,7 @@ from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import Camera
 
-from .anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, assemble_gaussians, feature_bank
+from controlgs_adapter.backends.models.anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, assemble_gaussians, feature_bank
 
 __all__ = ["NeuralGaussianModel", "NeuralGaussians", "AppearanceEmbedding", "median_spacing"]
 
@@ -217,7 +217,7 @@ class NeuralGaussianModel(AnchorModel):
         """``BoolTensor[A]``: anchors whose footprint can touch the image (Scaffold-GS's
         ``prefilter_voxel``): each anchor as a Gaussian with mean ``get_anchor``, scales
         ``get_scaling[:, :3]`` and rotation ``_rotation``, kept by the rule of
-        :func:`~controlgs_adapter.backends.anchor_model.anchor_visibility`."""
+        :func:`~controlgs_adapter.backends.models.anchor_model.anchor_visibility`."""
         return anchor_visibility(camera, self.get_anchor, self.get_scaling, self._rotation)
 
     # ----------------------------------------------------------------- decoding

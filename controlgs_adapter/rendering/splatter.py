@@ -1,7 +1,7 @@
 """Differentiable EWA Gaussian splatter in pure PyTorch (CPU-first, any device).
 
 ``rasterize`` renders 3D Gaussians with the conventions of 3D Gaussian Splatting (Kerbl et al. 2023);
-``backends/splatter_reference.py`` holds the brute-force float64 oracle the tests compare against.
+``controlgs_adapter/rendering/splatter_reference.py`` holds the brute-force float64 oracle the tests compare against.
 
 Conventions (all shared with the reference; see ``rasterize``'s docstring for the full list):
 

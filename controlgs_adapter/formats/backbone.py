@@ -154,7 +154,7 @@ def write_ply(path: str | os.PathLike, fields: Mapping[str, np.ndarray], comment
               *, comment_keyword: str = "comment") -> Path:
     """Write ``fields`` (name -> ``[V]`` array, all the same length) as a binary little-endian PLY
     ``vertex`` element, atomically. Float arrays are stored as float32 unless already float64."""
-    from controlgs_adapter.io import atomic_write
+    from controlgs_adapter.formats.safetensors import atomic_write
 
     names = list(fields)
     cols = [np.asarray(fields[n]) for n in names]
@@ -259,14 +259,14 @@ def load_torchscript(path: str | os.PathLike, *, trust_code: bool = False) -> to
     """A TorchScript decoder file (``opacity_mlp.pt``, ...) as an eager module on CPU.
 
     By default the archive is read as data and nothing in it runs
-    (:func:`controlgs_adapter.torchscript.eager_from_archive`): it must be a traced or scripted
+    (:func:`controlgs_adapter.formats.torchscript.eager_from_archive`): it must be a traced or scripted
     ``nn.Sequential`` of the supported layers, else it is refused with a FileFormatError naming the
     file and what was found. ``trust_code=True`` is an explicit opt-in for archives you trust
     outside that subset: ``torch.jit.load`` (which can run code stored in the archive) and a rebuild
     checked by running the module on a probe batch.
     """
     from controlgs_adapter.errors import TargetError
-    from controlgs_adapter.torchscript import eager_from_archive, eager_from_script
+    from controlgs_adapter.formats.torchscript import eager_from_archive, eager_from_script
 
     path = Path(path)
     if not trust_code:
@@ -282,10 +282,10 @@ def load_torchscript_tensors(path: str | os.PathLike, *, trust_code: bool = Fals
     """The tensors of a TorchScript archive (e.g. ``embedding_appearance.pt``) by state-dict name, on CPU.
 
     By default read as data, nothing in the archive runs
-    (:func:`controlgs_adapter.torchscript.tensors_from_archive`); ``trust_code=True`` uses
+    (:func:`controlgs_adapter.formats.torchscript.tensors_from_archive`); ``trust_code=True`` uses
     ``torch.jit.load`` (which can run code stored in the archive).
     """
-    from controlgs_adapter.torchscript import tensors_from_archive
+    from controlgs_adapter.formats.torchscript import tensors_from_archive
 
     if not trust_code:
         return tensors_from_archive(path)

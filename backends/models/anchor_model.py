@@ -15,10 +15,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from controlgs_adapter.backend import anchor_ids_from_mask
-from controlgs_adapter.rasterizers import rasterize_gaussians
+from controlgs_adapter.rendering.rasterizers import rasterize_gaussians
 from controlgs_adapter.state import Camera
 
-from .splatter import NEAR_PLANE, RasterOutput, project_gaussians
+from controlgs_adapter.rendering.splatter import NEAR_PLANE, RasterOutput, project_gaussians
 
 __all__ = ["AnchorModel", "NeuralGaussians", "anchor_ids_from_mask", "anchor_visibility", "assemble_gaussians",
            "feature_bank", "as_param"]
@@ -71,7 +71,7 @@ def anchor_visibility(camera: Camera, means: torch.Tensor, scales: torch.Tensor,
 
     Each anchor is a Gaussian (``means [A, 3]``, linear ``scales [A, 3+]`` of which the first 3
     are used, ``rotations [A, 4]``) projected as the 3DGS rasteriser does
-    (:func:`~controlgs_adapter.backends.splatter.project_gaussians`: EWA 2D covariance plus the
+    (:func:`~controlgs_adapter.rendering.splatter.project_gaussians`: EWA 2D covariance plus the
     0.3 px^2 low-pass), with radius ``ceil(3 * sqrt(largest eigenvalue))`` px (eigenvalue gap
     floored at 0.1 as in 3DGS). An anchor is visible iff its camera-space depth is ``>
     NEAR_PLANE`` (0.2, 3DGS's ``in_frustum``) and the square of half-width ``radius`` about its
@@ -146,7 +146,7 @@ class AnchorModel(nn.Module):
                **options: Any) -> RasterOutput:
         """Prefilter (``visible_mask=None`` -> :meth:`visible_anchors`), :meth:`decode` (``options``
         go to it) and splat with the rasterizer chosen for the model's device
-        (:func:`controlgs_adapter.rasterizers.rasterize_gaussians`: the pure-torch splatter, gsplat on
+        (:func:`controlgs_adapter.rendering.rasterizers.rasterize_gaussians`: the pure-torch splatter, gsplat on
         CUDA when installed). Returns its ``RasterOutput``."""
         if visible_mask is None:
             visible_mask = self.visible_anchors(camera)
