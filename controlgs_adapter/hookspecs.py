@@ -1,3 +1,5 @@
+# mypy: disable-error-code="empty-body"
+# (a hook specification is a signature only: pluggy never calls its body)
 """Hook specifications. Built-ins implement them exactly as third-party plug-ins do
 (``@hookimpl(trylast=True)``), so a plug-in can add to or override any of them.
 

@@ -99,13 +99,16 @@ class StrengthSchedule:
             check_tensor("screen_xy", screen_xy, ["R", 2])
             rows, device = screen_xy.shape[0], screen_xy.device if device is None else device
         elif self.per_anchor:
-            raise InputValueError(f"schedule {self.name!r} is per anchor and needs screen_xy [R, 2], got None")
+            raise self._missing_screen_xy()
         if rows is None:
             raise InputValueError("strength() needs screen_xy or rows")
         alpha = self.control(state, screen_xy)
         if isinstance(alpha, torch.Tensor):
             return self._normalise(alpha.to(dtype=dtype, device=device))
         return torch.full((rows,), self.scalar_strength(alpha), dtype=dtype, device=device)
+
+    def _missing_screen_xy(self) -> InputValueError:
+        return InputValueError(f"schedule {self.name!r} is per anchor and needs screen_xy [R, 2], got None")
 
     def scalar_strength(self, alpha: float) -> float:
         """``clamp((alpha - lo) / (hi - lo), 0, 1)`` for one control value."""
@@ -130,6 +133,8 @@ class LensSchedule(StrengthSchedule):
     control_doc = "||p||_2"
 
     def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> torch.Tensor:
+        if screen_xy is None:
+            raise self._missing_screen_xy()
         return torch.linalg.vector_norm(screen_xy, dim=-1)
 
 
@@ -164,6 +169,8 @@ class FoveationSchedule(StrengthSchedule):
     control_doc = "||p - gaze||_2"
 
     def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> torch.Tensor:
+        if screen_xy is None:
+            raise self._missing_screen_xy()
         if state.gaze is None:
             return torch.zeros(screen_xy.shape[:-1], dtype=screen_xy.dtype, device=screen_xy.device)
         gaze = torch.tensor(state.gaze, dtype=screen_xy.dtype, device=screen_xy.device)

@@ -100,6 +100,9 @@ def test_schedule_argument_errors():
         DisplaySchedule(hi=float("inf"))
     with pytest.raises(InputValueError, match="screen_xy"):
         LensSchedule().strength(RuntimeState())
+    for per_anchor in (LensSchedule(), FoveationSchedule()):  # control() called directly, without positions
+        with pytest.raises(InputValueError, match="screen_xy"):
+            per_anchor.control(RuntimeState(), None)
     assert ResampleSchedule().strength(RuntimeState(downsample=8.0), rows=3).tolist() == [1.0, 1.0, 1.0]
 
 

@@ -5,8 +5,13 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from typing import TYPE_CHECKING
 
 from controlgs_adapter.errors import PluginLoadError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from controlgs_adapter.downstream.stage import Stage
+    from controlgs_adapter.plugins import PluginInfo
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -15,7 +20,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.set_defaults(func=run)
 
 
-def _what(info, width: int = 60) -> str:
+def _what(info: PluginInfo, width: int = 60) -> str:
     """One line on what the item does: a backend's or stage's docstring summary, a schedule's mapping."""
     if info.kind == "schedule":
         text = repr(info.obj).split("(", 1)[-1].rstrip(")")
@@ -24,7 +29,8 @@ def _what(info, width: int = 60) -> str:
         text = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split()).replace("``", "")
         text = re.sub(r":\w+:`~?([^`]*)`", r"\1", text)  # :class:`X` -> X
         if info.kind == "stage":
-            text = f"[order {cls.order:g}, {cls.domain}] {text}"
+            stage: type[Stage] = info.obj
+            text = f"[order {stage.order:g}, {stage.domain}] {text}"
     return text if len(text) <= width else text[: width - 3].rstrip() + "..."
 
 
@@ -42,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
             for i in report]
     widths = [max(len(str(r[c])) for r in [head, *rows]) for c in range(len(head))]
 
-    def line(r) -> str:
+    def line(r: tuple[str, ...]) -> str:
         return "  ".join(str(v).ljust(w) for v, w in zip(r, widths)).rstrip()
 
     print(line(head))
