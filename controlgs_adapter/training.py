@@ -28,6 +28,7 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 import torch
 from tqdm.auto import tqdm
 
+from .benchmarking.clock import PhaseClock
 from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
@@ -48,6 +49,10 @@ DEFAULT_EFFECTS: dict[str, Any] = {"lens": True, "resample": True, "display": Tr
 
 # condition module -> downstream stages that make it useful
 _MODULE_STAGES = {"lens": ("lens", "optics"), "resample": ("resample",), "display": ("display",)}
+
+
+def _no_lap(name: str) -> None:
+    """The lap of a step without a clock."""
 
 
 def modules_for(effects: Mapping[str, Any]) -> tuple[str, ...]:
@@ -239,8 +244,15 @@ class Trainer:
         switch = round(self.config.iterations * (1.0 - self.config.psf_fraction))
         return "distortion" if iteration < switch else self.config.psf_mode
 
-    def step(self) -> float:
-        """One optimisation step; returns the loss."""
+    def step(self, clock: PhaseClock | None = None) -> float:
+        """One optimisation step; returns the loss.
+
+        ``clock``: a :class:`~controlgs_adapter.benchmarking.PhaseClock` to time the step's phases
+        (:data:`~controlgs_adapter.benchmarking.STEP_PHASES`); None (default): not timed, no syncs added.
+        """
+        lap = _no_lap if clock is None else clock.lap
+        if clock is not None:
+            clock.start()
         if "optics" in self.pipeline:
             self.pipeline["optics"].mode = self.optics_mode(self.iteration)
         batch = [self.sample() for _ in range(self.config.batch_size)]  # the global batch, the same on every rank
@@ -248,14 +260,19 @@ class Trainer:
         value = 0.0
         for view, state in self.dist.shard(batch):  # this process's share
             cam, gt = self.views[view]
+            lap("sample")
             with value_checks(False):  # no host syncs in the forward; the loss is checked below
                 image = render_view(self.cgs, self.model, cam, state, self.background, renderer=self.renderer)
                 if tuple(gt.shape) != tuple(image.shape):
                     raise InputValueError(f"view {view}: image is {list(gt.shape)}, its camera renders {list(image.shape)}")
                 gt = gt.to(image.device, non_blocking=True)
+                lap("render")
                 eye = self.pipeline(image, state, reference=gt)
+                lap("pipeline")
                 loss = image_loss(eye, gt, self.config.loss) / len(batch)
+                lap("loss")
             loss.backward()
+            lap("backward")
             value += float(loss.detach())  # the loss log: the step's one device sync besides the check below
         value = self.dist.sync_gradients(self.cgs.trainable_parameters(), row_sparse=(self.cgs.injector.conditions,),
                                          loss=value, step=self.iteration)
@@ -269,6 +286,7 @@ class Trainer:
             bad = [name for name, ok in zip(params, finite.tolist()) if not ok]
             raise NonFiniteError(f"training diverged at iteration {self.iteration}: parameter(s) {bad} became NaN/Inf "
                                  f"(lr {self.config.lr:g}); the last good checkpoint was kept, this state not written")
+        lap("optimizer")
         self.iteration += 1
         self.history.append(value)
         return value

@@ -1,0 +1,71 @@
+"""The training step's phase clock: it times ``Trainer.step`` itself (no second copy of the step)
+and changes nothing of what the step computes."""
+
+import copy
+import time
+
+import pytest
+import torch
+
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.benchmarking import STEP_PHASES, ClockedRasterizer, PhaseClock, clock_stage
+from controlgs_adapter.rendering.rasterizers import use_rasterizer
+from controlgs_adapter.scene import load_builtin_scene
+from controlgs_adapter.training import TrainConfig, Trainer
+
+EFFECTS = {"lens": True, "resample": True, "display": True, "oled": True, "optics": True}
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=20)
+    return scene, model.eval()
+
+
+def _trainer(scene, model):
+    config = TrainConfig(iterations=4, checkpoint_every=0, psf_fraction=0.5, psf_mode="exact")
+    return Trainer(copy.deepcopy(model), scene.views("train"), config, effects=EFFECTS)
+
+
+def test_clocked_step_computes_the_same_and_times_every_phase(tiny):
+    scene, model = tiny
+    plain, timed = _trainer(scene, model), _trainer(scene, model)
+    clock = PhaseClock("cpu")
+    try:
+        for it in range(4):  # distortion-only optics, then the exact PSF
+            loss = plain.step()
+            t0 = time.perf_counter()
+            with use_rasterizer(ClockedRasterizer(clock)), clock_stage(clock, timed.pipeline["optics"], "psf", "stages"):
+                timed_loss = timed.step(clock)
+            outer = time.perf_counter() - t0
+            assert timed_loss == loss  # bit-identical: the clock only reads the time
+            # the render splits into decode and splat at the rasterizer, the pipeline at the optics stage
+            assert list(clock.laps) == ["sample", "decode", "splat", "render", "stages", "psf", "pipeline", "loss",
+                                        "backward", "optimizer"], (it, clock.laps)
+            assert set(STEP_PHASES) <= set(clock.laps)
+            assert all(v >= 0 for v in clock.laps.values())
+            assert clock.laps["splat"] > 0 and clock.laps["psf"] > 0 and clock.laps["backward"] > 0
+            assert clock.total <= outer  # the laps cover the step, nothing outside it
+        for a, b in zip(plain.cgs.trainable_parameters(), timed.cgs.trainable_parameters()):
+            assert torch.equal(a, b)
+    finally:
+        plain.cgs.unwrap()
+        timed.cgs.unwrap()
+
+
+def test_laps_add_up_per_name():
+    clock = PhaseClock()
+    clock.start()
+    time.sleep(0.01)
+    clock.lap("a")
+    time.sleep(0.02)
+    clock.lap("b")
+    time.sleep(0.01)
+    clock.lap("a")
+    assert list(clock.laps) == ["a", "b"]
+    assert clock.laps["a"] >= 0.02 and clock.laps["b"] >= 0.02
+    assert clock.total == pytest.approx(clock.laps["a"] + clock.laps["b"])
+    clock.start()
+    assert clock.laps == {}
