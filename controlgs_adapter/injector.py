@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Sequence, cast
 
 import torch
 from torch import nn
@@ -119,6 +119,12 @@ class ConditionInjector(nn.Module):
         self._ctx = None
 
     # -- the injection ---------------------------------------------------------------------------
+    def _projection(self, module: str, width: int) -> nn.Linear:
+        """``module``'s projection to FC1 width ``width`` (``projections.<module>.d<width>``)."""
+        # nn.ModuleDict is not generic: its stubs type every item as Module, whatever __init__ put there
+        per_width = cast(nn.ModuleDict, self.projections[module])
+        return cast(nn.Linear, per_width[f"d{width}"])
+
     def injection(self, ctx: InjectionContext, width: int) -> torch.Tensor | None:
         """``[R_a, D1]`` sum of the active modules' scaled projected conditions, or None if no
         module is active. Cached per context, width and grad mode; recomputed if a parameter was
@@ -126,7 +132,7 @@ class ConditionInjector(nn.Module):
         if not ctx.strengths:
             return None
         key = (width, torch.is_grad_enabled())
-        projections = [self.projections[m][f"d{width}"].weight for m in ctx.strengths]  # [D1, N] each
+        projections = [self._projection(m, width).weight for m in ctx.strengths]  # [D1, N] each
         versions = (self.conditions._version, *(w._version for w in projections))
         hit = ctx.cache.get(key)
         if hit is not None and hit[0] == versions:

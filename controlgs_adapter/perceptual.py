@@ -100,6 +100,9 @@ class LPIPS(torch.nn.Module):
     [0, 1] (H, W >= :data:`LPIPS_MIN_SIZE`) -> ``[...]`` distances (0 for identical images,
     symmetric). Frozen; build it with :func:`load_lpips`. ``source`` names the weight files."""
 
+    shift: torch.Tensor  # [3, 1, 1] buffers: LPIPS input normalisation
+    scale: torch.Tensor
+
     def __init__(self, weights: dict[str, torch.Tensor], source: str = "") -> None:
         super().__init__()
         expected = _expected()

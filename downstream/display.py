@@ -242,6 +242,7 @@ class DisplayMapping(Stage):
 
     def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         shown = ctx.displayed_reference if self.wants_displayed_reference else None
+        power_ref: torch.Tensor | None
         if shown is not None:
             power_ref = _power(shown.detach().to(image.dtype), self.coefficients)
         else:

@@ -101,7 +101,7 @@ def area_resample(image: torch.Tensor, d: float) -> torch.Tensor:
         ``[..., 3, round(H/d), round(W/d)]`` (each at least 1); ``image`` itself when d == 1.
     """
     check_image("image", image, finite=False)
-    return _area_resample_to(image, resampled_size(tuple(image.shape[-2:]), d))
+    return _area_resample_to(image, resampled_size((image.shape[-2], image.shape[-1]), d))
 
 
 class AreaResample(Stage):
