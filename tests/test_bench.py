@@ -3,8 +3,8 @@
 import math
 import re
 
-from controlgs_adapter.commands.bench import (COND_DIMS, MODULE_SETS, PART_DOCS, PSF_MODES, BenchSettings, format_report,
-                                              run_bench, write_report)
+from controlgs_adapter.benchmarking.accuracy_time import COND_DIMS, MODULE_SETS, PSF_MODES, BenchSettings, run_bench
+from controlgs_adapter.benchmarking.report import PART_DOCS, format_report, write_report
 
 
 def _table_rows(text: str, header_start: str) -> list[list[str]]:
