@@ -36,7 +36,6 @@ next to what a dense all-reduce of every gradient would have sent.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from dataclasses import dataclass, field
@@ -49,13 +48,15 @@ from torch import nn
 
 from .errors import ControlGSError, InputValueError
 
-__all__ = ["DistributedError", "CommStats", "DistContext", "init_distributed", "shard_scenes", "add_distributed_arguments",
-           "EXCHANGES"]
+__all__ = ["DistributedError", "CommStats", "DistContext", "init_distributed", "shard_scenes", "EXCHANGES",
+           "DEFAULT_TIMEOUT_S"]
 
 T = TypeVar("T")
 
 #: how the row-sparse tables travel: only touched rows, the whole table, or whichever is cheaper
 EXCHANGES = ("auto", "sparse", "dense")
+#: seconds a collective waits for the other processes (:func:`init_distributed`)
+DEFAULT_TIMEOUT_S = 300.0
 
 _TORCHRUN_VARS = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
 
@@ -338,7 +339,7 @@ class DistContext:
         return float(buf[-1])
 
 
-def init_distributed(backend: str | None = None, *, timeout: float = 300.0, exchange: str = "auto") -> DistContext:
+def init_distributed(backend: str | None = None, *, timeout: float = DEFAULT_TIMEOUT_S, exchange: str = EXCHANGES[0]) -> DistContext:
     """The :class:`DistContext` of this process, joining torchrun's process group if launched by it.
 
     Without torchrun's environment (``WORLD_SIZE`` unset or 1) this is a single process and no
@@ -377,7 +378,7 @@ def init_distributed(backend: str | None = None, *, timeout: float = 300.0, exch
         torch.cuda.set_device(device)
     try:
         dist.init_process_group(backend, rank=rank, world_size=world, timeout=timedelta(seconds=float(timeout)),
-                                **({"device_id": device} if backend == "nccl" else {}))
+                                device_id=device if backend == "nccl" else None)
     except (RuntimeError, ValueError) as e:
         raise DistributedError(f"rank {rank} of {world}: could not join the process group at "
                                f"{env['MASTER_ADDR']}:{env['MASTER_PORT']} ({backend}): {e}") from e
@@ -393,22 +394,3 @@ def shard_scenes(scenes: Sequence[str], ctx: DistContext) -> list[str]:
     if not scenes:
         raise InputValueError("scenes must name at least one scene")
     return ctx.shard(list(scenes))
-
-
-def add_distributed_arguments(p: argparse.ArgumentParser, scene_choices: Sequence[str] | None = None) -> None:
-    """The ``controlgs train`` options of data-parallel and many-scenes training (torchrun)."""
-    g = p.add_argument_group("distributed training (launch with torchrun; see docs/distributed.md)")
-    g.add_argument("--batch-size", type=int, default=1,
-                   help="views per step, the global batch split over the processes (the same batch size gives the "
-                        "same result on any number of processes)")
-    g.add_argument("--scenes", nargs="+", choices=scene_choices, metavar="SCENE",
-                   help="many-scenes mode: train every SCENE's adapter(s) into OUT/<SCENE>/, the scenes split over "
-                        "the processes (each process trains its scenes alone)"
-                        + (f"; one of {', '.join(scene_choices)}" if scene_choices else ""))
-    g.add_argument("--dist-backend", choices=("gloo", "nccl"), default=None,
-                   help="process-group backend (default: nccl with CUDA, else gloo)")
-    g.add_argument("--dist-timeout", type=float, default=300.0,
-                   help="seconds a collective waits for the other processes before the run fails")
-    g.add_argument("--exchange", choices=EXCHANGES, default="auto",
-                   help="how per-anchor condition gradients travel: touched rows only, a dense all-reduce, or the "
-                        "cheaper of the two per step")

@@ -34,12 +34,35 @@ def test_benchmark_scripts_default_to_printing(script: str) -> None:
 
 
 def test_cli_training_defaults_come_from_train_config() -> None:
-    from controlgs_adapter.commands.demo import DEMO_ITERATIONS
+    import inspect
+    from dataclasses import replace
+
+    from controlgs_adapter.ablations import ABLATIONS
+    from controlgs_adapter.commands.adapters import DEMO_ITERATIONS, train_config
+    from controlgs_adapter.distributed import init_distributed
     from controlgs_adapter.training import TrainConfig
 
-    base = TrainConfig()
+    base = replace(TrainConfig(), iterations=DEMO_ITERATIONS)  # the one documented exception: a CPU-sized demo
     for cmd in ("demo", "train"):
         args = build_parser().parse_args([cmd])
-        assert args.iterations == DEMO_ITERATIONS  # the one documented exception: a CPU-sized demo
-        assert (args.checkpoint_every, args.lr, args.cond_dim, args.psf_fraction) == (
-            base.checkpoint_every, base.lr, base.cond_dim, base.psf_fraction)
+        assert train_config(args, "controlgs") == base, cmd
+        for name, (modules, blind) in ABLATIONS.items():
+            assert train_config(args, name) == replace(base, modules=modules, state_blind=blind), (cmd, name)
+    args = build_parser().parse_args(["train"])
+    defaults = inspect.signature(init_distributed).parameters
+    assert (args.dist_timeout, args.exchange) == (defaults["timeout"].default, defaults["exchange"].default)
+
+
+def test_cli_training_options_reach_train_config() -> None:
+    from dataclasses import replace
+
+    from controlgs_adapter.commands.adapters import train_config
+    from controlgs_adapter.training import TrainConfig
+
+    args = build_parser().parse_args(["train", "--iterations", "7", "--lr", "0.02", "--cond-dim", "3", "--psf-fraction",
+                                      "0.25", "--optics", "exact", "--checkpoint-every", "2", "--seed", "5",
+                                      "--batch-size", "4"])
+    want = TrainConfig(iterations=7, lr=0.02, cond_dim=3, psf_fraction=0.25, psf_mode="exact", checkpoint_every=2,
+                       seed=5, batch_size=4)
+    assert train_config(args, "controlgs") == want
+    assert train_config(args, "controlgs", seed=9) == replace(want, seed=9)

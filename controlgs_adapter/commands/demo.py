@@ -10,22 +10,25 @@ import time
 from pathlib import Path
 from typing import Any
 
-#: ``--iterations`` of demo / train: a CPU-sized run on purpose, 10x fewer than the paper's 10,000
-#: (``TrainConfig.iterations``); every other training option defaults to the :class:`TrainConfig` field
-DEMO_ITERATIONS = 1000
+from .adapters import add_training, effects_from, train_adapters
+
 DEFAULT_RESOLUTION = 96
 
 
 def add_common(p: argparse.ArgumentParser) -> None:
-    """Options shared by demo, train and eval."""
+    """Options shared by demo, train and eval (``--optics`` and ``--seed`` default to the
+    :class:`~controlgs_adapter.training.TrainConfig` fields they set)."""
+    from controlgs_adapter.training import TrainConfig
+
+    base = TrainConfig()
     p.add_argument("--variant", choices=("ar", "vr"), default="ar", help="built-in scene: object-centric AR or immersive VR")
     p.add_argument("--resolution", type=int, default=None,
                    help=f"working resolution, longer side in pixels: the built-in scene's S x S (default {DEFAULT_RESOLUTION}); "
                         "your data's images are downscaled to it, never upscaled (default 256)")
     p.add_argument("--test-views", type=int, default=None, help="evaluate only the first N test views")
-    p.add_argument("--optics", choices=("fast", "exact"), default="fast",
-                   help="PSF operator of the last training phase and of the evaluation")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--optics", choices=("fast", "exact"), default=base.psf_mode,
+                   help=f"PSF operator of the last training phase and of the evaluation (default {base.psf_mode})")
+    p.add_argument("--seed", type=int, default=base.seed, help=f"training seed (default {base.seed})")
     p.add_argument("--seeds", type=int, default=None,
                    help="train / evaluate K seeds: --seed, --seed + 1, ... (adapters in seed-<s>/ when K > 1; "
                         "the report shows mean ± std over seeds; default 1, eval: the seed-<s>/ folders found)")
@@ -64,7 +67,7 @@ def evaluate_seeds(model: Any, views: Any, adapters: dict[int, dict[str, Path]],
     (copied into every seed's result). Each result's ``info["seed"]`` is its seed."""
     from controlgs_adapter.evaluation import evaluate_grid
 
-    results = []
+    results: list[Any] = []
     for seed, paths in adapters.items():
         first = results[0] if results else None
         r = evaluate_grid(model, views, paths, **kwargs) if first is None else \
@@ -77,39 +80,6 @@ def evaluate_seeds(model: Any, views: Any, adapters: dict[int, dict[str, Path]],
     return results
 
 
-STAGES = ("lens", "resample", "display", "oled", "optics")
-
-
-def effects_from(names: str | list[str] | None) -> dict[str, Any]:
-    """Downstream effects from a comma-separated list of stages (None: all, :data:`DEFAULT_EFFECTS`)."""
-    from controlgs_adapter.errors import InputValueError
-    from controlgs_adapter.training import DEFAULT_EFFECTS
-
-    if names is None:
-        return dict(DEFAULT_EFFECTS)
-    chosen = [n.strip() for n in names.split(",") if n.strip()] if isinstance(names, str) else list(names)
-    bad = [n for n in chosen if n not in STAGES]
-    if bad or not chosen:
-        raise InputValueError(f"--effects must be a comma-separated list of {', '.join(STAGES)}, got {names!r}")
-    return {n: True for n in STAGES if n in chosen}
-
-
-def add_training(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--effects", default=None, help=f"downstream stages the adapter is trained and evaluated through, "
-                                                   f"comma-separated (default: all of {','.join(STAGES)})")
-    from controlgs_adapter.training import TrainConfig
-
-    base = TrainConfig()
-    p.add_argument("--iterations", type=int, default=DEMO_ITERATIONS,
-                   help=f"adapter training iterations (default {DEMO_ITERATIONS}, a CPU-sized demo; the paper and "
-                        f"TrainConfig use {base.iterations})")
-    p.add_argument("--psf-fraction", type=float, default=base.psf_fraction, help="final fraction of iterations with the full PSF")
-    p.add_argument("--lr", type=float, default=base.lr)
-    p.add_argument("--cond-dim", type=int, default=base.cond_dim, help="N per module")
-    p.add_argument("--checkpoint-every", type=int, default=base.checkpoint_every,
-                   help=f"checkpoint every this many iterations (default {base.checkpoint_every}; 0: only at the end)")
-
-
 def add_parser(sub: "argparse._SubParsersAction") -> None:
     p = sub.add_parser("demo", help="train ControlGS on the built-in scene, evaluate the run-time grid, write a report")
     p.add_argument("--out", default="report", help="report folder")
@@ -119,46 +89,6 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
                    help="also train and evaluate w/o lens, display, resample, state-blind (default: on)")
     p.set_defaults(func=run)
-
-
-def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
-                   dist: Any = None, trained: dict[str, int] | None = None, seed: int | None = None) -> dict[str, Path]:
-    """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
-    names) on the training ``views`` (a :class:`~controlgs_adapter.training.Views` dataset); returns ``{name: adapter
-    file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this process's
-    :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files). ``trained``, if
-    given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked).
-    ``seed``: the training seed (default ``args.seed``)."""
-    from controlgs_adapter.ablations import ABLATIONS
-    from controlgs_adapter.training import TrainConfig, Trainer
-
-    paths = {}
-    for name in names:
-        modules, blind = ABLATIONS.get(name, (None, False))
-        config = TrainConfig(iterations=args.iterations, lr=args.lr, modules=modules, cond_dim=args.cond_dim,
-                             state_blind=blind, psf_fraction=args.psf_fraction, psf_mode=args.optics,
-                             checkpoint_every=args.checkpoint_every, seed=args.seed if seed is None else seed,
-                             batch_size=getattr(args, "batch_size", 1))
-        target = out / f"{name}.controlgs.safetensors"
-        ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
-        trainer = Trainer(model, views, config, effects=effects_from(getattr(args, "effects", None)), checkpoint=ckpt,
-                          dist=dist)
-        main = trainer.dist.is_main
-        if trainer.resume() and main:
-            print(f"{name}: resuming at iteration {trainer.iteration}")
-        if trainer.iteration > config.iterations and main:
-            print(f"{name}: the checkpoint is already at iteration {trainer.iteration} > --iterations "
-                  f"{config.iterations}; keeping what was trained")
-        try:
-            trainer.train(progress=args.progress)
-            if main:
-                trainer.cgs.save(target)
-        finally:
-            trainer.cgs.unwrap()
-        paths[name] = target
-        if trained is not None:
-            trained[name] = trainer.iteration
-    return paths
 
 
 def run(args: argparse.Namespace) -> int:

@@ -12,7 +12,8 @@ import time
 from pathlib import Path
 
 from .common import add_data_arguments, apply_run_defaults, cache_bytes, user_scene
-from .demo import add_common, add_lpips, effects_from, evaluate_seeds, first_views, load_lpips_arg, report_figures, seed_runs
+from .adapters import effects_from
+from .demo import add_common, add_lpips, evaluate_seeds, first_views, load_lpips_arg, report_figures, seed_runs
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:

@@ -12,10 +12,11 @@ import json
 import os
 from pathlib import Path
 
-from ..distributed import DistContext, add_distributed_arguments, init_distributed, shard_scenes
+from ..distributed import DistContext, init_distributed, shard_scenes
+from .adapters import add_distributed_arguments, add_training, train_adapters
 from .common import (RUN_FILE, add_data_arguments, anchor_positions, cache_bytes, check_line, load_user_scene,
                      user_scene)
-from .demo import add_common, add_training, seed_runs, train_adapters
+from .demo import add_common, seed_runs
 
 ABLATION_NAMES = ("wo_lens", "wo_display", "wo_resample", "state_blind")
 
@@ -88,7 +89,7 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
     """Train on ``--model`` / ``--data``: load, check the scene, record ``run.json``, train."""
     from controlgs_adapter.datasets.sanity import check_scene
     from controlgs_adapter.formats.safetensors import atomic_write
-    from .demo import effects_from
+    from .adapters import effects_from
 
     runs = seed_runs(out, args.seed, args.seeds)
     scene = load_user_scene(args)
