@@ -65,8 +65,8 @@ def check_tensor(
         star = bool(spec) and spec[0] == "*"
         fixed = spec[1:] if star else spec
         if (x.dim() < len(fixed)) if star else (x.dim() != len(fixed)):
-            want = ("[..., " if star else "[") + ", ".join(map(str, fixed)) + "]"
-            raise ShapeError(f"{name} must have shape {want}, got {list(x.shape)}")
+            wanted = ("[..., " if star else "[") + ", ".join(map(str, fixed)) + "]"
+            raise ShapeError(f"{name} must have shape {wanted}, got {list(x.shape)}")
         for i, (want, got) in enumerate(zip(fixed, x.shape[x.dim() - len(fixed):])):
             if isinstance(want, int) and want != got:
                 raise ShapeError(
@@ -95,7 +95,7 @@ def check_image(name: str, x: object, *, finite: bool = True) -> dict[str, int]:
     """An image ``[..., 3, H, W]`` of float32/float64 with H, W >= 1."""
     b = check_tensor(name, x, ["*", 3, "H", "W"], dtypes=(torch.float32, torch.float64), finite=finite)
     if b["H"] < 1 or b["W"] < 1:
-        raise ShapeError(f"{name} must have H, W >= 1, got {list(x.shape)}")  # type: ignore[union-attr]
+        raise ShapeError(f"{name} must have H, W >= 1, got H={b['H']}, W={b['W']}")
     return b
 
 
@@ -115,11 +115,13 @@ def check_number(name: str, value: object, *, integer: bool = False, low: float 
     if low is not None or high is not None:
         rng = " in " + ("(" if low_open else "[") + ("-inf" if low is None else f"{low:g}") + ", " + \
               ("inf" if high is None else f"{high:g}") + (")" if high_open or high is None else "]")
-    ok = not isinstance(value, bool) and isinstance(value, numbers.Integral if integer else numbers.Real)
-    if ok:
-        v = int(value) if integer else float(value)  # type: ignore[arg-type]
-        ok = math.isfinite(v) and (low is None or (v > low if low_open else v >= low)) and \
-            (high is None or (v < high if high_open else v <= high))
-    if not ok:
+    v: float | int | None = None  # None: not a number of the wanted kind
+    if not isinstance(value, bool):
+        if integer and isinstance(value, numbers.Integral):
+            v = int(value)
+        elif not integer and isinstance(value, numbers.Real):
+            v = float(value)
+    if v is None or not (math.isfinite(v) and (low is None or (v > low if low_open else v >= low))
+                         and (high is None or (v < high if high_open else v <= high))):
         raise InputValueError(f"{name} must be {kind}{rng}, got {value!r}")
     return v

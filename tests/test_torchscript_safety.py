@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
+import re
 import signal
 import subprocess
 import sys
@@ -284,6 +285,16 @@ def test_writer_hidden_in_a_standard_layer_class_is_refused(tmp_path):
     path = _patched(src, tmp_path / "opacity_mlp.pt", {name: evil.encode()})
     _refused(path, "torch.from_file")
     assert not target.exists()
+
+
+def test_async_forward_is_refused(tmp_path):
+    """``async def forward`` is not TorchScript (``torch.jit.load`` fails on it): a standard layer whose
+    forward became async is refused, though its body is the genuine one."""
+    src = _plain(tmp_path)
+    name, code = _code_of(src, "Tanh")
+    asynced = re.sub(r"(class Tanh\(Module\):.*?\n)  def forward\(", r"\1  async def forward(", code, count=1, flags=re.S)
+    assert asynced != code
+    _refused(_patched(src, tmp_path / "opacity_mlp.pt", {name: asynced.encode()}), "Tanh", "async def forward")
 
 
 def test_loop_hidden_in_a_sequential_forward_is_refused(tmp_path):

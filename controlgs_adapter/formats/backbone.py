@@ -39,7 +39,11 @@ def _ply_header(f: Any, path: Path) -> tuple[str, int, list[tuple[str, str]], li
     Every malformed line raises :class:`FileFormatError` naming the file and the line number."""
     if f.readline(16).strip() != b"ply":
         raise FileFormatError(f"{path}: not a PLY file (first line is not 'ply')")
-    fmt, count, props, comments, in_vertex, seen_vertex = None, None, [], [], False, False
+    fmt: str | None = None
+    count: int | None = None
+    props: list[tuple[str, str]] = []
+    comments: list[str] = []
+    in_vertex = seen_vertex = False
     lineno = 1
     while True:
         line = f.readline(_PLY_MAX_HEADER)
@@ -147,7 +151,7 @@ def read_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], list[str]]
                 f"file holds {remaining} bytes of vertex data")
         data = f.read(need)
     arr = np.frombuffer(data, dtype=dtype, count=count)
-    return {n: np.ascontiguousarray(arr[n]).astype(dtype[n].newbyteorder("=")) for n in arr.dtype.names}, comments
+    return {n: np.ascontiguousarray(arr[n]).astype(dtype[n].newbyteorder("=")) for n, _ in props}, comments
 
 
 def write_ply(path: str | os.PathLike, fields: Mapping[str, np.ndarray], comments: Iterable[str] = (),

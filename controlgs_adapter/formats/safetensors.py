@@ -13,7 +13,7 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 from safetensors import SafetensorError, safe_open
@@ -79,7 +79,7 @@ def remove_stale_tmp(path: Path) -> list[Path]:
     return removed
 
 
-def atomic_write(path: str | os.PathLike, write: "callable[[str], None]") -> Path:  # type: ignore[valid-type]
+def atomic_write(path: str | os.PathLike, write: Callable[[str], object]) -> Path:
     """Call ``write(tmp_path)`` then rename onto ``path`` so that readers never see a half file.
 
     The file gets the umask's mode (as ``open`` would give it); the temporary sibling is named

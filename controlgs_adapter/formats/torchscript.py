@@ -21,12 +21,13 @@ import ast
 import collections
 import io
 import math
+import os
 import pickle
 import re
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, cast
 
 import torch
 from torch import nn
@@ -85,7 +86,9 @@ SUPPORTED_LAYERS: dict[str, Callable[[torch.jit.ScriptModule, str], nn.Module]] 
 def _rebuild(sm: torch.jit.ScriptModule, name: str) -> nn.Module:
     kind = getattr(sm, "original_name", type(sm).__name__)
     if kind == "Sequential":
-        return nn.Sequential(*(_rebuild(child, f"{name}.{key}") for key, child in sm.named_children()))
+        # a ScriptModule's children are ScriptModules; torch's stubs type named_children() as Module
+        return nn.Sequential(*(_rebuild(cast(torch.jit.ScriptModule, child), f"{name}.{key}")
+                               for key, child in sm.named_children()))
     if kind not in SUPPORTED_LAYERS:
         raise TargetError(
             f"decoder {name!r}: TorchScript layer of type {kind!r} cannot be rebuilt as an eager module "
@@ -374,7 +377,7 @@ class _Code:
                     self.functions[f"{mod}.{stmt.name}"] = stmt
         self.modules = modules
 
-    def methods(self, qualname: str) -> dict[str, ast.FunctionDef]:
+    def methods(self, qualname: str) -> dict[str, ast.FunctionDef | ast.AsyncFunctionDef]:
         cls = self.classes.get(qualname)
         if cls is None:
             raise _Refused(f"no code for the class {qualname}")
@@ -447,7 +450,7 @@ def _symbolic_forward(fn: ast.FunctionDef, where: str) -> tuple[Any, bool]:
         elif isinstance(n, ast.Constant) and (n.value is None or type(n.value) in (bool, int, float, str)):
             return ("const", n.value)
         elif isinstance(n, ast.UnaryOp) and isinstance(n.op, ast.USub) and isinstance(n.operand, ast.Constant) \
-                and type(n.operand.value) in (int, float):
+                and isinstance(n.operand.value, (int, float)) and not isinstance(n.operand.value, bool):
             return ("const", -n.operand.value)
         elif isinstance(n, ast.Attribute):
             dotted = _dotted(n)
@@ -512,6 +515,8 @@ def _layer(node: _Node, code: _Code, where: str) -> nn.Module:
     forward = code.methods(node.qualname).get("forward")
     if forward is None:
         raise _Refused(f"{label} ({kind}) without a forward method")
+    if not isinstance(forward, ast.FunctionDef):
+        raise _Refused(f"{label} ({kind}) with an 'async def forward' (TorchScript has no async code)")
     expr, takes_input = _symbolic_forward(forward, label)
     if kind == "Sequential":
         return _build_sequential(node, code, where, expr)
@@ -665,7 +670,7 @@ def eager_from_archive(path: str | Path) -> nn.Module:
         raise _refuse(path, e) from None
 
 
-def tensors_from_archive(path: str | Path) -> dict[str, torch.Tensor]:
+def tensors_from_archive(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     """The floating-point tensors of a TorchScript archive by state-dict name (``embedding.weight``),
     read as data; nothing in the archive runs and its code is not interpreted (any module class).
 
