@@ -48,6 +48,6 @@ def run_export(args: argparse.Namespace) -> int:
     for split, images in (("train", scene.train_images), ("test", scene.test_images)):
         for i, img in enumerate(images):
             arr = img.permute(1, 2, 0).numpy()
-            atomic_write(out / split / f"{i:03d}.png", lambda tmp, a=arr: matplotlib.image.imsave(tmp, a, format="png"))
+            atomic_write(out / split / f"{i:03d}.png", lambda tmp: matplotlib.image.imsave(tmp, arr, format="png"))
     print(f"{len(scene.train_images)} train and {len(scene.test_images)} test views written to {out}")
     return 0
