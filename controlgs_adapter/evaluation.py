@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import torch
 from tqdm.auto import tqdm
@@ -30,8 +30,11 @@ from .state import Camera, RuntimeState
 from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .training import DEFAULT_EFFECTS, Views
 
+if TYPE_CHECKING:  # pragma: no cover
+    from .downstream.pipeline import Pipeline
+
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
-           "side_by_side", "condition_response", "scores"]
+           "set_optics_mode", "side_by_side", "condition_response", "scores"]
 
 GRID_DOWNSAMPLE: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
 GRID_POWER_SAVING: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
@@ -114,15 +117,29 @@ class GridResult:
         return result
 
 
-def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "fast") -> Any:
+def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "fast") -> Pipeline:
     """The evaluation pipeline E_s from ``effects`` (default :data:`DEFAULT_EFFECTS`) with the
     optics operator ``optics_mode``, in eval mode."""
     from .downstream.pipeline import Pipeline
 
     pipeline = Pipeline.from_config(dict(DEFAULT_EFFECTS if effects is None else effects))
-    if "optics" in pipeline:
-        pipeline["optics"].mode = optics_mode
+    set_optics_mode(pipeline, optics_mode)
     return pipeline.eval()
+
+
+def set_optics_mode(pipeline: Pipeline, mode: str) -> None:
+    """Set the mode (``"distortion"``, ``"fast"``, ``"exact"``) of ``pipeline``'s optics stage, if
+    it has one; :class:`InputValueError` if that stage is not a
+    :class:`~controlgs_adapter.downstream.optics.stage.PSFOptics` (it has no mode to set)."""
+    from .downstream.optics.stage import PSFOptics
+
+    if "optics" not in pipeline:
+        return
+    optics = pipeline["optics"]
+    if not isinstance(optics, PSFOptics):
+        raise InputValueError(f"optics mode {mode!r}: the pipeline's optics stage must be a PSFOptics to take a mode, "
+                              f"got {type(optics).__name__}")
+    optics.mode = mode
 
 
 def scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> dict[str, float]:
@@ -187,13 +204,16 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
 
     for v in range(nv):
         cam, gt = view(v)
-        full = render_view(None, model, cam, None, background, renderer=renderer) if "ss" in names else None
+        renders: dict[str, torch.Tensor] = {}  # baseline -> its render: "ss" once per view, "no_ss" once per d
+        if "ss" in baselines:
+            renders["ss"] = render_view(None, model, cam, None, background, renderer=renderer)
         for i, d in enumerate(downsample):
-            small = render_view(None, model, cam.scaled(d), None, background, renderer=renderer) if "no_ss" in names else None
+            if "no_ss" in baselines:
+                renders["no_ss"] = render_view(None, model, cam.scaled(d), None, background, renderer=renderer)
             for j, rho in enumerate(power_saving):
                 state = RuntimeState(downsample=d, power_saving=rho)
                 for name in baselines:
-                    score(name, i, j, v, full if name == "ss" else small, state, gt)
+                    score(name, i, j, v, renders[name], state, gt)
                 if ideal:
                     score(IDEAL, i, j, v, gt, state, gt)
     for name, path in adapters.items():

@@ -22,7 +22,7 @@ to the name of a stage to be inserted right after/before it.
 
 from __future__ import annotations
 
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence, cast
 
 import torch
 from torch import nn
@@ -32,7 +32,7 @@ from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import RuntimeState
 
 from .color import convert_domain
-from .stage import Stage, StageContext
+from .stage import Domain, Stage, StageContext
 
 __all__ = ["Pipeline", "PHYSICAL_STAGES"]
 
@@ -54,8 +54,13 @@ def _resolve_order(stages: Sequence[Stage]) -> list[Stage]:
     their anchor (in their own ``(order, name)`` order). An anchor that is not in the pipeline
     is placed where its registered ``order`` would put it."""
     by_name = {s.name: s for s in stages}
-    plain = sorted((s for s in stages if not (s.after or s.before)), key=lambda s: (s.order, s.name))
-    pending = sorted((s for s in stages if s.after or s.before), key=lambda s: (s.order, s.name))
+    anchors: dict[str, str] = {}  # stage name -> the name it goes after/before
+    for s in stages:
+        anchor = s.after or s.before
+        if anchor:
+            anchors[s.name] = anchor
+    plain = sorted((s for s in stages if s.name not in anchors), key=lambda s: (s.order, s.name))
+    pending = sorted((s for s in stages if s.name in anchors), key=lambda s: (s.order, s.name))
     result: list[Stage] = list(plain)
     following: dict[str, list[Stage]] = {}  # stages inserted right after an anchor
     visiting: set[str] = set()
@@ -75,7 +80,7 @@ def _resolve_order(stages: Sequence[Stage]) -> list[Stage]:
         if s.name in visiting:
             raise InputValueError(f"stage placement constraints form a cycle through {s.name!r}")
         visiting.add(s.name)
-        anchor = s.after or s.before
+        anchor = anchors[s.name]
         if anchor in by_name and by_name[anchor] not in result:
             insert(by_name[anchor])
         if anchor in by_name:
@@ -188,35 +193,43 @@ class Pipeline(nn.Module):
                 raise InputValueError(f"effects[{name!r}] must be a bool, a dict of options or a Stage, got {type(value).__name__}")
         return cls(stages)
 
+    def _ordered(self) -> list[Stage]:
+        """The stages in execution order."""
+        # nn.ModuleList's stubs type its items as Module; __init__ puts only Stage instances in it
+        return cast("list[Stage]", list(self.stages))
+
     @property
     def names(self) -> list[str]:
         """Stage names in execution order."""
-        return [s.name for s in self.stages]
+        return [s.name for s in self._ordered()]
 
     def __getitem__(self, name: str) -> Stage:
-        for s in self.stages:
+        for s in self._ordered():
             if s.name == name:
                 return s
         raise KeyError(f"no stage {name!r} in this pipeline (stages: {self.names})")
 
     def __contains__(self, name: object) -> bool:
-        return any(s.name == name for s in self.stages)
+        return any(s.name == name for s in self._ordered())
 
     def active(self, state: RuntimeState, reference: torch.Tensor | None = None,
                native_size: tuple[int, int] | None = None) -> list[str]:
         """Names of the stages that run at ``state`` for a call with (or without) a ``reference``
         (the others are the identity there; e.g. ``display`` runs at rho = 0 with a reference)."""
-        size = native_size or (tuple(reference.shape[-2:]) if reference is not None else (0, 0))
+        size = native_size or ((int(reference.shape[-2]), int(reference.shape[-1])) if reference is not None else (0, 0))
         ctx = StageContext(native_size=size, reference=reference)
-        return [s.name for s in self.stages if not s.is_identity(state, ctx)]
+        return [s.name for s in self._ordered() if not s.is_identity(state, ctx)]
 
     @staticmethod
-    def _displayed_reference(ran: Sequence[Stage], state: RuntimeState, ctx: StageContext, domain: str) -> torch.Tensor:
-        """The ground truth through the stages that ran so far (no gradient, nothing recorded), in
-        ``domain``: the frame the display would show for it (the display's P_ref)."""
-        quiet = StageContext(native_size=ctx.native_size, reference=ctx.reference)
+    def _displayed_reference(ran: Sequence[Stage], state: RuntimeState, reference: torch.Tensor,
+                             native_size: tuple[int, int], domain: Domain) -> torch.Tensor:
+        """The ground truth ``reference`` (sRGB, at ``native_size``) through the stages that ran so
+        far (no gradient, nothing recorded), in ``domain``: the frame the display would show for it
+        (the display's P_ref)."""
+        quiet = StageContext(native_size=native_size, reference=reference)
         with torch.no_grad():
-            r, dom = ctx.reference.detach(), "srgb"
+            r = reference.detach()
+            dom: Domain = "srgb"
             for stage in ran:
                 r = stage(convert_domain(r, dom, stage.domain), state, quiet)
                 dom = stage.domain
@@ -280,18 +293,19 @@ class Pipeline(nn.Module):
         if image.shape[-2] > native[0] or image.shape[-1] > native[1]:
             raise ShapeError(f"image {list(image.shape)} is larger than the native size {native}")
         ctx = StageContext(native_size=native, reference=reference, record={} if record else None)
-        x, domain = image, "srgb"
+        x = image
+        domain: Domain = "srgb"
         post_image: torch.Tensor | None = None
         displayed: torch.Tensor | None = None
         ran: list[str] = []
         ran_stages: list[Stage] = []
-        for stage in self.stages:
+        for stage in self._ordered():
             if record and post_image is None and stage.name in PHYSICAL_STAGES:
                 post_image = convert_domain(x, domain, "srgb").detach()
             if stage.is_identity(state, ctx):
                 continue
             if reference is not None and getattr(stage, "wants_displayed_reference", False):
-                ctx.displayed_reference = self._displayed_reference(ran_stages, state, ctx, stage.domain)
+                ctx.displayed_reference = self._displayed_reference(ran_stages, state, reference, native, stage.domain)
             x = stage(convert_domain(x, domain, stage.domain), state, ctx)
             domain = stage.domain
             ran.append(stage.name)

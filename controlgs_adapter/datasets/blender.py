@@ -13,7 +13,7 @@ import json
 import math
 import posixpath
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Sequence, TypeGuard
 
 import numpy as np
 import torch
@@ -134,8 +134,11 @@ def frame_image_path(path: Path, i: int, entry: Any) -> tuple[str, Path]:
 def frame_pose(path: Path, i: int, entry: dict[str, Any]) -> torch.Tensor:
     """World-to-camera ``[4, 4]`` (OpenCV axes) of ``frames[i]`` of ``path`` from its OpenGL
     ``transform_matrix``; :class:`FileFormatError` naming the file and frame otherwise."""
+    matrix = entry.get("transform_matrix")
+    if matrix is None:
+        raise FileFormatError(f"{path}: frames[{i}] ({entry.get('file_path')!r}): no 'transform_matrix'")
     try:
-        return opengl_c2w_to_w2c(entry.get("transform_matrix"))
+        return opengl_c2w_to_w2c(matrix)
     except (InputValueError, ValueError, TypeError) as e:
         raise FileFormatError(f"{path}: frames[{i}] ({entry.get('file_path')!r}): {e}") from None
 
@@ -152,5 +155,5 @@ def resolve_background(background: torch.Tensor | None, white: bool = False) -> 
     return bg
 
 
-def _is_number(x: Any) -> bool:
+def _is_number(x: Any) -> TypeGuard[float]:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)

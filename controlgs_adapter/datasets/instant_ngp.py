@@ -130,10 +130,10 @@ def _camera(path: Path, i: int, meta: dict[str, Any], entry: dict[str, Any],
     if abs(h * sx - height) > 1.0 or abs(w * sy - width) > 1.0:
         raise FileFormatError(f"{where}: the file says {w:g} x {h:g} but the image {image} is {width} x {height} "
                               f"(not one uniform scale: x {sx:.4g}, y {sy:.4g})")
-    k = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
+    intrinsics = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float32)
     d = tuple(p.get(key, 0.0) for key in _GROUPS["distortion"])
     distortion = (d[0], d[1], d[2], d[3], d[4]) if any(d) else None
-    return Camera(frame_pose(path, i, entry), k, width, height), distortion
+    return Camera(frame_pose(path, i, entry), intrinsics, width, height), distortion
 
 
 def _focal(where: str, angle: float | None, size: float, axis: str) -> float | None:

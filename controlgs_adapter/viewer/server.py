@@ -59,6 +59,8 @@ class ViewerServer(ThreadingHTTPServer):
     """The server holding the session, the render worker and the static files."""
 
     daemon_threads = True
+    #: the bound (host, port): an IPv4 loopback address, whose host getsockname() gives as a str
+    server_address: tuple[str, int]
 
     def __init__(self, session: ViewerSession, port: int = 0, host: str = "127.0.0.1") -> None:
         if host not in ("127.0.0.1", "localhost"):
@@ -161,11 +163,10 @@ class _Handler(BaseHTTPRequestHandler):
                 result = server.run(lambda check: session.render(state, check, generation), generation)
                 result["generation"] = generation
             else:
-                generation = body.get("generation") if isinstance(body, dict) else None
-                if isinstance(generation, bool) or not isinstance(generation, int):
+                tag = body.get("generation") if isinstance(body, dict) else None
+                if isinstance(tag, bool) or not isinstance(tag, int):
                     raise InputValueError(f"/api/extra takes {{\"generation\": int}}, got {body!r}")
-                result = {"generation": generation,
-                          "metrics": server.run(lambda check: session.extra(generation, check), generation)}
+                result = {"generation": tag, "metrics": server.run(lambda check: session.extra(tag, check), tag)}
         except Superseded as e:
             self._json(409, {"superseded": True, "error": str(e)})
         except InputValueError as e:

@@ -18,7 +18,7 @@ import time
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Hashable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Hashable, Mapping
 
 import torch
 import torch.nn.functional as F
@@ -27,12 +27,15 @@ from ..checks import check_number
 from ..controlgs import ControlGS
 from ..downstream.oled import oled_emission
 from ..errors import InputValueError
-from ..evaluation import BASELINES, make_pipeline, scores
+from ..evaluation import BASELINES, make_pipeline, scores, set_optics_mode
 from ..report import METHOD_LABELS
 from ..metrics import optional_metrics
 from controlgs_adapter.rendering.protocol import Renderer, model_device, render_view, renderer_for
 from ..state import Camera, RuntimeState
 from ..training import view_cameras
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..downstream.pipeline import Pipeline
 
 __all__ = ["STAGES", "OPTICS_MODES", "ViewState", "parse_state", "ViewerSession", "Superseded", "orbit_camera",
            "scene_centre", "encode_png"]
@@ -269,7 +272,7 @@ class ViewerSession:
             points = cgs.backend.anchor_positions(cgs.model)
         self.centre = scene_centre(self.cameras, points)
         self.extra_metrics = optional_metrics()
-        self._pipelines: dict[tuple[str, ...], Any] = {}
+        self._pipelines: dict[tuple[str, ...], Pipeline] = {}
         self._frames = _Cache(16)    # (camera key) -> (camera, gt or None, ss render, png of both)
         self._small = _Cache(32)     # (camera key, w, h) -> no-SS render
         self._last: tuple[int, dict[str, torch.Tensor], torch.Tensor | None] | None = None
@@ -284,12 +287,11 @@ class ViewerSession:
                 "orbit_truth": self.truth is not None, "extra_metrics": list(self.extra_metrics),
                 "diff_gain": DIFF_GAIN, "device": str(self.device)}
 
-    def _pipeline(self, state: ViewState) -> Any:
+    def _pipeline(self, state: ViewState) -> Pipeline:
         if state.stages not in self._pipelines:
             self._pipelines[state.stages] = make_pipeline(state.effects, "fast").to(self.device)
         pipeline = self._pipelines[state.stages]
-        if "optics" in pipeline:
-            pipeline["optics"].mode = state.optics
+        set_optics_mode(pipeline, state.optics)
         return pipeline
 
     def _frame(self, state: ViewState) -> tuple[Camera, torch.Tensor | None, torch.Tensor, dict[str, str]]:
@@ -337,7 +339,7 @@ class ViewerSession:
                     strengths, overlay = self._strengths(cgs, copy_, cam, rs)
                 eye, record = pipeline.run_recorded(rendered, rs, reference=reference)
                 if eye.shape[-2:] != reference.shape[-2:]:  # oled off: the display's pixels as boxes at S
-                    eye = oled_emission(eye, tuple(reference.shape[-2:]))
+                    eye = oled_emission(eye, (reference.shape[-2], reference.shape[-1]))
                 eye = eye.clamp(0.0, 1.0)
                 eyes[method] = eye
                 entry = {"name": method, "label": METHOD_LABELS.get(method, method), "rendered": png, "eye": encode_png(eye),
@@ -372,17 +374,17 @@ class ViewerSession:
             overlay = encode_png(heat_overlay(positions.index_select(0, ids.to(positions.device)), lam[shown], cam))
         return out, overlay
 
-    def extra(self, tag: int, check: Callable[[], None] = lambda: None) -> dict[str, dict[str, float]]:
+    def extra(self, tag: int, check: Callable[[], None] = lambda: None) -> dict[str, dict[str, float | None]]:
         """The slower metrics (FLIP, ...) of the eye images of render ``tag``, per method (empty without
-        ground truth); ``check`` between methods as in :meth:`render`.
+        ground truth; None for a non-finite value); ``check`` between methods as in :meth:`render`.
 
         Raises:
             Superseded: ``tag`` is not the last completed render."""
         if self._last is None or self._last[0] != tag:
             raise Superseded(f"render {tag} is not the last one")
-        if self._last[2] is None or not self.extra_metrics:
-            return {}
         _, eyes, gt = self._last
+        if gt is None or not self.extra_metrics:
+            return {}
         out = {}
         for method, eye in eyes.items():
             values = {k: fn(eye.double(), gt.double()) for k, fn in self.extra_metrics.items()}
