@@ -64,3 +64,41 @@ def test_bench_report_tiny(tmp_path):
     assert r.overhead["params_conditions"] == r.info["anchors"] * 3 * 8 < r.overhead["params_adapter"]
     for doc, _, _ in PART_DOCS:
         assert f"]({doc})" in text
+
+
+def test_bench_step_prints_the_table_and_rewrites_only_the_generated_part(tmp_path):
+    """``benchmarks/bench_step.py`` at a tiny size: one CPU row whose phases add up to the step, the
+    no-GPU line where CUDA is missing, and ``--out`` keeps the page's hand-written reading section."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import torch
+
+    root = Path(__file__).resolve().parent.parent
+    page = tmp_path / "step.md"
+    page.write_text("# old page\n\nstale table\n\n## Reading the numbers\n\nhand-written text\n")
+    cmd = [sys.executable, str(root / "benchmarks" / "bench_step.py"), "--anchors", "300", "--sizes", "64", "--reps", "1",
+           "--optics", "distortion", "--threads", "1", "--out", str(page)]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=root, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    text = page.read_text()
+    assert text.startswith("# Training-step benchmark") and "stale table" not in text
+    assert text.endswith("## Reading the numbers\n\nhand-written text\n")
+    rows = _table_rows(text, "| device |")
+    header = next(line for line in text.splitlines() if line.startswith("| device |"))
+    cols = [c.strip() for c in header.strip("|").split("|")]
+    cpu = [dict(zip(cols, r)) for r in rows if r[0] == "cpu"]
+    assert [(r["rasterizer"], r["anchors"], r["size"], r["optics"]) for r in cpu] == [("torch", "300", "64x36", "distortion")]
+    r = cpu[0]
+    phases = sum(float(r[k]) for k in ("sample", "decode", "splat", "stages", "PSF", "loss", "backward", "optimizer"))
+    step = _positive(r["step (s)"])
+    assert abs(phases - step) <= 0.005 * 8 + 1e-9  # each cell rounded to 0.01 s
+    assert abs(float(r["it/s"]) - 1 / step) <= 0.005 + 0.005 / step**2  # both cells rounded to 0.01
+    _positive(r["splat"]), _positive(r["backward"])
+    gaussians, visible = re.match(r"(\d+) \((\d+)\)", r["Gaussians (visible)"]).groups()
+    assert 0 < int(visible) <= int(gaussians) <= 300 * 10
+    if not torch.cuda.is_available():
+        assert "no GPU available in this run: GPU rows not measured" in res.stdout
+        assert "no GPU available in this run: GPU rows not measured" in text
+        assert not [row for row in rows if row[0].startswith("cuda")]
