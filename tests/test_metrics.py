@@ -1,5 +1,6 @@
 """PSNR/SSIM against an independent float64 numpy brute force and scikit-image; the loss."""
 
+import math
 import numpy as np
 import pytest
 import torch
@@ -59,6 +60,13 @@ def test_psnr_known_value_and_identity():
     assert float(psnr(x, x + 0.1)) == pytest.approx(20.0, abs=1e-4)
     assert float(psnr(x, x)) == float("inf")
     assert float(ssim(torch.rand(3, 12, 12), torch.rand(3, 12, 12) * 0)) < 0.5
+
+
+def test_psnr_data_range_by_hand():
+    # 8-bit values: an error of 5 levels everywhere is 10 log10(255^2 / 25) = 34.1514 dB
+    x = torch.full((3, 4, 5), 100.0, dtype=torch.float64)
+    assert float(psnr(x, x + 5.0, data_range=255.0)) == pytest.approx(10 * math.log10(255.0**2 / 25.0), abs=1e-9)
+    assert float(psnr(x / 255.0, (x + 5.0) / 255.0)) == pytest.approx(34.15140352195873, abs=1e-9)
 
 
 @settings(max_examples=15, deadline=None)

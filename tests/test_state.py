@@ -25,3 +25,14 @@ def test_normalized_screen_matches_pixel_convention(x, y, z):
     assert math.isclose(float(p[0]), 2 * u / 64 - 1, abs_tol=1e-9)
     assert math.isclose(float(p[1]), 2 * v / 48 - 1, abs_tol=1e-9)
 
+
+def test_normalized_screen_puts_points_at_and_behind_the_camera_plane_at_inf():
+    # depth exactly 0 (the camera centre itself, and a point beside it) and depth < 0: +inf, never nan or -inf
+    k = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(torch.eye(4, dtype=torch.float64), k, 64, 48)
+    pts = torch.tensor([[0.0, 0.0, 0.0], [-1.0, 0.5, 0.0], [0.3, -0.2, -2.0], [0.3, -0.2, 2.0]], dtype=torch.float64)
+    p = cam.normalized_screen(pts)
+    assert torch.equal(p[:3], torch.full((3, 2), float("inf"), dtype=torch.float64))
+    assert torch.allclose(p[3], torch.tensor([2 * (50 * 0.15 + 32) / 64 - 1, 2 * (50 * -0.1 + 24) / 48 - 1],
+                                             dtype=torch.float64))
+
