@@ -11,9 +11,10 @@ The training views are a dataset (:class:`Views`: a :class:`~controlgs_adapter.d
 or any sequence of ``(camera, image)`` with a ``background``); each step reads its view's image
 from it (lazily loaded and cached there) and moves it to the device of the render.
 
-Checkpoints (adapter, optimizer, RNG state, iteration) are safetensors files written atomically;
-resuming from one continues bit-for-bit as if never interrupted (same thread count). A checkpoint
-records the fingerprint of its training views and is refused for other data.
+Checkpoints (adapter, optimizer, RNG state, iteration; the file format in
+:mod:`controlgs_adapter.formats.checkpoint`) are safetensors files written atomically; resuming
+from one continues bit-for-bit as if never interrupted (same thread count). A checkpoint records
+the fingerprint of its training views and is refused for other data.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Mapping, Protocol, cast, runtime_checkable
 
 import torch
 from tqdm.auto import tqdm
@@ -33,15 +34,15 @@ from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
 from .errors import FileFormatError, InputValueError, NonFiniteError
-from controlgs_adapter.formats.safetensors import load_tensors, save_tensors
+from controlgs_adapter.formats.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from .losses import LossWeights, image_loss
 from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .state import Camera, RuntimeState
 
-__all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "views_fingerprint", "CHECKPOINT_KIND"]
+if TYPE_CHECKING:
+    from .downstream.optics.stage import PSFOptics
 
-CHECKPOINT_KIND = "controlgs_training_checkpoint"
-CHECKPOINT_FORMAT_VERSION = 1
+__all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "views_fingerprint"]
 
 #: the downstream path of the paper's evaluation: lens pre-warp, area resampling, uniform
 #: dimming, OLED box pixels and the Cardboard PSF optics
@@ -136,7 +137,8 @@ class TrainConfig:
     batch_size: int = 1
 
     def __post_init__(self) -> None:
-        numbers = {"iterations": dict(integer=True, low=0), "lr": dict(low=0.0, low_open=True, high=1e3),
+        numbers: dict[str, dict[str, Any]] = {
+                   "iterations": dict(integer=True, low=0), "lr": dict(low=0.0, low_open=True, high=1e3),
                    "cond_dim": dict(integer=True, low=1), "max_downsample": dict(low=1.0, high=1e4),
                    "max_power_saving": dict(low=0.0, high=1.0, high_open=True), "psf_fraction": dict(low=0.0, high=1.0),
                    "checkpoint_every": dict(integer=True, low=0), "seed": dict(integer=True, low=0, high=2**63 - 1),
@@ -254,7 +256,7 @@ class Trainer:
         if clock is not None:
             clock.start()
         if "optics" in self.pipeline:
-            self.pipeline["optics"].mode = self.optics_mode(self.iteration)
+            cast("PSFOptics", self.pipeline["optics"]).mode = self.optics_mode(self.iteration)
         batch = [self.sample() for _ in range(self.config.batch_size)]  # the global batch, the same on every rank
         self.optimizer.zero_grad(set_to_none=True)
         value = 0.0
@@ -315,105 +317,38 @@ class Trainer:
         return self.cgs
 
     # ------------------------------------------------------------------ checkpoints
+    def checkpoint_state(self) -> Checkpoint:
+        """The run's current state as a :class:`~controlgs_adapter.formats.checkpoint.Checkpoint` (tensors not copied)."""
+        opt = self.optimizer.state_dict()
+        return Checkpoint(adapter=self.cgs.injector.state_dict(), optimizer_state=opt["state"],
+                          param_groups=opt["param_groups"], rng=self.generator.get_state(), iteration=self.iteration,
+                          history=self.history, config=self.config.as_header(), modules=list(self.cgs.modules),
+                          effects=sorted(k for k, v in self.effects.items() if v is not None and v is not False),
+                          fingerprint=self.cgs.fingerprint, data=self.data_fingerprint)
+
     def save_checkpoint(self, path: str | Path) -> Path:
-        """Write adapter, optimizer state, RNG state and iteration to ``path`` (atomically; in a
-        distributed run only rank 0 writes, the replicas being identical)."""
+        """Write adapter, optimizer state, RNG state and iteration to ``path`` (atomically,
+        :mod:`controlgs_adapter.formats.checkpoint`; in a distributed run only rank 0 writes, the
+        replicas being identical)."""
         self.dist.last_checkpoint = (str(path), self.iteration)
         if not self.dist.is_main:
             return Path(path)
-        tensors = {f"adapter.{k}": v for k, v in self.cgs.injector.state_dict().items()}
-        opt = self.optimizer.state_dict()
-        for i, st in opt["state"].items():
-            for k, v in st.items():
-                tensors[f"optimizer.{i}.{k}"] = v if isinstance(v, torch.Tensor) else torch.tensor(v)
-        tensors["rng"] = self.generator.get_state()
-        header = {
-            "iteration": self.iteration,
-            "config": self.config.as_header(),
-            "modules": list(self.cgs.modules),
-            "effects": sorted(k for k, v in self.effects.items() if v is not None and v is not False),
-            "fingerprint": self.cgs.fingerprint,
-            "data": self.data_fingerprint,
-            "param_groups": opt["param_groups"],
-            "history": self.history,
-        }
-        return save_tensors(path, tensors, header, kind=CHECKPOINT_KIND, format_version=CHECKPOINT_FORMAT_VERSION)
+        return write_checkpoint(path, self.checkpoint_state())
 
     def load_checkpoint(self, path: str | Path) -> None:
         """Restore the state written by :meth:`save_checkpoint`; the trainer must have been built
-        with the same backbone, config and effects (checked, naming what differs)."""
-        tensors, header = load_tensors(path, kind=CHECKPOINT_KIND, max_version=CHECKPOINT_FORMAT_VERSION)
-        mine = self.config.as_header()
-        theirs = header.get("config")
-        if not isinstance(theirs, dict) or not isinstance(theirs.get("loss", {}), dict):
-            raise FileFormatError(f"{path}: checkpoint header field 'config' must be an object with a 'loss' object, "
-                                  f"got {str(theirs)[:80]}")
-        theirs = dict(theirs)
-        theirs["loss"] = dict(theirs.get("loss", {}))
-        diffs = [k for k in mine if k not in ("iterations", "checkpoint_every") and
-                 (mine[k] if k != "loss" else dict(mine[k])) != theirs.get(k)]
-        if diffs:
-            raise FileFormatError(f"{path}: checkpoint was written with a different config ({', '.join(diffs)})")
-        if header.get("fingerprint") != self.cgs.fingerprint:
-            raise FileFormatError(f"{path}: checkpoint belongs to another backbone (fingerprint differs)")
-        if header.get("data") != self.data_fingerprint:
-            raise FileFormatError(f"{path}: checkpoint was trained on other views (data {header.get('data')}), this "
-                                  f"trainer's views are {self.data_fingerprint}")
-        if header.get("modules") != list(self.cgs.modules):
-            raise FileFormatError(f"{path}: checkpoint trains modules {header.get('modules')}, this trainer {list(self.cgs.modules)}")
-        adapter, state = self._checked_tensors(path, tensors)
-        iteration, history, groups = header.get("iteration"), header.get("history", []), header.get("param_groups")
-        if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
-            raise FileFormatError(f"{path}: checkpoint header field 'iteration' must be an integer >= 0, got {iteration!r}")
-        if not isinstance(history, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                    and math.isfinite(v) for v in history):
-            raise FileFormatError(f"{path}: checkpoint header field 'history' must be a list of finite losses")
-        own = self.optimizer.state_dict()["param_groups"]
-        if not isinstance(groups, list) or len(groups) != len(own) or not all(
-                isinstance(g, dict) and g.get("params") == o["params"] for g, o in zip(groups, own)):
-            raise FileFormatError(f"{path}: checkpoint header field 'param_groups' does not describe this optimizer "
-                                  f"({len(own)} Adam group(s) over parameters {[o['params'] for o in own]}), got {str(groups)[:80]}")
-        rng = tensors.get("rng")
-        want = self.generator.get_state()
-        if rng is None or rng.dtype != want.dtype or rng.shape != want.shape:
-            raise FileFormatError(f"{path}: checkpoint tensor 'rng' must be a {want.dtype} tensor of shape "
-                                  f"{list(want.shape)}, got " + ("none" if rng is None else f"{rng.dtype} {list(rng.shape)}"))
+        with the same backbone, views, config and effects (checked, naming what differs; nothing
+        changes when the file is refused)."""
+        shapes = [p.shape for g in self.optimizer.param_groups for p in g["params"]]
+        saved = read_checkpoint(path, self.checkpoint_state(), shapes)
         try:
-            self.optimizer.load_state_dict({"state": state, "param_groups": groups})
+            self.optimizer.load_state_dict({"state": saved.optimizer_state, "param_groups": saved.param_groups})
         except (ValueError, KeyError, TypeError, IndexError, RuntimeError) as e:
             raise FileFormatError(f"{path}: checkpoint optimizer state does not fit this optimizer: {e}") from None
-        self.cgs.injector.load_state_dict(adapter)
-        self.generator.set_state(rng)
-        self.iteration = iteration
-        self.history = list(history)
-
-    def _checked_tensors(self, path: str | Path, tensors: Mapping[str, torch.Tensor],
-                         ) -> tuple[dict[str, torch.Tensor], dict[int, dict[str, torch.Tensor]]]:
-        """Split a checkpoint's tensors into the adapter's state dict and the optimizer's state,
-        refusing NaN/Inf, missing, unexpected and mis-shaped tensors (naming the file and tensor)."""
-        bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
-        if bad:
-            raise FileFormatError(f"{path}: checkpoint tensor(s) {bad} hold NaN/Inf: refusing to resume from it")
-        own = self.cgs.injector.state_dict()
-        adapter = {k[len("adapter."):]: v for k, v in tensors.items() if k.startswith("adapter.")}
-        wrong = sorted(set(own) ^ set(adapter)) + sorted(k for k in set(own) & set(adapter) if own[k].shape != adapter[k].shape)
-        if wrong:
-            raise FileFormatError(f"{path}: checkpoint adapter tensors do not fit this adapter (missing, unexpected or "
-                                  f"mis-shaped: {wrong})")
-        params = [p for g in self.optimizer.param_groups for p in g["params"]]
-        state: dict[int, dict[str, torch.Tensor]] = {}
-        for k, v in tensors.items():
-            if k.startswith("optimizer."):
-                parts = k.split(".", 2)
-                if len(parts) != 3 or not parts[1].isdigit() or int(parts[1]) >= len(params) or parts[2] not in (
-                        "step", "exp_avg", "exp_avg_sq") or (parts[2] != "step" and v.shape != params[int(parts[1])].shape):
-                    raise FileFormatError(f"{path}: checkpoint tensor {k!r} ({list(v.shape)}) is not Adam state of "
-                                          f"this adapter's {len(params)} parameters")
-                state.setdefault(int(parts[1]), {})[parts[2]] = v
-        extra = sorted(k for k in tensors if not k.startswith(("adapter.", "optimizer.")) and k != "rng")
-        if extra:
-            raise FileFormatError(f"{path}: checkpoint holds unexpected tensors {extra}")
-        return adapter, state
+        self.cgs.injector.load_state_dict(saved.adapter)
+        self.generator.set_state(saved.rng)
+        self.iteration = saved.iteration
+        self.history = list(saved.history)
 
     def resume(self) -> bool:
         """Load :attr:`checkpoint_path` if it exists; True if it did."""

@@ -453,7 +453,7 @@ def _trainer(setup: Any, path: Path, **cfg: Any):
 
 def _damage(path: Path, header: dict[str, Any] | None = None, tensors: dict[str, Any] | None = None,
             drop: tuple[str, ...] = (), nan: str | None = None) -> None:
-    from controlgs_adapter.training import CHECKPOINT_KIND
+    from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND
 
     t, h = load_tensors(path, kind=CHECKPOINT_KIND, max_version=1)
     if nan is not None:

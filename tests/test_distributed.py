@@ -110,7 +110,8 @@ def _assert_same(got: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> 
 
 # ---------------------------------------------------------------------------------------- torchrun
 def test_killed_rank_errors_and_checkpoint_resumes_on_one_process(fixture_path, reference, tmp_path):
-    from controlgs_adapter.training import CHECKPOINT_KIND, Trainer
+    from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND
+    from controlgs_adapter.training import Trainer
 
     ck = tmp_path / "run.ckpt.safetensors"
     out = tmp_path / "never.safetensors"
