@@ -48,7 +48,7 @@ __all__ = ["CompGSBackend", "CompGSModel", "ResidualMLP", "load_compgs_dir", "CO
 
 #: Decoder paths (all targets by default) and their tail activations.
 COMPGS_DECODERS: tuple[str, ...] = tuple(f"network.prediction_net.{n}_pred_mlp" for n in ("means", "covariance", "opacity", "color"))
-_TAILS = {"means": None, "covariance": None, "opacity": nn.Tanh, "color": nn.Sigmoid}
+_TAILS: dict[str, type[nn.Module] | None] = {"means": None, "covariance": None, "opacity": nn.Tanh, "color": nn.Sigmoid}
 _RES_LAYERS = {"means": 1, "covariance": 1, "opacity": 1, "color": 2}
 COMPGS_MARKERS: tuple[str, ...] = ("network.prediction_net", "gaussian_params.ref_feats", "gaussian_params.res_feats",
                                    "gaussian_params.means")
@@ -132,6 +132,12 @@ class _Params(nn.Module):
 
 
 class _PredictionNet(nn.Module):
+    # the four decoders (set in __init__ by name; nn.Module's attribute lookup does not type them)
+    means_pred_mlp: ResidualMLP
+    covariance_pred_mlp: ResidualMLP
+    opacity_pred_mlp: ResidualMLP
+    color_pred_mlp: ResidualMLP
+
     def __init__(self, ref_dim: int, res_dim: int, derive_factor: int) -> None:
         super().__init__()
         self.derive_factor = derive_factor
@@ -139,7 +145,8 @@ class _PredictionNet(nn.Module):
         for name in ("means", "covariance", "opacity", "color"):
             view = 4 if name in ("opacity", "color") else 0
             out = {"means": 3, "covariance": 7, "opacity": 1, "color": 3}[name]
-            tail = _TAILS[name]() if _TAILS[name] else None
+            tail_cls = _TAILS[name]
+            tail = tail_cls() if tail_cls is not None else None
             setattr(self, f"{name}_pred_mlp", ResidualMLP(c + g + view, c, out, _RES_LAYERS[name], tail))
 
 
@@ -194,11 +201,12 @@ class CompGSModel(AnchorModel):
         p = self.gaussian_params
         return anchor_visibility(camera, p.means, torch.exp(p.scales_before_exp[:, :3]), p.rotations_before_norm)
 
-    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None) -> NeuralGaussians:
+    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None, **options: Any) -> NeuralGaussians:
         """Decode the coupled primitives of the anchors in ``visible_mask`` (``[A]`` bool; None =
         all) as CompGS's ``PredictionNetwork.forward`` on the stored (unquantised) features:
         mean = anchor + means_pred * exp(scale[:, :3]); scale = sigmoid(cov[:, :3]) * exp(scale[:, 3:]);
-        rotation = normalize(cov[:, 3:]); kept where opacity > 0."""
+        rotation = normalize(cov[:, 3:]); kept where opacity > 0. No option is taken."""
+        self.refuse_options(options)
         p, k = self.gaussian_params, self.derive_factor
         ids = self.decoded_ids(visible_mask, p.means)
         x = self.decoder_inputs(camera.center, ids)

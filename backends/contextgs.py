@@ -31,7 +31,7 @@ import torch
 
 from controlgs_adapter.backend import has_attrs
 from controlgs_adapter.checks import check_tensor
-from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.state import Camera
 
 from controlgs_adapter.backends.models.anchor_model import anchor_visibility, as_param
@@ -75,6 +75,11 @@ class ContextGSModel(MaskedAnchorModel):
     plus ``_hyper_latent [A, F/4]`` and ``x_bound_min``/``x_bound_max`` ``[1, 3]``. The context
     model (``latent_codec``, ``mlp_grid``) is not loaded (None): a decoded model does not use it."""
 
+    # buffers (registered in __init__; nn.Module's attribute lookup does not type them)
+    x_bound_min: torch.Tensor | None
+    x_bound_max: torch.Tensor | None
+    prefilter_rotation: torch.Tensor
+
     def __init__(self, *, hyper_latent: torch.Tensor, x_bound_min: torch.Tensor | None = None,
                  x_bound_max: torch.Tensor | None = None, **kw: Any) -> None:
         super().__init__(**kw)
@@ -104,6 +109,9 @@ class ContextGSModel(MaskedAnchorModel):
         """``[A, 3]``: stored positions if decoded, else 16-bit quantised in the bound."""
         if self.decoded_version:
             return self._anchor
+        if self.x_bound_min is None or self.x_bound_max is None:
+            raise InputValueError("a not-decoded ContextGS model needs x_bound_min/x_bound_max (its anchors are "
+                                  "quantised in them); this one was built as a decoded model")
         return quantize_anchor(self._anchor, self.x_bound_min, self.x_bound_max)
 
 

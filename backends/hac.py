@@ -28,7 +28,7 @@ Morton-sorted (not the training order), HAC anchors zero-padded at the end.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -92,7 +92,10 @@ class MaskedAnchorModel(AnchorModel):
     Shapes: ``_anchor [A, 3]``, ``_offset [A, K, 3]``, ``_mask [A, M, 1]`` (M = K, or K + 1 in
     HAC++), ``_anchor_feat [A, F]``, ``_scaling [A, 6]`` (linear if ``decoded_version`` else log).
     ``source_index [A]`` (long buffer) is each anchor's row in the file it was loaded from.
+    Subclasses define :attr:`get_anchor` (the family's anchor positions as the decoders see them).
     """
+
+    source_index: torch.Tensor  # buffer (registered in __init__; nn.Module's attribute lookup does not type it)
 
     def __init__(self, *, anchor: torch.Tensor, offset: torch.Tensor, mask: torch.Tensor, anchor_feat: torch.Tensor,
                  scaling: torch.Tensor, mlp_opacity: nn.Module, mlp_cov: nn.Module, mlp_color: nn.Module,
@@ -123,6 +126,11 @@ class MaskedAnchorModel(AnchorModel):
         return self._scaling if self.decoded_version else torch.exp(self._scaling)
 
     @property
+    def get_anchor(self) -> torch.Tensor:
+        """``[A, 3]`` anchor positions as the decoders see them."""
+        raise NotImplementedError
+
+    @property
     def get_mask(self) -> torch.Tensor:
         """``[A, K, 1]`` offset masks in {0, 1} (forward value of the family's straight-through mask)."""
         m = self._mask[:, : self.n_offsets]
@@ -151,9 +159,10 @@ class MaskedAnchorModel(AnchorModel):
         """``[A]`` bool: the family's ``prefilter_voxel`` (anchors as Gaussians; no mask filtering)."""
         return anchor_visibility(camera, self.get_anchor, self.get_scaling[:, :3], self._rotation)
 
-    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None) -> NeuralGaussians:
+    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None, **options: Any) -> NeuralGaussians:
         """Decode the anchors in ``visible_mask`` (``[A]`` bool; None = all) as the family's renderer at
-        evaluation: Gaussians with neural opacity > 0 **and** their offset mask on are kept."""
+        evaluation: Gaussians with neural opacity > 0 **and** their offset mask on are kept. No option is taken."""
+        self.refuse_options(options)
         ids = self.decoded_ids(visible_mask, self._anchor)
         x = self.decoder_inputs(camera.center, ids)
         opacity = self.mlp_opacity(x["mlp_opacity"]).reshape(-1)  # [R*K]
@@ -312,7 +321,10 @@ def anchor_tensors(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in arrays.items() if k in keep}
 
 
-def drop_invalid(model: MaskedAnchorModel) -> MaskedAnchorModel:
+MaskedModel = TypeVar("MaskedModel", bound=MaskedAnchorModel)
+
+
+def drop_invalid(model: MaskedModel) -> MaskedModel:
     """Keep only anchors with some offset switched on (in place; returns the model)."""
     keep = model.get_mask_anchor
     if bool(keep.all()):

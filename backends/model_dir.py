@@ -16,12 +16,15 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
 
 from controlgs_adapter.formats.layout import bitstreams_only, iteration_dirs
 from controlgs_adapter.formats.backbone import ply_field_names
+
+if TYPE_CHECKING:  # the loaders (and the model base) are imported by load_model_dir when it runs
+    from .models.anchor_model import AnchorModel
 
 __all__ = ["FAMILIES", "detect_family", "load_model_dir"]
 
@@ -89,7 +92,7 @@ def detect_family(path: str | Path, *, iteration: int | None = None) -> str:
 
 
 def load_model_dir(path: str | Path, *, family: str | None = None, iteration: int | None = None,
-                   allow_unquantized: bool = False, trust_code: bool = False) -> Any:
+                   allow_unquantized: bool = False, trust_code: bool = False) -> AnchorModel:
     """Load a trained output folder of any supported family as its stand-in model (eval mode, frozen).
 
     Args:
@@ -108,6 +111,7 @@ def load_model_dir(path: str | Path, *, family: str | None = None, iteration: in
         family = detect_family(path, iteration=iteration)
     elif family not in FAMILIES:
         raise InputValueError(f"unknown family {family!r} (supported: {', '.join(FAMILIES)})")
+    model: AnchorModel
     if family == "scaffold_gs":
         from .scaffold_io import load_scaffold_dir
 

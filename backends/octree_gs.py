@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -88,13 +88,13 @@ class OctreeGSBackend(ScaffoldGSBackend):
     def matches(self, model: Any) -> bool:
         return super().matches(model) and has_attrs(model, OCTREE_MARKERS)
 
-    def anchor_ids(self, model: Any, visible_mask: torch.Tensor) -> torch.Tensor:
-        """Decoder-row anchor ids for a view: ``visible_mask`` as :func:`lod_anchor_ids` takes it,
-        and-ed with the model's current ``_anchor_mask`` (call ``set_anchor_mask`` first)."""
+    def anchor_ids(self, model: Any, mask: torch.Tensor) -> torch.Tensor:
+        """Decoder-row anchor ids for a view: the visibility ``mask`` as :func:`lod_anchor_ids` takes
+        its ``frustum_mask``, and-ed with the model's current ``_anchor_mask`` (call ``set_anchor_mask`` first)."""
         anchor_mask = getattr(model, "_anchor_mask", None)
         if anchor_mask is None:
             raise InputValueError("model has no _anchor_mask: call model.set_anchor_mask(cam_center, iteration, resolution_scale) first")
-        return lod_anchor_ids(anchor_mask, visible_mask)
+        return lod_anchor_ids(anchor_mask, mask)
 
     rows_for = anchor_ids
 
@@ -112,6 +112,11 @@ class OctreeGSModel(AnchorModel):
     ``mlp_feature_bank`` and ``embedding_appearance`` (``nn.Embedding``). ``voxel_centre=False``
     gives Octree-AnyGS's LOD distance (raw anchor instead of the voxel centre).
     """
+
+    # buffers (registered in __init__; nn.Module's attribute lookup does not type them)
+    _level: torch.Tensor
+    _extra_level: torch.Tensor
+    _anchor_mask: torch.Tensor
 
     def __init__(self, *, anchor: torch.Tensor, offset: torch.Tensor, anchor_feat: torch.Tensor, scaling: torch.Tensor,
                  level: torch.Tensor, extra_level: torch.Tensor, mlp_opacity: nn.Module, mlp_cov: nn.Module,
@@ -181,7 +186,7 @@ class OctreeGSModel(AnchorModel):
         ``level(dist) = log2(standard_dist / dist) / log2(fork) + _extra_level`` (rounded per
         ``dist2level``, clamped to ``[0, levels - 1]``); ``dist`` is measured from the voxel centre."""
         check_tensor("cam_center", cam_center, [3])
-        pos = self._anchor
+        pos: torch.Tensor = self._anchor
         if self.voxel_centre:
             pos = pos + (self.voxel_size / 2) / (float(self.fork) ** self._level)
         dist = torch.linalg.vector_norm(pos - cam_center.to(pos), dim=1) * resolution_scale
@@ -228,16 +233,17 @@ class OctreeGSModel(AnchorModel):
         return full  # the same set as lod_anchor_ids(lod, frustum)
 
     def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None,
-               appearance_id: int | None = None) -> NeuralGaussians:
+               appearance_id: int | None = None, **options: Any) -> NeuralGaussians:
         """Decode the Gaussians of the anchors in ``visible_mask`` (``[A]`` bool; None = all) as
         Octree-GS's ``generate_neural_gaussians`` at evaluation (progressive opacity ratio included).
-        ``appearance_id`` defaults to ``camera.extra["uid"]`` (0 if absent)."""
+        ``appearance_id`` defaults to ``camera.extra["uid"]`` (0 if absent); no other option is taken."""
+        self.refuse_options(options)
         ids = self.decoded_ids(visible_mask, self._anchor)
         if appearance_id is None and self.embedding_appearance is not None:
             appearance_id = int(camera.extra.get("uid", 0))
         x = self.decoder_inputs(camera.center, ids, appearance_id)
         opacity = self.mlp_opacity(x["mlp_opacity"])  # [R, K]
-        if self.dist2level == "progressive" and self._prog_ratio is not None:
+        if self.dist2level == "progressive" and self._prog_ratio is not None and self.transition_mask is not None:
             prog = torch.where(self.transition_mask[ids].unsqueeze(1), self._prog_ratio[ids], torch.ones_like(self._prog_ratio[ids]))
             opacity = opacity * prog
         opacity = opacity.reshape(-1)  # [R*K]
@@ -287,7 +293,14 @@ def _read_anchor_ply(ply: Path, feat_dim: int, n_offsets: int, config: str) -> t
     return {**t, "_fields": fields}, comments
 
 
-def _checked(model: OctreeGSModel, source: str) -> OctreeGSModel:
+def _build(tensors: dict[str, Any], folder: Path, trust_code: bool, source: str, **settings: Any) -> OctreeGSModel:
+    """An :class:`OctreeGSModel` from the anchor ``tensors`` of :func:`_read_anchor_ply`, the decoders
+    of ``folder`` and the LOD ``settings``, its decoder widths checked against its configuration."""
+    mods = Decoders(folder, trust_code).modules()
+    model = OctreeGSModel(**tensors, **settings, mlp_opacity=mods["mlp_opacity"], mlp_cov=mods["mlp_cov"],
+                          mlp_color=mods["mlp_color"], mlp_feature_bank=mods.get("mlp_feature_bank"),
+                          # Decoders.modules() builds the appearance code as an nn.Embedding (embedding_from_state)
+                          embedding_appearance=cast("nn.Embedding | None", mods.get("embedding_appearance")))
     backend = OctreeGSBackend()
     for dec in ("mlp_opacity", "mlp_cov", "mlp_color"):
         layout = backend.input_layout(model, dec) or []
@@ -307,11 +320,10 @@ def _load_octree_gs(root: Path, iteration: int | None, trust_code: bool) -> Octr
     info = fields["info"]
     if info.shape[0] < 2:
         raise FileFormatError(f"{ply}: the 'info' column holds voxel_size and standard_dist in rows 0 and 1; the file has {info.shape[0]} anchors")
-    model = OctreeGSModel(voxel_size=float(info[0]), standard_dist=float(info[1]), fork=int(cfg["fork"]),
-                          dist2level=str(cfg["dist2level"]), add_level=bool(cfg["add_level"]),
-                          add_opacity_dist=bool(cfg["add_opacity_dist"]), add_cov_dist=bool(cfg["add_cov_dist"]),
-                          add_color_dist=bool(cfg["add_color_dist"]), **t, **Decoders(folder, trust_code).modules())
-    return _checked(model, f"{folder} + {cfg_path}")
+    return _build(t, folder, trust_code, f"{folder} + {cfg_path}", voxel_size=float(info[0]),
+                  standard_dist=float(info[1]), fork=int(cfg["fork"]), dist2level=str(cfg["dist2level"]),
+                  add_level=bool(cfg["add_level"]), add_opacity_dist=bool(cfg["add_opacity_dist"]),
+                  add_cov_dist=bool(cfg["add_cov_dist"]), add_color_dist=bool(cfg["add_color_dist"]))
 
 
 def _load_octree_anygs(root: Path, iteration: int | None, trust_code: bool) -> OctreeGSModel:
@@ -338,6 +350,5 @@ def _load_octree_anygs(root: Path, iteration: int | None, trust_code: bool) -> O
     except (KeyError, ValueError) as e:
         raise FileFormatError(f"{ply}: the header must carry 'obj_info standard_dist <v>' and 'obj_info levels <v>' "
                               f"(Octree-AnyGS's LOD metadata); got {comments}") from e
-    model = OctreeGSModel(voxel_size=0.0, standard_dist=standard_dist, levels=levels, fork=int(get("fork", 2)),
-                          dist2level=str(get("dist2level", "round")), voxel_centre=False, **t, **Decoders(folder, trust_code).modules())
-    return _checked(model, f"{folder} + {yaml_path}")
+    return _build(t, folder, trust_code, f"{folder} + {yaml_path}", voxel_size=0.0, standard_dist=standard_dist,
+                  levels=levels, fork=int(get("fork", 2)), dist2level=str(get("dist2level", "round")), voxel_centre=False)

@@ -61,8 +61,8 @@ def _cfg_namespace(model: NeuralGaussianModel, model_path: Path) -> Namespace:
 
 def _ply_fields(model: NeuralGaussianModel) -> dict[str, np.ndarray]:
     def cols(prefix: str, x: torch.Tensor) -> dict[str, np.ndarray]:
-        x = x.detach().to("cpu", torch.float32).numpy()
-        return {f"{prefix}{i}": np.ascontiguousarray(x[:, i]) for i in range(x.shape[1])}
+        arr = x.detach().to("cpu", torch.float32).numpy()
+        return {f"{prefix}{i}": np.ascontiguousarray(arr[:, i]) for i in range(arr.shape[1])}
 
     a = model.num_anchors
     anchor = model._anchor.detach().to("cpu", torch.float32).numpy()
@@ -138,7 +138,7 @@ def save_scaffold_dir(model: NeuralGaussianModel, path: str | os.PathLike, itera
 
 def latest_iteration(path: str | os.PathLike) -> int:
     """Largest ``N`` of the ``<path>/point_cloud/iteration_<N>`` folders."""
-    return int(iteration_dir(path, None, family="Scaffold-GS").name.removeprefix("iteration_"))
+    return int(iteration_dir(Path(path), None, family="Scaffold-GS").name.removeprefix("iteration_"))
 
 
 def _read_anchors(ply: Path) -> dict[str, np.ndarray]:

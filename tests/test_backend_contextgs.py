@@ -15,7 +15,7 @@ from controlgs_adapter.backends.compgs import CompGSBackend
 from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
-from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.errors import FileFormatError, InputValueError
 
 A, K, F, PAD = 14, 10, 50, 4
 H = F // 4  # hyper_divisor 4
@@ -143,6 +143,18 @@ def test_loading_errors(tmp_path):
     (root / "cfg_args").unlink()
     with pytest.raises(FileFormatError, match="cfg_args"):
         load_contextgs_dir(root)
+
+
+def test_raw_positions_need_the_bound():
+    """A model built decoded without the bound cannot quantise its anchors once marked raw: named, not an AttributeError."""
+    arr = _arrays(3, decoded=True)
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    model = ContextGSModel(anchor=t["anchor"], offset=t["offset"], mask=t["mask"][:, :, None], anchor_feat=t["feat"],
+                           scaling=t["scale"], hyper_latent=t["hyper"], decoded_version=True, **_decoders(3))
+    assert torch.equal(model.get_anchor, t["anchor"])
+    model.decoded_version = False
+    with pytest.raises(InputValueError, match="x_bound_min/x_bound_max"):
+        model.get_anchor
 
 
 def test_decode_keeps_masked_offsets_out():

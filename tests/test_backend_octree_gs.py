@@ -19,7 +19,7 @@ from controlgs_adapter.backends.hac import HACBackend
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend, OctreeGSModel, load_octree_gs_dir, lod_anchor_ids
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
-from controlgs_adapter.errors import FileFormatError, ShapeError, TargetError
+from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError, TargetError
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace/load: the format under test
 
@@ -313,6 +313,18 @@ def test_load_feature_bank_and_appearance(tmp_path):
     assert torch.allclose(x["mlp_opacity"].double(), torch.cat([feat, d / dist, dist, lvl], dim=1), atol=1e-5)
     assert OctreeGSBackend().default_targets(model) == ["mlp_opacity", "mlp_cov", "mlp_color"]
     assert "mlp_feature_bank" in OctreeGSBackend().decoder_paths(model)
+
+
+def test_decode_takes_appearance_id_and_names_other_options():
+    """Octree-GS's one decode option, ``appearance_id``, reaches decode through render; any other is named."""
+    model = _model(_arrays(9), _decoders(torch.Generator().manual_seed(9)))
+    w2c = torch.eye(4)
+    w2c[2, 3] = 2.5
+    cam = Camera(w2c, torch.tensor([[30.0, 0, 16], [0, 30.0, 16], [0, 0, 1]]), 32, 32)
+    with torch.no_grad():
+        model.render(cam, appearance_id=None)
+        with pytest.raises(InputValueError, match=r"OctreeGSModel\.decode got unknown option\(s\) \['appearance'\]"):
+            model.render(cam, appearance=1)
 
 
 def test_progressive_opacity_ratio():

@@ -125,6 +125,15 @@ def test_bad_visible_mask_is_named():
         m.decode(camera_looking_down_z(), torch.ones(5))
 
 
+def test_unknown_decode_option_is_named():
+    """The model takes no decode option: one passed to render or decode is named, not ignored."""
+    m = _random_model(5)
+    with pytest.raises(InputValueError, match=r"NeuralGaussianModel\.decode got unknown option\(s\) \['appearance_id'\]"):
+        m.render(camera_looking_down_z(), appearance_id=0)
+    with pytest.raises(InputValueError, match=r"\['a', 'b'\]"):
+        m.decode(camera_looking_down_z(), None, b=1, a=2)
+
+
 # ------------------------------------------------------------------------------------- prefilter
 
 def _footprint_oracle(m: NeuralGaussianModel, cam: Camera) -> torch.Tensor:

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from controlgs_adapter.backend import anchor_ids_from_mask
+from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.rendering.rasterizers import rasterize_gaussians
 from controlgs_adapter.state import Camera
 
@@ -130,8 +131,15 @@ class AnchorModel(nn.Module):
         raise NotImplementedError
 
     def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None, **options: Any) -> NeuralGaussians:
-        """The Gaussians of the anchors in ``visible_mask`` (``[A]`` bool; None = all) for ``camera``."""
+        """The Gaussians of the anchors in ``visible_mask`` (``[A]`` bool; None = all) for ``camera``;
+        ``options`` are the family's own (Octree-GS: ``appearance_id``)."""
         raise NotImplementedError
+
+    def refuse_options(self, options: dict[str, Any]) -> None:
+        """Raise :class:`InputValueError` naming the :meth:`decode` options left over after the
+        family took its own (``options`` non-empty)."""
+        if options:
+            raise InputValueError(f"{type(self).__name__}.decode got unknown option(s) {sorted(options)}")
 
     @staticmethod
     def decoded_ids(visible_mask: torch.Tensor | None, anchors: torch.Tensor) -> torch.Tensor:

@@ -20,6 +20,7 @@ Besides the tensors, the model carries Scaffold-GS's accessor names (``get_ancho
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -154,7 +155,7 @@ class NeuralGaussianModel(AnchorModel):
     @torch.no_grad()
     def from_points(cls, points: torch.Tensor, colors: torch.Tensor | None = None, *, feat_dim: int = 32,
                     n_offsets: int = 10, voxel_size: float | None = None, seed: int = 0,
-                    color_fit_steps: int = 200, **options) -> "NeuralGaussianModel":
+                    color_fit_steps: int = 200, **options: Any) -> "NeuralGaussianModel":
         """Anchors on a voxel grid from a point set (Scaffold-GS's ``create_from_pcd``).
 
         Points are snapped to ``round(p / voxel_size) * voxel_size`` and de-duplicated (ascending
@@ -203,7 +204,7 @@ class NeuralGaussianModel(AnchorModel):
             x = [self._anchor_feat, view]
             if self.add_color_dist:
                 x.append(torch.ones(a, 1))
-            if self.appearance_dim:
+            if self.embedding_appearance is not None:
                 x.append(self.embedding_appearance(torch.zeros(a, dtype=torch.long)))
             pred = self.mlp_color(torch.cat(x, dim=1)).reshape(a, k, 3)
             loss = (pred - target[:, None]).abs().mean()
@@ -221,9 +222,10 @@ class NeuralGaussianModel(AnchorModel):
         return anchor_visibility(camera, self.get_anchor, self.get_scaling, self._rotation)
 
     # ----------------------------------------------------------------- decoding
-    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None) -> NeuralGaussians:
+    def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None, **options: Any) -> NeuralGaussians:
         """Decode the Gaussians of the anchors in ``visible_mask`` (``BoolTensor[A]``; None = all)
-        for ``camera``: exactly Scaffold-GS's ``generate_neural_gaussians`` (module docstring)."""
+        for ``camera``: exactly Scaffold-GS's ``generate_neural_gaussians`` (module docstring). No option is taken."""
+        self.refuse_options(options)
         anchor_all = self.get_anchor
         ids = self.decoded_ids(visible_mask, anchor_all)  # [R] ascending
         feat = self._anchor_feat[ids]  # [R, F]
@@ -231,13 +233,13 @@ class NeuralGaussianModel(AnchorModel):
         ob_view = anchor - camera.center.to(anchor)
         ob_dist = ob_view.norm(dim=1, keepdim=True)  # [R, 1]
         ob_view = ob_view / ob_dist  # [R, 3]
-        if self.use_feat_bank:
+        if self.mlp_feature_bank is not None:
             feat = feature_bank(feat, self.mlp_feature_bank(torch.cat([ob_view, ob_dist], dim=1)))
         with_dist = torch.cat([feat, ob_view, ob_dist], dim=1)  # [R, F+4]
         without_dist = torch.cat([feat, ob_view], dim=1)  # [R, F+3]
         neural_opacity = self.mlp_opacity(with_dist if self.add_opacity_dist else without_dist).reshape(-1)  # [R*K]
         color_in = with_dist if self.add_color_dist else without_dist
-        if self.appearance_dim:
+        if self.embedding_appearance is not None:
             uid = int(camera.extra.get("uid", 0))
             appearance = self.embedding_appearance(torch.full((ids.shape[0],), uid, dtype=torch.long, device=ids.device))
             color_in = torch.cat([color_in, appearance], dim=1)

@@ -17,7 +17,7 @@ It follows Scaffold-GS's recipe, cut down to what a CPU can do in minutes:
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 from tqdm.auto import tqdm
@@ -91,7 +91,7 @@ def train_reference_model(
     lr_scale: float = 1.0,
     seed: int = 0,
     progress: bool = True,
-    **model_options,
+    **model_options: Any,
 ) -> NeuralGaussianModel:
     """Fit a :class:`NeuralGaussianModel` to posed images.
 
@@ -165,8 +165,8 @@ def train_reference_model(
     bar = tqdm(range(iterations), desc="training backbone", disable=not progress, leave=False)
     for step in bar:
         t = step / max(iterations - 1, 1)
-        for g, (_, _, lr0, lr1) in zip(opt.param_groups, groups):
-            g["lr"] = _lr_at(lr0, lr1, t) * lr_scale
+        for group, (_, _, lr0, lr1) in zip(opt.param_groups, groups):
+            group["lr"] = _lr_at(lr0, lr1, t) * lr_scale
         if step % len(cameras) == 0 and step:
             order = torch.randperm(len(cameras), generator=gen)
         view = int(order[step % len(cameras)])
