@@ -208,7 +208,7 @@ def test_device_mismatch_names_the_arguments():
         display_mapping(torch.rand(3, 8, 8), 0.3, torch.rand(3, 8, 8, device=other))
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU available in this run: pipeline on CUDA vs CPU not run")
 def test_pipeline_on_cuda_matches_cpu():
     image, gt = torch.rand(3, 32, 32, dtype=torch.float64), torch.rand(3, 32, 32, dtype=torch.float64)
     p = Pipeline.from_config(ALL).double()

@@ -146,7 +146,7 @@ def test_a_plugin_rasterizer_goes_first():
 
 def _gsplat_on_gpu() -> str | None:
     if not torch.cuda.is_available():
-        return "needs a CUDA GPU (none here): gsplat vs project splatter agreement"
+        return "no GPU available in this run: gsplat vs project splatter agreement not run"
     mod = rasterizers._import_gsplat()
     return mod if isinstance(mod, str) else None
 
@@ -172,7 +172,7 @@ def test_gsplat_agrees_with_the_project_splatter_on_cuda():
         assert float(cos) > 0.99, name
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (none here): a training step on cuda")
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU available in this run: a training step on CUDA not run")
 def test_a_training_step_runs_on_cuda():
     pytest.importorskip("skimage")
     from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
