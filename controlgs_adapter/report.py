@@ -148,7 +148,7 @@ def _spread(summary: Mapping[str, Mapping[str, Mapping[str, Any]]], metrics: Seq
 
 def _findings(result: GridResult) -> list[str]:
     """What the numbers show, stated as measured (no claim beyond them)."""
-    out = []
+    out: list[str] = []
     if not {"ss", "controlgs"} <= set(result.methods):
         return out
     for k in result.metrics:

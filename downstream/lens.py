@@ -35,7 +35,7 @@ import warnings
 import weakref
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence, TypeGuard, cast
 
 import torch
 import torch.nn.functional as F
@@ -314,6 +314,9 @@ class LUTMap(PrewarpMap):
     of an ``Hl x Wl`` image; for another size the displacement and gain are interpolated bilinearly
     (linearly extrapolated at the border)."""
 
+    displacement: torch.Tensor  # [3, Hl, Wl, 2] buffer: grid minus the pixel centres
+    gain: torch.Tensor  # [3, Hl, Wl] buffer
+
     def __init__(self, grid: torch.Tensor, gain: torch.Tensor | None = None) -> None:
         super().__init__()
         b = check_tensor("grid", grid, [3, "H", "W", 2], dtypes=_FLOATS, finite=True)
@@ -539,8 +542,13 @@ class MLPMap(PrewarpMap):
         nn.init.zeros_(last.bias)
         self.mlp = nn.Sequential(*mods, last)
 
+    def _last(self) -> nn.Linear:
+        """The output layer (9 = 3 x (dx, dy, log gain))."""
+        # nn.Sequential's stubs type its items as Module; __init__ ends it with this Linear
+        return cast(nn.Linear, self.mlp[-1])
+
     def is_identity(self) -> bool:  # noqa: D102
-        last = self.mlp[-1]
+        last = self._last()
         return not bool(last.weight.detach().any()) and not bool(last.bias.detach().any())
 
     def _encode(self, p: torch.Tensor) -> torch.Tensor:
@@ -552,10 +560,35 @@ class MLPMap(PrewarpMap):
 
     def forward(self, size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:  # noqa: D102
         p = pixel_grid(size, dtype, device)  # [H, W, 2]
-        mlp_dtype = self.mlp[-1].weight.dtype
+        mlp_dtype = self._last().weight.dtype
         out = self.mlp(self._encode(p.to(mlp_dtype))).to(dtype)  # [H, W, 9]
         out = out.reshape(*p.shape[:2], 3, 3).permute(2, 0, 1, 3)  # [3, H, W, (dx, dy, log gain)]
         return p[None] + out[..., :2], torch.exp(out[..., 2])
+
+
+def _optics_bank(optics: nn.Module) -> PSFBank:
+    """The PSF bank (``optics.bank``) of an optics stage such as
+    :class:`~.optics.stage.PSFOptics`; :class:`InputValueError` if it has none."""
+    from .optics.bank import PSFBank
+
+    bank = getattr(optics, "bank", None)
+    if not isinstance(bank, PSFBank):
+        raise InputValueError(f"optics must be an optics stage with a PSFBank as its bank, got a {type(optics).__name__} "
+                              f"whose bank is a {type(bank).__name__}")
+    return bank
+
+
+def _is_placement(value: object) -> TypeGuard[Placement]:
+    return value in PLACEMENTS
+
+
+def _optics_placement(optics: nn.Module) -> Placement:
+    """Where an optics stage places images on its display (``optics.placement``; ``"fit"`` if it
+    has none); :class:`InputValueError` for another value."""
+    placement = getattr(optics, "placement", "fit")
+    if not _is_placement(placement):
+        raise InputValueError(f"optics.placement must be one of {PLACEMENTS}, got {placement!r}")
+    return placement
 
 
 class LensPrewarp(Stage):
@@ -603,8 +636,8 @@ class LensPrewarp(Stage):
             basis: see :class:`LensPrewarp`.
             lut: a file written by :meth:`DisplayLUTMap.save` (``controlgs optics fit-prewarp``).
         """
-        bank = optics.bank
-        placement = getattr(optics, "placement", "fit")
+        bank = _optics_bank(optics)
+        placement = _optics_placement(optics)
         if source == "chief_rays":
             return cls(BankMap(bank, placement, gain), basis=basis)
         if source != "fitted":
@@ -616,7 +649,7 @@ class LensPrewarp(Stage):
                 fitted = DisplayLUTMap.load(path, placement) if path.is_file() else None
             radiometry = getattr(optics, "radiometry", None)
             if fitted is None or fitted.meta.get("bank") != bank_fingerprint(bank) or fitted.meta.get("radiometry") != radiometry:
-                fallback = "jacobian" if radiometry == "energy" else None
+                fallback: Literal["jacobian"] | None = "jacobian" if radiometry == "energy" else None
                 warnings.warn(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
                               f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "
                               "and pass it as {'lens': {'lut': LUT}}", stacklevel=2)
@@ -715,8 +748,8 @@ class LensPrewarp(Stage):
                 raise InputValueError(f"size is required to save a {type(self.map).__name__} as a LUT")
             lut = self.map
         else:
-            lut = self.bake(size).map
-        grid = (lut.displacement + pixel_grid(tuple(lut.gain.shape[1:]), lut.gain.dtype, lut.gain.device)).float()
+            lut = self._baked(size)
+        grid = (lut.displacement + pixel_grid((lut.gain.shape[1], lut.gain.shape[2]), lut.gain.dtype, lut.gain.device)).float()
         header = {"size": list(lut.gain.shape[1:]), "source": type(self.map).__name__,
                   "units": {"grid": "normalised (x, y) sampling positions, align_corners=False", "gain": "factor"}}
         return save_tensors(path, {"grid": grid, "gain": lut.gain.float()}, header, kind=LUT_KIND,
@@ -733,11 +766,15 @@ class LensPrewarp(Stage):
 
     def bake(self, size: tuple[int, int]) -> "LensPrewarp":
         """A LUT copy of this stage's map at ``(H, W)`` (fixed, cheap at inference)."""
+        return LensPrewarp(self._baked(size), basis=self.basis)
+
+    def _baked(self, size: tuple[int, int]) -> LUTMap:
+        """This stage's map tabulated at ``(H, W)``."""
         tensors = [*self.map.parameters(), *self.map.buffers()]
         device = tensors[0].device if tensors else torch.device("cpu")
         with torch.no_grad():
             grid, gain = self.map(size, torch.float32, device)
-            return LensPrewarp(LUTMap(grid, gain), basis=self.basis)
+            return LUTMap(grid, gain)
 
     def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:  # noqa: D102
         if self.training and any(p.requires_grad for p in self.map.parameters()):

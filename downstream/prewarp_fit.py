@@ -41,7 +41,7 @@ from controlgs_adapter.losses import LossWeights, image_loss
 from controlgs_adapter.state import RuntimeState
 
 from .color import primaries_to_rgb_matrix, rgb_to_primaries_matrix
-from .lens import DisplayLUTMap, _interp_regular, bank_fingerprint, chief_ray_grid, pixel_grid
+from .lens import DisplayLUTMap, _interp_regular, _optics_bank, _optics_placement, bank_fingerprint, chief_ray_grid, pixel_grid
 from .pipeline import Pipeline
 from .stage import StageContext
 
@@ -234,15 +234,15 @@ def fit_bank_prewarp(
 
     if optics is None or isinstance(optics, PSFBank):
         optics = PSFOptics(optics)
-    if not hasattr(optics, "bank") or not hasattr(optics, "mode"):
+    if not hasattr(optics, "mode"):
         raise InputValueError(f"optics must be an optics stage or a PSFBank, got {type(optics).__name__}")
+    bank, placement = _optics_bank(optics), _optics_placement(optics)
     if not isinstance(size, int) or size < 8:
         raise InputValueError(f"size must be an int >= 8, got {size!r}")
     if not isinstance(pool, int) or pool < 1 or size % pool or size // pool < 4:
         raise InputValueError(f"pool must be an int >= 1 dividing size into >= 4 samples, got {pool!r}")
     if not modes or any(m not in ("distortion", "exact", "fast") for m in modes):
         raise InputValueError(f"modes must be a non-empty subset of ('distortion', 'exact', 'fast'), got {modes!r}")
-    bank = optics.bank
     dw, dh = bank.display_mm
     long = pool * max(1, round(size * max(dw, dh) / min(dw, dh) / pool))
     fit_size = (size, long) if dw >= dh else (long, size)
@@ -250,11 +250,12 @@ def fit_bank_prewarp(
     start = time.perf_counter()
     for m in modes:
         stage = copy.copy(optics)  # the caller's options, with the display spanned by the fit image
-        stage.mode, stage.placement = m, "stretch"
+        # nn.Module's stubs type every attribute as a tensor or module; mode and placement are plain ones
+        stage.mode, stage.placement = m, "stretch"  # type: ignore[assignment]
         disp, gain, res = _fit_mode(stage, bank, fit_size, gain_iterations, dtype)
         disp = F.avg_pool2d(disp.permute(0, 3, 1, 2), pool).permute(0, 2, 3, 1)
         tables[m], residuals[m] = (disp, F.avg_pool2d(gain[:, None], pool)[:, 0]), res
     meta = {"bank": bank_fingerprint(bank), "radiometry": getattr(optics, "radiometry", None), "size": list(fit_size),
             "pool": pool, "gain_iterations": gain_iterations, "optics": repr(optics), "residuals": residuals,
             "seconds": round(time.perf_counter() - start, 2)}
-    return DisplayLUTMap(tables, bank.display_mm, getattr(optics, "placement", "fit"), meta=meta)
+    return DisplayLUTMap(tables, bank.display_mm, placement, meta=meta)
