@@ -17,13 +17,13 @@ import warnings
 import weakref
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
 
 import torch
 from torch import nn
 
 from . import plugins
-from .backend import Backend, get_attr_path, set_attr_path
+from .backend import Backend, anchor_ids_from_mask, get_attr_path, set_attr_path
 from .errors import (IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
                      LifecycleError, ShapeError, TargetError)
 from .injector import ConditionInjector, InjectionContext
@@ -32,6 +32,9 @@ from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_K
 from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
 from controlgs_adapter.formats.torchscript import eager_from_script
+
+if TYPE_CHECKING:
+    from .downstream.placement import Placement
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
 
@@ -135,8 +138,10 @@ def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
     return _Plan(target, eager)
 
 
-def _check_modules(modules: Sequence[str], cond_dim: int, endpoints: Mapping[str, Sequence[float]] | None,
-                   ) -> dict[str, StrengthSchedule]:
+def _check_modules(modules: Sequence[str], cond_dim: int,
+                   endpoints: Mapping[str, Sequence[float] | Mapping[str, Any]] | None) -> dict[str, StrengthSchedule]:
+    """The schedules of ``modules``: the registered ones, with ``endpoints[m]`` (``(lo, hi)`` or a
+    header's ``{"lo", "hi", ...}``) where given."""
     if isinstance(modules, str) or not isinstance(modules, Sequence):
         raise InputValueError(f"modules must be a sequence of module names, got {modules!r}")
     registered = {name: info.obj for name, info in plugins.schedules().items()}
@@ -160,11 +165,10 @@ def _check_modules(modules: Sequence[str], cond_dim: int, endpoints: Mapping[str
         if lo_hi is None:
             schedules[m] = registered[m]
             continue
-        if isinstance(lo_hi, Mapping):
-            lo_hi = (lo_hi.get("lo"), lo_hi.get("hi"))
-        if len(lo_hi) != 2:
+        pair = (lo_hi.get("lo"), lo_hi.get("hi")) if isinstance(lo_hi, Mapping) else lo_hi
+        if len(pair) != 2:
             raise InputValueError(f"endpoints[{m!r}] must be (lo, hi), got {lo_hi!r}")
-        schedules[m] = registered[m].with_endpoints(*lo_hi)
+        schedules[m] = registered[m].with_endpoints(*pair)
     return schedules
 
 
@@ -195,7 +199,7 @@ class ControlGS:
     #: where the image sits on the headset display for the per-anchor strengths (``"fit"`` or
     #: ``"stretch"``, :mod:`controlgs_adapter.downstream.placement`); set it as the optics stage's
     #: ``placement`` when that is not the default. A run-time setting, not saved with the adapter.
-    placement: str = "fit"
+    placement: Placement = "fit"
 
     def __init__(self, model: Any, backend: Backend, injector: ConditionInjector, targets: list[Target],
                  schedules: dict[str, StrengthSchedule], state_blind: bool, fingerprint: str,
@@ -341,9 +345,7 @@ class ControlGS:
         if not isinstance(anchor_ids, torch.Tensor):
             raise InputValueError(f"anchor_ids must be a LongTensor[R], a BoolTensor[{a}] or None, got {type(anchor_ids).__name__}")
         if anchor_ids.dtype == torch.bool:
-            if anchor_ids.shape != (a,):
-                raise ShapeError(f"anchor_ids as a mask must have shape [{a}] (one per anchor), got {list(anchor_ids.shape)}")
-            return anchor_ids.to(device).nonzero().squeeze(1)
+            return anchor_ids_from_mask(anchor_ids.to(device), a, name="anchor_ids mask")
         if anchor_ids.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8, torch.int8):
             raise InputValueError(f"anchor_ids must be an integer or bool tensor, got {anchor_ids.dtype}")
         if anchor_ids.dim() != 1:

@@ -282,6 +282,7 @@ def test_wrong_rows_ids_and_masks_raise():
     cgs = ControlGS.wrap(model)
     mask = torch.zeros(20, dtype=torch.bool)
     mask[:5] = True
+    assert cgs.anchor_ids(torch.arange(20) % 3 == 1).tolist() == list(range(1, 20, 3))  # a mask's anchors, ascending
     with cgs.conditioned(FULL, camera=cam, anchor_ids=mask):
         model.decode(x[:5])
         with pytest.raises(ShapeError, match="called with 20 rows .* expects 5 rows"):
@@ -289,7 +290,7 @@ def test_wrong_rows_ids_and_masks_raise():
         with pytest.raises(LifecycleError, match="nested"):
             with cgs.conditioned(FULL, camera=cam):
                 pass
-    with pytest.raises(ShapeError, match=r"mask must have shape \[20\]"):
+    with pytest.raises(ShapeError, match=r"anchor_ids mask must have size 20 .*got \[19\]"):
         with cgs.conditioned(FULL, camera=cam, anchor_ids=torch.ones(19, dtype=torch.bool)):
             pass
     with pytest.raises(InputValueError, match=r"\[0, 20\)"):
