@@ -240,6 +240,13 @@ def test_adapter_maps_between_live_padded_model_and_loaded_folder(tmp_path):
     other = load_contextgs_dir(_write_dir(tmp_path / "other", _arrays(8, decoded=True), decs))
     with pytest.raises(IncompatibleAdapterError, match="anchor count"):
         ControlGS.load(tmp_path / "live.safetensors", other)
+    # another scene with the same counts (valid anchors included) is no reason to scatter the rows onto it
+    arr8 = _arrays(8, decoded=True)
+    arr8["mask"][3] = 0.0
+    live8 = _model(arr8, decs, decoded=True)
+    assert int(ContextGSBackend().valid_anchors(live8).sum()) == len(rows)
+    with pytest.raises(IncompatibleAdapterError, match="anchor count"):
+        ControlGS.load(tmp_path / "loaded.safetensors", live8)
 
 
 def test_prefilter_uses_anchor_zero_rotation():

@@ -352,3 +352,17 @@ def test_quaternion_rotation_is_orthonormal_and_matches_pycolmap(q):
     xyzw = np.array([q[1], q[2], q[3], q[0]])
     ref = pycolmap.Rotation3d(xyzw / np.linalg.norm(xyzw)).matrix()
     np.testing.assert_allclose(r.numpy(), ref, atol=1e-10)
+
+
+def test_area_resize_by_hand():
+    """Equal integer factors are an exact box mean (by hand); unequal integer factors (40x60 -> 20x20) are
+    not a box of either side: the output has the asked size and keeps a constant image constant."""
+    from controlgs_adapter.datasets.base import area_resize
+
+    img = torch.arange(2 * 4 * 6, dtype=torch.float32).reshape(2, 4, 6)
+    box = area_resize(img, 2, 3)
+    want = torch.tensor([[(0 + 1 + 6 + 7) / 4, (2 + 3 + 8 + 9) / 4, (4 + 5 + 10 + 11) / 4],
+                         [(12 + 13 + 18 + 19) / 4, (14 + 15 + 20 + 21) / 4, (16 + 17 + 22 + 23) / 4]])
+    assert torch.allclose(box[0], want) and torch.allclose(box[1], want + 24)
+    flat = area_resize(torch.full((3, 40, 60), 0.25), 20, 20)
+    assert flat.shape == (3, 20, 20) and torch.allclose(flat, torch.full_like(flat, 0.25))
