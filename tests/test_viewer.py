@@ -240,24 +240,27 @@ def test_render_and_extra_endpoints(server: Any, session: ViewerSession) -> None
     assert request(server, "POST", "/api/extra", {"generation": g})[0] == 409  # stale
 
 
-class SlowSession:
-    """Stands in for a session: each render takes 'methods' steps of ``delay`` seconds with a check between."""
+class GatedSession:
+    """Stands in for a session: a render takes 3 steps with a check after each; every step waits for
+    ``gate`` (opened by the test), so which request runs when does not depend on timing."""
 
     cameras = [None]
 
-    def __init__(self, delay: float) -> None:
-        self.delay, self.steps = delay, []
+    def __init__(self) -> None:
+        self.gate, self.running = threading.Event(), threading.Event()
+        self.steps: list[tuple[int, int]] = []
 
     def render(self, state: ViewState, check: Any, tag: int) -> dict[str, Any]:
+        self.running.set()
         for i in range(3):
-            time.sleep(self.delay)
+            assert self.gate.wait(30), "the test never opened the gate"
             self.steps.append((tag, i))
             check()
         return {"state": state.to_json()}
 
 
 def test_newer_request_supersedes_older_ones() -> None:
-    slow = SlowSession(0.3)
+    slow = GatedSession()
     srv = make_server(slow)  # type: ignore[arg-type]
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     try:
@@ -266,22 +269,26 @@ def test_newer_request_supersedes_older_ones() -> None:
         def send(i: int, d: float) -> None:
             results[i] = request(srv, "POST", "/api/render", {"downsample": d})
 
-        def start(i: int) -> None:
+        def start(i: int) -> None:  # request i is in: it holds generation i + 1
             threads[i].start()
+            deadline = time.monotonic() + 30
             while srv.generations.current < i + 1:
+                assert time.monotonic() < deadline, f"request {i} never reached the server"
                 time.sleep(0.005)
 
         threads = [threading.Thread(target=send, args=(i, 1.0 + i)) for i in range(3)]
-        start(0)                           # the first one runs,
-        start(1)                           # the second one is queued
-        start(2)                           # and superseded before it starts
+        start(0)
+        assert slow.running.wait(30)       # the first one runs (held before its first step),
+        start(1)                           # the second one is queued behind it
+        start(2)                           # and superseded by the third before it starts
+        slow.gate.set()
         for t in threads:
             t.join(30)
         assert results[0][0] == 409 and results[1][0] == 409 and results[2][0] == 200
         assert json.loads(results[2][1])["state"]["downsample"] == 3.0
-        tags = [t for t, _ in slow.steps]
-        assert tags.count(1) < 3 and 2 not in tags and tags.count(3) == 3  # 1 dropped mid-way, 2 never ran
+        assert slow.steps == [(1, 0), (3, 0), (3, 1), (3, 2)]  # 1 dropped mid-way, 2 never ran, 3 ran through
     finally:
+        slow.gate.set()
         srv.shutdown()
         srv.server_close()
 
