@@ -90,13 +90,14 @@ def train_config(args: argparse.Namespace, name: str, seed: int | None = None) -
 
 
 def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
-                   dist: Any = None, trained: dict[str, int] | None = None, seed: int | None = None) -> dict[str, Path]:
+                   dist: Any = None, trained: dict[str, int] | None = None, seed: int | None = None,
+                   renderer: Any = None) -> dict[str, Path]:
     """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
     names) on the training ``views`` (a :class:`~controlgs_adapter.training.Views` dataset); returns ``{name: adapter
     file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this process's
     :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files). ``trained``, if
     given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked).
-    ``seed``: the training seed (default ``args.seed``)."""
+    ``seed``: the training seed (default ``args.seed``). ``renderer``: the :class:`Trainer`'s (None: the model's own)."""
     from ..training import Trainer
 
     paths = {}
@@ -105,7 +106,7 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
         target = out / f"{name}.controlgs.safetensors"
         ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
         trainer = Trainer(model, views, config, effects=effects_from(getattr(args, "effects", None)), checkpoint=ckpt,
-                          dist=dist)
+                          dist=dist, renderer=renderer)
         main = trainer.dist.is_main
         if trainer.resume() and main:
             print(f"{name}: resuming at iteration {trainer.iteration}")

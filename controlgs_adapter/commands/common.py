@@ -19,7 +19,7 @@ DEFAULT_CACHE_MIB = 1024
 RUN_FILE = "run.json"
 #: run.json keys that ``eval`` takes as defaults for its options
 _RUN_DEFAULTS = ("model", "data", "family", "model_iteration", "format", "images", "holdout", "white_background",
-                 "resolution", "allow_unquantized", "effects")
+                 "resolution", "allow_unquantized", "effects", "rasterizer", "renderer")
 
 
 def add_data_arguments(p: argparse.ArgumentParser) -> None:
@@ -148,3 +148,129 @@ def cache_bytes(args: argparse.Namespace) -> int:
     if not isinstance(mib, int) or mib < 0:
         raise InputValueError(f"--cache-mib must be an int >= 0 (MiB), got {mib!r}")
     return mib << 20
+
+
+def add_render_arguments(p: argparse.ArgumentParser) -> None:
+    """``--rasterizer`` and ``--renderer`` (docs/rendering.md)."""
+    g = p.add_argument_group("rendering (docs/rendering.md; default: a train run's, from RUN/run.json)")
+    g.add_argument("--rasterizer", default=None, metavar="NAME",
+                   help="rasterizer of the renders: a registered one (torch, gsplat, plug-ins: `controlgs plugins`) or "
+                        "auto (default: gsplat on CUDA where installed, else torch)")
+    g.add_argument("--renderer", default=None, metavar="MODULE:ATTR",
+                   help="your own renderer: a Renderer object (visible(model, camera), render(model, camera, visible, "
+                        "background)) or a render function render(model, camera, visible, background), named as "
+                        "MODULE:ATTR (importable, or from the current folder) or path/to/file.py:ATTR")
+
+
+def check_rasterizer_name(name: str | None) -> None:
+    """Refuse a ``--rasterizer`` that is not registered (one line listing those that are)."""
+    from .. import plugins
+
+    registered = list(plugins.rasterizers())
+    if name is not None and name != "auto" and name not in registered:
+        raise InputValueError(f"--rasterizer {name!r} is not registered; available: {', '.join(registered)}, auto")
+
+
+def load_renderer(spec: str) -> Any:
+    """The :class:`~controlgs_adapter.rendering.protocol.Renderer` of ``--renderer MODULE:ATTR`` (or
+    ``FILE.py:ATTR``): an object with ``visible`` and ``render``, or a render function (all anchors
+    decoded). Refused in one line: a malformed spec, a missing module, file or attribute, an object
+    that does not fit the protocol (a class, not callable, methods that do not take its arguments)."""
+    import importlib
+    import importlib.util
+    import inspect
+    import sys
+
+    from ..rendering.protocol import Renderer, as_renderer
+
+    where, sep, attr = spec.rpartition(":")
+    if not sep or not where or not attr.isidentifier():
+        raise InputValueError(f"--renderer must be MODULE:ATTR or path/to/file.py:ATTR, got {spec!r}")
+    if where.endswith(".py"):
+        path = Path(where)
+        if not path.is_file():
+            raise InputValueError(f"--renderer {spec}: no such file {path}")
+        loader = importlib.util.spec_from_file_location(f"controlgs_user_renderer_{path.stem}", path)
+        if loader is None or loader.loader is None:
+            raise InputValueError(f"--renderer {spec}: {path} is not a Python module")
+        module = importlib.util.module_from_spec(loader)
+        loader.loader.exec_module(module)
+    else:
+        sys.path.insert(0, str(Path.cwd()))  # a module of the current folder, as `python -m` would find it
+        try:
+            module = importlib.import_module(where)
+        except ModuleNotFoundError as e:
+            if e.name is None or not where.startswith(e.name):
+                raise
+            raise InputValueError(f"--renderer {spec}: no module named {e.name!r} (on the Python path or in the current "
+                                  f"folder; or give a file: path/to/file.py:{attr})") from None
+        finally:
+            sys.path.remove(str(Path.cwd()))
+    if not hasattr(module, attr):
+        raise InputValueError(f"--renderer {spec}: {where} has no attribute {attr!r}")
+    obj = getattr(module, attr)
+    fits = "a Renderer object (visible(model, camera), render(model, camera, visible, background)) or a render function render(model, camera, visible, background)"
+    if isinstance(obj, type):
+        raise InputValueError(f"--renderer {spec}: {attr} is a class; name an instance of it or a function: {fits}")
+    methods = ((obj.visible, 2), (obj.render, 4)) if isinstance(obj, Renderer) else ((obj, 4),) if callable(obj) else ()
+    try:
+        if not methods or any(not callable(fn) for fn, _ in methods):
+            raise TypeError(f"a {type(obj).__name__}")
+        for fn, n in methods:
+            inspect.signature(fn).bind(*([None] * n))
+    except TypeError as e:
+        raise InputValueError(f"--renderer {spec}: {attr} does not fit the render protocol ({e}); expected {fits}") from None
+    except ValueError:  # no signature to inspect (a builtin): accepted, checked at the first render
+        pass
+    return as_renderer(obj, None)
+
+
+class RasterizerRenderer:
+    """``renderer`` with its renders rasterized by ``rasterizer`` (set for each call, so it holds in
+    any thread: the viewer renders in a worker)."""
+
+    def __init__(self, renderer: Any, rasterizer: str) -> None:
+        self.renderer, self.rasterizer = renderer, rasterizer
+
+    def visible(self, model: Any, camera: Any) -> Any:
+        return self.renderer.visible(model, camera)
+
+    def render(self, model: Any, camera: Any, visible: Any, background: Any) -> Any:
+        from ..rendering.rasterizers import use_rasterizer
+
+        with use_rasterizer(self.rasterizer):
+            return self.renderer.render(model, camera, visible, background)
+
+    def __repr__(self) -> str:
+        return f"{self.renderer!r} with rasterizer {self.rasterizer!r}"
+
+
+def make_renderer(args: argparse.Namespace, model: Any) -> Any:
+    """The renderer of ``--renderer`` / ``--rasterizer`` for ``model`` (None: neither given, the model's
+    own). ``--rasterizer`` is checked against the model's device (one line: why it cannot run,
+    and for gsplat the extra to install)."""
+    import torch
+
+    from .. import plugins
+    from ..rendering.protocol import model_device, renderer_for
+
+    check_rasterizer_name(args.rasterizer)
+    renderer = load_renderer(args.renderer) if args.renderer else None
+    if args.rasterizer in (None, "auto"):
+        return renderer
+    device = model_device(model)
+    why = plugins.rasterizers()[args.rasterizer].obj.unavailable(device, torch.float32)
+    if why is not None:
+        hint = ("; it needs --device cuda and the gsplat extra: pip install 'controlgs-adapter[gsplat]' (or pip install "
+                "--no-deps gsplat to keep your torch; docs/rendering.md)") if args.rasterizer == "gsplat" else ""
+        raise InputValueError(f"--rasterizer {args.rasterizer} cannot render on {device}: {why}{hint}")
+    return RasterizerRenderer(renderer if renderer is not None else renderer_for(model), args.rasterizer)
+
+
+def render_record(args: argparse.Namespace) -> dict[str, Any]:
+    """``--rasterizer`` / ``--renderer`` for ``run.json`` (a file renderer by its absolute path)."""
+    spec = args.renderer
+    if spec is not None and spec.rpartition(":")[0].endswith(".py"):
+        where, _, attr = spec.rpartition(":")
+        spec = f"{Path(where).resolve()}:{attr}"
+    return {"rasterizer": args.rasterizer or "auto", "renderer": spec}

@@ -161,15 +161,16 @@ def first_views(data: Any, split: str, n: int | None, resolution: int | None = N
 
 
 def report_figures(model: Any, adapter: Path, views: Any, *, effects: dict[str, Any] | None = None,
-                   optics_mode: str) -> tuple[dict[str, Any], dict[str, Any]]:
+                   optics_mode: str, renderer: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
     """The report's comparison (:func:`side_by_side`) and condition strip (:func:`condition_response`) on the
-    first of ``views``, on the model's device."""
+    first of ``views``, on the model's device, rendered by ``renderer`` (None: the model's own)."""
     from controlgs_adapter.evaluation import condition_response, side_by_side
     from controlgs_adapter.rendering.protocol import model_device
 
     device = model_device(model)
     cam, gt = views[0]
     bg = views.background.to(device)
-    comparison = side_by_side(model, adapter, cam, gt.to(device), effects=effects, background=bg, optics_mode=optics_mode)
-    response = condition_response(model, adapter, cam, background=bg)
+    comparison = side_by_side(model, adapter, cam, gt.to(device), effects=effects, background=bg, optics_mode=optics_mode,
+                              renderer=renderer)
+    response = condition_response(model, adapter, cam, background=bg, renderer=renderer)
     return comparison, response

@@ -11,7 +11,8 @@ import argparse
 import time
 from pathlib import Path
 
-from .common import add_data_arguments, apply_run_defaults, cache_bytes, user_scene
+from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_rasterizer_name,
+                     make_renderer, render_record, user_scene)
 from .adapters import effects_from
 from .demo import add_common, add_lpips, evaluate_seeds, first_views, load_lpips_arg, report_figures, seed_runs
 
@@ -23,6 +24,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--out", default=None, help="report folder (default: the run folder)")
     add_common(p)
     add_data_arguments(p)
+    add_render_arguments(p)
     p.add_argument("--effects", default=None, help="downstream stages, comma-separated (default: the run's, else all)")
     add_lpips(p)
     p.set_defaults(func=run)
@@ -49,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
                               + "); train every seed with the same ablations")
     lpips = load_lpips_arg(args)
     recorded = apply_run_defaults(args, run_dir)
+    check_rasterizer_name(args.rasterizer)  # before loading anything
     t = time.perf_counter()
     if user_scene(args):
         from .common import load_user_scene
@@ -66,16 +69,19 @@ def run(args: argparse.Namespace) -> int:
         model, data, name = load_builtin_backbone(args.variant).to(args.device), builtin.data, builtin.name
         resolution = None  # the built-in views are rendered at S
     views = first_views(data, "test", args.test_views, resolution, cache_bytes=cache_bytes(args))
+    renderer = make_renderer(args, model)
     load_s = time.perf_counter() - t
     t = time.perf_counter()
     effects = effects_from(args.effects)
     results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
-                             progress=args.progress)
+                             progress=args.progress, renderer=renderer)
     eval_s = time.perf_counter() - t
     first = next(iter(adapters.values()))
-    comparison, response = report_figures(model, first["controlgs"], views, effects=effects, optics_mode=args.optics)
+    comparison, response = report_figures(model, first["controlgs"], views, effects=effects, optics_mode=args.optics,
+                                          renderer=renderer)
     info = {"scene": name, "resolution": args.resolution, "test_views": len(views), "optics": args.optics,
             "adapters": list(first), "seeds": len(results), "effects": sorted(effects), "device": str(args.device),
+            **render_record(args),
             "threads": torch.get_num_threads(),
             "load_s": round(load_s, 1), "eval_s": round(eval_s, 1),
             **({"lpips_weights": lpips.source} if lpips is not None else {}),

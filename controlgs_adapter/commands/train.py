@@ -11,11 +11,12 @@ import argparse
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 from ..distributed import DistContext, init_distributed, shard_scenes
-from .adapters import add_distributed_arguments, add_training, train_adapters
-from .common import (RUN_FILE, add_data_arguments, anchor_positions, cache_bytes, check_line, load_user_scene,
-                     user_scene)
+from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters
+from .common import (RUN_FILE, add_data_arguments, add_render_arguments, anchor_positions, cache_bytes, check_line,
+                     check_rasterizer_name, load_user_scene, make_renderer, render_record, user_scene)
 from .demo import add_common, seed_runs
 
 ABLATION_NAMES = ("wo_lens", "wo_display", "wo_resample", "state_blind")
@@ -27,6 +28,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     add_common(p)
     add_training(p)
     add_data_arguments(p)
+    add_render_arguments(p)
     add_distributed_arguments(p, scene_choices=("ar", "vr"))
     p.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
                    help="also train w/o lens, display, resample and state-blind (default: on; --ablation picks some)")
@@ -55,6 +57,7 @@ def _run(args: argparse.Namespace) -> int:
 
     names = ["controlgs", *(args.ablation or (ABLATION_NAMES if args.ablations else ()))]
     out = Path(args.out)
+    check_rasterizer_name(args.rasterizer)  # before loading anything
     if user_scene(args):
         if args.scenes:
             raise InputValueError("--scenes trains built-in scenes; it does not combine with --model/--data")
@@ -71,14 +74,21 @@ def _run(args: argparse.Namespace) -> int:
             for variant in shard_scenes(args.scenes, dist):
                 with run_lock(out / variant):
                     views, model = load(variant)
+                    renderer = make_renderer(args, model)
                     for seed, folder in seed_runs(out / variant, args.seed, args.seeds):
-                        paths = train_adapters(views, model, folder, args, names, dist=DistContext(), seed=seed)
+                        paths = train_adapters(views, model, folder, args, names, dist=DistContext(), seed=seed,
+                                               renderer=renderer)
                         for name, path in paths.items():
                             print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
         views, model = load(args.variant)
-        for seed, folder in seed_runs(out, args.seed, args.seeds):
-            paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed)
+        renderer = make_renderer(args, model)
+        runs = seed_runs(out, args.seed, args.seeds)
+        if dist.is_main:
+            _write_run(out, {"variant": args.variant, "effects": sorted(effects_from(args.effects)), "iterations": args.iterations,
+                             "seed": args.seed, "seeds": len(runs), "adapters": names, **render_record(args)})
+        for seed, folder in runs:
+            paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed, renderer=renderer)
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
@@ -88,8 +98,6 @@ def _run(args: argparse.Namespace) -> int:
 def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
     """Train on ``--model`` / ``--data``: load, check the scene, record ``run.json``, train."""
     from controlgs_adapter.datasets.sanity import check_scene
-    from controlgs_adapter.formats.safetensors import atomic_write
-    from .adapters import effects_from
 
     runs = seed_runs(out, args.seed, args.seeds)
     scene = load_user_scene(args)
@@ -98,16 +106,24 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
         if dist.device.type != "cpu":
             scene.model.to(dist.device)
         views = scene.data.views("train", resolution=scene.resolution, cache_bytes=cache_bytes(args))
+        renderer = make_renderer(args, scene.model)
         if dist.is_main:
             print(check_line(report))
             print(f"model: {scene.family} {args.model}; training views: {views.describe()}")
             record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
-                                  seeds=len(runs), adapters=names)
-            out.mkdir(parents=True, exist_ok=True)
-            atomic_write(out / RUN_FILE, lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))
+                                  seeds=len(runs), adapters=names, **render_record(args))
+            _write_run(out, record)
         for seed, folder in runs:
-            paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed)
+            paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed, renderer=renderer)
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
     return 0
+
+
+def _write_run(out: Path, record: dict[str, Any]) -> None:
+    """Write ``out/run.json`` (atomically): what the run was trained on and with."""
+    from controlgs_adapter.formats.safetensors import atomic_write
+
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(out / RUN_FILE, lambda tmp: Path(tmp).write_text(json.dumps(record, indent=1)))

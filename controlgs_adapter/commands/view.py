@@ -10,7 +10,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
-from .common import add_data_arguments, apply_run_defaults, cache_bytes, parse_device, user_scene
+from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_rasterizer_name,
+                     make_renderer, parse_device, user_scene)
 
 #: the built-in scene's default resolution in the viewer (the latency benchmark's 128 px)
 VIEW_RESOLUTION = 128
@@ -32,6 +33,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--threads", type=int, default=None,
                    help="torch intra-op threads on the CPU (default: torch's; 1 can be faster on a busy machine)")
     add_data_arguments(p)
+    add_render_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -46,11 +48,11 @@ def _adapters(run_dir: Path) -> dict[str, Path]:
     return found
 
 
-def _quick_adapter(model: Any, views: Any, folder: Path, iterations: int) -> dict[str, Path]:
+def _quick_adapter(model: Any, views: Any, folder: Path, iterations: int, renderer: Any = None) -> dict[str, Path]:
     """Train a short ControlGS adapter on the built-in scene's training views (a stand-in for a run)."""
     from controlgs_adapter.training import TrainConfig, Trainer
 
-    trainer = Trainer(model, views, TrainConfig(iterations=iterations, checkpoint_every=0))
+    trainer = Trainer(model, views, TrainConfig(iterations=iterations, checkpoint_every=0), renderer=renderer)
     try:
         trainer.train(progress=True)
         path = trainer.cgs.save(folder / "controlgs.controlgs.safetensors")
@@ -83,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputValueError(f"--run {run_dir}: no such folder")
         apply_run_defaults(args, run_dir)
         adapters = _adapters(run_dir)
+    check_rasterizer_name(args.rasterizer)  # before loading anything
     with tempfile.TemporaryDirectory(prefix="controlgs-view-") as tmp:
         truth: Callable[[Any], Any] | None = None
         if user_scene(args):
@@ -93,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
                 raise InputValueError("--model/--data need --run RUN (the folder with the trained adapters)")
             scene = load_user_scene(args)
             model, name = scene.model, f"{scene.family} {args.model}"
+            renderer = make_renderer(args, model)
             views = first_views(scene.data, "test", args.test_views, scene.resolution, cache_bytes=cache_bytes(args))
         else:
             from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
@@ -102,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
             device = parse_device(args.device)
             builtin = load_builtin_scene(args.variant, args.resolution or VIEW_RESOLUTION, cache=True)
             model, name = load_builtin_backbone(args.variant).to(device), builtin.name
+            renderer = make_renderer(args, model)
             views = first_views(builtin.data, "test", args.test_views)
             truth = _exact_truth(builtin)
             if run_dir is None:
@@ -109,8 +114,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"no --run: training a quick ControlGS adapter ({args.iterations} iterations) on {name}; "
                       "`controlgs demo --out report` then `controlgs view --run report` shows a fully trained one")
                 train = load_builtin_scene(args.variant, DEFAULT_RESOLUTION, cache=True).views("train")  # the demo's size
-                adapters = _quick_adapter(model, train, Path(tmp), args.iterations)
-        session = ViewerSession(model, views, adapters, truth=truth, name=name)
+                adapters = _quick_adapter(model, train, Path(tmp), args.iterations, renderer)
+        session = ViewerSession(model, views, adapters, truth=truth, name=name, renderer=renderer)
         server = make_server(session, args.port)
         print(f"controlgs view: {name}, methods {', '.join(session.methods)} on {session.device}", flush=True)
         print(f"serving on {server.url} (loopback only; Ctrl-C stops)", flush=True)
