@@ -200,8 +200,8 @@ def test_gradcheck_with_early_termination() -> None:
 
 @pytest.mark.parametrize("opaque", [False, True])
 def test_chunked_and_recomputed_backward_agree(opaque: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Tiny pair budget (many chunks), no pair cache (backward recomputes) and depth-rank passes of
-    1, 2, 4, ... records per tile give the same result."""
+    """Chunks of two tiles, a tiny pair budget (many passes), no pair cache (backward recomputes) and
+    depth-rank passes of 1, 2, 4, ... records per tile give the same result."""
     scene, cam = _opaque_stack() if opaque else (random_scene(5, 50, make_camera()), make_camera())
     weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(1), dtype=F64)
 
@@ -211,6 +211,7 @@ def test_chunked_and_recomputed_backward_agree(opaque: bool, monkeypatch: pytest
         return out, torch.autograd.grad((out * weights).sum(), inputs)
 
     out_a, grads_a = run()
+    monkeypatch.setattr(splatter, "_KEY_LIMIT", 2 * 16 + 1)
     monkeypatch.setattr(splatter, "_PAIR_BUDGET", 64)
     monkeypatch.setattr(splatter, "_CACHE_BYTES", 0)
     monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
@@ -377,15 +378,15 @@ def test_every_pair_above_alpha_min_is_enumerated(seed: int, n: int, tile_size: 
     cam = make_camera(19, 13)
     scene = random_scene(seed, n, cam)
     enumerated = []
-    expand = splatter._expand_pairs
+    expand = splatter._chunk_passes
 
     def counting(*args):
-        pairs = expand(*args)
-        enumerated.append(int((pairs.alpha > 0).sum()))
-        return pairs
+        passes, first = expand(*args)
+        enumerated.extend(int((p.alpha > 0).sum()) for p in passes)
+        return passes, first
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(splatter, "_expand_pairs", counting)
+        mp.setattr(splatter, "_chunk_passes", counting)
         fast = rasterize(*scene, cam, tile_size=tile_size, transmittance_min=0.0)
     means, scales, rotations, opacities = scene[:4]
     w2c, k = cam.world_to_camera, cam.intrinsics

@@ -16,31 +16,37 @@ How it is fast (2 CPU cores, no compiled extension; profiler labels ``splatter.*
    the image (``visible``);
 2. [bin] sort the rest by depth, bin their candidate rectangles (footprint cut to the box where
    alpha can reach 1/255) into ``tile_size`` x ``tile_size`` tiles, stable-sort the records by tile
-   (so (tile, depth) order), and cut the tiles into chunks of about ``_PAIR_BUDGET`` candidate
-   (pixel, Gaussian) pairs and at most ``2^15`` pixels, so that memory is bounded whatever the scene
-   (never a dense [pixels x Gaussians] tensor) and a chunk's pixels, numbered tile-major, fit int16;
-3. [expand_pairs] per chunk, expand the records into their (pixel, Gaussian) pairs, drop those with
-   alpha < 1/255, stable-sort them by pixel with int16 keys (each pixel's run stays in depth order)
-   and get every pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix
-   sums); per-chunk work is proportional to the chunk's pairs and pixels, never to the image. Early
-   termination (``transmittance_min``, 3DGS's ``T < 1e-4``): the records are taken in passes of
-   doubling depth rank per tile, the pairs behind each pixel's termination point are dropped here,
-   before anything is accumulated or kept for backward, terminated pixels are skipped before the
-   exp of later passes and terminated tiles expand no further records;
-4. [accumulate] ``sum_i w_i f_i`` per pixel is one sparse CSR [chunk pixels x Gaussians] @
-   [Gaussians x 5] product (colour, depth, alpha);
+   (so (tile, depth) order) and cut the tiles into chunks of fewer than ``2^15`` tile-major pixels, so
+   that a chunk's pixel keys and the sort's sentinel fit int16;
+3. [expand_pairs] per chunk, in passes over windows of depth rank (at most ``_PAIR_BUDGET`` candidate
+   pairs each, so memory is bounded whatever the scene: never a dense [pixels x Gaussians] tensor):
+   expand the records into pixel rows, then pixels, the exponent ``log(o G)`` a quadratic in the
+   pixel's column per row; give the pairs with alpha < 1/255 the sentinel key and stable-sort by
+   pixel with int16 keys (each pixel's run stays in depth order, the dropped pairs last); every
+   pair's transmittance comes from one segmented scan of ``log(1 - alpha)`` (float64 prefix sums)
+   continued from the earlier passes. Early termination (``transmittance_min``, 3DGS's ``T < 1e-4``):
+   the pairs behind each pixel's termination point are dropped here, before anything is accumulated
+   or kept for backward; later passes skip the rows whose pixels have all terminated and the tiles
+   that have; the first window of a chunk ends at the depth where half of the previous chunk's tiles
+   terminated, each next one twice as deep;
+4. [accumulate] ``sum_i w_i f_i`` per pixel is one sparse CSR [chunk pixels x chunk records] @
+   [records x 5] product per pass (colour, depth, alpha);
 5. [backward_pairs] the compositing is a ``torch.autograd.Function`` with a hand-written backward
-   (the 3DGS back-to-front suffix sums as a reverse segmented scan, then scatter-adds to the
-   Gaussians); a chunk's drawn pairs (17 bytes each: Gaussian, pixel, alpha, weight, clamp flag; offsets
-   recomputed from the pixel) are kept for it while they fit in ``_CACHE_BYTES``, the others are
-   recomputed (as the CUDA kernel does).
+   (the 3DGS back-to-front suffix sums as a reverse segmented scan per pass, carried across passes
+   per pixel); the pairs' terms are summed per record (chunk-local, cache-resident: the conic enters
+   through the moments ``sum g dx^2`` etc.) and scattered to the Gaussians once per chunk; a chunk's
+   drawn pairs (15 bytes each: record, pixel, alpha, weight, clamp flag; offsets recomputed from the
+   pixel) are kept for it while they fit in ``_CACHE_BYTES``, the others are recomputed (as the CUDA
+   kernel does).
 """
 
 from __future__ import annotations
 
+import bisect
 import math
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch.autograd.function import once_differentiable
@@ -70,8 +76,6 @@ ALPHA_MAX = 0.99  # per-splat alpha clamp
 ALPHA_MIN = 1.0 / 255.0  # splats with alpha below this are skipped
 TRANSMITTANCE_MIN = 1e-4  # default of rasterize's transmittance_min (early termination, as 3DGS)
 
-_PAIR_BUDGET = 1 << 20  # candidate (pixel, Gaussian) pairs expanded at once (~50 bytes of temporaries each)
-_CACHE_BYTES = 512 << 20  # pair data kept from forward for backward; chunks beyond it are recomputed
 
 
 @dataclass
@@ -195,85 +199,74 @@ class _Tiling:
     """(tile, Gaussian) records sorted by (tile, depth), each clipped to its tile, and the chunks.
 
     Pixels are numbered tile-major: pixel ``(x, y)`` of tile ``t`` is ``t * ts^2 + (y % ts) * ts + x % ts``
-    (``ts`` the tile size); a chunk is a run of whole tiles ``[t0, t1)``, its pairs' keys
-    ``(t - t0) * ts^2 + ...`` fit in int16 (fast stable sort) whenever ``(t1 - t0) ts^2 <= 2^15``.
+    (``ts`` the tile size). A chunk is a run of whole tiles ``[t0, t1)`` with fewer than ``_KEY_LIMIT``
+    pixels; its pixel keys ``(t - t0) * ts^2 + ...`` and one past them (the sort's sentinel) fit int16.
     """
 
-    gauss: torch.Tensor  # [R] int64 Gaussian (index into depth-sorted arrays)
+    gauss: torch.Tensor  # [R] int64 Gaussian (index into the depth-sorted arrays)
     x0: torch.Tensor  # [R] int64 first pixel column of the clipped rectangle
-    x1: torch.Tensor  # [R] int64 last pixel column
+    wx: torch.Tensor  # [R] int64 its width in pixels
     y0: torch.Tensor  # [R] int64 first pixel row
-    rows: torch.Tensor  # [R] int64 pixel rows of the rectangle
-    key_base: torch.Tensor  # [R] int64 key of pixel (x, y) in its chunk = key_base + y * ts + x
+    rows: torch.Tensor  # [R] int64 its height in pixels
+    key0: torch.Tensor  # [R] int64 chunk-local key of pixel (x0, y0); (x, y) has key0 + (y - y0) ts + x - x0
     tile: torch.Tensor  # [R] int64 tile index
     rank: torch.Tensor  # [R] int64 depth rank of the record among its tile's records
-    chunks: list[tuple[int, int, int, int]]  # (first record, end record, first tile, end tile)
+    chunks: list[tuple[int, int, int, int]]  # (first record, end record, first tile, end tile), non-empty ones
     tile_size: int
     tiles_x: int
     tiles_y: int
 
 
-_KEY_LIMIT = 1 << 15  # pixels per chunk for int16 sort keys
+_KEY_LIMIT = 1 << 15  # pixels per chunk, sentinel included: int16 sort keys (about 1.4x faster than int32)
 
 
 def _bin_tiles(rect: torch.Tensor, width: int, height: int, tile_size: int) -> _Tiling:
-    """Bin rectangles ``rect`` ``[M, 4]`` (Gaussians already in depth order) into tiles."""
+    """Bin rectangles ``rect`` ``[M, 4]`` (x0, x1, y0, y1 inclusive; Gaussians already in depth order)
+    into tiles."""
     dev = rect.device
     ts, tp = tile_size, tile_size * tile_size
     tiles_x, tiles_y = (width + ts - 1) // ts, (height + ts - 1) // ts
+    n_tiles = tiles_x * tiles_y
     ids = ((rect[:, 0] <= rect[:, 1]) & (rect[:, 2] <= rect[:, 3])).nonzero().squeeze(1)  # non-empty
-    rect = rect.index_select(0, ids)
-    x0, x1, y0, y1 = rect.unbind(-1)
-    tx0, tx1, ty0, ty1 = x0 // ts, x1 // ts, y0 // ts, y1 // ts
-    ntx = tx1 - tx0 + 1
-    n_rec = ntx * (ty1 - ty0 + 1)  # [M']
-    owner = torch.repeat_interleave(torch.arange(rect.shape[0], device=dev), n_rec)  # [R] in depth order
+    x0, x1, y0, y1 = rect.index_select(0, ids).unbind(-1)
+    tx0, ty0 = x0 // ts, y0 // ts
+    ntx = x1 // ts - tx0 + 1
+    n_rec = ntx * (y1 // ts - ty0 + 1)  # [M'] tiles per rectangle
+    owner = torch.repeat_interleave(torch.arange(ids.numel(), device=dev), n_rec)  # [R] in depth order
     local = torch.arange(owner.numel(), device=dev) - torch.repeat_interleave(torch.cumsum(n_rec, 0) - n_rec, n_rec)
-    ntx_r = ntx[owner]
-    tx = tx0[owner] + local % ntx_r
-    ty = ty0[owner] + local // ntx_r
-    tile, order = torch.sort((ty * tiles_x + tx).int(), stable=True)  # stable: depth order kept per tile
-    tile = tile.long()
-    owner, tx, ty = owner[order], tx[order], ty[order]
-    rx0 = torch.maximum(x0[owner], tx * ts)
-    rx1 = torch.minimum(x1[owner], tx * ts + ts - 1)
-    ry0 = torch.maximum(y0[owner], ty * ts)
-    ry1 = torch.minimum(y1[owner], ty * ts + ts - 1)
-    count = (rx1 - rx0 + 1) * (ry1 - ry0 + 1)  # candidate pixels, the chunks' cost estimate
-    # chunks: runs of whole tiles with about _PAIR_BUDGET candidate pairs and at most max_span tiles each
-    tile_first = torch.ones_like(tile, dtype=torch.bool)
-    tile_first[1:] = tile[1:] != tile[:-1]
-    first_idx = tile_first.nonzero().squeeze(1)  # record index where each tile begins
-    before = (torch.cumsum(count, 0) - count)[first_idx]
-    starts, tiles, before = first_idx.tolist(), tile.index_select(0, first_idx).tolist(), before.tolist()
-    n_tiles, total = len(starts), int(count.sum()) if count.numel() else 0
-    starts.append(owner.numel())
-    before.append(total)
-    max_span = max(1, _KEY_LIMIT // tp)
-    chunks: list[tuple[int, int, int, int]] = []
-    c = 0
-    for i in range(1, n_tiles + 1):
-        if i == n_tiles or tiles[i] - tiles[c] >= max_span or before[i + 1] - before[c] > _PAIR_BUDGET:
-            chunks.append((starts[c], starts[i], tiles[c], tiles[i - 1] + 1))
-            c = i
-    # key of (x, y) in its chunk: (tile - t0) * tp + (y - ty * ts) * ts + (x - tx * ts)
-    t0_rec = torch.zeros_like(tile)
-    if chunks:
-        bounds = torch.tensor([ch[0] for ch in chunks], device=dev)
-        t0s = torch.tensor([ch[2] for ch in chunks], device=dev)
-        t0_rec = t0s.index_select(0, torch.searchsorted(bounds, torch.arange(tile.numel(), device=dev), right=True) - 1)
-    key_base = (tile - t0_rec) * tp - ty * ts * ts - tx * ts
-    rank = torch.arange(tile.numel(), device=dev) - first_idx.index_select(0, torch.cumsum(tile_first, 0) - 1)
-    return _Tiling(ids.index_select(0, owner), rx0, rx1, ry0, ry1 - ry0 + 1, key_base, tile, rank, chunks, ts,
-                   tiles_x, tiles_y)
+    ntx_r = ntx.index_select(0, owner)
+    dty = local // ntx_r
+    tx = tx0.index_select(0, owner) + local - dty * ntx_r
+    ty = ty0.index_select(0, owner) + dty
+    tile32, order = torch.sort((ty * tiles_x + tx).int(), stable=True)  # stable: depth order kept per tile
+    tile = tile32.long()
+    owner, tx, ty = (t.index_select(0, order) for t in (owner, tx, ty))
+    rx0 = torch.maximum(x0.index_select(0, owner), tx * ts)
+    rx1 = torch.minimum(x1.index_select(0, owner), tx * ts + ts - 1)
+    ry0 = torch.maximum(y0.index_select(0, owner), ty * ts)
+    ry1 = torch.minimum(y1.index_select(0, owner), ty * ts + ts - 1)
+    per_tile = torch.bincount(tile, minlength=n_tiles)
+    tile_start = torch.cumsum(per_tile, 0) - per_tile  # [T] first record of each tile
+    rank = torch.arange(tile.numel(), device=dev) - tile_start.index_select(0, tile)
+    span = max(1, (_KEY_LIMIT - 1) // tp)  # tiles per chunk
+    t0 = tile // span * span
+    key0 = (tile - t0) * tp + (ry0 - ty * ts) * ts + (rx0 - tx * ts)
+    bounds = torch.cat([tile_start[::span], tile_start.new_tensor([tile.numel()])]).tolist()
+    chunks = [(bounds[c], bounds[c + 1], c * span, min((c + 1) * span, n_tiles))
+              for c in range(len(bounds) - 1) if bounds[c + 1] > bounds[c]]
+    return _Tiling(ids.index_select(0, owner), rx0, rx1 - rx0 + 1, ry0, ry1 - ry0 + 1, key0, tile, rank, chunks,
+                   ts, tiles_x, tiles_y)
+
+
+# ----------------------------------------------------------------------------- pairs
 
 
 @dataclass
-class _Pairs:
-    """The drawn (pixel, Gaussian) pairs of one chunk, sorted by (pixel, depth): alpha >= ALPHA_MIN and,
-    with early termination, only those in front of their pixel's termination point."""
+class _Pass:
+    """The drawn (pixel, Gaussian) pairs of one depth-rank pass over a chunk, sorted by (pixel, depth):
+    alpha >= ALPHA_MIN and, with early termination, in front of their pixel's termination point."""
 
-    gauss: torch.Tensor  # [P] int32
+    rec: torch.Tensor  # [P] int32 chunk-local record (index into the chunk's records)
     key: torch.Tensor  # [P] int32 chunk-local tile-major pixel
     alpha: torch.Tensor  # [P] min(ALPHA_MAX, o G)
     w: torch.Tensor  # [P] alpha T_before
@@ -284,133 +277,183 @@ class _Pairs:
         return sum(t.numel() * t.element_size() for t in vars(self).values())
 
 
-_PASS_FIRST = 64  # with early termination, a chunk's first pass takes each tile's first records up to this depth
-# rank, each further pass twice as many
+_PAIR_BUDGET = 1 << 21  # candidate (pixel, Gaussian) pairs expanded at once (~45 bytes of temporaries each)
+_CACHE_BYTES = 512 << 20  # pair data kept from forward for backward; chunks beyond it are recomputed
+_PASS_FIRST = 64  # with early termination, the first chunk's first pass takes each tile's records up to this
+# depth rank; later chunks start where half of the previous chunk's tiles terminated; each further pass doubles it
 
 
-def _record_pairs(
-    tiling: _Tiling, recs: slice | torch.Tensor, means2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor,
-    done: torch.Tensor | None,
+@dataclass
+class _Geometry:
+    """Per-Gaussian coefficients of the exponent, ``log(o G) = A dx^2 + (-b dy) dx + (-c/2 dy^2 + log o)``
+    with ``(dx, dy)`` pixel centre - mean (all ``[M]``, working dtype)."""
+
+    u: torch.Tensor
+    v: torch.Tensor
+    a_half: torch.Tensor  # -a / 2
+    b: torch.Tensor
+    c_half: torch.Tensor  # -c / 2
+    log_o: torch.Tensor
+
+    @staticmethod
+    def of(means2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor) -> _Geometry:
+        u, v = means2d.detach().unbind(-1)
+        a, b, c = conic.detach().unbind(-1)
+        return _Geometry(u, v, -0.5 * a, b, -0.5 * c, torch.log(opacity.detach()))
+
+    def take(self, idx: torch.Tensor) -> _Geometry:
+        """The coefficients of the Gaussians ``idx``."""
+        return _Geometry(*(t.index_select(0, idx) for t in vars(self).values()))
+
+
+def _candidates(
+    tiling: _Tiling, chunk: tuple[int, int, int, int], geo: _Geometry, recs: torch.Tensor, done: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The pairs with ``o G >= ALPHA_MIN`` of the records ``recs`` (a slice or ascending int64 indices)
-    whose pixel is not ``done`` (``[chunk pixels]`` bool or None), record-major: chunk-local key (int32),
-    Gaussian (int32), ``o G`` (unclamped)."""
-    take = (lambda t: t[recs]) if isinstance(recs, slice) else (lambda t: t.index_select(0, recs))
-    dev, dtype = means2d.device, means2d.dtype
+    """The pairs with ``o G >= ALPHA_MIN`` of the chunk's records ``recs`` (ascending chunk-local int64;
+    ``geo`` holds the chunk's records' coefficients) whose pixel is not ``done`` (``[B]`` bool or None),
+    stably sorted by pixel: chunk-local key (int32), chunk-local record (int32), ``o G`` (unclamped).
+    Expanded per pixel row of each record (rows without a live pixel dropped), then per pixel."""
+    r0, _, t0, t1 = chunk
+    dev, dtype = geo.u.device, geo.u.dtype
     ts = tiling.tile_size
-    g_rec = take(tiling.gauss)
-    x0, y0 = take(tiling.x0), take(tiling.y0)
-    wx = take(tiling.x1) - x0 + 1
-    count = wx * take(tiling.rows)
-    n = int(count.sum())
-    # per record: offsets of its first pixel centre from the mean, key of its first pixel, conic, opacity
-    ox = (x0.to(dtype) + 0.5 - means2d[:, 0].index_select(0, g_rec))
-    oy = (y0.to(dtype) + 0.5 - means2d[:, 1].index_select(0, g_rec))
-    key0 = (take(tiling.key_base) + y0 * ts + x0).int()
-    ca, cb, cc = (row.index_select(0, g_rec) for row in conic.t())
-    o = opacity.index_select(0, g_rec)
-    count, wx = count.int(), wx.int()
-    # pairs, record-major (gathers by the record index are monotone, hence cache-friendly)
-    rec = torch.repeat_interleave(torch.arange(g_rec.numel(), device=dev, dtype=torch.int32), count, output_size=n)
-    local = torch.arange(n, device=dev, dtype=torch.int32).sub_((torch.cumsum(count, 0, dtype=torch.int32) - count).index_select(0, rec))
-    wx_p = wx.index_select(0, rec)
-    ly = local // wx_p
-    lx = local.sub_(ly * wx_p)
-    del wx_p
-    key = key0.index_select(0, rec).add_(ly * ts).add_(lx)
-    if done is not None:  # terminated pixels: no offsets, no exp
-        live = (~done).index_select(0, key).nonzero().squeeze(1)
-        rec, key, lx, ly = (t.index_select(0, live) for t in (rec, key, lx, ly))
-        del live
-    dx = ox.index_select(0, rec).add_(lx)
-    dy = oy.index_select(0, rec).add_(ly)
-    del lx, ly
-    raw = (ca.index_select(0, rec) * dx).mul_(dx).addcmul_(cc.index_select(0, rec) * dy, dy).mul_(-0.5)
-    raw = torch.exp_(raw.sub_(cb.index_select(0, rec).mul_(dx).mul_(dy))).mul_(o.index_select(0, rec))
-    del dx, dy
-    keep = (raw >= ALPHA_MIN).nonzero().squeeze(1)
-    gauss = g_rec.int().index_select(0, rec.index_select(0, keep))
-    return key.index_select(0, keep), gauss, raw.index_select(0, keep)
+    n_keys = (t1 - t0) * ts * ts
+    rows = tiling.rows[r0:].index_select(0, recs)
+    n_rows = int(rows.sum())
+    row_rec = torch.repeat_interleave(recs, rows, output_size=n_rows)  # [rows] record of each row
+    dy_px = torch.arange(n_rows, device=dev).sub_(
+        torch.repeat_interleave(torch.cumsum(rows, 0) - rows, rows, output_size=n_rows))
+    key_row = tiling.key0[r0:].index_select(0, row_rec).add_(dy_px * ts)
+    wx = tiling.wx[r0:].index_select(0, row_rec)
+    if done is not None:  # drop the rows whose pixels have all terminated (prefix sums of live pixels per row)
+        live = torch.zeros(n_keys // ts, ts + 1, dtype=torch.int32, device=dev)
+        torch.cumsum((~done).view(-1, ts), 1, out=live[:, 1:])
+        at = key_row.div(ts, rounding_mode="floor").mul_(ts + 1).add_(tiling.x0[r0:].index_select(0, row_rec) % ts)
+        live = live.view(-1)
+        keep = (live.index_select(0, at + wx) > live.index_select(0, at)).nonzero().squeeze(1)
+        row_rec, dy_px, key_row, wx = (t.index_select(0, keep) for t in (row_rec, dy_px, key_row, wx))
+        n_rows = keep.numel()
+        del live, at, keep
+    # per row: log(o G) = (A dx + B) dx + C with dx = ox + i at its i-th pixel (all gathers monotone)
+    dy = (tiling.y0[r0:].index_select(0, row_rec) + dy_px).to(dtype).add_(0.5).sub_(geo.v.index_select(0, row_rec))
+    a_half = geo.a_half.index_select(0, row_rec)
+    b_row = geo.b.index_select(0, row_rec).mul_(dy).neg_()
+    c_row = geo.c_half.index_select(0, row_rec).mul_(dy).mul_(dy).add_(geo.log_o.index_select(0, row_rec))
+    ox = tiling.x0[r0:].index_select(0, row_rec).to(dtype).add_(0.5).sub_(geo.u.index_select(0, row_rec))
+    rec_row, key_row = row_rec.int(), key_row.int()
+    del dy_px, dy, row_rec
+    # per pixel
+    n = int(wx.sum())
+    pr = torch.repeat_interleave(torch.arange(n_rows, device=dev, dtype=torch.int32), wx.int(), output_size=n)
+    dx_px = torch.arange(n, device=dev, dtype=torch.int32).sub_((torch.cumsum(wx, 0) - wx).int().index_select(0, pr))
+    dx = ox.index_select(0, pr).add_(dx_px)
+    raw = torch.exp_(a_half.index_select(0, pr).mul_(dx).add_(b_row.index_select(0, pr)).mul_(dx)
+                     .add_(c_row.index_select(0, pr)))
+    del dx
+    key = key_row.index_select(0, pr).add_(dx_px)
+    rec = rec_row.index_select(0, pr)
+    del dx_px, pr
+    valid = raw >= ALPHA_MIN
+    if done is not None:
+        valid &= ~done.index_select(0, key)
+    n_valid = int(valid.sum())
+    # dropped pairs get the sentinel key n_keys and sort last: no compaction before the sort
+    key_dtype = torch.int16 if n_keys < (1 << 15) else torch.int32
+    skey, order = torch.sort(key.masked_fill_(~valid, n_keys).to(key_dtype), stable=True)
+    order = order[:n_valid]
+    return skey[:n_valid].int(), rec.index_select(0, order), raw.index_select(0, order)
 
 
-def _sort_by_pixel(key: torch.Tensor, n_keys: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Stable sort of chunk-local keys (int16 when they fit: about 2x faster) -> (int32 keys, order)."""
-    key, order = torch.sort(key.to(torch.int16) if n_keys <= _KEY_LIMIT else key, stable=True)
-    return key.int(), order
+def _chunk_passes(
+    tiling: _Tiling, chunk: tuple[int, int, int, int], geo: _Geometry, transmittance_min: float, first: int,
+) -> tuple[list[_Pass], int]:
+    """Expand one chunk's records into their drawn (pixel, Gaussian) pairs, in passes of depth rank.
 
-
-def _expand_pairs(
-    tiling: _Tiling, chunk: tuple[int, int, int, int], means2d: torch.Tensor, conic: torch.Tensor,
-    opacity: torch.Tensor, transmittance_min: float,
-) -> _Pairs:
-    """Expand one chunk's records into their drawn (pixel, Gaussian) pairs sorted by (pixel, depth).
-
-    Per pass: expand the pairs, drop those with alpha < 1/255, stable-sort them by pixel (int16 keys;
-    each pixel's run stays in depth order) and get every pair's transmittance from one segmented scan
-    of ``log(1 - alpha)`` (float64 prefix sums), continuing the pixel's transmittance from the earlier
-    passes. With ``transmittance_min > 0`` each tile's records are taken in passes of increasing depth
-    rank (``_PASS_FIRST``, then doubling); the pairs behind a pixel's termination point are dropped
+    Per pass: expand the candidate pairs of the records whose depth rank lies in a window, drop those
+    with alpha < 1/255, stable-sort them by pixel (int16 keys; each pixel's run stays in depth order)
+    and get every pair's transmittance from one segmented scan of ``log(1 - alpha)`` (float64 prefix
+    sums), continued from the pixel's transmittance after the earlier passes. A window holds at most
+    ``_PAIR_BUDGET`` candidates; with ``transmittance_min > 0`` the first ends at rank ``first`` and each
+    next one at twice the previous end, the pairs behind a pixel's termination point are dropped
     (later passes skip a terminated pixel before its exp), and a tile whose pixels have all terminated
-    expands none of its later records (the 3DGS block's early exit).
+    takes part in no further pass (the 3DGS block's early exit).
+
+    Returns the passes (front to back) and the end rank of the pass after which half of the chunk's
+    tiles had terminated (the next chunk's ``first``; the last pass's end when fewer did).
     """
     r0, r1, t0, t1 = chunk
-    dtype = means2d.dtype
-    tp = tiling.tile_size**2
+    dev, dtype = geo.u.device, geo.u.dtype
+    ts, tp = tiling.tile_size, tiling.tile_size**2
     n_keys = (t1 - t0) * tp
-    log_t_min = math.log(transmittance_min) if transmittance_min > 0 else -math.inf
-    log_t_pix: torch.Tensor | None = None  # [n_keys] float64 log T of every pixel after the passes so far
-    done: torch.Tensor | None = None  # [n_keys] bool: pixel terminated
-    parts: list[tuple[torch.Tensor, ...]] = []
+    terminate = transmittance_min > 0
+    log_t_min = math.log(transmittance_min) if terminate else -math.inf
     rank = tiling.rank[r0:r1]
-    max_rank = int(rank.max())
-    lo, hi = 0, (_PASS_FIRST if transmittance_min > 0 else max_rank + 1)
+    tile = tiling.tile[r0:r1] - t0
+    wx, rows = tiling.wx[r0:r1], tiling.rows[r0:r1]
+    # candidates with depth rank < r, for the windows' budget
+    by_rank = torch.zeros(int(rank.max()) + 2, dtype=torch.float64, device=dev)
+    torch.cumsum(torch.bincount(rank, weights=(wx * rows).double()), 0, out=by_rank[1:])
+    cum = by_rank.tolist()
+    max_rank = len(cum) - 2
+    done: torch.Tensor | None = None  # [n_keys] bool: pixel terminated or outside every candidate rectangle
+    if terminate:  # pixels no record covers (padding included) count as terminated from the start
+        lx0, ly0 = tiling.key0[r0:r1] % ts, tiling.key0[r0:r1] % tp // ts
+        corner = tile * (ts + 1) ** 2 + ly0 * (ts + 1) + lx0  # rectangle corners in [tiles, ts + 1, ts + 1]
+        diff = torch.zeros((t1 - t0) * (ts + 1) ** 2, dtype=torch.int32, device=dev)
+        ones = torch.ones_like(corner, dtype=torch.int32)
+        for offset, sign in ((0, 1), (wx, -1), (rows * (ts + 1), -1), (rows * (ts + 1) + wx, 1)):
+            diff.index_add_(0, corner + offset, ones, alpha=sign)
+        cover = diff.view(-1, ts + 1, ts + 1).cumsum(1).cumsum(2)[:, :ts, :ts]
+        done = (cover == 0).reshape(-1)
+    geo_rec = geo.take(tiling.gauss[r0:r1])
+    log_t_pix = torch.zeros(n_keys, dtype=torch.float64, device=dev)  # log T of every pixel after the passes so far
+    n_empty = int((torch.bincount(tile, minlength=t1 - t0) == 0).sum())  # tiles without records: done at once
+    passes: list[_Pass] = []
+    lo, target, half_at = 0, (first if terminate else max_rank + 1), None
     while lo <= max_rank:
-        last = hi > max_rank
-        if lo == 0 and last:
-            recs: slice | torch.Tensor = slice(r0, r1)
+        hi = min(target, max(lo + 1, bisect.bisect_right(cum, cum[lo] + _PAIR_BUDGET) - 1))
+        if lo == 0 and hi > max_rank and not terminate:
+            recs = torch.arange(r1 - r0, device=dev)
         else:
             sel = (rank >= lo) & (rank < hi)
             if done is not None:
-                sel &= ~done.view(-1, tp).all(1).index_select(0, tiling.tile[r0:r1] - t0)
-            recs = sel.nonzero().squeeze(1).add_(r0)
-        key, gauss, raw = _record_pairs(tiling, recs, means2d, conic, opacity, done)
-        key, order = _sort_by_pixel(key, n_keys)
-        gauss, raw = gauss.index_select(0, order), raw.index_select(0, order)
-        del order
+                sel &= ~done.view(-1, tp).all(1).index_select(0, tile)
+            recs = sel.nonzero().squeeze(1)
+        key, rec, raw = _candidates(tiling, chunk, geo_rec, recs, done)
         frozen = raw > ALPHA_MAX
         alpha = raw.clamp_(max=ALPHA_MAX)
-        # segmented exclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
-        first = torch.zeros(n_keys + 1, dtype=torch.int64, device=key.device)
-        torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=first[1:])
+        # segmented inclusive scan of log(1 - alpha) in float64 (a chunk-wide prefix sum would cancel in float32)
         log_t = torch.log1p(-alpha).double()  # transcendentals in the working dtype (float64 ones are slow)
-        log_before = torch.cumsum(log_t, 0).sub_(log_t)
-        log_before.sub_(log_before.index_select(0, first.index_select(0, key)))
-        if log_t_pix is not None:
-            log_before.add_(log_t_pix.index_select(0, key))
-        if transmittance_min > 0:
-            stop = (log_before + log_t) < log_t_min  # monotone along a pixel's run: a suffix of it
-            if bool(stop.any()):  # a pixel stopped iff its run's last pair did; O(pixels), not O(pairs)
-                last_stop = stop.index_select(0, (first[1:] - 1).clamp_(min=0)) & (first[1:] > first[:-1])
-                done = last_stop if done is None else done.logical_or_(last_stop)
+        log_after = torch.cumsum(log_t, 0)
+        crow = torch.zeros(n_keys + 1, dtype=torch.int64, device=dev)
+        torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=crow[1:])
+        # per pixel: the prefix before its run, less its log T after the earlier passes
+        start = torch.cat([log_after.new_zeros(1), log_after]).index_select(0, crow[:-1]).sub_(log_t_pix)
+        log_after.sub_(start.index_select(0, key))
+        if terminate:
+            stop = log_after < log_t_min  # monotone along a pixel's run: a suffix of it
+            if bool(stop.any()):  # a pixel stopped iff its run's last pair did: O(pixels), not O(pairs)
+                assert done is not None
+                done |= stop.index_select(0, (crow[1:] - 1).clamp_(min=0)) & (crow[1:] > crow[:-1])
                 drawn = (~stop).nonzero().squeeze(1)
-                key, gauss, alpha, frozen, log_before, log_t = (
-                    t.index_select(0, drawn) for t in (key, gauss, alpha, frozen, log_before, log_t))
-            if not last:
-                log_t_pix = log_t.new_zeros(n_keys) if log_t_pix is None else log_t_pix
-                log_t_pix.index_add_(0, key, log_t)
-        del first
-        parts.append((key, gauss, alpha, frozen, log_before))
-        if done is not None and bool(done.all()):
-            break
-        lo, hi = hi, 2 * hi
-    key, gauss, alpha, frozen, log_before = (torch.cat(t) for t in zip(*parts)) if len(parts) > 1 else parts[0]
-    if len(parts) > 1:  # each pass's pairs lie behind the earlier passes' ones: a stable sort merges them
-        key, order = _sort_by_pixel(key, n_keys)
-        gauss, alpha, frozen, log_before = (t.index_select(0, order) for t in (gauss, alpha, frozen, log_before))
-    crow = torch.zeros(n_keys + 1, dtype=torch.int32, device=key.device)
-    torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=crow[1:])
-    w = torch.exp(log_before.to(dtype)).mul_(alpha)
-    return _Pairs(gauss, key, alpha, w, frozen, crow)
+                key, rec, alpha, frozen, log_t, log_after = (
+                    t.index_select(0, drawn) for t in (key, rec, alpha, frozen, log_t, log_after))
+                torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=crow[1:])
+            if hi <= max_rank and key.numel():  # each pixel's log T after its last drawn pair
+                last = log_after.index_select(0, (crow[1:] - 1).clamp_(min=0))
+                log_t_pix = torch.where(crow[1:] > crow[:-1], last, log_t_pix)
+        w = torch.exp(log_after.sub_(log_t).to(dtype)).mul_(alpha)
+        if key.numel():
+            passes.append(_Pass(rec, key, alpha, w, frozen, crow.int()))
+        if done is not None:
+            tiles_done = int(done.view(-1, tp).all(1).sum())
+            if half_at is None and 2 * (tiles_done - n_empty) >= t1 - t0 - n_empty:
+                half_at = hi
+            if tiles_done == t1 - t0:
+                break
+        lo = hi
+        if lo >= target:
+            target *= 2
+    return passes, max(_PASS_FIRST, hi if half_at is None else half_at)
 
 
 def _to_tiles(img: torch.Tensor, tiling: _Tiling, width: int, height: int) -> torch.Tensor:
@@ -427,86 +470,121 @@ def _from_tiles(tm: torch.Tensor, tiling: _Tiling, width: int, height: int) -> t
     return img[:, :height, :width].reshape(tm.shape[1], -1)
 
 
+def _pixel_centres(tiling: _Tiling, t0: int, t1: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``[2, (t1 - t0) ts^2]`` x and y of the centres of the tiles ``[t0, t1)``'s pixels, tile-major."""
+    ts, tp = tiling.tile_size, tiling.tile_size**2
+    cells = torch.arange(t0 * tp, t1 * tp, device=device)
+    tile, in_tile = cells // tp, cells % tp
+    return torch.stack([(tile % tiling.tiles_x) * ts + in_tile % ts, (tile // tiling.tiles_x) * ts + in_tile // ts]).to(dtype).add_(0.5)
+
+
 class _Composite(torch.autograd.Function):
     """Front-to-back alpha compositing of per-Gaussian features over the tiled pairs."""
 
     @staticmethod
-    def forward(ctx, means2d, conic, opacity, feats, tiling, width, height, t_min):  # type: ignore[override]
+    def forward(
+        ctx: Any, means2d: torch.Tensor, conic: torch.Tensor, opacity: torch.Tensor,
+        feats: torch.Tensor, tiling: _Tiling, width: int, height: int, t_min: float,
+    ) -> torch.Tensor:
+        """``[M, 2]`` means (px), ``[M, 3]`` conics, ``[M]`` opacities, ``[M, F]`` features -> ``[F, H W]``
+        sum over each pixel's drawn pairs of ``w feats``."""
         tp = tiling.tile_size**2
+        geo = _Geometry.of(means2d, conic, opacity)
         out = feats.new_zeros(tiling.tiles_x * tiling.tiles_y * tp, feats.shape[1])  # tile-major [T ts^2, F]
-        cached: list[_Pairs | None] = []
+        cached: list[list[_Pass] | None] = []
+        firsts: list[int] = []
         cache_left = _CACHE_BYTES if any(ctx.needs_input_grad[:4]) else 0
+        first = _PASS_FIRST
         for chunk in tiling.chunks:
+            r0, r1, t0, t1 = chunk
+            firsts.append(first)
             with torch.profiler.record_function("splatter.expand_pairs"):
-                p = _expand_pairs(tiling, chunk, means2d, conic, opacity, t_min)
+                passes, first = _chunk_passes(tiling, chunk, geo, t_min, first)
             with torch.profiler.record_function("splatter.accumulate"):
-                # out[pixel] += w feats[gauss]: the pairs are sorted by pixel, i.e. a CSR matrix [B, M]
-                n_keys = p.crow.numel() - 1
+                # out[pixel] += w feats[record's Gaussian]: each pass's pairs are sorted by pixel, a CSR [B, R_c]
+                feats_rec = feats.index_select(0, tiling.gauss[r0:r1])
+                acc = out[t0 * tp:t1 * tp]
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-                    weights = torch.sparse_csr_tensor(p.crow, p.gauss, p.w, (n_keys, feats.shape[0]), check_invariants=False)
-                    out[chunk[2] * tp:chunk[3] * tp] = weights @ feats
-            keep = p.nbytes() <= cache_left
-            cache_left -= p.nbytes() if keep else 0
-            cached.append(p if keep else None)
-        ctx.tiling, ctx.width, ctx.height, ctx.cached, ctx.t_min = tiling, width, height, cached, t_min
+                    for p in passes:
+                        weights = torch.sparse_csr_tensor(p.crow, p.rec, p.w, (acc.shape[0], r1 - r0),
+                                                          check_invariants=False)
+                        acc += weights @ feats_rec
+            size = sum(p.nbytes() for p in passes)
+            keep = size <= cache_left
+            cache_left -= size if keep else 0
+            cached.append(passes if keep else None)
+        ctx.tiling, ctx.width, ctx.height, ctx.cached, ctx.firsts, ctx.t_min = (
+            tiling, width, height, cached, firsts, t_min)
         ctx.save_for_backward(means2d, conic, opacity, feats)
         return _from_tiles(out, tiling, width, height)
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_out):  # type: ignore[override]
+    def backward(
+        ctx: Any, grad_out: torch.Tensor,
+    ) -> tuple[torch.Tensor | None, ...]:
+        """Per pass, back to front: ``dL/dw`` of each pair, the 3DGS suffix sums (a reverse segmented scan
+        continued across passes), then per-record sums of the pairs' terms, scattered to the Gaussians
+        once per chunk."""
         means2d, conic, opacity, feats = ctx.saved_tensors
-        tiling, width, height, t_min = ctx.tiling, ctx.width, ctx.height, ctx.t_min
-        tp, ts = tiling.tile_size**2, tiling.tile_size
-        nf = feats.shape[1]
-        grad_tm = _to_tiles(grad_out, tiling, width, height)  # [F, T ts^2]
+        tiling: _Tiling = ctx.tiling
+        tp = tiling.tile_size**2
+        dtype, dev = feats.dtype, feats.device
+        geo = _Geometry.of(means2d, conic, opacity)
+        grad_tm = _to_tiles(grad_out, tiling, ctx.width, ctx.height)  # [F, T ts^2]
         feats_t = feats.t().contiguous()
-        g_feats = torch.zeros_like(feats_t)  # [F, M]
+        nf = feats.shape[1]
+        # [F + 6, M]: dL/dfeats; then dL/d(u, v, conic a, b, c, opacity)
+        grads = feats.new_zeros(nf + 6, feats.shape[0])
         need_uv = ctx.needs_input_grad[0]
-        g_geo = means2d.new_zeros(6, means2d.shape[0])  # u, v, conic a, b, c, opacity
-        geo_t = torch.cat([means2d.t(), conic.t()]).contiguous()  # [5, M]
         for i, chunk in enumerate(tiling.chunks):
-            p = ctx.cached[i]
-            if p is None:
+            r0, r1, t0, t1 = chunk
+            passes = ctx.cached[i]
+            if passes is None:
                 with torch.profiler.record_function("splatter.expand_pairs"):
-                    p = _expand_pairs(tiling, chunk, means2d, conic, opacity, t_min)
+                    passes, _ = _chunk_passes(tiling, chunk, geo, ctx.t_min, ctx.firsts[i])
             with torch.profiler.record_function("splatter.backward_pairs"):
-                t0, t1 = chunk[2], chunk[3]
+                g_rec = tiling.gauss[r0:r1]
+                feats_rec = feats_t.index_select(1, g_rec)  # [F, R_c]
+                u_rec, v_rec = geo.u.index_select(0, g_rec), geo.v.index_select(0, g_rec)
                 grad_c = grad_tm[:, t0 * tp:t1 * tp]
-                gauss, key, w = p.gauss, p.key, p.w
-                f = torch.zeros_like(w)  # dL/dw per pair: feats . grad_out at the pixel
-                for k in range(nf):
-                    g_pix = grad_c[k].index_select(0, key)
-                    f.addcmul_(feats_t[k].index_select(0, gauss), g_pix)
-                    g_feats[k].index_add_(0, gauss, g_pix.mul_(w))
-                # dL/dalpha_k = T_k f_k - (sum_{j > k} w_j f_j) / (1 - alpha_k): reverse segmented scan; then
-                # dL/dpower = alpha dL/dalpha = w f - alpha / (1 - alpha) sum_{j > k} w_j f_j (0 where frozen)
-                wf = f.mul_(w)
-                csum = torch.cumsum(wf.double(), 0)
-                csum_end = csum.index_select(0, (p.crow[1:] - 1).clamp_(min=0))  # [B] per pixel
-                behind = csum_end.index_select(0, key).sub_(csum).to(w.dtype)
-                g_pow = wf.sub_(behind.mul_(p.alpha).div_(1 - p.alpha)).masked_fill_(p.frozen, 0.0)
-                del f, csum, csum_end, behind
-                # pixel centre - mean, the centres from a table over the chunk's pixels
-                cells = torch.arange(t0 * tp, t1 * tp, device=key.device)
-                tile, in_tile = cells // tp, cells % tp
-                xc = ((tile % tiling.tiles_x) * ts + in_tile % ts).to(w.dtype).add_(0.5)
-                yc = ((tile // tiling.tiles_x) * ts + in_tile // ts).to(w.dtype).add_(0.5)
-                gu, gv, ca, cb, cc = (row.index_select(0, gauss) for row in geo_t)
-                dx, dy = xc.index_select(0, key).sub_(gu), yc.index_select(0, key).sub_(gv)
-                del cells, tile, in_tile, xc, yc, gu, gv
-                if need_uv:  # d power / d u = -d power / d dx
-                    g_geo[0].index_add_(0, gauss, (ca * dx).addcmul_(cb, dy).mul_(g_pow))
-                    g_geo[1].index_add_(0, gauss, (cc * dy).addcmul_(cb, dx).mul_(g_pow))
-                g_geo[2].index_add_(0, gauss, dx * dx * g_pow, alpha=-0.5)
-                g_geo[3].index_add_(0, gauss, dx * dy * g_pow, alpha=-1.0)
-                g_geo[4].index_add_(0, gauss, dy * dy * g_pow, alpha=-0.5)
-                # alpha = o G  ->  d alpha / d o = G = alpha / o (o > 0 where alpha >= 1/255)
-                g_geo[5].index_add_(0, gauss, g_pow.div_(opacity.index_select(0, gauss)))
-        g_means2d = g_geo[:2].t() if need_uv else None
-        g_conic = g_geo[2:5].t()
-        return g_means2d, g_conic, g_geo[5], g_feats.t(), None, None, None, None
+                centre = _pixel_centres(tiling, t0, t1, dtype, dev)
+                # per record: [F] sum of w dL/dout, then sums of g, g dx, g dy, g dx^2, g dx dy, g dy^2 with
+                # g = dL/dpower the gradient of the pair's exponent
+                acc = feats.new_zeros(nf + 6, r1 - r0)
+                behind_pix = torch.zeros(t1 * tp - t0 * tp, dtype=torch.float64, device=dev)  # sum of w f of later passes
+                for p in reversed(passes):
+                    rec, key, w = p.rec, p.key, p.w
+                    f = torch.zeros_like(w)  # dL/dw per pair: feats . grad_out at the pixel
+                    for k in range(nf):
+                        g_pix = grad_c[k].index_select(0, key)
+                        f.addcmul_(feats_rec[k].index_select(0, rec), g_pix)
+                        acc[k].index_add_(0, rec, g_pix.mul_(w))
+                    # dL/dalpha_k = T_k f_k - (sum_{j > k} w_j f_j) / (1 - alpha_k): reverse segmented scan; then
+                    # dL/dpower = alpha dL/dalpha = w f - alpha / (1 - alpha) sum_{j > k} w_j f_j (0 where frozen)
+                    wf = f.mul_(w)
+                    csum = torch.cumsum(wf.double(), 0)
+                    ends = torch.cat([csum.new_zeros(1), csum]).index_select(0, p.crow)  # [B + 1]
+                    behind = (ends[1:] + behind_pix).index_select(0, key).sub_(csum).to(dtype)
+                    behind_pix += ends[1:] - ends[:-1]
+                    g = wf.sub_(behind.mul_(p.alpha).div_(1 - p.alpha)).masked_fill_(p.frozen, 0.0)
+                    del f, csum, behind
+                    dx = centre[0].index_select(0, key).sub_(u_rec.index_select(0, rec))
+                    dy = centre[1].index_select(0, key).sub_(v_rec.index_select(0, rec))
+                    gdx, gdy = g * dx, g * dy
+                    terms = (g, gdx, gdy, gdx * dx, gdx * dy, gdy * dy)
+                    for row in range(6) if need_uv else (0, 3, 4, 5):
+                        acc[nf + row].index_add_(0, rec, terms[row])
+                # power = A dx^2 - b dx dy - c/2 dy^2 + ..., dx = x - u: d power / d u = a dx + b dy, / d v = c dy + b dx
+                a, b, c = conic.detach().index_select(0, g_rec).t()
+                s, sx, sy, sxx, sxy, syy = acc[nf:]
+                per_rec = torch.stack([a * sx + b * sy, c * sy + b * sx, -0.5 * sxx, -sxy, -0.5 * syy,
+                                       s / opacity.detach().index_select(0, g_rec)])
+                grads[nf:].index_add_(1, g_rec, per_rec)
+                grads[:nf].index_add_(1, g_rec, acc[:nf])
+        return (grads[nf:nf + 2].t() if need_uv else None, grads[nf + 2:nf + 5].t(), grads[nf + 5], grads[:nf].t(),
+                None, None, None, None)
 
 
 # ----------------------------------------------------------------------------- public API
@@ -620,22 +698,21 @@ def rasterize(
         means_cam = means @ w2c[:3, :3].t() + w2c[:3, 3]  # [N, 3]
         front = (means_cam[:, 2] > NEAR_PLANE).nonzero().squeeze(1)  # [M0]
         means2d, cov2d, conic = project_gaussians(
-            means_cam[front], scales[front], rotations[front], w2c, k, width, height
+            means_cam.index_select(0, front), scales.index_select(0, front), rotations.index_select(0, front),
+            w2c, k, width, height,
         )
-        rect, candidates = _footprints(means2d, cov2d, opacities[front], width, height)
+        rect, candidates = _footprints(means2d, cov2d, opacities.index_select(0, front), width, height)
         on_screen = ((rect[:, 0] <= rect[:, 1]) & (rect[:, 2] <= rect[:, 3])).nonzero().squeeze(1)
-        idx = front[on_screen]  # [M]
-        visible = torch.zeros(n, dtype=torch.bool, device=dev)
-        visible[idx] = True
+        idx = front.index_select(0, on_screen)  # [M]
+        visible = torch.zeros(n, dtype=torch.bool, device=dev).index_fill_(0, idx, True)
     with torch.profiler.record_function("splatter.bin"):
-        z = means_cam[idx, 2]  # [M]
+        z = means_cam[:, 2].index_select(0, idx)  # [M]
         order = torch.argsort(z.detach(), stable=True)  # front to back; ties keep the input order
-        sel, idx = on_screen[order], idx[order]
-        z = z[order]
-        feats = torch.cat([colors[idx], z.unsqueeze(-1), torch.ones_like(z).unsqueeze(-1)], dim=-1)  # [M, 5]
-        tiling = _bin_tiles(candidates[sel], width, height, tile_size)
-    out = _Composite.apply(means2d[sel], conic[sel], opacities[idx], feats, tiling, width, height,
-                           float(transmittance_min))
+        sel, idx, z = on_screen.index_select(0, order), idx.index_select(0, order), z.index_select(0, order)
+        feats = torch.cat([colors.index_select(0, idx), z.unsqueeze(-1), torch.ones_like(z).unsqueeze(-1)], dim=-1)  # [M, 5]
+        tiling = _bin_tiles(candidates.index_select(0, sel), width, height, tile_size)
+    out = _Composite.apply(means2d.index_select(0, sel), conic.index_select(0, sel), opacities.index_select(0, idx),
+                           feats, tiling, width, height, float(transmittance_min))
     out = out.reshape(5, height, width)
     alpha = out[4:5]
     color = out[:3]
