@@ -11,6 +11,7 @@ from controlgs_adapter import ControlGS, RuntimeState, __version__
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
 from controlgs_adapter.errors import FileFormatError, IncompatibleAdapterError
 from controlgs_adapter.formats.safetensors import load_tensors, read_header, save_tensors
+from controlgs_adapter.formats.adapter import read_spec
 
 from _adapter_files import rewrite, trained
 from scaffold_standin import ScaffoldStandIn, make_camera, script_decoders
@@ -163,3 +164,15 @@ def test_malformed_header_is_a_file_format_error(saved):
     rewrite(saved, {"targets": [{"decoder": "mlp_opacity"}], "num_anchors": 30})
     with pytest.raises(FileFormatError, match=r"targets\[0\]"):
         ControlGS.load(saved, ScaffoldStandIn(30, seed=0))
+
+
+@pytest.mark.parametrize("missing", ["lo", "hi"])
+def test_schedule_without_an_endpoint_is_a_file_format_error(saved, missing):
+    """Each module's schedule needs both endpoints: a header without one is named, before any wrap."""
+    schedules = read_spec(saved)["schedules"]
+    module = sorted(schedules)[0]
+    rewrite(saved, {"schedules": {**schedules, module: {k: v for k, v in schedules[module].items() if k != missing}}})
+    model = ScaffoldStandIn(30, seed=0)
+    with pytest.raises(FileFormatError, match=rf"malformed field\(s\) \['schedules\.{module}'\]"):
+        ControlGS.load(saved, model)
+    assert not model.mlp_opacity[0]._forward_hooks

@@ -256,3 +256,18 @@ def test_bitstreams_only_folder(tmp_path):
     for load in (load_hac_dir, load_model_dir):
         with pytest.raises(FileFormatError, match="bitstreams/ was found, but it cannot be decoded"):
             load(root)
+
+
+def test_raw_mask_is_the_sigmoid_of_the_logits_above_0_01():
+    """A raw (not decoded) model holds mask logits: HAC++'s ``get_mask`` switches an offset on where
+    sigmoid(logit) > 0.01 (logit > -4.595), by hand here; HAC++'s extra K+1-th column is not an offset."""
+    logits = [-6.0, -4.0, -2.0, 0.005, 0.5, -30.0, 3.0, -4.7, -4.5, 1.0]
+    arr = _arrays(5, decoded=False, mask_cols=K + 1, n=2)
+    arr["mask"][0, :K] = logits
+    arr["mask"][0, K] = 9.0
+    arr["mask"][1, :K] = -10.0
+    model = _model(arr, _decoders(5), decoded=False)
+    want = [1.0 if 1.0 / (1.0 + np.exp(-v)) > 0.01 else 0.0 for v in logits]
+    assert want == [0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0, 1.0]
+    assert model.get_mask[0, :, 0].tolist() == want
+    assert model.get_mask_anchor.tolist() == [True, False]

@@ -351,3 +351,59 @@ def test_progressive_opacity_ratio():
     want = raw.double() * torch.from_numpy(ratio[ids.numpy()])[:, None]
     assert torch.allclose(g.neural_opacity.double(), want.reshape(-1), atol=1e-6)
     assert bool((torch.from_numpy(ratio[ids.numpy()]) < 1).any())
+
+
+@pytest.mark.parametrize("rule", ["floor", "ceil"])
+def test_lod_mask_floor_and_ceil_match_float64_reference(rule):
+    """dist2level 'floor' / 'ceil' (Octree-GS's options besides 'round'): the level the view predicts
+    is rounded down / up, checked against math.floor / math.ceil in float64."""
+    arr = _arrays(2)
+    model = OctreeGSModel(anchor=torch.from_numpy(arr["anchor"]), offset=torch.from_numpy(arr["offset"]),
+                          anchor_feat=torch.from_numpy(arr["feat"]), scaling=torch.from_numpy(arr["scale"]),
+                          level=torch.from_numpy(arr["level"][:, None]), extra_level=torch.from_numpy(arr["extra"]),
+                          voxel_size=VOXEL, standard_dist=STD_DIST, fork=FORK, dist2level=rule, add_level=True,
+                          add_opacity_dist=True, **_decoders(torch.Generator().manual_seed(2)))
+    cam = torch.tensor([0.1, 0.2, 2.5])
+    model.set_anchor_mask(cam, -1, 1.0)
+    levels = int(arr["level"].max() - arr["level"].min() + 1)
+    rnd = {"floor": math.floor, "ceil": math.ceil}[rule]
+    want, preds = [], []
+    for a in range(A):
+        lv = int(arr["level"][a])
+        pos = arr["anchor"][a].astype(np.float64) + (VOXEL / 2) / FORK ** lv
+        pred = math.log2(STD_DIST / float(np.linalg.norm(pos - cam.double().numpy()))) / math.log2(FORK) + float(arr["extra"][a])
+        preds.append(pred)
+        want.append(lv <= min(max(rnd(pred), 0), levels - 1))
+    assert model._anchor_mask.tolist() == want
+    # the rule matters here: some anchor's level lies between the clamped floor(pred) and ceil(pred)
+    assert any(max(math.floor(p), 0) < int(lv) <= min(math.ceil(p), levels - 1) for p, lv in zip(preds, arr["level"]))
+
+
+def test_unite_feature_bank_weights_are_a_softmax_over_three(tmp_path):
+    """'unite' mode (checkpoints.pth of state dicts) with use_feat_bank: the rebuilt bank turns each row's
+    3 logits into weights summing to 1 (Scaffold-GS's Softmax(dim=1)); float64 reference by hand."""
+    arr = _arrays(8)
+    torch.manual_seed(8)
+    decs = {"mlp_opacity": nn.Sequential(nn.Linear(F + 5, F), nn.ReLU(), nn.Linear(F, K), nn.Tanh()),
+            "mlp_cov": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, 7 * K)),
+            "mlp_color": nn.Sequential(nn.Linear(F + 4, F), nn.ReLU(), nn.Linear(F, 3 * K), nn.Sigmoid())}
+    bank = nn.Sequential(nn.Linear(3 + 1, F), nn.ReLU(), nn.Linear(F, 3), nn.Softmax(dim=1))
+    root = _write_dir(tmp_path / "u", arr, decs, mode="unite")
+    write_cfg_args(root / "cfg_args", **{**CFG, "use_feat_bank": True})
+    it = root / "point_cloud" / "iteration_30000"
+    torch.save({"opacity_mlp": decs["mlp_opacity"].state_dict(), "cov_mlp": decs["mlp_cov"].state_dict(),
+                "color_mlp": decs["mlp_color"].state_dict(), "feature_bank_mlp": bank.state_dict()}, it / "checkpoints.pth")
+    model = load_octree_gs_dir(root)
+    cam = torch.tensor([0.2, -0.1, 3.0])
+    ids = torch.tensor([0, 2, 3, 7, 11])
+    x = model.decoder_inputs(cam, ids)
+    a = torch.from_numpy(arr["anchor"]).double()[ids]
+    d = a - cam.double()
+    dist = d.norm(dim=1, keepdim=True)
+    lvl = torch.from_numpy(arr["level"]).double()[ids, None]
+    w0, b0, w2, b2 = (t.detach().double() for t in (bank[0].weight, bank[0].bias, bank[2].weight, bank[2].bias))
+    logits = (torch.cat([d / dist, lvl], dim=1) @ w0.T + b0).clamp(min=0) @ w2.T + b2  # [R, 3]
+    w = logits.exp() / logits.exp().sum(dim=1, keepdim=True)
+    f = torch.from_numpy(arr["feat"]).double()[ids]
+    feat = f[:, ::4].repeat(1, 4) * w[:, :1] + f[:, ::2].repeat(1, 2) * w[:, 1:2] + f * w[:, 2:]
+    assert torch.allclose(x["mlp_cov"].double(), torch.cat([feat, d / dist, lvl], dim=1), atol=1e-5)

@@ -82,3 +82,39 @@ def test_unrecognised_folder_and_unknown_family(tmp_path):
     # a forced family goes to that family's loader, which names what is missing
     with pytest.raises(FileFormatError):
         load_model_dir(tmp_path / "scaffold-split", family="compgs", allow_unquantized=True)
+
+
+def _family_folders(root, seed: int) -> dict[str, dict]:
+    """One folder per family (layouts as the backend tests write them) from ``seed``; {name: loader kwargs}."""
+    write_scaffold_dir_by_hand(root / "scaffold", make_raw_model(12, 8, 4, seed=seed))
+    octree_t._write_dir(root / "octree", octree_t._arrays(seed), octree_t._decoders(torch.Generator().manual_seed(seed)))
+    hac_t._write_dir(root / "hac", hac_t._arrays(seed, decoded=True, mask_cols=hac_t.K + 1), hac_t._decoders(seed))
+    contextgs_t._write_dir(root / "contextgs", contextgs_t._arrays(seed, decoded=True), contextgs_t._decoders(seed))
+    arr = compgs_t._arrays(seed)
+    compgs_t._write_checkpoint(root / "compgs", arr, compgs_t._model(arr, seed))
+    return {"scaffold": {}, "octree": {}, "hac": {}, "contextgs": {}, "compgs": {"allow_unquantized": True}}
+
+
+def test_iteration_picks_that_folder_for_every_family(tmp_path):
+    """A folder holding iteration_7000 (seed 1) next to iteration_30000 (seed 0): every family loads the
+    older one when asked for it, and the newest by default; compared with each iteration loaded alone."""
+    import shutil
+
+    from controlgs_adapter.controlgs import _select_backend
+
+    names = _family_folders(tmp_path / "new", 0)
+    _family_folders(tmp_path / "old", 1)
+    for name, kw in names.items():
+        both = tmp_path / "both" / name
+        shutil.copytree(tmp_path / "new" / name, both)
+        shutil.copytree(tmp_path / "old" / name / "point_cloud" / "iteration_30000", both / "point_cloud" / "iteration_7000")
+
+        def anchors(path, **more):
+            model = load_model_dir(path, **kw, **more)
+            return _select_backend(model, None).anchor_positions(model)
+
+        old, new = anchors(tmp_path / "old" / name), anchors(tmp_path / "new" / name)
+        assert old.shape != new.shape or not torch.equal(old, new), name
+        assert torch.equal(anchors(both, iteration=7000), old), name
+        assert torch.equal(anchors(both), new), name
+        assert torch.equal(anchors(both, iteration=30000), new), name

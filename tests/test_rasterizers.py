@@ -188,3 +188,18 @@ def test_a_training_step_runs_on_cuda():
     t.train(progress=False)
     assert all(torch.isfinite(torch.tensor(t.history)))
     t.cgs.unwrap()
+
+
+def test_gsplat_opacity_cap_passes_the_gradient_straight_through(monkeypatch):
+    """With a 0.999-clamping gsplat (< 1.6) the adaptor caps opacities at 0.99 straight-through: a splat
+    above the cap gets the gradient the splatter gives at the capped value (not zero, as a plain clamp would)."""
+    monkeypatch.setattr(rasterizers, "_import_gsplat", lambda: _fake_gsplat("1.5.3", {}))
+    (means, scales, rotations, opacities, colors), cam = _scene(seed=3)
+    opacities[::3] = 0.9995
+    opacities.requires_grad_(True)
+    GsplatRasterizer()(means, scales, rotations, opacities, colors, cam).color.sum().backward()
+    capped = opacities.detach().clamp(max=ALPHA_MAX).requires_grad_(True)
+    rasterize(means, scales, rotations, capped, colors, cam).color.sum().backward()
+    above = opacities.detach() > ALPHA_MAX
+    assert bool(above.any()) and bool((capped.grad[above] != 0).any())
+    torch.testing.assert_close(opacities.grad, capped.grad, rtol=1e-5, atol=1e-6)

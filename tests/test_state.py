@@ -36,3 +36,16 @@ def test_normalized_screen_puts_points_at_and_behind_the_camera_plane_at_inf():
     assert torch.allclose(p[3], torch.tensor([2 * (50 * 0.15 + 32) / 64 - 1, 2 * (50 * -0.1 + 24) / 48 - 1],
                                              dtype=torch.float64))
 
+
+
+def test_fov_per_axis_by_hand_and_from_scaffold_round_trip():
+    """fov = (2 atan(W / 2fx), 2 atan(H / 2fy)) with fx != fy (by hand), and Camera.from_scaffold's FoVx,
+    FoVy come back out (3DGS's cameras carry the two angles)."""
+    import types
+
+    cam = Camera(torch.eye(4), torch.tensor([[40.0, 0, 32.0], [0, 20.0, 24.0], [0, 0, 1]]), 64, 48)
+    fx, fy = cam.fov
+    assert math.isclose(fx, 2 * math.atan(0.8), rel_tol=1e-7) and math.isclose(fy, 2 * math.atan(1.2), rel_tol=1e-7)
+    vc = types.SimpleNamespace(world_view_transform=torch.eye(4), image_width=80, image_height=45, FoVx=1.2, FoVy=0.7)
+    got = Camera.from_scaffold(vc).fov
+    assert math.isclose(got[0], 1.2, rel_tol=1e-6) and math.isclose(got[1], 0.7, rel_tol=1e-6)
