@@ -373,6 +373,8 @@ def main(argv: list[str] | None = None) -> None:
                         profiles.append((f"{device} {rasterizer} {anchors} x {r['width']}x{r['height']} {optics}", r["splatter_ms"]))
                     lines.append(row(r, b, bool(args.baseline)))
                     print(lines[-1], flush=True)
+    lines += ["", "Load average when finished: {:.1f} / {:.1f} / {:.1f} (1 / 5 / 15 min).".format(*os.getloadavg())]
+    print(lines[-1], flush=True)
     if profiles:
         extra = ["", "Splatter phases, ms (torch profiler, one step):", "",
                  "| case | " + " | ".join(f"`{k}`" for k in SPLATTER_PHASES) + " |", "|---|" + "---:|" * len(SPLATTER_PHASES)]
