@@ -200,8 +200,8 @@ def load_renderer(spec: str) -> Any:
         try:
             module = importlib.import_module(where)
         except ModuleNotFoundError as e:
-            if e.name is None or not where.startswith(e.name):
-                raise
+            if e.name is None or not (where == e.name or where.startswith(e.name + ".")):
+                raise  # a module the renderer's module imports
             raise InputValueError(f"--renderer {spec}: no module named {e.name!r} (on the Python path or in the current "
                                   f"folder; or give a file: path/to/file.py:{attr})") from None
         finally:
