@@ -312,7 +312,10 @@ def _candidates(
     """The pairs with ``o G >= ALPHA_MIN`` of the chunk's records ``recs`` (ascending chunk-local int64;
     ``geo`` holds the chunk's records' coefficients) whose pixel is not ``done`` (``[B]`` bool or None),
     stably sorted by pixel: chunk-local key (int32), chunk-local record (int32), ``o G`` (unclamped).
-    Expanded per pixel row of each record (rows without a live pixel dropped), then per pixel."""
+
+    Expanded per pixel row of each record, each row cut to the columns where alpha can reach
+    ``ALPHA_MIN`` (the roots of the exponent, a quadratic in the column, with a margin) and to the span
+    of its pixel row's live pixels, then per pixel."""
     r0, _, t0, t1 = chunk
     dev, dtype = geo.u.device, geo.u.dtype
     ts = tiling.tile_size
@@ -322,36 +325,45 @@ def _candidates(
     row_rec = torch.repeat_interleave(recs, rows, output_size=n_rows)  # [rows] record of each row
     dy_px = torch.arange(n_rows, device=dev).sub_(
         torch.repeat_interleave(torch.cumsum(rows, 0) - rows, rows, output_size=n_rows))
-    key_row = tiling.key0[r0:].index_select(0, row_rec).add_(dy_px * ts)
-    wx = tiling.wx[r0:].index_select(0, row_rec)
-    if done is not None:  # drop the rows whose pixels have all terminated (prefix sums of live pixels per row)
-        live = torch.zeros(n_keys // ts, ts + 1, dtype=torch.int32, device=dev)
-        torch.cumsum((~done).view(-1, ts), 1, out=live[:, 1:])
-        at = key_row.div(ts, rounding_mode="floor").mul_(ts + 1).add_(tiling.x0[r0:].index_select(0, row_rec) % ts)
-        live = live.view(-1)
-        keep = (live.index_select(0, at + wx) > live.index_select(0, at)).nonzero().squeeze(1)
-        row_rec, dy_px, key_row, wx = (t.index_select(0, keep) for t in (row_rec, dy_px, key_row, wx))
-        n_rows = keep.numel()
-        del live, at, keep
-    # per row: log(o G) = (A dx + B) dx + C with dx = ox + i at its i-th pixel (all gathers monotone)
+    k0 = tiling.key0[r0:].index_select(0, recs)
+    col0 = torch.repeat_interleave(k0 % ts, rows, output_size=n_rows)  # [rows] first column within the tile
+    trow = torch.repeat_interleave(k0 // ts, rows, output_size=n_rows).add_(dy_px)  # [rows] pixel row: key // ts
+    col1 = tiling.wx[r0:].index_select(0, row_rec).add_(col0).sub_(1)  # [rows] last column
+    # per row: log(o G) = (A dx + B) dx + C with dx = ox + the column within the tile
     dy = (tiling.y0[r0:].index_select(0, row_rec) + dy_px).to(dtype).add_(0.5).sub_(geo.v.index_select(0, row_rec))
     a_half = geo.a_half.index_select(0, row_rec)
     b_row = geo.b.index_select(0, row_rec).mul_(dy).neg_()
     c_row = geo.c_half.index_select(0, row_rec).mul_(dy).mul_(dy).add_(geo.log_o.index_select(0, row_rec))
-    ox = tiling.x0[r0:].index_select(0, row_rec).to(dtype).add_(0.5).sub_(geo.u.index_select(0, row_rec))
-    rec_row, key_row = row_rec.int(), key_row.int()
-    del dy_px, dy, row_rec
+    ox = (tiling.x0[r0:].index_select(0, row_rec) - col0).to(dtype).add_(0.5).sub_(geo.u.index_select(0, row_rec))
+    del dy_px, dy
+    # columns with (A dx + B) dx + C >= log ALPHA_MIN: dx = (B -+ sqrt(B^2 + 4 A' (C - log ALPHA_MIN))) / (-2 A)
+    # (A' = -A > 0), widened by a margin (the exact test below decides)
+    inv = a_half.reciprocal().mul_(-0.5)
+    root = (c_row - math.log(ALPHA_MIN)).mul_(a_half).mul_(-4).add_(b_row * b_row).clamp_(min=0).sqrt_().mul_(inv)
+    mid = (b_row * inv).sub_(ox)
+    margin = (mid.abs() + root + ox.abs()).mul_(1e-5).add_(1e-3)
+    col0 = torch.maximum(col0, (mid - root - margin).clamp_(-1, ts).ceil_().long())
+    col1 = torch.minimum(col1, (mid + root + margin).clamp_(-1, ts).floor_().long())
+    del inv, root, mid, margin
+    if done is not None:  # cut to the first and last live pixel of the pixel row
+        live = (~done).view(-1, ts)
+        first = torch.where(live.any(1), live.to(torch.uint8).argmax(1), ts)  # argmax: the first maximum
+        last = ts - 1 - live.flip(1).to(torch.uint8).argmax(1)
+        col0 = torch.maximum(col0, first.index_select(0, trow))
+        col1 = torch.minimum(col1, last.index_select(0, trow))
+        del live, first, last
+    wx = col1.sub_(col0).add_(1).clamp_(min=0)
     # per pixel
     n = int(wx.sum())
     pr = torch.repeat_interleave(torch.arange(n_rows, device=dev, dtype=torch.int32), wx.int(), output_size=n)
-    dx_px = torch.arange(n, device=dev, dtype=torch.int32).sub_((torch.cumsum(wx, 0) - wx).int().index_select(0, pr))
-    dx = ox.index_select(0, pr).add_(dx_px)
+    col = torch.arange(n, device=dev, dtype=torch.int32).sub_((torch.cumsum(wx, 0) - wx - col0).int().index_select(0, pr))
+    dx = ox.index_select(0, pr).add_(col)
     raw = torch.exp_(a_half.index_select(0, pr).mul_(dx).add_(b_row.index_select(0, pr)).mul_(dx)
                      .add_(c_row.index_select(0, pr)))
     del dx
-    key = key_row.index_select(0, pr).add_(dx_px)
-    rec = rec_row.index_select(0, pr)
-    del dx_px, pr
+    key = trow.mul_(ts).int().index_select(0, pr).add_(col)
+    rec = row_rec.int().index_select(0, pr)
+    del col, pr
     valid = raw >= ALPHA_MIN
     if done is not None:
         valid &= ~done.index_select(0, key)
