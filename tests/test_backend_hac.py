@@ -271,3 +271,30 @@ def test_raw_mask_is_the_sigmoid_of_the_logits_above_0_01():
     assert want == [0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0, 1.0]
     assert model.get_mask[0, :, 0].tolist() == want
     assert model.get_mask_anchor.tolist() == [True, False]
+
+
+def test_decoded_gaussians_by_hand_in_float64():
+    """Every kept Gaussian of a decoded HAC++ model, from the raw arrays and decoder weights in float64:
+    mean = anchor + offset * s[:3], scale = s[3:] * sigmoid(cov[:3]), rotation = normalize(cov[3:7]) with
+    cov = mlp_cov([feat, view, dist]) rows 7k..7k+6 (HAC++'s generate_neural_gaussians, linear scales s)."""
+    from _family_checks import make_camera
+
+    arr = _arrays(6, decoded=True, mask_cols=K + 1)
+    decs = _decoders(6)
+    model = _model(arr, decs, decoded=True)
+    cam = make_camera()
+    with torch.no_grad():
+        got = model.decode(cam, None)
+    assert got.means.shape[0] > A  # several Gaussians per anchor
+    lin = [(m.weight.detach().double(), m.bias.detach().double()) for m in (decs["mlp_cov"][0], decs["mlp_cov"][2])]
+    centre = cam.center.double()
+    for g in range(got.means.shape[0]):
+        a, k = int(got.anchor_of[g]), int(got.offset_of[g])
+        anchor, s = torch.from_numpy(arr["anchor"][a]).double(), torch.from_numpy(arr["scale"][a]).double()
+        d = anchor - centre
+        x = torch.cat([torch.from_numpy(arr["feat"][a]).double(), d / d.norm(), d.norm()[None]])
+        cov = (lin[1][0] @ torch.clamp(lin[0][0] @ x + lin[0][1], min=0) + lin[1][1])[7 * k: 7 * k + 7]
+        torch.testing.assert_close(got.means[g].double(), anchor + torch.from_numpy(arr["offset"][a, k]).double() * s[:3],
+                                   rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(got.scales[g].double(), s[3:] * torch.sigmoid(cov[:3]), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(got.rotations[g].double(), cov[3:] / cov[3:].norm(), rtol=1e-5, atol=1e-6)
