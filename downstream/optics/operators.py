@@ -149,43 +149,54 @@ class _ZonesFn(torch.autograd.Function):
 
 class _GatherFn(torch.autograd.Function):
     """``sum_r a_r . (E_r * C)`` per bucket of field groups on the warped canvas ``C`` (radiance),
-    forward and its exact adjoint (FFT correlation of the weighted gradient, then a scatter back
-    to the canvas)."""
+    forward and its exact adjoint (FFT correlation of the weighted gradient, then an add back to
+    the canvas). Each group reads and writes rectangular boxes: plain slices."""
 
     @staticmethod
     def forward(ctx, C: torch.Tensor, rb: ResampledBank, buckets: list, skip: bool) -> torch.Tensor:
         ctx.rb, ctx.buckets, ctx.size = rb, buckets, C.shape[-1]               # C [B, L, Hc Wc + 1]
-        B = C.shape[0]
-        out = C.new_zeros(B, rb.L, rb.H * rb.W)
+        B, m = C.shape[0], rb.m
+        Cv = C[..., :-1].view(B, rb.L, rb.Hc, rb.Wc)
+        out = C.new_zeros(B, rb.L, rb.H, rb.W)
         for li in range(rb.L):
+            Cl, ol = Cv[:, li], out[:, li]
             for bk in buckets[li]:
                 R, Z = bk.kernel_fft.shape[:2]
                 fh, fw = bk.fft_size
-                vals = C[:, li, bk.in_canvas]
-                if skip and not bool(vals.any()):
+                arr = C.new_zeros(B, Z, fh, fw)
+                for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
+                    arr[:, s, :bh + 2 * mz, :bw + 2 * mz] = Cl[:, r0 + m - mz:r0 + m + bh + mz, c0 + m - mz:c0 + m + bw + mz]
+                if skip and not bool(arr.any()):
                     continue
-                arr = C.new_zeros(B, Z * fh * fw)
-                arr[:, bk.in_slot] = vals
-                res = torch.fft.irfft2(torch.fft.rfft2(arr.view(B, 1, Z, fh, fw)) * bk.kernel_fft, s=(fh, fw))
-                res = res.reshape(B, R, -1)[..., bk.out_slot]                      # [B, R, M]
-                out[:, li].index_add_(1, bk.out_index, (res * bk.out_weight).sum(1) if R > 1 else res[:, 0] * bk.out_weight[0])
-        return out
+                spec = torch.fft.rfft2(arr.unsqueeze(1))
+                spec = spec.mul_(bk.kernel_fft) if R == 1 else spec * bk.kernel_fft
+                res = torch.fft.irfft2(spec, s=(fh, fw))                           # [B, R, Z, fh, fw]
+                for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
+                    piece, wgt = res[:, :, s, mz:mz + bh, mz:mz + bw], bk.weights[s]
+                    ol[:, r0:r0 + bh, c0:c0 + bw] += piece[:, 0] * wgt[0] if R == 1 else (piece * wgt).sum(1)
+        return out.reshape(B, rb.L, rb.H * rb.W)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g: torch.Tensor):  # g [B, L, N]
         rb, buckets = ctx.rb, ctx.buckets
-        B = g.shape[0]
+        B, m = g.shape[0], rb.m
+        g4 = g.reshape(B, rb.L, rb.H, rb.W)
         gC = g.new_zeros(B, rb.L, ctx.size)
+        gCv = gC[..., :-1].view(B, rb.L, rb.Hc, rb.Wc)
         for li in range(rb.L):
+            gl, gcl = g4[:, li], gCv[:, li]
             for bk in buckets[li]:
                 R, Z = bk.kernel_fft.shape[:2]
                 fh, fw = bk.fft_size
-                garr = g.new_zeros(B, R, Z * fh * fw)
-                garr[..., bk.out_slot] = g[:, li, bk.out_index][:, None, :] * bk.out_weight
-                spec = torch.fft.rfft2(garr.view(B, R, Z, fh, fw)) * bk.kernel_fft.conj()
-                G = torch.fft.irfft2(spec.sum(1) if R > 1 else spec[:, 0], s=(fh, fw)).reshape(B, -1)
-                gC[:, li].index_add_(1, bk.in_canvas, G[:, bk.in_slot])
+                garr = g.new_zeros(B, R, Z, fh, fw)
+                for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
+                    garr[:, :, s, mz:mz + bh, mz:mz + bw] = gl[:, None, r0:r0 + bh, c0:c0 + bw] * bk.weights[s]
+                spec = torch.fft.rfft2(garr)
+                spec = spec.mul_(bk.kernel_fft.conj()) if R == 1 else spec * bk.kernel_fft.conj()
+                G = torch.fft.irfft2(spec.sum(1) if R > 1 else spec[:, 0], s=(fh, fw))   # [B, Z, fh, fw]
+                for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
+                    gcl[:, r0 + m - mz:r0 + m + bh + mz, c0 + m - mz:c0 + m + bw + mz] += G[:, s, :bh + 2 * mz, :bw + 2 * mz]
         return gC, None, None, None
 
 

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, overload
 
 import torch
 
@@ -127,6 +127,30 @@ def quad_overlap(qx: torch.Tensor, qy: torch.Tensor, a: torch.Tensor, c: torch.T
     return total
 
 
+def quad_overlaps(qx: torch.Tensor, qy: torch.Tensor, x0: torch.Tensor, y0: torch.Tensor, jx: int, jy: int
+                  ) -> torch.Tensor:
+    """``[jy, jx, ...]``: :func:`quad_overlap` of the polygons ``qx, qy [V, ...]`` with the unit
+    pixels ``[x0 + i, x0 + i + 1] x [y0 + j, y0 + j + 1]`` for all ``j < jy, i < jx`` at once. Per
+    edge, the clipped x-interval and its end heights are shared by a column of pixels, and the
+    band integral ``int clamp(y - c, 0, 1)`` is the difference of the half-plane integrals
+    ``int max(y - c, 0)`` at ``c`` and ``c + 1``, shared by vertically adjacent pixels."""
+    dt = qx.dtype
+    ax = x0 + torch.arange(jx, dtype=dt).reshape(jx, *([1] * x0.dim()))            # [jx, ...] pixel left edges
+    cy = y0 + torch.arange(jy + 1, dtype=dt).reshape(jy + 1, 1, *([1] * y0.dim()))   # [jy + 1, 1, ...]
+    total = torch.zeros(jy, jx, *qx.shape[1:], dtype=dt)
+    V = qx.shape[0]
+    for e in range(V):
+        x0e, y0e, x1e, y1e = qx[e], qy[e], qx[(e + 1) % V], qy[(e + 1) % V]
+        dx = x1e - x0e
+        u0 = torch.maximum(torch.minimum(x0e, x1e), ax)
+        u1 = torch.minimum(torch.maximum(x0e, x1e), ax + 1)
+        slope = (y1e - y0e) / torch.where(dx == 0, torch.ones_like(dx), dx)
+        ya, yb = y0e + slope * (u0 - x0e), y0e + slope * (u1 - x0e)            # [jx, ...]
+        half = _mean_relu(ya - cy, yb - cy)                                     # [jy + 1, jx, ...]
+        total -= (torch.sign(dx) * (u1 - u0).clamp_min(0)) * (half[:-1] - half[1:])
+    return total
+
+
 def _bilinear_axis(f: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Lower/upper sample index and fraction of ``u`` on the increasing samples ``f`` (constant beyond)."""
     f = f.double().to(u.device)
@@ -148,6 +172,9 @@ def _bilinear_fields(fx: torch.Tensor, fy: torch.Tensor, x: torch.Tensor, y: tor
     w = torch.stack([(1 - ay) * (1 - ax), (1 - ay) * ax, ay * (1 - ax), ay * ax])
     return idx, w
 
+
+#: quads per chunk of the footprint computation (temporaries of this many float64 stay in cache)
+_FOOTPRINT_CHUNK = 1 << 12
 
 #: landing-point grid (per side) on which the inverse chief-ray map is solved before interpolation
 INVERSE_GRID = 129
@@ -262,6 +289,14 @@ class ResampledBank:
                 w.transpose(0, 1).reshape(self.L, 4, -1).to(self.device, self.dtype))
 
     # ----------------------------------------------------------------- chief-ray footprints
+    @overload
+    def _chief_at(self, u: torch.Tensor, v: torch.Tensor, per_wavelength: bool = ..., jacobian: Literal[False] = ...
+                  ) -> torch.Tensor: ...
+
+    @overload
+    def _chief_at(self, u: torch.Tensor, v: torch.Tensor, per_wavelength: bool = ..., *, jacobian: Literal[True]
+                  ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]: ...
+
     def _chief_at(self, u: torch.Tensor, v: torch.Tensor, per_wavelength: bool = False, jacobian: bool = False
                   ) -> torch.Tensor | tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         """Chief-ray landing ``[L, *u.shape, 2]`` (normalised) at normalised display points ``u, v``
@@ -319,28 +354,51 @@ class ResampledBank:
     def _footprints(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Exact footprints: each display pixel's quad (chief-ray images of its corners; the image
         pixel's display position is ``u`` times the region's half-extent, landing points divided by
-        it) intersected with the output pixels of the canvas."""
+        it) intersected with the output pixels of the canvas (:func:`quad_overlaps`), in chunks of
+        pixels (the temporaries stay in cache), each over the offsets its own quads reach."""
         X, Y = self.corners()
-        qx = torch.stack([X[:, :-1, :-1], X[:, :-1, 1:], X[:, 1:, 1:], X[:, 1:, :-1]]).reshape(4, self.L, -1)
-        qy = torch.stack([Y[:, :-1, :-1], Y[:, :-1, 1:], Y[:, 1:, 1:], Y[:, 1:, :-1]]).reshape(4, self.L, -1)
-        area = 0.5 * sum(qx[e] * qy[(e + 1) % 4] - qx[(e + 1) % 4] * qy[e] for e in range(4))   # [L, N]
+        L, N, dump = self.L, self.H * self.W, self.Hc * self.Wc
+        qx = torch.stack([X[:, :-1, :-1], X[:, :-1, 1:], X[:, 1:, 1:], X[:, 1:, :-1]]).reshape(4, L, -1)
+        qy = torch.stack([Y[:, :-1, :-1], Y[:, :-1, 1:], Y[:, 1:, 1:], Y[:, 1:, :-1]]).reshape(4, L, -1)
+        del X, Y
+        cross = [qx[e] * qy[(e + 1) % 4] - qx[(e + 1) % 4] * qy[e] for e in range(4)]
+        area = 0.5 * (cross[0] + cross[1] + cross[2] + cross[3])                # [L, N]
+        del cross
         if not (area > 0).all():
             raise InputValueError("PSF bank: the chief-ray map folds over (not monotonic) at this resolution")
         x0, y0 = torch.floor(qx.min(0).values), torch.floor(qy.min(0).values)
-        jx = int((torch.ceil(qx.max(0).values) - x0).max().item())
-        jy = int((torch.ceil(qy.max(0).values) - y0).max().item())
-        idx, wts = [], []
-        for oy in range(jy):
-            for ox in range(jx):
-                px, py = x0 + ox, y0 + oy
-                w = quad_overlap(qx, qy, px, py).clamp_min(0)
-                if self.radiometry == "energy":
-                    w = w / area
-                inside = (px >= 0) & (px < self.Wc) & (py >= 0) & (py < self.Hc)
-                idx.append(torch.where(inside, py * self.Wc + px, torch.full_like(px, self.Hc * self.Wc)).long())
-                wts.append(torch.where(inside, w, torch.zeros_like(w)))
-        return (torch.stack(idx, 1).to(self.device), torch.stack(wts, 1).to(self.device, self.dtype),
-                area.to(self.device, self.dtype))
+        ex = (torch.ceil(qx.max(0).values) - x0).long()                          # [L, N] extent in output px
+        ey = (torch.ceil(qy.max(0).values) - y0).long()
+        jx, jy = int(ex.max()), int(ey.max())
+        ox = torch.arange(jx).repeat(jy)[None, :, None]                          # offset j = oy * jx + ox
+        oy = torch.arange(jy).repeat_interleave(jx)[None, :, None]
+        ix0, iy0 = x0.long(), y0.long()
+
+        def inside_of(sel: slice | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            px, py = ix0[:, None, sel] + ox, iy0[:, None, sel] + oy                # [L, J, n]
+            return (px >= 0) & (px < self.Wc) & (py >= 0) & (py < self.Hc), py * self.Wc + px
+
+        # canvas index of every offset; offsets outside the canvas (only pixels near its edge
+        # can reach there) go to the dump slot
+        idx = (iy0 * self.Wc + ix0)[:, None, :] + (oy * self.Wc + ox)
+        edge = ((ix0 < 0) | (ix0 + jx > self.Wc) | (iy0 < 0) | (iy0 + jy > self.Hc)).any(0)   # [N]
+        at_edge = edge.nonzero().squeeze(1)
+        if at_edge.numel():
+            inside, flat = inside_of(at_edge)
+            idx[:, :, at_edge] = torch.where(inside, flat, dump)
+        wts = torch.zeros(L, jy, jx, N, dtype=self.dtype)
+        step = max(1, _FOOTPRINT_CHUNK // L)
+        for s in range(0, N, step):
+            sl = slice(s, min(s + step, N))
+            cjx, cjy = int(ex[:, sl].max()), int(ey[:, sl].max())
+            w = quad_overlaps(qx[:, :, sl], qy[:, :, sl], x0[:, sl], y0[:, sl], cjx, cjy).clamp_min(0)   # [cjy, cjx, L, n]
+            if self.radiometry == "energy":
+                w = w / area[:, sl]
+            if bool(edge[sl].any()):
+                ins = inside_of(sl)[0].view(L, jy, jx, -1)[:, :cjy, :cjx].permute(1, 2, 0, 3)
+                w = torch.where(ins, w, 0)
+            wts[:, :cjy, :cjx, sl] = w.permute(2, 0, 1, 3)
+        return idx.to(self.device), wts.reshape(L, jy * jx, N).to(self.device), area.to(self.device, self.dtype)
 
     # ----------------------------------------------------------------- kernels
     @property
@@ -357,6 +415,31 @@ class ResampledBank:
                 out[li] = torch.einsum("gtk,gkl,gsl->gts", wy, b.psf[li].reshape(-1, K, K).double(), wx)
             self._kernels = out.to(self.device, self.dtype)
         return self._kernels
+
+    def box_matrices(self, li: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[G, k, K]`` x 2: the box-overlap matrices (rows, columns) of every field at wavelength ``li``."""
+        K = self.bank.psf.shape[-1]
+        p = self.bank.psf_pitch_mm[li].reshape(-1).double()
+        return _box_matrix(p / self._px[1], K, self.m), _box_matrix(p / self._px[0], K, self.m)
+
+    def field_kernels(self, li: int, fields: torch.Tensor, boxes: tuple[torch.Tensor, torch.Tensor] | None = None
+                      ) -> tuple[torch.Tensor, int]:
+        """``[nf, 2 r + 1, 2 r + 1]`` float64: the kernels of ``fields`` (flat field indices) at
+        wavelength ``li``, the taps ``-r .. r`` of :attr:`kernels` with ``r <= m`` the reach of
+        these fields (beyond it their kernels are 0), computed without the full ``[L, G, k, k]``
+        table; and ``r``. ``boxes``: :meth:`box_matrices` of ``li`` when a caller asks for many groups."""
+        b = self.bank
+        K = b.psf.shape[-1]
+        f = fields.cpu()
+        p = b.psf_pitch_mm[li].reshape(-1)[f].double()
+        reach = float(p.max()) * (K // 2 + 0.5) / min(self._px)
+        r = min(self.m, int(math.ceil(reach - 0.5 - 1e-9)))
+        if boxes is None:
+            wy, wx = _box_matrix(p / self._px[1], K, r), _box_matrix(p / self._px[0], K, r)   # [nf, 2r+1, K]
+        else:
+            wy, wx = (bx[f, self.m - r:self.m + r + 1] for bx in boxes)
+        out = torch.einsum("gtk,gkl,gsl->gts", wy, b.psf[li].reshape(-1, K, K)[f].double(), wx)
+        return out.to(self.device), r
 
     def pixel_kernels(self, li: int, taps: torch.Tensor) -> torch.Tensor:
         """``[T, N]``: value of tap ``taps`` (flat index into ``k x k``) of every display pixel's
@@ -395,6 +478,8 @@ def _eigen(K: torch.Tensor, m: int, tol: float, max_rank: int | None) -> tuple[t
     mz = int(max((rows - m).abs().max(), (cols - m).abs().max()))
     nf = K.shape[0]
     K = K[:, m - mz:m + mz + 1, m - mz:m + mz + 1].reshape(nf, -1)
+    if nf == 1:                       # one field: its kernel is its own (exact) eigen-PSF
+        return K.reshape(1, 2 * mz + 1, 2 * mz + 1), K.new_ones(1, 1), mz
     evals, U = torch.linalg.eigh(K @ K.T)
     order = torch.argsort(evals, descending=True)
     evals, U = evals[order].clamp_min(0), U[:, order]
@@ -423,26 +508,26 @@ def _rolled(E: torch.Tensor, fh: int, fw: int) -> torch.Tensor:
 @dataclass
 class GatherBucket:
     """Field groups with the same FFT size and rank (radiance): ``out[box] += sum_r a_r . (E_r * C)``,
-    ``C`` the warped canvas, transformed in one batched call."""
+    ``C`` the warped canvas, transformed in one batched call. Group ``s`` reads the canvas patch of
+    its output box ``boxes[s] = (r0, c0, bh, bw, mz)`` (frame rows ``r0 .. r0 + bh``, columns
+    ``c0 .. c0 + bw``) widened by its kernel reach ``mz`` into slot ``s`` of the FFT array, and adds
+    ``weights[s] * result`` back to the box (plain slices: no index tables)."""
 
-    in_slot: torch.Tensor       # [P] flat index into [Z, fh, fw] of the canvas patch cells
-    in_canvas: torch.Tensor     # [P] canvas flat index each of them reads
     kernel_fft: torch.Tensor    # [R, Z, fh, fw // 2 + 1]
     fft_size: tuple[int, int]
-    out_slot: torch.Tensor      # [M] flat index into [Z, fh, fw] of the result cells used ...
-    out_index: torch.Tensor     # [M] ... the flat frame index each adds to
-    out_weight: torch.Tensor    # [R, M] coefficient map a_r there (field weights x transmission x A)
+    boxes: list[tuple[int, int, int, int, int]]
+    weights: list[torch.Tensor]  # Z x [R, bh, bw] coefficient map a_r on the box (field weight x transmission)
 
 
 def _build_gather(rb: "ResampledBank", zone: int, tol: float, max_rank: int | None) -> list[list[GatherBucket]]:
     Gy, Gx = rb.bank.psf.shape[1:3]
-    kern = rb.kernels.double()
-    W, m, N = rb.W, rb.m, rb.H * rb.W
+    W, N = rb.W, rb.H * rb.W
     nzx, nzy = (Gx + zone - 1) // zone, (Gy + zone - 1) // zone
     cdt = torch.complex64 if rb.dtype == torch.float32 else torch.complex128
     dev = rb.device
     out = []
     for li in range(rb.L):
+        boxes = rb.box_matrices(li)
         fidx = rb.out_field_index[li]
         fw_ = rb.out_field_weight[li].double() * rb.transmission[li][fidx]
         live = fw_ > 0
@@ -457,32 +542,19 @@ def _build_gather(rb: "ResampledBank", zone: int, tol: float, max_rank: int | No
             if f_g.numel() == 0:
                 continue
             fields, pos = torch.unique(f_g, return_inverse=True)
-            E, A, mz = _eigen(kern[li, fields], m, tol, max_rank)
+            E, A, mz = _eigen(*rb.field_kernels(li, fields, boxes), tol, max_rank)
             r, c = q_g // W, q_g % W
             r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
             bh, bw = r1 - r0, c1 - c0
             Vd = torch.zeros(len(fields), bh * bw, dtype=torch.float64, device=dev)
             Vd.index_put_((pos, (r - r0) * bw + (c - c0)), v_g, accumulate=True)
-            used = (Vd > 0).any(0).nonzero().squeeze(1)
-            coeff = A.T @ Vd[:, used]                                            # [R, M]
+            coeff = (A.T @ Vd).reshape(-1, bh, bw)                                # [R, bh, bw]
             fh, fwid = ladder_len(bh + 2 * mz), ladder_len(bw + 2 * mz)
-            pi, pj = torch.meshgrid(torch.arange(bh + 2 * mz, device=dev), torch.arange(bw + 2 * mz, device=dev),
-                                    indexing="ij")
-            ur, uc = used // bw, used % bw
-            groups.setdefault((fh, fwid, E.shape[0]), []).append((
-                (pi * fwid + pj).reshape(-1), ((r0 + m - mz + pi) * rb.Wc + (c0 + m - mz + pj)).reshape(-1),
-                _rolled(E, fh, fwid), (ur + mz) * fwid + (uc + mz), (ur + r0) * W + (uc + c0), coeff))
-        buckets = []
-        for (fh, fwid, R), zs in sorted(groups.items()):
-            area = fh * fwid
-            buckets.append(GatherBucket(
-                in_slot=torch.cat([z[0] + s * area for s, z in enumerate(zs)]),
-                in_canvas=torch.cat([z[1] for z in zs]),
-                kernel_fft=torch.fft.rfft2(torch.stack([z[2] for z in zs], 1)).to(cdt), fft_size=(fh, fwid),
-                out_slot=torch.cat([z[3] + s * area for s, z in enumerate(zs)]),
-                out_index=torch.cat([z[4] for z in zs]),
-                out_weight=torch.cat([z[5] for z in zs], 1).to(rb.dtype)))
-        out.append(buckets)
+            groups.setdefault((fh, fwid, E.shape[0]), []).append((_rolled(E, fh, fwid), (r0, c0, bh, bw, mz), coeff))
+        out.append([GatherBucket(kernel_fft=torch.fft.rfft2(torch.stack([z[0] for z in zs], 1)).to(cdt),
+                                 fft_size=(fh, fwid), boxes=[z[1] for z in zs],
+                                 weights=[z[2].to(rb.dtype) for z in zs])
+                    for (fh, fwid, R), zs in sorted(groups.items(), key=lambda kv: kv[0])])
     return out
 
 
@@ -500,10 +572,9 @@ class Zone:
     dst: tuple[int, int]             # frame row/col where src (r0, c0) lands
 
 
-def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | None) -> list[list[Zone]]:
+def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | None) -> list[list[Bucket]]:
     b = rb.bank
     Gy, Gx = b.psf.shape[1:3]
-    kern = rb.kernels.double()                                             # [L, G, k, k]
     fidx, fw_ = rb.field_index, rb.field_weight.double()                   # [4, N]
     nzx = (Gx + zone - 1) // zone
     zid = (fidx // Gx // zone) * nzx + fidx % Gx // zone                   # [4, N] group of each field used
@@ -513,9 +584,10 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
     groups = key // N
     counts = torch.bincount(groups, minlength=nzx * ((Gy + zone - 1) // zone)).tolist()
     pixels_of = dict(enumerate(torch.split(key % N, counts)))
-    out: list[list[Zone]] = []
+    out: list[list[Bucket]] = []
     dump = rb.Hc * rb.Wc
     for li in range(rb.L):
+        boxes = rb.box_matrices(li)
         zones_l: list[Zone] = []
         for zy in range(0, Gy, zone):
             for zx in range(0, Gx, zone):
@@ -525,7 +597,7 @@ def _build_zones(rb: "ResampledBank", zone: int, tol: float, max_rank: int | Non
                 pix = pixels_of[z]
                 if pix.numel() == 0:
                     continue
-                E, A, mz = _eigen(kern[li, fields], rb.m, tol, max_rank)             # [R, kz, kz], [nf, R]
+                E, A, mz = _eigen(*rb.field_kernels(li, fields, boxes), tol, max_rank)   # [R, kz, kz], [nf, R]
                 R = E.shape[0]
                 # per-pixel coefficients: sum of the pixel's bilinear weights on this group's fields
                 pos = torch.full((Gy * Gx,), -1, dtype=torch.long, device=fidx.device)
