@@ -403,7 +403,8 @@ def _chunk_passes(
     wx, rows = tiling.wx[r0:r1], tiling.rows[r0:r1]
     # candidates with depth rank < r, for the windows' budget
     by_rank = torch.zeros(int(rank.max()) + 2, dtype=torch.float64, device=dev)
-    torch.cumsum(torch.bincount(rank, weights=(wx * rows).double()), 0, out=by_rank[1:])
+    count = (wx * rows).double()
+    torch.cumsum(torch.bincount(rank, weights=count), 0, out=by_rank[1:])
     cum = by_rank.tolist()
     max_rank = len(cum) - 2
     done: torch.Tensor | None = None  # [n_keys] bool: pixel terminated or outside every candidate rectangle
@@ -426,10 +427,15 @@ def _chunk_passes(
         if lo == 0 and hi > max_rank and not terminate:
             recs = torch.arange(r1 - r0, device=dev)
         else:
-            sel = (rank >= lo) & (rank < hi)
+            sel = rank >= lo
             if done is not None:
                 sel &= ~done.view(-1, tp).all(1).index_select(0, tile)
-            recs = sel.nonzero().squeeze(1)
+            left = float((count * sel).sum())  # candidates of the records left in live tiles
+            if left == 0:
+                break
+            if left <= _PAIR_BUDGET // 4:  # a short tail: one pass (fewer ops beat a tighter window)
+                hi = max_rank + 1
+            recs = (sel & (rank < hi)).nonzero().squeeze(1)
         key, rec, raw = _candidates(tiling, chunk, geo_rec, recs, done)
         frozen = raw > ALPHA_MAX
         alpha = raw.clamp_(max=ALPHA_MAX)
