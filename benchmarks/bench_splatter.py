@@ -8,9 +8,14 @@ log-normal around ``sqrt(50k / N)`` px at 256^2, opacities U(0.05, 0.95), random
 2. the brute-force reference (``rasterize_reference``) on a small case, as the speed-up baseline;
 3. the cost of supersampling as in the paper's Tbl. S2: render at S then area-pool to S/d versus
    render directly at S/d (``camera.scaled(d)``), d in {2, 4, 8};
-4. where the time goes (top operators of one 50k @ 256^2 forward+backward, torch profiler).
+4. where the time goes (top operators of one 50k @ 256^2 forward+backward, torch profiler);
+5. the training scene of ``bench_step.py``'s dense preset (100k anchors, ~640k visible Gaussians) at
+   288x512 and 576x1024: forward and backward CPU time of the splatter alone, and of the splatter in
+   the file ``--baseline`` (e.g. ``git show 816758c:backends/splatter.py > /tmp/splatter_before.py``)
+   in the same run, each case in a fresh process.
 
-Usage: ``python benchmarks/bench_splatter.py [--quick] [--threads 2] [--doc | --out FILE]`` (prints; ``--doc`` writes docs/benchmarks-splatter.md).
+Usage: ``python benchmarks/bench_splatter.py [--quick] [--threads 2] [--baseline FILE] [--dense-only]
+[--doc | --out FILE]`` (prints; ``--doc`` writes docs/benchmarks-splatter.md).
 """
 
 from __future__ import annotations
@@ -151,6 +156,66 @@ def measure_supersampling(n: int, size: int, reps: int) -> list[dict]:
     return rows
 
 
+DENSE_WIDTHS = (512, 1024)
+
+
+def measure_dense(width: int, reps: int, baseline: str | None) -> dict:
+    """Run in a subprocess: fastest forward and backward CPU seconds of the splatter (this tree's, or the
+    one in the file ``baseline``) on ``bench_step.py``'s dense scene at ``width`` px (16:9)."""
+    from bench_step import PRESETS, camera as step_camera, load_rasterize, make_model
+
+    fn = load_rasterize(baseline) if baseline else rasterize
+    scale, gain = PRESETS["dense"]
+    model, cam = make_model(100_000, scale=scale, opacity_gain=gain), step_camera(width)
+    with torch.no_grad():
+        g = model.decode(cam, model.visible_anchors(cam))
+    params = [g.means, g.scales, g.rotations, g.opacities, g.colors]
+    weights = torch.rand(3, cam.height, cam.width, generator=torch.Generator().manual_seed(1))
+    times = []
+    for _ in range(reps + 1):  # the first is a warm-up
+        leaves = [p.clone().requires_grad_() for p in params]
+        c0 = time.process_time()
+        out = fn(*leaves, cam, torch.zeros(3))
+        c1 = time.process_time()
+        (out.color * weights).sum().backward()
+        times.append((c1 - c0, time.process_time() - c1))
+    return {"width": cam.width, "height": cam.height, "gaussians": len(params[0]), "visible": int(out.visible.sum()),
+            "fwd_cpu_s": min(t[0] for t in times[1:]), "bwd_cpu_s": min(t[1] for t in times[1:])}
+
+
+def run_dense_subprocess(width: int, reps: int, threads: int, baseline: str | None) -> dict:
+    cmd = [sys.executable, __file__, "--dense-case", str(width), "--reps", str(reps), "--threads", str(threads)]
+    res = subprocess.run(cmd + (["--baseline", baseline] if baseline else []), capture_output=True, text=True, check=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def dense_section(reps: int, threads: int, baseline: str | None) -> list[str]:
+    """The dense training scene's table (markdown lines)."""
+    lines = [
+        "## Dense training scene (`bench_step.py --preset dense`, 100k anchors)",
+        "",
+        f"The Gaussians one training step renders (decoded once, no grad through the decoder), `rasterize` "
+        f"with early termination at its default, then `backward` of a weighted colour sum; process CPU seconds "
+        f"(all threads), fastest of {reps} after a warm-up, each case in a fresh process"
+        + (f"; baseline: the splatter in `{baseline}`, same run." if baseline else "."),
+        "",
+        "| size | Gaussians (visible) | splatter | fwd CPU (s) | bwd CPU (s) | fwd+bwd CPU (s) | speed-up (fwd+bwd) |",
+        "|---:|---:|---|---:|---:|---:|---:|",
+    ]
+    for width in DENSE_WIDTHS:
+        r = run_dense_subprocess(width, reps, threads, None)
+        b = run_dense_subprocess(width, reps, threads, baseline) if baseline else None
+        for name, x in (("this tree", r), ("baseline", b)):
+            if x is None:
+                continue
+            total = x["fwd_cpu_s"] + x["bwd_cpu_s"]
+            speed = f"{(b['fwd_cpu_s'] + b['bwd_cpu_s']) / total:.1f}x" if b and x is r else ""
+            lines.append(f"| {x['height']}x{x['width']} | {x['gaussians']} ({x['visible']}) | {name} | "
+                         f"{x['fwd_cpu_s']:.2f} | {x['bwd_cpu_s']:.2f} | {total:.2f} | {speed} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
 PHASES = ("splatter.project", "splatter.bin", "splatter.expand_pairs", "splatter.accumulate",
           "splatter.backward_pairs")
 
@@ -179,11 +244,20 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="write the report to this file (default: print only)")
     ap.add_argument("--doc", dest="out", action="store_const", const=ROOT / "docs" / "benchmarks-splatter.md",
                     help="write docs/benchmarks-splatter.md")
+    ap.add_argument("--baseline", help="splatter module file for the dense scene's baseline rows (same run)")
+    ap.add_argument("--dense-only", action="store_true", help="only the dense training scene's table")
     ap.add_argument("--case", nargs=2, type=int, metavar=("N", "SIZE"), help=argparse.SUPPRESS)
+    ap.add_argument("--dense-case", type=int, metavar="WIDTH", help=argparse.SUPPRESS)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     if args.case:
         print(json.dumps(measure_case(args.case[0], args.case[1], args.reps)))
+        return
+    if args.dense_case:
+        print(json.dumps(measure_dense(args.dense_case, args.reps, args.baseline)))
+        return
+    if args.dense_only:
+        print("\n".join(dense_section(args.reps, args.threads, args.baseline)))
         return
 
     counts = (1_000, 10_000) if args.quick else (1_000, 10_000, 50_000)
@@ -192,7 +266,8 @@ def main() -> None:
     lines = [
         "# CPU splatter benchmark",
         "",
-        f"`python benchmarks/bench_splatter.py{' --quick' if args.quick else ''} --threads {args.threads} --doc` on "
+        f"`python benchmarks/bench_splatter.py{' --quick' if args.quick else ''} --threads {args.threads}"
+        f"{' --baseline ' + args.baseline if args.baseline else ''} --doc` on "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, torch {torch.__version__}, "
         f"{args.threads} thread(s), float32, fastest of {reps} run(s) after a warm-up; load average "
         f"{os.getloadavg()[0]:.1f} when started. On a machine shared with other jobs the wall-clock "
@@ -271,6 +346,7 @@ def main() -> None:
     rest = total - sum(ms for _, ms in phases)
     lines.append(f"| rest (projection autograd, background blend, Python) | {rest:.0f} | {100 * rest / total:.0f} % |")
     print("\n".join(lines[-9:]))
+    lines += [""] + dense_section(reps, args.threads, args.baseline)
     ss_ratios = ", ".join(f"{r['ss_fwd_s'][1] / r['direct_fwd_s'][1]:.1f}x" for r in ss_rows)
     lines += [
         "",
@@ -284,8 +360,9 @@ def main() -> None:
         "idle, which is why the paper's Tbl. S2 finds supersampling about as fast or faster there.",
         "- With more torch threads than free cores (a shared machine), every parallel operator waits "
         "for a busy core: use `--threads 1` there (and `torch.set_num_threads(1)` when training).",
-        "- Peak memory is bounded by the chunk size (`_PAIR_BUDGET`, ~50 bytes of int32/float32 temporaries per candidate pair, counted, not measured) and by "
-        "the pairs kept for the backward pass (`_CACHE_BYTES`, 512 MiB; beyond it backward recomputes).",
+        "- Peak memory is bounded by the candidate pairs of one pass (`_PAIR_BUDGET`, 2^21, ~45 bytes of temporaries "
+        "each, counted, not measured) and by the pairs kept for the backward pass (`_CACHE_BYTES`, 512 MiB at 15 bytes "
+        "per drawn pair; beyond it backward recomputes).",
     ]
     text = "\n".join(lines) + "\n"
     if args.out is None:
