@@ -331,9 +331,10 @@ MUTATIONS: tuple[Mutation, ...] = (
     Mutation("m95", "backends/octree_gs.py", "bank_in = torch.cat([view, level], dim=1) if self.add_level else view",
              "bank_in = torch.cat([view, dist], dim=1) if self.add_level else view", FAMILY_TESTS,
              "Octree-GS feature bank fed the distance instead of the level"),
-    Mutation("m96", "backends/octree_gs.py", "pos = pos + (self.voxel_size / 2) / (float(self.fork) ** self._level)",
-             "pos = pos + self.voxel_size / (float(self.fork) ** self._level)", FAMILY_TESTS,
-             "Octree-GS LOD distance from the voxel corner, not its centre"),
+    # (m96 first drew the LOD voxel-centre offset, m58's site; replaced by the level count)
+    Mutation("m96", "backends/octree_gs.py", "int(level.max() - level.min() + 1) if n else 1",
+             "int(level.max() - level.min()) if n else 1", FAMILY_TESTS,
+             "Octree-GS level count without levels= one short (top level never selected)"),
     Mutation("m97", "backends/octree_gs.py", 'appearance_id = int(camera.extra.get("uid", 0))', "appearance_id = 0",
              FAMILY_TESTS, "Octree-GS appearance code ignores the camera's uid"),
     Mutation("m98", "backends/models/reference_model.py", "color_in = with_dist if self.add_color_dist else without_dist",

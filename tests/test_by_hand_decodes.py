@@ -26,11 +26,25 @@ D = torch.float64
 
 
 def _camera(uid: int | None = None) -> Camera:
-    """Non-square camera at (0.3, -0.2, -5) looking along +z, principal point off centre."""
+    """Non-square camera about 5 units from the origin, turned 0.1 rad about y, principal point off centre."""
+    c, s = math.cos(0.1), math.sin(0.1)
     w2c = torch.eye(4)
+    w2c[:3, :3] = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
     w2c[:3, 3] = torch.tensor([-0.3, 0.2, 5.0])
     k = torch.tensor([[52.0, 0.0, 37.0], [0.0, 47.0, 21.0], [0.0, 0.0, 1.0]])
     return Camera(w2c, k, 72, 40, {} if uid is None else {"uid": uid})
+
+
+def _centre(cam: Camera) -> torch.Tensor:
+    """Camera centre -R^T t in float64 from the world-to-camera matrix."""
+    w2c = cam.world_to_camera.to(D)
+    return -(w2c[:3, :3].T @ w2c[:3, 3])
+
+
+def test_camera_centre_of_a_turned_camera_by_hand():
+    cam = _camera()
+    torch.testing.assert_close(cam.center.to(D), _centre(cam), rtol=0, atol=1e-6)
+    torch.testing.assert_close(cam.to_camera(cam.center[None]), torch.zeros(1, 3), rtol=0, atol=1e-5)
 
 
 def _mlp(mod: nn.Module, x: torch.Tensor) -> torch.Tensor:
@@ -113,7 +127,7 @@ def test_octree_gs_by_hand_with_level_bank_appearance_and_lod():
                           voxel_size=voxel, standard_dist=std, fork=fork, levels=3, add_level=True,
                           add_opacity_dist=True, add_color_dist=True, **decs)
     cam = _camera(uid=2)
-    centre = cam.center.to(D)
+    centre = _centre(cam)
     # LOD by hand: level(dist) = round(log2(std / dist) / log2(fork) + extra), clamped to [0, 2]
     pos = anchor.to(D) + (voxel / 2) / fork ** level.to(D)
     pred = torch.log2(std / (pos - centre).norm(dim=1)) / math.log2(fork) + extra.to(D)
@@ -161,7 +175,7 @@ def test_contextgs_raw_model_by_hand_quantised_anchors_masks_and_anchor0_prefilt
     model = ContextGSModel(anchor=anchor, offset=offset, mask=mask, anchor_feat=feat, scaling=scaling, rotation=rotation,
                            hyper_latent=torch.randn(a, 2), x_bound_min=lo, x_bound_max=hi, decoded_version=False, **decs)
     cam = _camera()
-    centre = cam.center.to(D)
+    centre = _centre(cam)
     step = (hi.to(D) - lo.to(D)) / 65535 + 1e-6
     q = torch.floor((anchor.to(D) - lo.to(D)) / step).clamp(0, 65535)
     pos = q * step + lo.to(D)
@@ -236,7 +250,7 @@ def test_compgs_by_hand_residual_mlp_skip_and_res_feat_layout():
             p.mul_(2.0)
     assert all(isinstance(getattr(net, f"{n}_pred_mlp").skip, nn.Linear) for n in ("means", "covariance", "opacity", "color"))
     cam = _camera()
-    centre = cam.center.to(D)
+    centre = _centre(cam)
     with torch.no_grad():
         got = model.decode(cam, None)
     expected = {}
@@ -256,8 +270,26 @@ def test_compgs_by_hand_residual_mlp_skip_and_res_feat_layout():
     _check(got, expected)
 
 
+def test_compgs_prefilter_by_hand_with_the_offset_scales():
+    """CompGS's prefilter: anchors as Gaussians with scales exp(scales_before_exp[:, :3]) (the offset
+    scales, not the base scales [:, 3:]) and their own rotations, by hand with a float64 EWA projection."""
+    a = 80
+    rng = np.random.default_rng(9)
+    means = torch.from_numpy(rng.uniform((-7.4, -4.9, -0.9), (7.2, 5.0, 1.5), (a, 3))).float()
+    scales = torch.from_numpy(rng.normal(-2.5, 0.3, (a, 6))).float()
+    scales[:, :3] += torch.from_numpy(rng.uniform(0.5, 2.5, (a, 1))).float()  # offset scales larger than base scales
+    rot = torch.nn.functional.normalize(torch.randn(a, 4), dim=1)
+    model = CompGSModel(means=means, scales_before_exp=scales, ref_feats=torch.randn(a, 4), res_feats=torch.randn(a, 2, 2),
+                        rotations_before_norm=rot)
+    cam = _camera()
+    want = _visible_by_hand(cam, means.to(D), torch.exp(scales.to(D)[:, :3]), rot.to(D))
+    assert 0 < int(want.sum()) < a
+    assert not torch.equal(want, _visible_by_hand(cam, means.to(D), torch.exp(scales.to(D)[:, 3:]), rot.to(D)))
+    assert torch.equal(model.visible_anchors(cam), want)
+
+
 # ----------------------------------------------------------------------------------------- Scaffold-GS
-@pytest.mark.parametrize("dists", [(True, False, True), (False, True, False)])
+@pytest.mark.parametrize("dists", [(True, False, False), (False, True, True)])
 def test_scaffold_gs_by_hand_feature_bank_appearance_and_dist_options(dists):
     """Scaffold-GS with use_feat_bank (bank input [view, dist]), an appearance code (camera uid 1 of 3)
     and add_{opacity,cov,color}_dist per ``dists``: every decoded Gaussian by hand."""
@@ -273,7 +305,7 @@ def test_scaffold_gs_by_hand_feature_bank_appearance_and_dist_options(dists):
         model._scaling.copy_(torch.randn(a, 6) * 0.3 - 2.0)
         model.embedding_appearance.embedding.weight.copy_(torch.randn(3, 3))
     cam = _camera(uid=1)
-    centre = cam.center.to(D)
+    centre = _centre(cam)
     with torch.no_grad():
         got = model.decode(cam, None)
     code = model.embedding_appearance.embedding.weight.detach().to(D)[1]
