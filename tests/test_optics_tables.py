@@ -115,3 +115,25 @@ def test_exact_and_fast_on_a_wide_image_equal_the_reference(cardboard, radiometr
     # several fields per group at tol 0: the full eigen-expansion (eigh of K K^T: to 1e-9, as in
     # test_fast_operator_converges_to_exact)
     assert ((psf_fast(x, rb, tol=0.0, zone=3) - ref).norm() / ref.norm()) < 1e-9
+
+
+def test_bench_sizes_and_a_tiny_run(tmp_path):
+    pytest.importorskip("skimage")
+    from controlgs_adapter.downstream.optics.bench import parse_size, run
+
+    assert parse_size("24") == (24, 24) and parse_size("18x32") == (18, 32) and parse_size(20) == (20, 20)
+    for bad in ("0", "12x", "x12", "1x2x3", "a"):
+        with pytest.raises(ValueError):
+            parse_size(bad)
+    n = torch.get_num_threads()
+    try:
+        rows = run(sizes=["16", "12x20"], threads=1, out=tmp_path, repeat=1, scaling=False, command="test")
+    finally:
+        torch.set_num_threads(n)                                     # the bench sets the process's threads
+    tables = [r for r in rows if r["op"] == "tables"]
+    assert [(r["size"], r["radiometry"]) for r in tables] == [("16x16", "radiance"), ("16x16", "energy"),
+                                                              ("12x20", "radiance"), ("12x20", "energy")]
+    exact = [r for r in rows if r["op"] == "exact"]
+    assert len(exact) == 4 and all(r["rel_l2"] == 0 for r in exact)
+    text = (tmp_path / "optics_bench.md").read_text()
+    assert "| 12x20 | exact fwd+bwd |" in text and "Command: `test`" in text

@@ -123,14 +123,15 @@ def _case(bank: PSFBank, H: int, W: int, rad: str, x: torch.Tensor, w: torch.Ten
 
 def run(sizes: Sequence[int | str] = SIZES, exact_max: int = 1024, threads: int = 2, out: Path | None = None,
         zone: int = 5, tols: Sequence[float] = TOLS, radiometries: Sequence[str] = RADIOMETRIES, repeat: int = 3,
-        scaling: bool = True) -> list[dict]:
+        scaling: bool = True, command: str = "controlgs optics bench --doc") -> list[dict]:
     """Time and compare the operators on the shipped bank, per size (``N`` or ``"HxW"``) and
     radiometry; ``out``: folder for ``optics_bench.md`` / ``.png`` (None: print only). Returns the
     operator rows; build rows carry ``op="tables"``."""
     torch.set_num_threads(threads)
-    env = os.environ.get("OMP_NUM_THREADS")
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads (OMP_NUM_THREADS={env or 'unset'}), "
-          f"float32, best of {repeat}; wall s (process CPU s)", flush=True)
+    env = {k: os.environ.get(k) or "unset" for k in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY")}
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads ({', '.join(f'{k}={v}' for k, v in env.items())}), "
+          f"load average {load:.1f}, float32, best of {repeat}; wall s (process CPU s)", flush=True)
     bank = PSFBank.default()
     rows: list[dict] = []
     for size in sizes:
@@ -150,7 +151,8 @@ def run(sizes: Sequence[int | str] = SIZES, exact_max: int = 1024, threads: int 
         sc = _kernel_scaling(side, zone=6)
         print(f"kernel-size scaling at {side}^2 (fast, fwd+bwd): " + ", ".join(f"k={k}: {t:.3f} s" for k, t in sc))
     if out is not None:
-        _write(rows, ratios, sc, threads, repeat, Path(out))
+        _write(rows, ratios, sc, threads, repeat, Path(out), f"{command}` (load average at the start {load:.1f}, "
+               f"{', '.join(f'{k}={v}' for k, v in env.items())})")
     return rows
 
 
@@ -182,14 +184,14 @@ def _ratio_lines(ratios: list[dict]) -> list[str]:
     return lines
 
 
-def _write(rows: list[dict], ratios: list[dict], scaling, threads: int, repeat: int, out: Path) -> None:
+def _write(rows: list[dict], ratios: list[dict], scaling, threads: int, repeat: int, out: Path, command: str) -> None:
     out.mkdir(parents=True, exist_ok=True)
     ops = [r for r in rows if r["op"] != "tables"]
     builds = [r for r in rows if r["op"] == "tables"]
     lines = [f"Operators of the shipped Cardboard bank on `skimage.data.astronaut` (3 primaries), float32, {threads} CPU "
              f"threads, best of {repeat} (wall clock, and process CPU time summed over threads). fwd+bwd = forward and "
-             "backward w.r.t. the image; error vs `psf_exact` of the same radiometry. Command: "
-             "`controlgs optics bench --doc`; docs/optics.md, \"Benchmark\".", "",
+             f"backward w.r.t. the image; error vs `psf_exact` of the same radiometry. Command: `{command}; "
+             "docs/optics.md, \"Benchmark\".", "",
              "Tables, first call for a size (`resample_to`: footprints, field blends; exact / fast: the per-field or "
              "per-group FFT tables of `psf_exact` / `psf_fast`):", "",
              "| size | radiometry | resample_to wall (CPU) s | exact tables wall (CPU) s | fast tables wall (CPU) s |",
