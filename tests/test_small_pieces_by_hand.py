@@ -151,3 +151,17 @@ def test_texture_lookup_is_trilinear_between_floor_and_next_mip_level():
         want0 = torch.stack([tex[:, 0:2, 0:2].mean(dim=(1, 2)), tex[:, 0:2, 2:4].mean(dim=(1, 2))])
         want1 = torch.stack([lvl1[:, 0, 0], lvl1[:, 0, 1]])
         torch.testing.assert_close(got, (1 - lod) * want0 + lod * want1, rtol=1e-12, atol=1e-12)
+
+
+def test_summary_parameter_counts_by_hand():
+    """A = 7 anchors, 2 modules, N = 3: conditions 7 * 2 * 3 = 42; one FC1 width (D1 = F = 8) shared by
+    the three decoders: projections 2 modules * 8 * 3 = 48; 90 in all (numbers shown to users)."""
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.controlgs import ControlGS
+
+    cgs = ControlGS.wrap(NeuralGaussianModel(7, feat_dim=8, n_offsets=2), modules=("display", "resample"), cond_dim=3)
+    try:
+        assert "  trainable: 90 parameters (conditions 42, projections 48)" in cgs.summary().splitlines()
+        assert sum(p.numel() for p in cgs.trainable_parameters()) == 90
+    finally:
+        cgs.unwrap()
