@@ -24,6 +24,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .controlgs import ControlGS
+from .downstream.optics.stage import set_optics_mode
 from .errors import InputValueError
 from .metrics import optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
@@ -34,7 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .downstream.pipeline import Pipeline
 
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
-           "set_optics_mode", "side_by_side", "condition_response", "scores"]
+           "side_by_side", "condition_response", "scores"]
 
 GRID_DOWNSAMPLE: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
 GRID_POWER_SAVING: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
@@ -125,21 +126,6 @@ def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "
     pipeline = Pipeline.from_config(dict(DEFAULT_EFFECTS if effects is None else effects))
     set_optics_mode(pipeline, optics_mode)
     return pipeline.eval()
-
-
-def set_optics_mode(pipeline: Pipeline, mode: str) -> None:
-    """Set the mode (``"distortion"``, ``"fast"``, ``"exact"``) of ``pipeline``'s optics stage, if
-    it has one; :class:`InputValueError` if that stage is not a
-    :class:`~controlgs_adapter.downstream.optics.stage.PSFOptics` (it has no mode to set)."""
-    from .downstream.optics.stage import PSFOptics
-
-    if "optics" not in pipeline:
-        return
-    optics = pipeline["optics"]
-    if not isinstance(optics, PSFOptics):
-        raise InputValueError(f"optics mode {mode!r}: the pipeline's optics stage must be a PSFOptics to take a mode, "
-                              f"got {type(optics).__name__}")
-    optics.mode = mode
 
 
 def scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> dict[str, float]:

@@ -24,7 +24,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Protocol, cast, runtime_checkable
+from typing import Any, Mapping, Protocol, runtime_checkable
 
 import torch
 from tqdm.auto import tqdm
@@ -33,14 +33,12 @@ from .benchmarking.clock import PhaseClock
 from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
+from .downstream.optics.stage import set_optics_mode
 from .errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from .losses import LossWeights, image_loss
 from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .state import Camera, RuntimeState
-
-if TYPE_CHECKING:
-    from .downstream.optics.stage import PSFOptics
 
 __all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "views_fingerprint"]
 
@@ -218,6 +216,7 @@ class Trainer:
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind)
         try:  # a failure below leaves the user's model as it was
             self.pipeline = Pipeline.from_config(self.effects).to(self.device)
+            set_optics_mode(self.pipeline, self.optics_mode(0))  # refuses an optics stage without modes before any step
             self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)
             self.dist = DistContext() if dist is None else dist
             self.dist.check_batch(config.batch_size)
@@ -255,8 +254,7 @@ class Trainer:
         lap = _no_lap if clock is None else clock.lap
         if clock is not None:
             clock.start()
-        if "optics" in self.pipeline:
-            cast("PSFOptics", self.pipeline["optics"]).mode = self.optics_mode(self.iteration)
+        set_optics_mode(self.pipeline, self.optics_mode(self.iteration))
         batch = [self.sample() for _ in range(self.config.batch_size)]  # the global batch, the same on every rank
         self.optimizer.zero_grad(set_to_none=True)
         value = 0.0

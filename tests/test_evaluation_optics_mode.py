@@ -9,7 +9,8 @@ from controlgs_adapter import plugins
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import InputValueError
-from controlgs_adapter.evaluation import make_pipeline, set_optics_mode
+from controlgs_adapter.downstream.optics.stage import set_optics_mode
+from controlgs_adapter.evaluation import make_pipeline
 from controlgs_adapter.state import RuntimeState
 
 

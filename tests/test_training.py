@@ -8,8 +8,10 @@ import torch
 pytest.importorskip("skimage")
 
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.scene import load_builtin_scene
+from controlgs_adapter.state import RuntimeState
 from controlgs_adapter.training import DEFAULT_EFFECTS, TrainConfig, Trainer, modules_for
 
 EFFECTS = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
@@ -61,6 +63,37 @@ def test_only_the_adapter_trains_and_phases(tiny):
     t.cgs.unwrap()
     for k, v in model.state_dict().items():
         assert torch.equal(before[k], v), k
+
+
+def test_each_step_runs_the_optics_in_its_phase_mode(tiny):
+    t = _trainer(tiny, iterations=3, psf_mode="exact")  # psf_fraction 0.34 of 3: the last step in the PSF phase
+    modes = []
+    for _ in range(3):
+        t.step()
+        modes.append(t.pipeline["optics"].mode)
+    t.cgs.unwrap()
+    assert modes == ["distortion", "distortion", "exact"]
+
+
+class _ModelessOptics(Stage):
+    """A third-party optics stage with no ``mode``."""
+
+    name = "optics"
+    order = 50.0
+
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+        return image
+
+
+def test_an_optics_stage_without_modes_is_refused_before_training(tiny):
+    scene, model = tiny
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    with pytest.raises(InputValueError, match="PSFOptics.*_ModelessOptics"):
+        Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0),
+                effects={"resample": True, "optics": _ModelessOptics()})
+    assert model.state_dict().keys() == before.keys()  # the wrap was rolled back
+    t = _trainer(tiny)  # so the model can be wrapped again
+    t.cgs.unwrap()
 
 
 def test_state_sampling_follows_the_paper(tiny):

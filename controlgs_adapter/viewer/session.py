@@ -26,13 +26,14 @@ import torch.nn.functional as F
 from ..checks import check_number
 from ..controlgs import ControlGS
 from ..downstream.oled import oled_emission
+from ..downstream.optics.stage import MODES, set_optics_mode
 from ..errors import InputValueError
-from ..evaluation import BASELINES, make_pipeline, scores, set_optics_mode
+from ..evaluation import BASELINES, make_pipeline, scores
 from ..report import METHOD_LABELS
 from ..metrics import optional_metrics
 from controlgs_adapter.rendering.protocol import Renderer, model_device, render_view, renderer_for
 from ..state import Camera, RuntimeState
-from ..training import view_cameras
+from ..training import DEFAULT_EFFECTS, view_cameras
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..downstream.pipeline import Pipeline
@@ -40,9 +41,10 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = ["STAGES", "OPTICS_MODES", "ViewState", "parse_state", "ViewerSession", "Superseded", "orbit_camera",
            "scene_centre", "encode_png"]
 
-#: downstream stages the page can switch on and off (pipeline order)
-STAGES: tuple[str, ...] = ("lens", "resample", "display", "oled", "optics")
-OPTICS_MODES: tuple[str, ...] = ("distortion", "fast", "exact")
+#: downstream stages the page can switch on and off: the default effects' (pipeline order)
+STAGES: tuple[str, ...] = tuple(DEFAULT_EFFECTS)
+#: the optics stage's modes
+OPTICS_MODES: tuple[str, ...] = MODES
 #: the sliders' ranges (the paper's training ranges)
 DOWNSAMPLE_RANGE = (1.0, 8.0)
 POWER_SAVING_RANGE = (0.0, 0.8)

@@ -150,14 +150,14 @@ class PSFBank:
         if missing:
             raise FileFormatError(f"{path}: PSF bank lacks tensors {sorted(missing)}")
         wavelengths = _header_numbers(path, h, "wavelengths_nm", None)
-        display = _header_numbers(path, h, "display_mm", 2)
+        display_w, display_h = _header_numbers(path, h, "display_mm", 2)
         meta = h.get("meta", {})
         if not isinstance(meta, dict):
             raise FileFormatError(f"{path}: header field 'meta' must be a JSON object, got {type(meta).__name__}")
         try:
             bank = cls(psf=t["psf"].float(), psf_pitch_mm=t["psf_pitch_mm"], field_x=t["field_x"], field_y=t["field_y"],
                        chief=t["chief"], chief_x=t["chief_x"], chief_y=t["chief_y"],
-                       wavelengths_nm=wavelengths, display_mm=display, meta=meta)
+                       wavelengths_nm=wavelengths, display_mm=(display_w, display_h), meta=meta)
         except InputValueError as e:
             raise FileFormatError(f"{path}: {e}") from e
         if display_mm is not None and any(abs(a - b) > 1e-6 * max(a, b) for a, b in zip(bank.display_mm, display_mm)):

@@ -12,13 +12,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .prescription import Prescription
 
 __all__ = ["trace", "chief_ray", "paraxial", "Paraxial", "real_magnification"]
 
 
-def trace(rx: Prescription, wavelength_nm: float, x: np.ndarray, y: np.ndarray, u: np.ndarray, v: np.ndarray
+def trace(rx: Prescription, wavelength_nm: float, x: ArrayLike, y: ArrayLike, u: ArrayLike, v: ArrayLike
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Trace rays from display points ``(x, y, 0)`` with direction ``(u, v, 1)`` (slopes, unnormalised).
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, TypeGuard, get_args
 
 import torch
 
@@ -19,12 +19,15 @@ from .bank import PSFBank
 from .operators import psf_distortion, psf_exact, psf_fast
 from .resampled import RADIOMETRIES, Radiometry
 
-__all__ = ["PSFOptics", "psf_optics", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
+if TYPE_CHECKING:
+    from ..pipeline import Pipeline
+
+__all__ = ["PSFOptics", "psf_optics", "set_optics_mode", "MODES", "DEFAULT_TOL", "DEFAULT_ZONE"]
 
 Mode = Literal["distortion", "fast", "exact"]
-MODES: tuple[str, ...] = ("distortion", "fast", "exact")
+MODES: tuple[Mode, ...] = get_args(Mode)
 #: accuracy knob of the "fast" mode: relative residual of the truncated eigen-PSF expansion per
-#: group of DEFAULT_ZONE x DEFAULT_ZONE field samples (docs/optics.md: error vs time)
+#: group of DEFAULT_ZONE x DEFAULT_ZONE field samples (docs/optics.md, "Benchmark")
 DEFAULT_TOL = 0.02
 DEFAULT_ZONE = 5
 
@@ -41,7 +44,7 @@ def psf_optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "e
     ``"energy"`` (the paper's Eq. S3: each display pixel's energy kept; a flat field falls as 1 / area
     magnification), docs/optics.md "Radiometry"."""
     check_image("image", image)
-    if mode not in MODES:
+    if not _is_mode(mode):
         raise InputValueError(f"mode must be one of {MODES}, got {mode!r}")
     bank = bank or PSFBank.default()
     if bank.num_wavelengths != 3:
@@ -104,12 +107,12 @@ class PSFOptics(Stage):
         self.mode = mode
 
     @property
-    def mode(self) -> str:
+    def mode(self) -> Mode:
         return self._mode
 
     @mode.setter
     def mode(self, value: str) -> None:
-        if value not in MODES:
+        if not _is_mode(value):
             raise InputValueError(f"mode must be one of {MODES}, got {value!r}")
         self._mode = value
 
@@ -119,3 +122,20 @@ class PSFOptics(Stage):
     def extra_repr(self) -> str:
         return (f"mode={self.mode!r}, placement={self.placement!r}, radiometry={self.radiometry!r}, tol={self.tol}, zone={self.zone}, "
                 f"wavelengths={self.bank.wavelengths_nm}")
+
+
+def set_optics_mode(pipeline: Pipeline, mode: str) -> None:
+    """Set the mode (``"distortion"``, ``"fast"``, ``"exact"``) of ``pipeline``'s optics stage, if
+    it has one; :class:`InputValueError` if that stage is not a :class:`PSFOptics` (it has no
+    mode to set) or for another mode."""
+    if "optics" not in pipeline:
+        return
+    optics = pipeline["optics"]
+    if not isinstance(optics, PSFOptics):
+        raise InputValueError(f"optics mode {mode!r}: the pipeline's optics stage must be a PSFOptics to take a mode, "
+                              f"got {type(optics).__name__}")
+    optics.mode = mode
+
+
+def _is_mode(value: object) -> TypeGuard[Mode]:
+    return value in MODES
