@@ -142,3 +142,35 @@ def test_trainer_samples_states_from_the_configured_ranges_by_hand():
             assert state.power_saving == pytest.approx(0.5 * float(u[1]), rel=1e-12)
     finally:
         t.cgs.unwrap()
+
+
+@pytest.mark.parametrize("brighten", [True, False])
+@pytest.mark.parametrize("rho", [0.0, 0.3])
+def test_display_mapping_with_other_coefficients_and_a_smaller_reference_by_hand(brighten, rho):
+    """Panel coefficients (0.5, 2, 1), a 2 x 3 reference for a 4 x 5 image: P(X) = sum_c w_c mean(max(X_c, 0)),
+    scale = (1 - rho) P(ref) / P(image) (at most 1 without brighten), output clipped to [0, 1]; the stats
+    hold the scale, the target, the output's power and the fraction of values clipped."""
+    from controlgs_adapter.downstream.display import display_mapping_with_stats
+
+    w = (0.5, 2.0, 1.0)
+    g = torch.Generator().manual_seed(4)
+    image = torch.rand(3, 4, 5, generator=g, dtype=D) * 1.2 - 0.1  # some values < 0 and > 1
+    ref = torch.rand(3, 2, 3, generator=g, dtype=D) * 1.6  # brighter than the image: brighten decides
+
+    def power(x: torch.Tensor) -> float:
+        return sum(w[c] * sum(max(v, 0.0) for v in x[c].flatten().tolist()) / x[c].numel() for c in range(3))
+
+    target = (1 - rho) * power(ref)
+    scale = target / power(image)
+    assert scale > 1.0
+    if not brighten:
+        scale = min(scale, 1.0)
+    dimmed = image * scale
+    want = dimmed.clamp(0, 1)
+    out, stats = display_mapping_with_stats(image, rho, ref, coefficients=w, brighten=brighten)
+    torch.testing.assert_close(out, want, rtol=1e-12, atol=1e-12)
+    assert float(stats["scale"]) == pytest.approx(scale, rel=1e-12)
+    assert float(stats["power_target"]) == pytest.approx(target, rel=1e-12)
+    assert float(stats["power"]) == pytest.approx(power(want), rel=1e-12)
+    n_clipped = sum(1 for v in dimmed.flatten().tolist() if v < 0 or v > 1)
+    assert float(stats["clipped_fraction"]) == pytest.approx(n_clipped / dimmed.numel(), rel=1e-12)
