@@ -24,6 +24,7 @@ import torch
 from tqdm.auto import tqdm
 
 from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.training import TrainConfig, Trainer
 
 from .clock import ClockedRasterizer, PhaseClock, clock_stage
 
@@ -48,7 +49,7 @@ class BenchSettings:
         test_views: test views of the quality evaluation.
         downsample, power_saving: the evaluation grid.
         variant: built-in scene variant.
-        seed: training seed (the same for every knob).
+        seed: training seed (the same for every knob; default :class:`TrainConfig`'s).
     """
 
     resolution: int = 64
@@ -59,7 +60,7 @@ class BenchSettings:
     downsample: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
     power_saving: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
     variant: str = "ar"
-    seed: int = 0
+    seed: int = TrainConfig.seed
 
     def __post_init__(self) -> None:
         for name in ("resolution", "iterations", "phase_iterations", "repeats", "test_views"):
@@ -115,7 +116,6 @@ def phase_times(model: Any, scene: Any, modes: tuple[str, ...], steps: int, seed
     first step of each is a warm-up.
     """
     from controlgs_adapter.rendering.rasterizers import use_rasterizer
-    from controlgs_adapter.training import TrainConfig, Trainer
 
     def config(mode: str) -> TrainConfig:
         psf = {"psf_fraction": 0.0} if mode == "distortion" else {"psf_fraction": 1.0, "psf_mode": mode}
@@ -172,7 +172,6 @@ def knob_results(model: Any, scene: Any, s: BenchSettings, workdir: Path, progre
     from controlgs_adapter.commands.demo import first_views
     from controlgs_adapter.evaluation import evaluate_grid
     from controlgs_adapter.scene import load_builtin_backbone
-    from controlgs_adapter.training import TrainConfig, Trainer
 
     configs = _knob_configs(s)
     trainers = [Trainer(load_builtin_backbone(s.variant), scene.views("train"),

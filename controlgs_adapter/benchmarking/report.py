@@ -11,7 +11,7 @@ PART_DOCS: tuple[tuple[str, str, str], ...] = (
     ("benchmarks-injector.md", "condition injector", "python benchmarks/bench_injector.py"),
     ("benchmarks-splatter.md", "splatter (rasterizer)", "python benchmarks/bench_splatter.py"),
     ("benchmarks-stages.md", "downstream stages", "python benchmarks/bench_stages.py"),
-    ("optics_bench.md", "PSF operators, error vs time (design: optics.md)", "controlgs optics bench"),
+    ("optics_bench.md", "PSF operators per size and radiometry: table build times, forward/backward time and error vs exact (design: optics.md)", "controlgs optics bench"),
     ("distributed.md", "data-parallel training", "python benchmarks/bench_distributed.py"),
 )
 

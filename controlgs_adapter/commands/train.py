@@ -13,13 +13,14 @@ import os
 from pathlib import Path
 from typing import Any
 
+from ..ablations import ABLATIONS
 from ..distributed import DistContext, init_distributed, shard_scenes
 from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters
 from .common import (RUN_FILE, add_data_arguments, add_render_arguments, anchor_positions, cache_bytes, check_line,
                      check_rasterizer_name, load_user_scene, make_renderer, render_record, user_scene)
 from .demo import add_common, seed_runs
 
-ABLATION_NAMES = ("wo_lens", "wo_display", "wo_resample", "state_blind")
+ABLATION_NAMES = tuple(ABLATIONS)
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:

@@ -15,11 +15,15 @@ from .common import (add_data_arguments, add_render_arguments, apply_run_default
 
 #: the built-in scene's default resolution in the viewer (the latency benchmark's 128 px)
 VIEW_RESOLUTION = 128
-#: iterations of the quick adapter trained for the built-in scene when no --run is given
+#: iterations of the quick adapter trained for the built-in scene when no --run is given: fewer than
+#: `controlgs train`'s (:data:`.adapters.DEMO_ITERATIONS`) and the paper's (``TrainConfig.iterations``)
+#: on purpose, since it is trained while the user waits for the page; a stand-in for a run
 QUICK_ITERATIONS = 150
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
+    from .adapters import DEMO_ITERATIONS
+
     p = sub.add_parser("view", help="interactive viewer in the browser: no-SS, SS-backbone and ControlGS at any state")
     p.add_argument("--run", default=None, help="folder written by `controlgs train` or `controlgs demo` (its adapters "
                                                "are shown; its run.json gives --model/--data)")
@@ -29,7 +33,8 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
                    help=f"longer side in pixels (built-in scene: S x S, default {VIEW_RESOLUTION}; your data: default 256)")
     p.add_argument("--test-views", type=int, default=None, help="offer only the first N test views")
     p.add_argument("--iterations", type=int, default=QUICK_ITERATIONS,
-                   help="built-in scene without --run: iterations of the quick adapter trained before serving")
+                   help=f"built-in scene without --run: iterations of the quick adapter trained before serving (default "
+                        f"{QUICK_ITERATIONS}: a stand-in for a run, kept short; `controlgs train` runs {DEMO_ITERATIONS})")
     p.add_argument("--threads", type=int, default=None,
                    help="torch intra-op threads on the CPU (default: torch's; 1 can be faster on a busy machine)")
     add_data_arguments(p)
