@@ -28,3 +28,7 @@ def test_findings_count_strict_wins_ties_and_worst_cells_by_hand():
     assert "- FLIP: ControlGS better than SS-backbone in 1/6 settings (mean difference +0.01667, worst cell +0.2)." in md, md
     assert ("- PSNR: SS-backbone better than no-SS in 4/6 settings, equal in 2 (at d = 1 both render at S) "
             "(mean difference +0.6667)." in md), md
+    # Tbl. 1: the best mean in bold (highest PSNR, lowest FLIP; ties all bold). Means by hand: PSNR 19.33,
+    # 20, 20.42; FLIP 0.5, 0.5, 3.1 / 6 = 0.5167
+    assert "| Backbone (no SS) | 19.33 | **0.5000** |" in md, md
+    assert "| SS-backbone | 20.00 | **0.5000** |" in md and "| ControlGS | **20.42** | 0.5167 |" in md, md

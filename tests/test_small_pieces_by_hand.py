@@ -165,3 +165,17 @@ def test_summary_parameter_counts_by_hand():
         assert sum(p.numel() for p in cgs.trainable_parameters()) == 90
     finally:
         cgs.unwrap()
+
+
+@pytest.mark.parametrize("world", [1, 2, 3, 5])
+def test_shards_of_a_batch_and_of_scenes_partition_it_round_robin(world):
+    """Rank r takes items r, r + W, r + 2W ...: every item on exactly one rank, in order."""
+    from controlgs_adapter.distributed import DistContext, shard_scenes
+
+    items = [f"s{i}" for i in range(7)]
+    shards = [DistContext(rank=r, world_size=world).shard(items) for r in range(world)]
+    assert shards == [[items[i] for i in range(r, 7, world)] for r in range(world)]
+    assert sorted(x for s in shards for x in s) == sorted(items)
+    assert [shard_scenes(items, DistContext(rank=r, world_size=world)) for r in range(world)] == shards
+    with pytest.raises(InputValueError, match=r"\['s1'\] more than once"):
+        shard_scenes(["s0", "s1", "s1"], DistContext(rank=0, world_size=world))
