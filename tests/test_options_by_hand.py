@@ -11,7 +11,7 @@ import torch
 
 from controlgs_adapter import RuntimeState
 from controlgs_adapter.downstream.placement import image_region, to_display
-from controlgs_adapter.losses import LossWeights, image_loss
+from controlgs_adapter.losses import ImageLoss, LossWeights, image_loss
 from controlgs_adapter.metrics import gaussian_window, psnr, ssim
 from controlgs_adapter.schedules import DisplaySchedule, FoveationSchedule, LensSchedule, ResampleSchedule
 
@@ -76,6 +76,7 @@ def test_image_loss_weights_by_hand(weights):
     want = (weights.l1 * sum(abs(v) for v in d) / len(d) + weights.mse * sum(v * v for v in d) / len(d)
             + weights.ssim * (1.0 - _ssim_by_hand(x, y, 1.0, 11, 1.5)))
     assert got == pytest.approx(want, rel=1e-10)
+    assert float(ImageLoss(weights)(x[None], y[None])) == pytest.approx(want, rel=1e-10)  # the module form
 
 
 def test_schedule_endpoints_by_hand():
@@ -174,3 +175,44 @@ def test_display_mapping_with_other_coefficients_and_a_smaller_reference_by_hand
     assert float(stats["power"]) == pytest.approx(power(want), rel=1e-12)
     n_clipped = sum(1 for v in dimmed.flatten().tolist() if v < 0 or v > 1)
     assert float(stats["clipped_fraction"]) == pytest.approx(n_clipped / dimmed.numel(), rel=1e-12)
+
+
+def test_batch_loss_is_the_mean_of_its_samples():
+    """batch_size=2: the first step's loss is the mean of the losses of the first two (view, state) draws,
+    each measured by a batch_size=1 trainer with the same seed (its first two steps; lr 1e-12 so that its
+    first update leaves the second loss as at initialisation)."""
+    pytest.importorskip("skimage")
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.scene import load_builtin_scene
+    from controlgs_adapter.training import TrainConfig, Trainer
+
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=2).eval()
+    effects = {"resample": True, "display": True}
+    losses = {}
+    for batch, iterations in ((2, 1), (1, 2)):
+        t = Trainer(model, scene.views("train"), TrainConfig(iterations=iterations, checkpoint_every=0, lr=1e-12, seed=3,
+                                                             batch_size=batch), effects=effects)
+        try:
+            t.train(progress=False)
+            losses[batch] = list(t.history)
+        finally:
+            t.cgs.unwrap()
+    assert losses[1][0] != pytest.approx(losses[1][1], rel=1e-3)  # two different draws
+    assert losses[2][0] == pytest.approx((losses[1][0] + losses[1][1]) / 2, rel=1e-5)
+
+
+def test_stages_used_as_plain_modules_take_the_image_size_as_native():
+    """A stage called without a context on a 12 x 20 image: resampling by 4 gives 3 x 5, each output pixel
+    the mean of its 4 x 4 block (by hand); the OLED stage keeps the size."""
+    from controlgs_adapter.downstream.oled import OLEDEmission
+    from controlgs_adapter.downstream.resample import AreaResample
+
+    g = torch.Generator().manual_seed(5)
+    image = torch.rand(3, 12, 20, generator=g, dtype=D)
+    out = AreaResample()(image, RuntimeState(downsample=4.0))
+    want = torch.stack([torch.stack([torch.stack([image[c, 4 * i:4 * i + 4, 4 * j:4 * j + 4].mean() for j in range(5)])
+                                     for i in range(3)]) for c in range(3)])
+    torch.testing.assert_close(out, want, rtol=1e-12, atol=1e-12)
+    assert OLEDEmission()(image, RuntimeState()).shape == (3, 12, 20)

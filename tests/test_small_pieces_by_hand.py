@@ -179,3 +179,61 @@ def test_shards_of_a_batch_and_of_scenes_partition_it_round_robin(world):
     assert [shard_scenes(items, DistContext(rank=r, world_size=world)) for r in range(world)] == shards
     with pytest.raises(InputValueError, match=r"\['s1'\] more than once"):
         shard_scenes(["s0", "s1", "s1"], DistContext(rank=0, world_size=world))
+
+
+@pytest.mark.parametrize("size,factor,want", [((103, 77), 2.0, (52, 38)), ((100, 60), 1.5, (67, 40)),
+                                              ((10, 7), 3.0, (3, 2)), ((5, 3), 8.0, (1, 1))])
+def test_camera_scaled_rounds_each_side_to_the_nearest_pixel(size, factor, want):
+    """round(W / f), round(H / f) (at least 1), intrinsics scaled by each axis's own ratio."""
+    from controlgs_adapter import Camera
+
+    w, h = size
+    k = torch.tensor([[50.0, 0.0, w / 2], [0.0, 40.0, h / 2], [0.0, 0.0, 1.0]])
+    cam = Camera(torch.eye(4), k, w, h).scaled(factor)
+    assert (cam.width, cam.height) == want
+    torch.testing.assert_close(cam.intrinsics, torch.tensor([[50.0 * want[0] / w, 0.0, want[0] / 2],
+                                                             [0.0, 40.0 * want[1] / h, want[1] / 2], [0.0, 0.0, 1.0]]))
+
+
+def test_iteration_folders_are_named_exactly_iteration_n(tmp_path):
+    """iteration_10 and iteration_7 count; iteration_20_old, iteration_x and a file iteration_30 do not."""
+    from controlgs_adapter.formats.layout import iteration_dir, iteration_dirs
+
+    pc = tmp_path / "point_cloud"
+    for name in ("iteration_10", "iteration_7", "iteration_20_old", "iteration_x", "old_iteration_40"):
+        (pc / name).mkdir(parents=True)
+    (pc / "iteration_30").write_text("")
+    assert iteration_dirs(tmp_path) == {10: pc / "iteration_10", 7: pc / "iteration_7"}
+    assert iteration_dir(tmp_path, None, family="Scaffold-GS") == pc / "iteration_10"
+    with pytest.raises(FileFormatError, match=r"no 'iteration_20' folder \(present: \[7, 10\]\)"):
+        iteration_dir(tmp_path, 20, family="Scaffold-GS")
+
+
+def test_builtin_scene_holds_out_every_test_every_th_arc_camera():
+    """views=8, test_every=4: test = arc cameras 0 and 4, train = 1, 2, 3, 5, 6, 7 (disjoint, in order)."""
+    pytest.importorskip("skimage")
+    from controlgs_adapter.scene import load_builtin_scene
+    from controlgs_adapter.scene.cameras import arc_cameras
+
+    scene = load_builtin_scene("ar", 16, views=8, test_every=4, samples=1)
+    arc = arc_cameras(8, size=16)
+    for got, i in zip(scene.test_cameras, (0, 4), strict=True):
+        torch.testing.assert_close(got.world_to_camera.double(), arc[i].world_to_camera.double())
+    for got, i in zip(scene.train_cameras, (1, 2, 3, 5, 6, 7), strict=True):
+        torch.testing.assert_close(got.world_to_camera.double(), arc[i].world_to_camera.double())
+
+
+def test_hac_plus_plus_decoded_needs_its_extra_mask_column_zero():
+    """HAC++'s codec fills the extra (K+1-th) mask column with 0: 0/1 masks with a 1 there are not a decoded
+    HAC++ file (False), but are for HAC (no extra column) or with the column 0 (True)."""
+    import numpy as np
+
+    from controlgs_adapter.backends.hac import infer_decoded
+
+    scales = np.full((4, 6), 0.01)
+    masks = np.zeros((4, 4))
+    masks[:, 0] = 1.0
+    assert infer_decoded(scales, masks, extra_mask_column=True) is True
+    masks[2, -1] = 1.0
+    assert infer_decoded(scales, masks, extra_mask_column=True) is False
+    assert infer_decoded(scales, masks, extra_mask_column=False) is True
