@@ -87,12 +87,10 @@ class _ModelessOptics(Stage):
 
 def test_an_optics_stage_without_modes_is_refused_before_training(tiny):
     scene, model = tiny
-    before = {k: v.clone() for k, v in model.state_dict().items()}
     with pytest.raises(InputValueError, match="PSFOptics.*_ModelessOptics"):
         Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0),
                 effects={"resample": True, "optics": _ModelessOptics()})
-    assert model.state_dict().keys() == before.keys()  # the wrap was rolled back
-    t = _trainer(tiny)  # so the model can be wrapped again
+    t = _trainer(tiny)  # the wrap was rolled back: a model still wrapped is refused (LifecycleError)
     t.cgs.unwrap()
 
 
