@@ -1,6 +1,7 @@
 """Public keyword options at non-default values, each checked by hand (brute force, float64, or the
-formula written out): metric data ranges and windows, loss weights, schedule endpoints, the
-'stretch' placement and the trainer's state-sampling ranges."""
+formula written out): metric data ranges and windows, loss weights (function and module), schedule
+endpoints, the 'stretch' placement, display mapping with other coefficients, stages called without a
+context, the trainer's state-sampling ranges and batch size."""
 
 from __future__ import annotations
 

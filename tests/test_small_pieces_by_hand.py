@@ -1,7 +1,9 @@
-"""Pieces the sixth mutation sample found unpinned, each against a reference written here: the ring
-all-reduce byte count, the backbone's learning-rate schedule, HAC validity with one offset on, a module
-named twice, a checkpoint whose adapter tensors have other shapes, and a plug-in stage placed after an
-anchor absent from the pipeline."""
+"""Pieces the sixth and seventh mutation samples found unpinned, each against a reference written here:
+numbers computed but compared with nothing (ring all-reduce bytes, the backbone's learning-rate schedule,
+ControlGS.summary's parameter counts), error and edge paths (a module named twice, checkpoint tensors of
+another shape, an instant-ngp size that is not one scale, a HAC anchor with one offset on, HAC++'s extra
+mask column, iteration folder names), non-square layouts (the sanity check, Camera.scaled), plug-in stage
+placement, data-parallel shards and the built-in scene (split, trilinear mip lookup)."""
 
 from __future__ import annotations
 
