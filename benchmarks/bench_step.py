@@ -264,7 +264,10 @@ def run_case(case: tuple[str, str, int, int, str], args: argparse.Namespace, bas
     cmd = [sys.executable, __file__, "--case", *map(str, case), *case_options(args)]
     if baseline:
         cmd += ["--baseline", baseline]
-    res = subprocess.run(cmd, capture_output=True, text=True)
+    env = dict(os.environ)
+    if args.omp_wait_policy != "default":
+        env["OMP_WAIT_POLICY"] = args.omp_wait_policy  # read by OpenMP when the process starts
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if res.returncode:
         raise RuntimeError(f"case {case} failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -310,7 +313,8 @@ def row(r: dict[str, Any], b: dict[str, Any] | None, baseline_cols: bool) -> str
 def machine_line(args: argparse.Namespace) -> str:
     gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else "none"
     return (f"Machine: {platform.machine()}, {os.cpu_count()} logical CPUs (load average {os.getloadavg()[0]:.1f} "
-            f"when started), GPU: {gpu}; torch {torch.__version__}, {args.threads} CPU thread(s), float32; "
+            f"when started), GPU: {gpu}; torch {torch.__version__}, {args.threads} CPU thread(s), "
+            f"OMP_WAIT_POLICY={args.omp_wait_policy}, float32; "
             f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC.")
 
 
@@ -346,6 +350,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rasterizer", nargs="+", default=["torch", "gsplat"],
                     help="registered rasterizers to measure on each device where they run (default: torch, gsplat)")
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op CPU threads (default 2)")
+    ap.add_argument("--omp-wait-policy", choices=("passive", "active", "default"), default="passive",
+                    help="OMP_WAIT_POLICY of the case processes (default passive: idle OpenMP threads sleep; with "
+                         "the runtime's default they spin, and on a shared machine the step then measures waiting)")
     ap.add_argument("--reps", type=int, default=2, help="timed steps per case after a warm-up (fastest reported)")
     ap.add_argument("--preset", choices=tuple(PRESETS), help="scene preset: light (--scale 1 --opacity-gain 1) or "
                                                              "dense (--scale 2 --opacity-gain 3)")
