@@ -210,3 +210,14 @@ def test_same_scene_as_colmap_gives_the_same_cameras_and_images(tmp_path, other)
         np.testing.assert_allclose(ca.world_to_camera.numpy(), cb.world_to_camera.numpy(), atol=1e-5)
         np.testing.assert_allclose(ca.intrinsics.numpy(), cb.intrinsics.numpy(), atol=1e-5)
         assert torch.equal(va.image(i), vb.image(i))
+
+
+def test_views_first_keeps_the_leading_frames_in_order():
+    k = torch.tensor([[20.0, 0, 8.0], [0, 20.0, 6.0], [0, 0, 1]])
+    frames = [Frame(f"f{i}", Camera(torch.eye(4), k, 16, 12), torch.full((3, 12, 16), i / 10)) for i in range(5)]
+    data = SceneData({"test": frames})
+    assert [f.name for f in data.views("test", first=3).frames] == ["f0", "f1", "f2"]
+    assert [f.name for f in data.views("test", first=0).frames] == ["f0"]  # at least one
+    assert len(data.views("test")) == 5 and len(data.views("test", first=9)) == 5
+    cam, img = data.views("test", first=2, resolution=8)[1]
+    assert (cam.width, cam.height) == (8, 6) and torch.allclose(img, torch.full((3, 6, 8), 0.1))

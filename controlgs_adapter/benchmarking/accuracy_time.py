@@ -169,7 +169,6 @@ def knob_results(model: Any, scene: Any, s: BenchSettings, workdir: Path, progre
     Each setting trains on its own copy of the backbone and the trainers step in turn (iteration
     i of every setting, then i + 1), so that a change of machine load hits all settings alike;
     the time per iteration is the median over a setting's steps."""
-    from controlgs_adapter.commands.demo import first_views
     from controlgs_adapter.evaluation import evaluate_grid
     from controlgs_adapter.scene import load_builtin_backbone
 
@@ -191,7 +190,7 @@ def knob_results(model: Any, scene: Any, s: BenchSettings, workdir: Path, progre
         for trainer in trainers:
             trainer.cgs.unwrap()
     speed = {f"k{i}": statistics.median(times) for i, times in enumerate(steps)}
-    result = evaluate_grid(model, first_views(scene.data, "test", s.test_views), adapters, downsample=s.downsample, power_saving=s.power_saving, optics_mode="exact",
+    result = evaluate_grid(model, scene.data.views("test", first=s.test_views), adapters, downsample=s.downsample, power_saving=s.power_saving, optics_mode="exact",
                            extra_metrics=False, progress=progress)
     rows = [{"knob": knob, "setting": setting, "s_per_it": speed[f"k{i}"],
              "psnr": result.mean(f"k{i}", "psnr"), "ssim": result.mean(f"k{i}", "ssim")}

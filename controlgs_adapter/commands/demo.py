@@ -126,7 +126,7 @@ def _run(args: argparse.Namespace) -> int:
     timings["train_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    views = first_views(scene.data, "test", args.test_views)
+    views = scene.data.views("test", first=args.test_views)
     effects = effects_from(args.effects)
     results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
                              progress=args.progress)
@@ -144,20 +144,6 @@ def _run(args: argparse.Namespace) -> int:
     print(json.dumps({m: {k: round(v["mean"], 4) for k, v in metrics.items()} for m, metrics in summary.items()}, indent=1))
     print("report: " + ", ".join(str(p) for p in paths))
     return 0
-
-
-def first_views(data: Any, split: str, n: int | None, resolution: int | None = None, *,
-                cache_bytes: int | None = None) -> Any:
-    """The first ``n`` views (all when None; at least 1) of ``split`` of the :class:`SceneData` ``data`` at
-    ``resolution`` (longer side, pixels; None: full size) as :class:`PosedImages` (image cache of
-    ``cache_bytes``; default :data:`~controlgs_adapter.datasets.DEFAULT_CACHE_BYTES`)."""
-    from controlgs_adapter.datasets.base import DEFAULT_CACHE_BYTES
-    from controlgs_adapter.datasets.base import SceneData
-
-    frames = data.splits.get(split, [])
-    keep = frames if n is None else frames[:max(1, n)]
-    return SceneData({split: keep}, data.points, data.background, data.source, data.format).views(
-        split, resolution=resolution, cache_bytes=DEFAULT_CACHE_BYTES if cache_bytes is None else cache_bytes)
 
 
 def report_figures(model: Any, adapter: Path, views: Any, *, effects: dict[str, Any] | None = None,

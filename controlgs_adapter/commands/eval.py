@@ -14,7 +14,7 @@ from pathlib import Path
 from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_rasterizer_name,
                      make_renderer, render_record, user_scene)
 from .adapters import effects_from
-from .demo import add_common, add_lpips, evaluate_seeds, first_views, load_lpips_arg, report_figures, seed_runs
+from .demo import add_common, add_lpips, evaluate_seeds, load_lpips_arg, report_figures, seed_runs
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         builtin = load_builtin_scene(args.variant, resolution, cache=True)
         model, data, name = load_builtin_backbone(args.variant).to(args.device), builtin.data, builtin.name
         resolution = None  # the built-in views are rendered at S
-    views = first_views(data, "test", args.test_views, resolution, cache_bytes=cache_bytes(args))
+    views = data.views("test", resolution=resolution, cache_bytes=cache_bytes(args), first=args.test_views)
     renderer = make_renderer(args, model)
     load_s = time.perf_counter() - t
     t = time.perf_counter()

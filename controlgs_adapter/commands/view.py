@@ -95,24 +95,23 @@ def run(args: argparse.Namespace) -> int:
         truth: Callable[[Any], Any] | None = None
         if user_scene(args):
             from .common import load_user_scene
-            from .demo import first_views
 
             if run_dir is None:
                 raise InputValueError("--model/--data need --run RUN (the folder with the trained adapters)")
             scene = load_user_scene(args)
             model, name = scene.model, f"{scene.family} {args.model}"
             renderer = make_renderer(args, model)
-            views = first_views(scene.data, "test", args.test_views, scene.resolution, cache_bytes=cache_bytes(args))
+            views = scene.data.views("test", resolution=scene.resolution, cache_bytes=cache_bytes(args), first=args.test_views)
         else:
             from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
-            from .demo import DEFAULT_RESOLUTION, first_views
+            from .demo import DEFAULT_RESOLUTION
 
             device = parse_device(args.device)
             builtin = load_builtin_scene(args.variant, args.resolution or VIEW_RESOLUTION, cache=True)
             model, name = load_builtin_backbone(args.variant).to(device), builtin.name
             renderer = make_renderer(args, model)
-            views = first_views(builtin.data, "test", args.test_views)
+            views = builtin.data.views("test", first=args.test_views)
             truth = _exact_truth(builtin)
             if run_dir is None:
                 check_number("--iterations", args.iterations, integer=True, low=1)

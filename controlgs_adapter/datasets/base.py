@@ -66,12 +66,13 @@ class SceneData:
     format: str = ""
 
     def views(self, split: str, *, resolution: int | None = None, factor: float | None = None,
-              cache_bytes: int = DEFAULT_CACHE_BYTES) -> "PosedImages":
-        """The frames of ``split`` at a working resolution: ``resolution`` = longer side in pixels,
-        or ``factor`` = downscale factor (neither: full size). Raises if the split is empty."""
+              cache_bytes: int = DEFAULT_CACHE_BYTES, first: int | None = None) -> "PosedImages":
+        """The frames of ``split`` (only its first ``first``, at least 1, when given) at a working
+        resolution: ``resolution`` = longer side in pixels, or ``factor`` = downscale factor (neither:
+        full size). Raises if the split is empty."""
         if split not in self.splits:
             raise InputValueError(f"{self.source or 'dataset'}: no split {split!r} (splits: {sorted(self.splits)})")
-        frames = self.splits[split]
+        frames = self.splits[split] if first is None else self.splits[split][:max(1, first)]
         if not frames:
             raise InputValueError(f"{self.source or 'dataset'}: the {split!r} split is empty")
         return PosedImages(frames, resolution=resolution, factor=factor, background=self.background,
