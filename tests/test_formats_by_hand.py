@@ -1,0 +1,407 @@
+"""File formats checked against files written by hand (struct/json, not the library's writers),
+and every refusal of the readers triggered: error type and the file/field named."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from controlgs_adapter.errors import FileFormatError, InputValueError, NonFiniteError
+from controlgs_adapter.formats import backbone as bb
+from controlgs_adapter.formats import layout
+from controlgs_adapter.formats import safetensors as st
+
+# PLY type name -> (struct code, a value that only that type holds exactly)
+_TYPES = {
+    "char": ("b", -100), "int8": ("b", -7), "uchar": ("B", 200), "uint8": ("B", 255), "short": ("h", -30000),
+    "int16": ("h", 1234), "ushort": ("H", 60000), "uint16": ("H", 65535), "int": ("i", -2_000_000_000),
+    "int32": ("i", 7), "uint": ("I", 4_000_000_000), "uint32": ("I", 3), "float": ("f", 0.1), "float32": ("f", -2.5),
+    "double": ("d", 0.1), "float64": ("d", 1e300),
+}
+
+
+def _ply(path, fmt: str, props: dict[str, tuple[str, str, object]], rows: int, extra_header: str = "") -> None:
+    head = f"ply\nformat {fmt} 1.0\ncomment made by hand\nobj_info scanner 7\nelement vertex {rows}\n"
+    head += "".join(f"property {t} {n}\n" for n, (t, _, _) in props.items()) + extra_header + "end_header\n"
+    if fmt == "ascii":
+        body = "".join(" ".join(repr(v) for _, _, v in props.values()) + "\n" for _ in range(rows)).encode()
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        code = order + "".join(c for _, c, _ in props.values())
+        body = b"".join(struct.pack(code, *(v for _, _, v in props.values())) for _ in range(rows))
+    path.write_bytes(head.encode() + body)
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+def test_every_ply_type_reads_its_value_and_dtype(tmp_path, fmt):
+    props = {f"p_{t}": (t, c, v) for t, (c, v) in _TYPES.items()}
+    _ply(tmp_path / "a.ply", fmt, props, rows=2)
+    fields, comments = bb.read_ply(tmp_path / "a.ply")
+    assert comments == ["made by hand", "scanner 7"]
+    assert list(fields) == list(props)
+    for name, (t, code, v) in props.items():
+        want = np.array([v, v], dtype=np.dtype(code))  # struct code == numpy code of that width
+        assert fields[name].dtype == want.dtype, name
+        assert fields[name].dtype.byteorder in ("=", "|"), name
+        np.testing.assert_array_equal(fields[name], want, err_msg=name)
+    assert bb.ply_field_names(tmp_path / "a.ply") == list(props)
+
+
+def test_ply_elements_after_vertex_are_skipped_and_blank_lines_allowed(tmp_path):
+    props = {"x": ("float", "f", 1.5), "y": ("double", "d", -2.0)}
+    _ply(tmp_path / "a.ply", "binary_little_endian", props, rows=3,
+         extra_header="\nelement face 1\nproperty list uchar int vertex_indices\n")
+    fields, _ = bb.read_ply(tmp_path / "a.ply")
+    assert fields["x"].tolist() == [1.5] * 3 and fields["y"].tolist() == [-2.0] * 3
+
+
+def _header(tmp_path, lines: str, body: bytes = b""):
+    p = tmp_path / "h.ply"
+    p.write_bytes(b"ply\n" + lines.encode() + b"end_header\n" + body)
+    return p
+
+
+@pytest.mark.parametrize("lines, words", [
+    ("format binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float x\n", "declared twice"),
+    ("format binary_little_endian 1.0\nelement vertex 1\nproperty float x\nelement vertex 1\n", "second 'vertex'"),
+    ("format binary_little_endian 1.0\nproperty float x\nelement vertex 1\n", "before any 'element vertex'"),
+    ("format binary_middle_endian 1.0\nelement vertex 1\nproperty float x\n", "expected 'format"),
+    ("format ascii\nelement vertex 1\nproperty float x\n", "expected 'format"),
+    ("format ascii 1.0\nelement vertex -1\nproperty float x\n", "non-negative integer count"),
+    ("format ascii 1.0\nelement vertex\nproperty float x\n", "non-negative integer count"),
+    ("format ascii 1.0\nelement vertex 1\nproperty float\n", "expected 'property <type> <name>'"),
+    ("format ascii 1.0\nelement vertex 1\nproperty float x y\n", "expected 'property <type> <name>'"),
+    ("format ascii 1.0\nelement vertex 1\nproperty half x\n", "unknown type 'half'"),
+    ("format ascii 1.0\nelement vertex 1\nproperty float x\nfoo bar\n", "unknown header keyword 'foo'"),
+    ("element vertex 1\nproperty float x\n", "no 'format' line"),
+    ("format ascii 1.0\n", "no 'vertex' element"),
+    ("format ascii 1.0\nelement vertex 2\n", "no properties"),
+    ("format ascii 1.0\nelement face 1\nelement vertex 1\nproperty float x\n", "precedes 'vertex'"),
+])
+def test_ply_header_refusals_name_file_and_problem(tmp_path, lines, words):
+    p = _header(tmp_path, lines)
+    with pytest.raises(FileFormatError, match="h.ply") as e:
+        bb.read_ply(p)
+    assert words in str(e.value)
+
+
+def test_ply_header_refusal_names_the_line_number(tmp_path):
+    p = _header(tmp_path, "format ascii 1.0\ncomment x\nelement vertex 1\nproperty half x\n")
+    with pytest.raises(FileFormatError, match="line 5 "):
+        bb.read_ply(p)
+
+
+def test_ply_empty_vertex_element_is_read_as_empty(tmp_path):
+    fields, _ = bb.read_ply(_header(tmp_path, "format binary_little_endian 1.0\nelement vertex 0\n"))
+    assert fields == {}
+
+
+def test_ply_not_ply_missing_end_and_oversized_header(tmp_path):
+    (tmp_path / "n.ply").write_bytes(b"plx\nformat ascii 1.0\n")
+    with pytest.raises(FileFormatError, match="n.ply: not a PLY file"):
+        bb.read_ply(tmp_path / "n.ply")
+    (tmp_path / "t.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\n")
+    with pytest.raises(FileFormatError, match=r"t.ply: PLY header ends before 'end_header' \(truncated file, 3 lines\)"):
+        bb.read_ply(tmp_path / "t.ply")
+    (tmp_path / "big.ply").write_bytes(b"ply\n" + b"comment " + b"x" * 100 + b"\n" * 1 + b"comment y\n" * (bb._PLY_MAX_HEADER // 10))
+    with pytest.raises(FileFormatError, match="big.ply: PLY header longer than"):
+        bb.read_ply(tmp_path / "big.ply")
+    with pytest.raises(FileFormatError, match="nothere.ply: no such file"):
+        bb.read_ply(tmp_path / "nothere.ply")
+
+
+def test_ply_truncated_binary_and_ascii_bodies(tmp_path):
+    p = _header(tmp_path, "format binary_big_endian 1.0\nelement vertex 3\nproperty double x\n", b"\0" * 23)
+    with pytest.raises(FileFormatError, match=r"h.ply: truncated PLY: header declares 3 vertices x 8 bytes = 24 bytes, "
+                                              r"file holds 23 bytes"):
+        bb.read_ply(p)
+    p.write_bytes(p.read_bytes() + b"\0")
+    assert bb.read_ply(p)[0]["x"].tolist() == [0.0] * 3
+    # ASCII: exactly the minimum 2*props-1 bytes per vertex passes the size check
+    p = _header(tmp_path, "format ascii 1.0\nelement vertex 2\nproperty uchar a\nproperty uchar b\n", b"1 2\n3 4\n")
+    assert bb.read_ply(p)[0]["b"].tolist() == [2, 4]
+    p = _header(tmp_path, "format ascii 1.0\nelement vertex 3\nproperty uchar a\nproperty uchar b\n", b"1 2\n3 4\n")
+    with pytest.raises(FileFormatError, match="h.ply: header declares 3 vertices of 2 values, but only 8 bytes"):
+        bb.read_ply(p)
+    p = _header(tmp_path, "format ascii 1.0\nelement vertex 2\nproperty uchar a\nproperty uchar b\n", b"1 2 3 4\n5\n")
+    with pytest.raises(FileFormatError, match="h.ply: truncated ASCII PLY: vertex 1 has 1 of 2 values"):
+        bb.read_ply(p)
+    p = _header(tmp_path, "format ascii 1.0\nelement vertex 1\nproperty float a\n", b"abc\n")
+    with pytest.raises(FileFormatError, match="h.ply: ASCII PLY vertex data holds a value that is not a number"):
+        bb.read_ply(p)
+
+
+def test_write_ply_bytes_match_a_by_hand_layout(tmp_path):
+    x = np.array([1.0, -2.0], np.float64)
+    y = np.array([0.5, 0.25], np.float32)
+    c = np.array([3, 250], np.uint8)
+    s = np.array([-5, 7], np.int16)
+    bb.write_ply(tmp_path / "w.ply", {"x": x, "y": y.astype(np.float16), "c": c, "s": s}, ["hello"], comment_keyword="obj_info")
+    raw = (tmp_path / "w.ply").read_bytes()
+    head = (b"ply\nformat binary_little_endian 1.0\nobj_info hello\nelement vertex 2\nproperty double x\n"
+            b"property float y\nproperty uchar c\nproperty short s\nend_header\n")
+    body = b"".join(struct.pack("<dfBh", x[i], y[i], c[i], s[i]) for i in range(2))
+    assert raw == head + body
+    with pytest.raises(FileFormatError, match="write_ply: fields must be 1-D arrays of one length"):
+        bb.write_ply(tmp_path / "bad.ply", {"a": np.zeros(2), "b": np.zeros(3)})
+    with pytest.raises(FileFormatError, match="write_ply"):
+        bb.write_ply(tmp_path / "bad.ply", {"a": np.zeros((2, 2))})
+
+
+# --- cfg_args
+
+
+def test_cfg_args_values_and_float_spellings():
+    got = bb.parse_cfg_args("Namespace(a=inf, b=-inf, c=nan, d=-3, e=1e-3, f='x', g=[1, (2, 3)], h={'k': None}, "
+                            "i=True, j=-0.5)\n")
+    assert got["a"] == math.inf and got["b"] == -math.inf and math.isnan(got["c"])
+    assert got["d"] == -3 and got["e"] == 0.001 and got["f"] == "x" and got["g"] == [1, (2, 3)]
+    assert got["h"] == {"k": None} and got["i"] is True and got["j"] == -0.5
+    assert list(got) == list("abcdefghij")
+
+
+@pytest.mark.parametrize("text, words", [
+    ("Namespace(1, a=2)", "positional arguments"),
+    ("Namespace(**d)", "'**'"),
+    ("Namespace(a=os.system('x'))", "value of 'a' must be a Python literal"),
+    ("Namespace(a=infinity)", "value of 'a' must be a Python literal"),
+    ("Config(a=1)", "expected 'Namespace(...)'"),
+    ("Namespace(a=", "not a printed argparse Namespace"),
+    ("Namespace(a=" + "[" * (bb.CFG_MAX_DEPTH + 5) + "]" * (bb.CFG_MAX_DEPTH + 5) + ")", "nested deeper than"),
+])
+def test_cfg_args_refusals_name_the_source(text, words):
+    with pytest.raises(FileFormatError, match="^my_cfg: ") as e:
+        bb.parse_cfg_args(text, source="my_cfg")
+    assert words in str(e.value)
+
+
+def test_cfg_args_depth_limit_is_the_documented_one():
+    def nested(n: int) -> str:
+        return "Namespace(a=" + "[" * n + "]" * n + ")"
+    assert bb.parse_cfg_args(nested(bb.CFG_MAX_DEPTH))["a"] is not None
+    with pytest.raises(FileFormatError, match="nested deeper"):
+        bb.parse_cfg_args(nested(bb.CFG_MAX_DEPTH + 2))
+
+
+def test_cfg_args_size_limits(tmp_path):
+    text = "Namespace(a='" + "x" * bb.CFG_MAX_BYTES + "')"
+    with pytest.raises(FileFormatError, match=f"src: {len(text)} characters"):
+        bb.parse_cfg_args(text, source="src")
+    (tmp_path / "cfg_args").write_text(text)
+    with pytest.raises(FileFormatError, match=f"cfg_args: {len(text)} bytes"):
+        bb.read_cfg_args(tmp_path / "cfg_args")
+    (tmp_path / "cfg_args").write_text("Namespace(sh_degree=3)")
+    assert bb.read_cfg_args(tmp_path / "cfg_args") == {"sh_degree": 3}
+    with pytest.raises(FileFormatError, match="missing_cfg: no such file"):
+        bb.read_cfg_args(tmp_path / "missing_cfg")
+
+
+# --- YAML scalars
+
+
+def test_yaml_scalars_by_hand(tmp_path):
+    (tmp_path / "c.yaml").write_text(
+        "# a comment line: ignored\n"
+        "model:\n"
+        "  feat_dim: 32  # trailing comment\n"
+        "  voxel_size: 0.001\n"
+        "  name: 'octree: x'\n"
+        '  other: "q"\n'
+        "  on: True\n"
+        "  off: false\n"
+        "  nothing: ~\n"
+        "  none2: null\n"
+        "  iters: 40_000\n"
+        "  nested: {a: 1}\n"
+        "  items: [1, 2]\n"
+        "  word: plain text\n"
+        "flow: {\n"
+        "  feat_dim: 50,\n"
+        "}\n")
+    got = bb.read_yaml_scalars(tmp_path / "c.yaml")
+    assert got["feat_dim"] == [32, 50] and isinstance(got["feat_dim"][0], int)
+    assert got["voxel_size"] == [0.001] and got["name"] == ["octree: x"] and got["other"] == ["q"]
+    assert got["on"] == [True] and got["off"] == [False] and got["nothing"] == [None] and got["none2"] == [None]
+    assert got["iters"] == [40000] and got["word"] == ["plain text"]
+    assert "nested" not in got and "items" not in got and "model" not in got and "flow" not in got
+
+
+def test_yaml_size_limit_and_missing(tmp_path):
+    (tmp_path / "big.yaml").write_bytes(b"a: 1\n" * (bb.YAML_MAX_BYTES // 5 + 1))
+    with pytest.raises(FileFormatError, match="big.yaml: .* bytes, more than a config file holds"):
+        bb.read_yaml_scalars(tmp_path / "big.yaml")
+    with pytest.raises(FileFormatError, match="no.yaml: no such file"):
+        bb.read_yaml_scalars(tmp_path / "no.yaml")
+
+
+# --- PLY columns
+
+
+def test_ply_columns_numbering_and_count():
+    f = {f"f_{i}": np.array([float(i), 10.0 + i]) for i in (0, 1, 2)}
+    np.testing.assert_array_equal(bb.ply_columns(f, "f_", source="s"), [[0, 1, 2], [10, 11, 12]])
+    np.testing.assert_array_equal(bb.ply_columns(f, "f_", source="s", count=2), [[0, 1], [10, 11]])
+    assert bb.ply_columns(f, "f_", source="s").dtype == np.float32
+    with pytest.raises(FileFormatError, match=r"src: PLY fields f_\* are not numbered 0..n-1 \(missing f_1\)"):
+        bb.ply_columns({"f_0": f["f_0"], "f_2": f["f_2"]}, "f_", source="src")
+    with pytest.raises(FileFormatError, match=r"src: PLY fields f_\* are not numbered 0..n-1 \(a number used twice\)"):
+        bb.ply_columns({"f_0": f["f_0"], "f_00": f["f_0"]}, "f_", source="src")
+    with pytest.raises(FileFormatError, match=r"src: missing PLY field\(s\) \['f_3'\]"):
+        bb.ply_columns(f, "f_", source="src", count=4)
+    with pytest.raises(FileFormatError, match=r"src: missing PLY field\(s\) \['g_0'\]"):
+        bb.ply_columns(f, "g_", source="src", count=0)
+    with pytest.raises(FileFormatError, match=r"src: missing PLY field\(s\) \['x', 'z'\]"):
+        bb.require_fields({"y": f["f_0"]}, ["x", "y", "z"], source="src")
+    with pytest.raises(FileFormatError, match="src: expected 6 f_offset_\\* fields \\(3 x n_offsets=2\\), got 3"):
+        bb.ply_offsets({f"f_offset_{i}": f["f_0"] for i in range(3)}, 2, source="src")
+    xyz = bb.ply_xyz({"x": np.array([1.0]), "y": np.array([2.0]), "z": np.array([3.0])})
+    assert xyz.tolist() == [[1.0, 2.0, 3.0]] and xyz.dtype == np.float32
+
+
+# --- safetensors container
+
+
+def _raw(path, header: object | None, extra_meta: dict | None = None) -> None:
+    meta = {} if header is None else {st.HEADER_KEY: header if isinstance(header, str) else json.dumps(header)}
+    save_file({"t": torch.zeros(2)}, str(path), metadata={**meta, **(extra_meta or {})})
+
+
+@pytest.mark.parametrize("header, words", [
+    (None, "not written by controlgs-adapter"),
+    ("{not json", "corrupt controlgs-adapter header: JSONDecodeError"),
+    ([1, 2], "header must be a JSON object, got list"),
+    ({"kind": "psf_bank", "format_version": 1}, "holds a 'psf_bank', expected a 'adapter'"),
+    ({"format_version": 1}, "holds a None, expected a 'adapter'"),
+    ({"kind": "adapter", "format_version": True}, "format_version must be an integer >= 1, got True"),
+    ({"kind": "adapter", "format_version": 0}, "format_version must be an integer >= 1, got 0"),
+    ({"kind": "adapter", "format_version": "1"}, "format_version must be an integer >= 1, got '1'"),
+    ({"kind": "adapter", "format_version": 1.0}, "format_version must be an integer >= 1, got 1.0"),
+    ({"kind": "adapter", "format_version": 3, "library_version": "9.9"},
+     "format_version 3 is newer than this library reads (<= 2); written by controlgs-adapter 9.9"),
+])
+def test_read_header_refusals(tmp_path, header, words):
+    _raw(tmp_path / "f.safetensors", header)
+    with pytest.raises(FileFormatError, match="f.safetensors: ") as e:
+        st.read_header(tmp_path / "f.safetensors", kind="adapter", max_version=2)
+    assert words in str(e.value)
+
+
+def test_read_header_accepts_versions_up_to_max_and_load_tensors_reads_data(tmp_path):
+    for v in (1, 2):
+        _raw(tmp_path / "f.safetensors", {"kind": "adapter", "format_version": v, "x": [1]})
+        assert st.read_header(tmp_path / "f.safetensors", kind="adapter", max_version=2)["x"] == [1]
+    tensors, header = st.load_tensors(tmp_path / "f.safetensors", kind="adapter", max_version=2)
+    assert list(tensors) == ["t"] and tensors["t"].tolist() == [0.0, 0.0] and header["format_version"] == 2
+    with pytest.raises(FileFormatError, match="nope.safetensors: no such file"):
+        st.read_header(tmp_path / "nope.safetensors", kind="adapter", max_version=2)
+    (tmp_path / "junk.safetensors").write_bytes(b"\x08\0\0\0\0\0\0\0{}")
+    with pytest.raises(FileFormatError, match="junk.safetensors: not a readable safetensors file"):
+        st.read_header(tmp_path / "junk.safetensors", kind="adapter", max_version=2)
+
+
+def test_save_tensors_header_and_data_read_back_by_safetensors_itself(tmp_path):
+    from safetensors import safe_open
+
+    a = torch.arange(6.0).view(2, 3).t()  # non-contiguous
+    st.save_tensors(tmp_path / "s.safetensors", {"a": a, "b": a[0]}, {"extra": 5}, kind="k1", format_version=4)
+    with safe_open(str(tmp_path / "s.safetensors"), framework="pt") as f:
+        meta = f.metadata()
+        assert torch.equal(f.get_tensor("a"), a) and torch.equal(f.get_tensor("b"), a[0])
+    h = json.loads(meta[st.HEADER_KEY])
+    from controlgs_adapter._version import __version__
+    assert h == {"kind": "k1", "format_version": 4, "library_version": __version__, "extra": 5}
+    assert meta["format"] == "pt"
+    assert oct((tmp_path / "s.safetensors").stat().st_mode & 0o777) == oct(st.file_mode())
+
+
+def test_save_tensors_refusals_write_nothing(tmp_path):
+    p = tmp_path / "s.safetensors"
+    with pytest.raises(NonFiniteError, match=r"s.safetensors: refusing to save tensor 'w': it holds 2 NaN/Inf value\(s\)$"):
+        st.save_tensors(p, {"w": torch.tensor([1.0, math.nan, math.inf])}, {}, kind="k", format_version=1)
+    with pytest.raises(NonFiniteError, match="overflowed"):
+        st.save_tensors(p, {"h": torch.tensor([1e6]).half()}, {}, kind="k", format_version=1)
+    with pytest.raises(NonFiniteError, match="s.safetensors: refusing to save a header with a NaN/Inf number"):
+        st.save_tensors(p, {}, {"x": math.nan}, kind="k", format_version=1)
+    with pytest.raises(InputValueError, match="s.safetensors: tensor 'n' must be a torch.Tensor, got ndarray"):
+        st.save_tensors(p, {"n": np.zeros(2)}, {}, kind="k", format_version=1)  # type: ignore[dict-item]
+    assert list(tmp_path.iterdir()) == []
+    st.save_tensors(p, {"i": torch.tensor([2**31 - 1], dtype=torch.int32)}, {}, kind="k", format_version=1)  # ints pass
+    with pytest.raises(InputValueError, match="path must be a file path"):
+        st.save_tensors("", {}, {}, kind="k", format_version=1)
+
+
+def test_remove_stale_tmp_only_removes_dead_writers(tmp_path):
+    target = tmp_path / "a.safetensors"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    stale = tmp_path / f".a.safetensors.{dead}.xyz.tmp"
+    mine = tmp_path / f".a.safetensors.{os.getpid()}.abc.tmp"
+    alive = tmp_path / f".a.safetensors.{os.getppid()}.def.tmp"
+    other = tmp_path / f".b.safetensors.{dead}.xyz.tmp"
+    odd = tmp_path / ".a.safetensors.notapid.tmp"
+    for p in (stale, mine, alive, other, odd):
+        p.write_bytes(b"x")
+    assert st.remove_stale_tmp(target) == [stale]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in (mine, alive, other, odd))
+
+
+def test_atomic_write_leaves_no_tmp_on_failure_and_refuses_folders(tmp_path):
+    from controlgs_adapter.errors import FileWriteError
+
+    def fail(tmp: str) -> None:
+        open(tmp, "wb").write(b"half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(FileWriteError, match="x.bin: write failed: No space left on device"):
+        st.atomic_write(tmp_path / "x.bin", fail)
+    assert list(tmp_path.iterdir()) == []
+
+    def boom(tmp: str) -> None:
+        raise KeyError("k")
+
+    with pytest.raises(KeyError):
+        st.atomic_write(tmp_path / "x.bin", boom)
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "d").mkdir()
+    with pytest.raises(InputValueError, match="d: is a folder"):
+        st.atomic_write(tmp_path / "d", fail)
+    (tmp_path / "file").write_bytes(b"")
+    with pytest.raises(FileWriteError, match="cannot write here"):
+        st.atomic_write(tmp_path / "file" / "sub" / "x.bin", fail)
+    out = st.atomic_write(str(tmp_path / "new" / "y.bin"), lambda tmp: open(tmp, "wb").write(b"ok"))
+    assert out == tmp_path / "new" / "y.bin" and out.read_bytes() == b"ok"
+    assert st.as_path(os.fsencode(str(out))) == out
+
+
+# --- layout
+
+
+def test_iteration_dir_choices_and_refusals(tmp_path):
+    with pytest.raises(FileFormatError, match=r"no 'point_cloud/iteration_<N>' folder\)$"):
+        layout.iteration_dir(tmp_path, None, family="Fam")
+    (tmp_path / "bitstreams").mkdir()
+    with pytest.raises(FileFormatError, match="not a Fam output directory.*bitstreams/ was found"):
+        layout.iteration_dir(tmp_path, None, family="Fam")
+    pc = tmp_path / "point_cloud"
+    pc.mkdir()
+    with pytest.raises(FileFormatError, match="point_cloud: no 'iteration_<N>' folder .*bitstreams/ was found"):
+        layout.iteration_dir(tmp_path, None, family="Fam")
+    for n in (7, 30000, 500):
+        (pc / f"iteration_{n}").mkdir()
+    (pc / "iteration_99999.bak").mkdir()
+    (pc / "iteration_123456").write_bytes(b"")  # a file, not a folder
+    assert layout.iteration_dirs(tmp_path) == {7: pc / "iteration_7", 30000: pc / "iteration_30000", 500: pc / "iteration_500"}
+    assert layout.iteration_dir(tmp_path, None, family="Fam") == pc / "iteration_30000"
+    assert layout.iteration_dir(tmp_path, 7, family="Fam") == pc / "iteration_7"
+    with pytest.raises(FileFormatError, match=r"point_cloud: no 'iteration_8' folder \(present: \[7, 500, 30000\]\)"):
+        layout.iteration_dir(tmp_path, 8, family="Fam")
+    assert layout.bitstreams_only(tmp_path / "point_cloud") == ""
