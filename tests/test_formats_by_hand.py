@@ -405,3 +405,203 @@ def test_iteration_dir_choices_and_refusals(tmp_path):
     with pytest.raises(FileFormatError, match=r"point_cloud: no 'iteration_8' folder \(present: \[7, 500, 30000\]\)"):
         layout.iteration_dir(tmp_path, 8, family="Fam")
     assert layout.bitstreams_only(tmp_path / "point_cloud") == ""
+
+
+# --- training checkpoint (controlgs_adapter.formats.checkpoint), files built by hand
+
+
+def _ckpt(**over):
+    from controlgs_adapter.formats.checkpoint import Checkpoint
+
+    base = dict(adapter={"conditions": torch.full((3, 1, 2), 0.5), "projections.lens.d4.weight": torch.ones(4, 2)},
+                optimizer_state={0: {"step": 3.0, "exp_avg": torch.full((3, 1, 2), 0.1), "exp_avg_sq": torch.zeros(3, 1, 2)},
+                                 1: {"step": torch.tensor(3.0), "exp_avg": torch.ones(4, 2), "exp_avg_sq": torch.ones(4, 2)}},
+                param_groups=[{"lr": 0.01, "params": [0, 1]}], rng=torch.arange(8, dtype=torch.uint8), iteration=3,
+                history=[1.0, 0.5, 0.25], config={"lr": 0.01, "iterations": 10, "checkpoint_every": 5, "loss": {"l1": 1.0}},
+                modules=["lens"], effects=["lens"], fingerprint="fp", data="views")
+    return Checkpoint(**{**base, **over})
+
+
+_SHAPES = [torch.Size([3, 1, 2]), torch.Size([4, 2])]
+
+
+def _raw_ckpt(path, tensors, header):
+    from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND
+
+    h = {"kind": CHECKPOINT_KIND, "format_version": 1, **header}
+    save_file(tensors, str(path), metadata={st.HEADER_KEY: json.dumps(h)})
+
+
+def test_checkpoint_round_trip_and_tensor_names(tmp_path):
+    from controlgs_adapter.formats.checkpoint import read_checkpoint, write_checkpoint
+
+    c = _ckpt()
+    p = write_checkpoint(tmp_path / "c.safetensors", c)
+    with __import__("safetensors").safe_open(str(p), framework="pt") as f:
+        names = sorted(f.keys())
+        assert f.get_tensor("optimizer.0.step").shape == () and float(f.get_tensor("optimizer.0.step")) == 3.0
+    assert names == sorted(["adapter.conditions", "adapter.projections.lens.d4.weight", "rng"]
+                           + [f"optimizer.{i}.{k}" for i in (0, 1) for k in ("step", "exp_avg", "exp_avg_sq")])
+    # a resumed run may change iterations and checkpoint_every only
+    like = _ckpt(config={**c.config, "iterations": 99, "checkpoint_every": 1})
+    back = read_checkpoint(p, like, _SHAPES)
+    assert back.iteration == 3 and back.history == [1.0, 0.5, 0.25] and back.config == c.config
+    assert torch.equal(back.adapter["conditions"], c.adapter["conditions"]) and torch.equal(back.rng, c.rng)
+    assert torch.equal(back.optimizer_state[1]["exp_avg"], torch.ones(4, 2)) and back.param_groups == c.param_groups
+    assert (back.modules, back.effects, back.fingerprint, back.data) == (["lens"], ["lens"], "fp", "views")
+
+
+@pytest.mark.parametrize("like, words", [
+    (dict(config={"lr": 0.02, "iterations": 10, "checkpoint_every": 5, "loss": {"l1": 1.0}}), "different config (lr)"),
+    (dict(config={"lr": 0.01, "iterations": 10, "checkpoint_every": 5, "loss": {"l1": 2.0}}), "different config (loss)"),
+    (dict(effects=["lens", "oled"]), "stages ['lens'], this trainer's are ['lens', 'oled']"),
+    (dict(fingerprint="other"), "another backbone"),
+    (dict(data="other"), "other views (data views)"),
+    (dict(modules=["lens", "display"]), "trains modules ['lens'], this trainer ['lens', 'display']"),
+    (dict(rng=torch.arange(9, dtype=torch.uint8)), "'rng' must be a torch.uint8 tensor of shape [9], got torch.uint8 [8]"),
+    (dict(rng=torch.arange(8, dtype=torch.int64)), "'rng' must be a torch.int64 tensor of shape [8], got torch.uint8 [8]"),
+    (dict(param_groups=[{"lr": 0.01, "params": [0]}, {"lr": 0.01, "params": [1]}]), "'param_groups' does not describe"),
+    (dict(param_groups=[{"lr": 0.01, "params": [1, 0]}]), "'param_groups' does not describe"),
+    (dict(adapter={"conditions": torch.zeros(3, 1, 3), "projections.lens.d4.weight": torch.ones(4, 2)}),
+     "do not fit this adapter (missing, unexpected or mis-shaped: ['conditions'])"),
+    (dict(adapter={"conditions": torch.zeros(3, 1, 2)}), "mis-shaped: ['projections.lens.d4.weight']"),
+])
+def test_checkpoint_of_another_run_is_refused(tmp_path, like, words):
+    from controlgs_adapter.formats.checkpoint import read_checkpoint, write_checkpoint
+
+    p = write_checkpoint(tmp_path / "c.safetensors", _ckpt())
+    with pytest.raises(FileFormatError, match="c.safetensors: ") as e:
+        read_checkpoint(p, _ckpt(**like), _SHAPES)
+    assert words in str(e.value)
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda t, h: t.update({"adapter.conditions": torch.full((3, 1, 2), math.nan)}), "['adapter.conditions'] hold NaN/Inf"),
+    (lambda t, h: t.update({"optimizer.2.step": torch.tensor(1.0)}), "'optimizer.2.step' ([]) is not Adam state of this adapter's 2"),
+    (lambda t, h: t.update({"optimizer.x.step": torch.tensor(1.0)}), "'optimizer.x.step'"),
+    (lambda t, h: t.update({"optimizer.0.momentum": torch.zeros(3, 1, 2)}), "'optimizer.0.momentum'"),
+    (lambda t, h: t.update({"optimizer.1.exp_avg": torch.zeros(2, 4)}), "'optimizer.1.exp_avg' ([2, 4])"),
+    (lambda t, h: t.update({"extra": torch.zeros(1)}), "unexpected tensors ['extra']"),
+    (lambda t, h: t.pop("rng"), "'rng' must be a torch.uint8 tensor of shape [8], got none"),
+    (lambda t, h: h.update(iteration=-1), "'iteration' must be an integer >= 0, got -1"),
+    (lambda t, h: h.update(iteration=True), "'iteration' must be an integer >= 0, got True"),
+    (lambda t, h: h.update(iteration=2.0), "'iteration' must be an integer >= 0, got 2.0"),
+    (lambda t, h: h.update(history=[1.0, math.inf]), "'history' must be a list of finite losses"),
+    (lambda t, h: h.update(history=[True]), "'history' must be a list of finite losses"),
+    (lambda t, h: h.update(history={"a": 1}), "'history' must be a list of finite losses"),
+    (lambda t, h: h.update(param_groups={"params": [0, 1]}), "'param_groups' does not describe"),
+    (lambda t, h: h.update(config=[1]), "'config' must be an object with a 'loss' object"),
+    (lambda t, h: h.update(config={"lr": 0.01, "loss": 1}), "'config' must be an object with a 'loss' object"),
+])
+def test_checkpoint_malformed_files_are_refused(tmp_path, edit, words):
+    from controlgs_adapter.formats.checkpoint import read_checkpoint
+
+    c = _ckpt()
+    tensors, header = c.tensors(), c.header()
+    edit(tensors, header)
+    _raw_ckpt(tmp_path / "c.safetensors", tensors, header)
+    with pytest.raises(FileFormatError, match="c.safetensors: ") as e:
+        read_checkpoint(tmp_path / "c.safetensors", c, _SHAPES)
+    assert words in str(e.value)
+
+
+def test_checkpoint_step_of_any_shape_and_missing_history_accepted(tmp_path):
+    from controlgs_adapter.formats.checkpoint import read_checkpoint
+
+    c = _ckpt()
+    tensors, header = c.tensors(), c.header()
+    tensors["optimizer.1.step"] = torch.tensor([3.0])
+    del header["history"]
+    _raw_ckpt(tmp_path / "c.safetensors", tensors, header)
+    back = read_checkpoint(tmp_path / "c.safetensors", c, _SHAPES)
+    assert back.history == [] and back.optimizer_state[1]["step"].tolist() == [3.0]
+
+
+# --- adapter file (controlgs_adapter.formats.adapter) pieces
+
+
+def _spec(**over):
+    base = {"backend": "b", "modules": ["lens", "display"], "cond_dim": 2, "schedules": {
+        "lens": {"lo": 0, "hi": 1.5}, "display": {"lo": 0.0, "hi": 1}}, "state_blind": False,
+        "targets": [{"decoder": "mlp_color", "in_features": 3, "out_features": 4},
+                    {"decoder": "mlp_opacity", "in_features": 3, "out_features": 6},
+                    {"decoder": "mlp_cov", "in_features": 3, "out_features": 4}],
+        "num_anchors": 5, "rows_per_anchor": 1, "fingerprint": "f"}
+    return {**base, **over}
+
+
+@pytest.mark.parametrize("over, bad", [
+    (dict(backend=1), ["backend"]), (dict(modules="lens"), ["modules"]), (dict(cond_dim=2.0), ["cond_dim"]),
+    (dict(state_blind=None), ["state_blind"]), (dict(num_anchors="5"), ["num_anchors"]),
+    (dict(rows_per_anchor=None), ["rows_per_anchor"]), (dict(fingerprint=3), ["fingerprint"]),
+    (dict(schedules={"lens": {"lo": 0, "hi": 1}}), ["schedules.display"]),
+    (dict(schedules={"lens": {"lo": 0, "hi": "1"}, "display": {"lo": 0, "hi": 1}}), ["schedules.lens"]),
+    (dict(schedules={"lens": {"lo": 0, "hi": 1}, "display": [0, 1]}), ["schedules.display"]),
+    (dict(targets=[{"decoder": "d", "in_features": 3, "out_features": 4}, {"decoder": "d", "in_features": 3}]),
+     ["targets[1]"]),
+    (dict(targets=[{"decoder": 1, "in_features": 3, "out_features": 4}]), ["targets[0]"]),
+    (dict(targets=["d"]), ["targets[0]"]),
+])
+def test_adapter_header_fields_checked(over, bad):
+    from controlgs_adapter.formats.adapter import check_header
+
+    assert check_header("a.safetensors", _spec()) == _spec()
+    with pytest.raises(FileFormatError, match=rf"^a.safetensors: adapter header is missing or has malformed field\(s\) "
+                                              rf"{__import__('re').escape(str(bad))}$"):
+        check_header("a.safetensors", _spec(**over))
+
+
+def test_adapter_tensor_mismatches_by_hand():
+    from controlgs_adapter.formats.adapter import tensor_mismatches
+
+    spec = _spec()
+    good = {"conditions": torch.zeros(5, 2, 2), **{f"projections.{m}.d{d}.weight": torch.zeros(d, 2)
+                                                   for m in ("lens", "display") for d in (4, 6)}}
+    assert tensor_mismatches(good, spec) == []
+    bad = {**good, "conditions": torch.zeros(5, 2, 3), "projections.lens.d4.weight": torch.zeros(4, 2, dtype=torch.int32),
+           "projections.display.d6.weight": torch.full((6, 2), math.inf), "junk": torch.zeros(1)}
+    del bad["projections.lens.d6.weight"]
+    got = tensor_mismatches(bad, spec)
+    assert got == [
+        ("tensors missing from the file: ['projections.lens.d6.weight']", frozenset({"projections.lens.d6.weight"})),
+        ("unexpected tensors in the file: ['junk']", frozenset({"junk"})),
+        ("tensor 'conditions': shape [5, 2, 3], expected [5, 2, 2]", frozenset({"conditions"})),
+        ("tensor 'projections.display.d6.weight': contains NaN/Inf", frozenset({"projections.display.d6.weight"})),
+        ("tensor 'projections.lens.d4.weight': dtype torch.int32, expected a floating-point type",
+         frozenset({"projections.lens.d4.weight"})),
+    ]
+
+
+def test_adapter_fingerprint_and_condition_mapping_by_hand():
+    from controlgs_adapter.formats.adapter import fingerprint_mismatch, map_conditions
+
+    assert fingerprint_mismatch({"fingerprint": "abc"}, "abc") == []
+    (msg, skip), = fingerprint_mismatch({"fingerprint": "abc"}, "xyz")
+    assert "trained on backbone abc, this model is xyz" in msg and skip is None
+    saved = torch.arange(6.0).view(3, 1, 2)
+    gathered = map_conditions(saved, ("gather", torch.tensor([2, 0])), 2)
+    assert gathered.tolist() == [[[4.0, 5.0]], [[0.0, 1.0]]]
+    scattered = map_conditions(saved, ("scatter", torch.tensor([4, 1, 0])), 5)
+    assert scattered.tolist() == [[[4.0, 5.0]], [[2.0, 3.0]], [[0.0, 0.0]], [[0.0, 0.0]], [[0.0, 1.0]]]
+
+
+def test_write_adapter_dtype_choices(tmp_path):
+    from controlgs_adapter.formats.adapter import read_spec, read_tensors, write_adapter
+
+    t = {"conditions": torch.tensor([[[1.0, -70000.0]]]), "projections.lens.d4.weight": torch.ones(4, 2)}
+    spec = _spec(modules=["lens"], num_anchors=1, schedules={"lens": {"lo": 0, "hi": 1}})
+    with pytest.raises(InputValueError, match="dtype must be None, torch.float16 or torch.float32, got torch.float64"):
+        write_adapter(tmp_path / "a.safetensors", t, spec, dtype=torch.float64)
+    with pytest.raises(NonFiniteError, match=r"a.safetensors: conditions reach \|7e\+04\|, beyond float16's range \(65504\)"):
+        write_adapter(tmp_path / "a.safetensors", t, spec, dtype=torch.float16)
+    assert not (tmp_path / "a.safetensors").exists()
+    t["conditions"] = torch.tensor([[[1.0, -65504.0]]])
+    write_adapter(tmp_path / "a.safetensors", t, spec, dtype=torch.float16)
+    assert read_spec(tmp_path / "a.safetensors")["condition_dtype"] == "float16"
+    assert read_tensors(tmp_path / "a.safetensors")["conditions"].dtype == torch.float16
+    write_adapter(tmp_path / "b.safetensors", {**t, "conditions": t["conditions"].double()}, spec)
+    assert read_spec(tmp_path / "b.safetensors")["condition_dtype"] == "float64"
+    write_adapter(tmp_path / "c.safetensors", {**t, "conditions": t["conditions"].double()}, spec, dtype=torch.float32)
+    assert read_tensors(tmp_path / "c.safetensors")["conditions"].dtype == torch.float32
+    write_adapter(tmp_path / "d.safetensors", {**t, "conditions": torch.zeros(0, 1, 2)}, {**spec, "num_anchors": 0},
+                  dtype=torch.float16)
