@@ -1,0 +1,254 @@
+"""Dataset pieces by hand: working sizes, the image cache's byte budget (LRU), in-memory frames,
+image decoding of files written by Pillow, format detection, and each refusal (type, and the
+argument or file named)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from controlgs_adapter.datasets.base import Frame, PosedImages, SceneData, working_size
+from controlgs_adapter.datasets.detect import detect_format, load_dataset
+from controlgs_adapter.datasets.images import distort_normalized, image_size, load_frame_image, read_image, undistort
+from controlgs_adapter.datasets.memory import posed_images, tensor_frames
+from controlgs_adapter.errors import FileFormatError, InputValueError
+from controlgs_adapter.state import Camera
+
+
+def _cam(w: int, h: int, fx: float = 10.0, fy: float = 12.0, cx: float | None = None, cy: float | None = None) -> Camera:
+    k = torch.tensor([[fx, 0.0, w / 2.0 if cx is None else cx], [0.0, fy, h / 2.0 if cy is None else cy], [0.0, 0.0, 1.0]])
+    return Camera(torch.eye(4), k, w, h)
+
+
+@pytest.mark.parametrize("w, h, kw, want", [
+    (1000, 600, {}, (1000, 600)),
+    (1000, 600, {"resolution": 500}, (500, 300)),
+    (600, 1000, {"resolution": 500}, (300, 500)),
+    (1000, 600, {"resolution": 2000}, (1000, 600)),  # never upscaled
+    (1000, 600, {"factor": 3}, (333, 200)),
+    (1000, 600, {"factor": 2.5}, (400, 240)),
+    (1000, 600, {"factor": 1}, (1000, 600)),
+    (3, 1, {"factor": 4.0}, (1, 1)),  # at least one pixel
+    (5, 3, {"resolution": 2}, (2, 1)),
+])
+def test_working_size_by_hand(w, h, kw, want):
+    assert working_size(w, h, **kw) == want
+
+
+@pytest.mark.parametrize("kw, words", [
+    ({"resolution": 4, "factor": 2.0}, "give resolution or factor, not both (got 4 and 2.0)"),
+    ({"resolution": 1}, "resolution must be an int >= 2 (longer side in pixels), got 1"),
+    ({"resolution": True}, "resolution must be an int >= 2"),
+    ({"resolution": 4.0}, "resolution must be an int >= 2"),
+    ({"factor": 0.5}, "factor must be a finite number >= 1, got 0.5"),
+    ({"factor": float("inf")}, "factor must be a finite number >= 1, got inf"),
+    ({"factor": True}, "factor must be a finite number >= 1, got True"),
+    ({"factor": "2"}, "factor must be a finite number >= 1, got '2'"),
+])
+def test_working_size_refusals(kw, words):
+    with pytest.raises(InputValueError) as e:
+        working_size(10, 10, **kw)
+    assert words in str(e.value)
+
+
+def _rgba_frames(n: int, w: int = 4, h: int = 2) -> list[Frame]:
+    imgs = torch.rand(n, 4, h, w, generator=torch.Generator().manual_seed(0))
+    return tensor_frames(imgs, [_cam(w, h) for _ in range(n)], prefix="mem")
+
+
+def test_cache_keeps_the_most_recent_views_within_its_byte_budget():
+    frames = _rgba_frames(3)  # each decoded view: 3 x 2 x 4 float32 = 96 bytes
+    views = PosedImages(frames, cache_bytes=200)  # room for two
+    a0, a1 = views.image(0), views.image(1)
+    assert views.image(0) is a0 and views.image(1) is a1  # hits
+    views.image(0)  # 0 is now the most recent: loading 2 evicts 1
+    a2 = views.image(2)
+    assert views.image(0) is a0 and views.image(2) is a2
+    b1 = views.image(1)
+    assert b1 is not a1 and torch.equal(b1, a1)  # reloaded, same pixels
+    assert views._cached_bytes == 192 and sorted(views._cache) == [1, 2]  # 0 was least recent when 1 came back
+    assert views.image(-1) is a2  # negative index is the last view
+    with pytest.raises(IndexError):
+        views.image(3)
+
+
+def test_cache_exactly_full_budget_and_zero_budget():
+    views = PosedImages(_rgba_frames(2), cache_bytes=192)  # exactly two
+    a0, a1 = views.image(0), views.image(1)
+    assert views.image(0) is a0 and views.image(1) is a1 and views._cached_bytes == 192
+    none = PosedImages(_rgba_frames(2), cache_bytes=0)
+    assert none.image(0) is not none.image(0) and none._cached_bytes == 0
+    small = PosedImages(_rgba_frames(2), cache_bytes=95)  # one view does not fit: nothing cached, nothing evicted
+    assert small.image(0) is not small.image(0) and len(small._cache) == 0
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, None])
+def test_cache_bytes_refused(bad):
+    with pytest.raises(InputValueError, match=f"cache_bytes must be an int >= 0, got {bad!r}"):
+        PosedImages(_rgba_frames(1), cache_bytes=bad)
+
+
+def test_posed_images_rescale_cameras_per_frame_and_describe():
+    frames = [Frame("a", _cam(8, 4, fx=10, fy=12, cx=4.5, cy=2.25), torch.rand(3, 4, 8)),
+              Frame("b", _cam(4, 4, fx=6, fy=6), torch.rand(3, 4, 4))]
+    views = PosedImages(frames, factor=2.0, name="n")
+    k = views.camera(0).intrinsics
+    assert views.camera(0).width == 4 and views.camera(0).height == 2
+    assert k[0].tolist() == [5.0, 0.0, 2.25] and k[1].tolist() == [0.0, 6.0, 1.125] and k[2].tolist() == [0, 0, 1]
+    assert views.sizes == [(2, 4), (2, 2)]
+    assert views.describe() == {"views": 2, "sizes": ["2x2", "4x2"]}
+    full = PosedImages(frames)
+    assert full.camera(0) is frames[0].camera  # full size: the frame's own camera
+    assert torch.allclose(views.image(0), torch.nn.functional.avg_pool2d(frames[0].source[None], 2)[0])
+    with pytest.raises(InputValueError, match="^n: no frames$"):
+        PosedImages([], name="n")
+
+
+def test_fingerprint_tracks_names_sizes_and_poses_only():
+    frames = _rgba_frames(2)
+    fp = PosedImages(frames).fingerprint()
+    assert len(fp) == 16 and PosedImages(_rgba_frames(2)).fingerprint() == fp
+    assert PosedImages(tensor_frames(torch.zeros(2, 3, 2, 4), [f.camera for f in frames], prefix="mem")).fingerprint() == fp
+    assert PosedImages(tensor_frames(torch.zeros(2, 3, 2, 4), [f.camera for f in frames], prefix="other")).fingerprint() != fp
+    assert PosedImages(frames, factor=2.0).fingerprint() != fp
+    moved = _cam(4, 2)
+    moved.world_to_camera[0, 3] = 1.0
+    assert PosedImages([frames[0], Frame(frames[1].name, moved, frames[1].source)]).fingerprint() != fp
+    assert PosedImages(frames[::-1]).fingerprint() != fp
+
+
+def test_scene_views_split_first_and_refusals():
+    frames = _rgba_frames(3)
+    scene = SceneData({"train": frames, "test": []}, source="src")
+    assert len(scene.views("train")) == 3 and len(scene.views("train", first=2)) == 2
+    assert [f.name for f in scene.views("train", first=0).frames] == ["mem/0000"]  # at least one
+    assert scene.views("train").name == "src:train"
+    assert scene.views("train", cache_bytes=0).cache_bytes == 0
+    assert scene.views("train", resolution=2).sizes == [(1, 2)] * 3
+    with pytest.raises(InputValueError, match=r"^src: no split 'val' \(splits: \['test', 'train'\]\)$"):
+        scene.views("val")
+    with pytest.raises(InputValueError, match="^src: the 'test' split is empty$"):
+        scene.views("test")
+    with pytest.raises(InputValueError, match="^dataset: no split"):
+        SceneData({"train": frames}).views("x")
+
+
+def test_tensor_frames_names_and_counts():
+    frames = tensor_frames([torch.zeros(3, 2, 4)] * 2, [_cam(4, 2)] * 2, prefix="p")
+    assert [f.name for f in frames] == ["p/0000", "p/0001"]
+    with pytest.raises(InputValueError, match="need one camera per image, got 2 images and 1 cameras"):
+        tensor_frames(torch.zeros(2, 3, 2, 4), [_cam(4, 2)])
+    bg = torch.tensor([0.25, 0.5, 1.0])
+    views = posed_images(torch.zeros(1, 4, 2, 4), [_cam(4, 2)], background=bg, name="mine")
+    assert views.name == "mine" and views.frames[0].name == "mine/0000"
+    assert views.image(0)[:, 0, 0].tolist() == [0.25, 0.5, 1.0]  # alpha 0: all background
+
+
+def test_load_frame_image_refusals_name_the_frame():
+    with pytest.raises(InputValueError, match=r"^f1: image must be \[3 \| 4, H, W\], got \[2, 2, 4\]$"):
+        load_frame_image(Frame("f1", _cam(4, 2), torch.zeros(2, 2, 4)), torch.zeros(3))
+    with pytest.raises(FileFormatError, match="^f2: image is 5x2, its camera is 4x2$"):
+        load_frame_image(Frame("f2", _cam(4, 2), torch.zeros(3, 2, 5)), torch.zeros(3))
+    with pytest.raises(InputValueError, match=r"image must be a floating \[C, H, W\] tensor, got torch.uint8"):
+        undistort(torch.zeros(3, 2, 4, dtype=torch.uint8), _cam(4, 2), (0.0, 0, 0, 0))
+    with pytest.raises(InputValueError, match="^image is 5x2, its camera is 4x2$"):
+        undistort(torch.zeros(3, 2, 5), _cam(4, 2), (0.0, 0, 0, 0))
+
+
+@pytest.mark.parametrize("d, words", [
+    ((0.1, 0.0, 0.0), "4 or 5 finite values"), ((0.1,) * 6, "4 or 5 finite values"),
+    ((float("nan"), 0, 0, 0), "4 or 5 finite values"), (("a", 0, 0, 0), "distortion must be (k1, k2, p1, p2[, k3])"),
+    (None, "distortion must be (k1, k2, p1, p2[, k3]), got None"),
+])
+def test_distortion_coefficients_refused(d, words):
+    with pytest.raises(InputValueError) as e:
+        distort_normalized(torch.zeros(1, 2), d)
+    assert words in str(e.value)
+
+
+def test_distortion_each_coefficient_by_hand():
+    x, y = 0.3, -0.2
+    r2 = x * x + y * y
+    xy = torch.tensor([[x, y]], dtype=torch.float64)
+    for d, (wx, wy) in [
+        ((0.1, 0, 0, 0), (x * (1 + 0.1 * r2), y * (1 + 0.1 * r2))),
+        ((0, 0.1, 0, 0), (x * (1 + 0.1 * r2 ** 2), y * (1 + 0.1 * r2 ** 2))),
+        ((0, 0, 0, 0, 0.1), (x * (1 + 0.1 * r2 ** 3), y * (1 + 0.1 * r2 ** 3))),
+        ((0, 0, 0.1, 0), (x + 2 * 0.1 * x * y, y + 0.1 * (r2 + 2 * y * y))),
+        ((0, 0, 0, 0.1), (x + 0.1 * (r2 + 2 * x * x), y + 2 * 0.1 * x * y)),
+    ]:
+        got = distort_normalized(xy, d)[0].tolist()
+        assert got == pytest.approx([wx, wy], abs=1e-15), d
+
+
+def test_read_image_modes_from_pillow_files(tmp_path):
+    from PIL import Image
+
+    g16 = np.array([[0, 65535, 1000]], dtype=np.uint16)
+    Image.fromarray(g16).save(tmp_path / "g16.png")
+    img = read_image(tmp_path / "g16.png")
+    assert img.shape == (3, 1, 3) and img.dtype == torch.float32
+    np.testing.assert_allclose(img.numpy(), np.repeat((g16 / 65535.0)[None], 3, 0), rtol=1e-6)
+    rgba = np.array([[[255, 0, 0, 128], [0, 51, 0, 255]]], dtype=np.uint8)
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "a.png")
+    np.testing.assert_allclose(read_image(tmp_path / "a.png").numpy(), rgba.transpose(2, 0, 1) / 255.0, rtol=1e-6)
+    Image.fromarray(np.array([[10, 200]], np.uint8), "L").save(tmp_path / "l.png")
+    assert read_image(tmp_path / "l.png")[:, 0, 1].tolist() == pytest.approx([200 / 255] * 3)
+    pal = Image.new("P", (2, 1))
+    pal.putpalette([255, 0, 0, 0, 0, 255] + [0] * 762)
+    pal.putpixel((1, 0), 1)
+    pal.info["transparency"] = 0
+    pal.save(tmp_path / "p.png", transparency=0)
+    p = read_image(tmp_path / "p.png")
+    assert p.shape[0] == 4 and p[3].tolist() == [[0.0, 1.0]] and p[:3, 0, 1].tolist() == [0.0, 0.0, 1.0]
+    assert image_size(tmp_path / "a.png") == (2, 1)
+    (tmp_path / "bad.png").write_bytes(b"not an image")
+    with pytest.raises(FileFormatError, match=r"bad.png: cannot decode the image \("):
+        read_image(tmp_path / "bad.png")
+    with pytest.raises(FileFormatError, match=r"bad.png: cannot read the image header \("):
+        image_size(tmp_path / "bad.png")
+    for fn in (read_image, image_size):
+        with pytest.raises(FileFormatError, match="gone.png: image file not found"):
+            fn(tmp_path / "gone.png")
+
+
+def test_detect_format_order_and_refusals(tmp_path):
+    with pytest.raises(FileFormatError, match="nowhere: dataset folder not found"):
+        detect_format(tmp_path / "nowhere")
+    root = tmp_path / "d"
+    root.mkdir()
+    with pytest.raises(FileFormatError, match=r"d: not a dataset folder in a known format \(it holds: nothing\)\. "
+                                              r"Each format needs: colmap: sparse/0/"):
+        detect_format(root)
+    (root / "sub").mkdir()
+    for i in range(11):
+        (root / f"f{i:02d}.txt").write_text("")
+    with pytest.raises(FileFormatError, match=r"it holds: f00.txt, f01.txt, .*f09.txt, \.\.\.\)"):
+        detect_format(root)
+    (root / "transforms.json").write_text("{}")
+    assert detect_format(root) == "instant_ngp"
+    (root / "transforms_train.json").write_text("{}")
+    assert detect_format(root) == "blender"
+    (root / "sparse").mkdir()
+    (root / "sparse" / "cameras.txt").write_text("")
+    assert detect_format(root) == "colmap"
+    (root / "sparse" / "cameras.txt").unlink()
+    (root / "sparse" / "0").mkdir()
+    (root / "sparse" / "0" / "cameras.bin").write_bytes(b"")
+    assert detect_format(root) == "colmap"
+
+
+def test_load_dataset_format_names_and_images_option(tmp_path):
+    (tmp_path / "transforms.json").write_text("{}")
+    with pytest.raises(InputValueError, match=r"format must be one of colmap, blender, instant_ngp \(or None to detect "
+                                              r"it\), got 'ngp'"):
+        load_dataset(tmp_path, format="ngp")
+    with pytest.raises(InputValueError, match=r"images='imgs' applies to COLMAP datasets only; .* is read as instant_ngp"):
+        load_dataset(tmp_path, format=" Instant-NGP ", images="imgs")
+    with pytest.raises(InputValueError, match="images='imgs' applies to COLMAP datasets only; .* is read as blender"):
+        load_dataset(tmp_path, format="BLENDER", images="imgs")
+    # the forced reader runs: instant-ngp's own refusal of this empty file
+    with pytest.raises(FileFormatError, match="'frames' must be a non-empty list"):
+        load_dataset(tmp_path, format="instant-ngp")
+
