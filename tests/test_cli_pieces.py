@@ -216,3 +216,25 @@ def test_parse_state_view_gaze_and_json_round_trip() -> None:
     assert parse_state(json.loads(json.dumps(js)), 2) == s
     assert ViewState().to_json()["gaze"] is None and not ViewState().orbit
     assert parse_state({"elevation": 5}, 1).orbit
+
+
+# ---------------------------------------------------------------- defaults of a user scene
+def test_user_scene_defaults_every_8th_view_held_out(tmp_path: Path) -> None:
+    from _scene_writers import write_colmap
+    from controlgs_adapter.commands.common import load_user_scene
+    from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
+
+    model = builtin_backbone_dir("ar")
+    if not (model / "point_cloud").is_dir():
+        pytest.skip("built-in backbone not baked")
+    scene = load_builtin_scene("ar", 16, views=9, test_every=9, samples=1)
+    cams = scene.test_cameras + scene.train_cameras
+    write_colmap(tmp_path / "data", cams, list(torch.cat([scene.test_images, scene.train_images])))
+    args = _ns(model=str(model), data=str(tmp_path / "data"), family=None, model_iteration=None, allow_unquantized=None,
+               format=None, images=None, holdout=None, white_background=None, resolution=None, device="cpu")
+    user = load_user_scene(args)
+    assert [f.name for f in user.data.splits["test"]] == ["v00.png", "v08.png"]  # 9 views, every 8th: 0 and 8
+    assert len(user.data.splits["train"]) == 7 and user.family == "scaffold_gs"
+    rec = user.record(args, iterations=3)
+    assert rec["holdout"] == 8 and rec["model"] == str(model.resolve()) and rec["data"] == str((tmp_path / "data").resolve())
+    assert (rec["allow_unquantized"], rec["white_background"], rec["format"], rec["iterations"]) == (False, False, "colmap", 3)

@@ -361,3 +361,23 @@ def test_cli_view_on_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch
     assert dataset["size"] == [32, 24] and dataset["has_truth"] and dataset["methods"][2]["metrics"]["psnr"] > 10
     assert decode(dataset["methods"][2]["eye"]).shape == (24, 32, 3)
     assert not orbit["has_truth"] and orbit["methods"][2]["metrics"] is None  # your data: no ground truth off the views
+
+
+def test_body_size_limit_and_loopback_host_names(server: Any) -> None:
+    from controlgs_adapter.viewer.server import MAX_BODY
+
+    body = json.dumps({"downsample": 12}).encode()
+    padded = body[:-1] + b" " * (MAX_BODY - len(body)) + b"}"  # exactly MAX_BODY bytes: read, then refused on its value
+    assert len(padded) == MAX_BODY
+    status, out = request(server, "POST", "/api/render", raw=padded)
+    assert status == 400 and "downsample must be" in json.loads(out)["error"]
+    status, out = request(server, "POST", "/api/render", raw=padded + b" ")
+    assert status == 400 and f"at most {MAX_BODY} bytes" in json.loads(out)["error"]
+    port = server.server_address[1]
+    for host in (f"[::1]:{port}", f"localhost:{port}", "127.0.0.1"):
+        assert request(server, "GET", "/api/info", headers={"Host": host})[0] == 200, host
+    for host in (f"[::2]:{port}", "127.0.0.2", "localhost.evil.example"):
+        assert request(server, "GET", "/api/info", headers={"Host": host})[0] == 403, host
+    for tag in (True, None, 1.0):
+        status, out = request(server, "POST", "/api/extra", {"generation": tag})
+        assert status == 400 and "/api/extra takes" in json.loads(out)["error"], tag
