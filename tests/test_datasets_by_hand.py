@@ -252,3 +252,153 @@ def test_load_dataset_format_names_and_images_option(tmp_path):
     with pytest.raises(FileFormatError, match="'frames' must be a non-empty list"):
         load_dataset(tmp_path, format="instant-ngp")
 
+
+
+# --- COLMAP text models written by hand (no pycolmap)
+
+
+def _colmap_txt(root, cameras: str, images: str, points: str | None = "1 0.5 -1 2 10 20 30 0.1 1 0\n",
+                sizes: dict[str, tuple[int, int]] | None = None):
+    from PIL import Image
+
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True, exist_ok=True)
+    (sparse / "cameras.txt").write_text("# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n" + cameras)
+    (sparse / "images.txt").write_text("# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n" + images)
+    if points is not None:
+        (sparse / "points3D.txt").write_text(points)
+    (root / "images").mkdir(exist_ok=True)
+    for name, (w, h) in (sizes or {}).items():
+        Image.fromarray(np.zeros((h, w, 3), np.uint8)).save(root / "images" / name)
+    return root
+
+
+_CAM = "1 PINHOLE 8 6 10 12 4 3\n"
+_IMGS = "1 1 0 0 0 1 2 3 1 b.png\n\n2 0 0 0 1 0 0 0 1 a.png\n1.0 2.0 -1\n"
+
+
+def test_colmap_text_by_hand_pose_intrinsics_split_and_points(tmp_path):
+    from controlgs_adapter.datasets.colmap import read_colmap
+
+    root = _colmap_txt(tmp_path, _CAM, _IMGS, sizes={"a.png": (4, 3), "b.png": (4, 3)})
+    scene = read_colmap(root, holdout=2, images="images")
+    test, train = scene.splits["test"], scene.splits["train"]
+    assert [f.name for f in test] == ["a.png"] and [f.name for f in train] == ["b.png"]  # index 0 of sorted names
+    a, b = test[0].camera, train[0].camera
+    assert (a.width, a.height) == (4, 3)
+    assert a.intrinsics.tolist() == [[5.0, 0.0, 2.0], [0.0, 6.0, 1.5], [0.0, 0.0, 1.0]]  # half size
+    # q = (0, 0, 0, 1): 180 degrees about z
+    assert a.world_to_camera.tolist() == [[-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    assert b.world_to_camera[:3, 3].tolist() == [1.0, 2.0, 3.0] and b.world_to_camera[:3, :3].tolist() == np.eye(3).tolist()
+    assert scene.points.tolist() == [[0.5, -1.0, 2.0]] and scene.points.dtype == torch.float32
+    assert scene.format == "colmap" and scene.source == str(root)
+    assert len(read_colmap(root, holdout=0).splits["test"]) == 0
+    assert scene.background.tolist() == [0.0, 0.0, 0.0]
+    assert read_colmap(root, background=(0.5, 0.25, 1.0)).background.tolist() == [0.5, 0.25, 1.0]
+
+
+@pytest.mark.parametrize("kw, words", [
+    ({"holdout": -1}, "holdout must be an int >= 0 (every holdout-th view is a test view), got -1"),
+    ({"holdout": True}, "holdout must be an int >= 0"),
+    ({"holdout": 2.0}, "holdout must be an int >= 0"),
+    ({"resolution": 1}, "resolution must be an int >= 2 (longer side in pixels), got 1"),
+    ({"resolution": False}, "resolution must be an int >= 2"),
+    ({"images": ""}, "images must be the name of a folder under the scene root, got ''"),
+    ({"images": "/abs"}, "images must be the name of a folder under the scene root, got '/abs'"),
+    ({"background": (0.5, 0.5)}, "background must be 3 finite sRGB values, got (0.5, 0.5)"),
+    ({"background": (0.5, 0.5, float("nan"))}, "background must be 3 finite sRGB values"),
+])
+def test_colmap_argument_refusals(tmp_path, kw, words):
+    from controlgs_adapter.datasets.colmap import read_colmap
+
+    root = _colmap_txt(tmp_path, _CAM, _IMGS, sizes={"a.png": (8, 6), "b.png": (8, 6)})
+    with pytest.raises(InputValueError) as e:
+        read_colmap(root, **kw)
+    assert words in str(e.value)
+
+
+@pytest.mark.parametrize("cams, imgs, points, sizes, words", [
+    (_CAM, _IMGS.replace("b.png", "a.png"), None, {}, "image name 'a.png' appears twice in the images file"),
+    (_CAM, _IMGS.replace(" 1 b.png", " 7 b.png"), None, {}, "image 'b.png' refers to camera 7, which is not in the file"),
+    ("1 PINHOLE 0 6 10 12 4 3\n", _IMGS, None, {"a.png": (8, 6), "b.png": (8, 6)}, "the camera of image 'a.png' is invalid"),
+    ("1 PINHOLE 8 6 nan 12 4 3\n", _IMGS, None, {"a.png": (8, 6), "b.png": (8, 6)}, "the camera of image 'a.png' is invalid"),
+    ("1 PINHOLE 8 6 10 0 4 3\n", _IMGS, None, {"a.png": (8, 6), "b.png": (8, 6)},
+     "the camera of image 'a.png' has focal lengths 10.0, 0.0 (must be > 0)"),
+    (_CAM, _IMGS.replace("2 0 0 0 1", "2 0 0 0 0"), None, {"a.png": (8, 6), "b.png": (8, 6)},
+     "image 'a.png' has a bad quaternion [0.0, 0.0, 0.0, 0.0]"),
+    (_CAM, _IMGS.replace("1 1 0 0 0 1 2 3", "1 1 0 0 0 1 inf 3"), None, {"a.png": (8, 6), "b.png": (8, 6)},
+     "image 'b.png' has a non-finite translation [1.0, inf, 3.0]"),
+    (_CAM, _IMGS, "1 nan 0 0 1 1 1 0\n", {}, "points3D.txt: non-finite 3D point coordinates"),
+    (_CAM, _IMGS, "1 0 0 0 1 1 1\n", {}, "points3D.txt:1: expected POINT3D_ID X Y Z R G B ERROR TRACK..."),
+    (_CAM, "1 1 0 0 0 1 2 3 1\n", None, {}, "images.txt:2: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"),
+    ("1 PINHOLE 8\n", _IMGS, None, {}, "cameras.txt:2: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS... with a known"),
+    ("1 PINHOLE_X 8 6 1 1 1 1\n", _IMGS, None, {}, "with a known COLMAP model"),
+    (_CAM, _IMGS, None, {"a.png": (8, 6), "b.png": (8, 3)},
+     "b.png: image is 8x3, which is not its camera's 8x6 (in "),
+])
+def test_colmap_model_refusals_name_the_file(tmp_path, cams, imgs, points, sizes, words):
+    from controlgs_adapter.datasets.colmap import read_colmap
+
+    root = _colmap_txt(tmp_path, cams, imgs, points=points, sizes=sizes)
+    with pytest.raises(FileFormatError) as e:
+        read_colmap(root, holdout=0)
+    assert words in str(e.value)
+
+
+def test_colmap_folders_and_encodings_refused(tmp_path):
+    from controlgs_adapter.datasets.colmap import read_colmap
+
+    with pytest.raises(FileFormatError, match="nowhere: scene folder not found"):
+        read_colmap(tmp_path / "nowhere")
+    root = _colmap_txt(tmp_path / "s", _CAM, _IMGS, sizes={"a.png": (8, 6)})
+    with pytest.raises(FileFormatError, match=r"images: 1 of the 2 images in .*0 are missing \(first: b.png\)"):
+        read_colmap(root)
+    with pytest.raises(FileFormatError, match="images_2: images folder not found"):
+        read_colmap(root, images="images_2")
+    (root / "sparse" / "0" / "cameras.txt").write_bytes(b"1 PINHOLE 8 6 10 12 4 3 \xff\n")
+    with pytest.raises(FileFormatError, match="cameras.txt: not a UTF-8 text file"):
+        read_colmap(root)
+    # the model may sit in sparse/ directly
+    flat = tmp_path / "flat"
+    _colmap_txt(flat, _CAM, _IMGS, points=None, sizes={"a.png": (8, 6), "b.png": (8, 6)})
+    (flat / "sparse" / "0").rename(flat / "sparse0")
+    (flat / "sparse").rmdir()
+    (flat / "sparse0").rename(flat / "sparse")
+    assert read_colmap(flat, holdout=0).points is None and len(read_colmap(flat, holdout=0).splits["train"]) == 2
+
+
+@pytest.mark.parametrize("size, ok", [((4, 3), True), ((4, 4), True), ((5, 3), True), ((2, 2), True), ((6, 3), True), ((8, 3), False),
+                                      ((4, 5), False), ((16, 12), True), ((9, 6), True), ((10, 6), True), ((12, 6), False)])
+def test_colmap_image_size_must_be_the_camera_divided_by_one_factor(tmp_path, size, ok):
+    from controlgs_adapter.datasets.colmap import read_colmap
+
+    root = _colmap_txt(tmp_path, _CAM, "1 1 0 0 0 0 0 0 1 a.png\n\n", sizes={"a.png": size})
+    if ok:
+        cam = read_colmap(root, holdout=0).splits["train"][0].camera
+        k = cam.intrinsics.tolist()
+        assert k[0] == pytest.approx([10 * size[0] / 8, 0, 4 * size[0] / 8]) and k[1] == pytest.approx([0, 12 * size[1] / 6, 3 * size[1] / 6])
+    else:
+        with pytest.raises(FileFormatError, match="which is not its camera's 8x6"):
+            read_colmap(root, holdout=0)
+
+
+def test_colmap_binary_unknown_model_id_and_non_utf8_name(tmp_path):
+    import struct
+
+    from controlgs_adapter.datasets.colmap import _read_cameras_bin, _read_images_bin
+
+    p = tmp_path / "cameras.bin"
+    p.write_bytes(struct.pack("<Q", 1) + struct.pack("<IiQQ", 3, 18, 8, 6) + struct.pack("<3d", 1, 2, 3))
+    with pytest.raises(FileFormatError, match=r"cameras.bin: camera 3 has unknown model id 18 \(known: 0..17\)"):
+        _read_cameras_bin(p)
+    p.write_bytes(struct.pack("<Q", 1) + struct.pack("<IiQQ", 3, 0, 8, 6) + struct.pack("<3d", 1, 2, 3))
+    cam = _read_cameras_bin(p)[3]
+    assert (cam.model, cam.width, cam.height, cam.params) == ("SIMPLE_PINHOLE", 8, 6, (1.0, 2.0, 3.0))
+    q = tmp_path / "images.bin"
+    head = struct.pack("<I4d3dI", 5, 1, 0, 0, 0, 1, 2, 3, 3)
+    q.write_bytes(struct.pack("<Q", 1) + head + b"\xffname\0" + struct.pack("<Q", 0))
+    with pytest.raises(FileFormatError, match="images.bin: the name of image 5 at byte .* is not UTF-8"):
+        _read_images_bin(q)
+    q.write_bytes(struct.pack("<Q", 1) + head + b"x.png\0" + struct.pack("<Q", 1) + b"\0" * 24)
+    im = _read_images_bin(q)[5]
+    assert (im.qvec, im.tvec, im.camera_id, im.name) == ((1.0, 0.0, 0.0, 0.0), (1.0, 2.0, 3.0), 3, "x.png")
