@@ -137,3 +137,51 @@ def test_a_broken_plugin_is_reported_and_skipped_or_fatal_in_strict_mode(fresh_p
     capsys.readouterr()
     assert cli.main(["plugins"]) == 1
     assert "'broken' from broken-xr 0.1 failed to load" in capsys.readouterr().err
+
+
+def _stage_named(stage_name: str) -> type:
+    from controlgs_adapter.downstream.stage import Stage
+
+    return type(f"Stage_{stage_name}", (Stage,), {"name": stage_name, "forward": lambda self, image, state, ctx: image})
+
+
+class _StagePlugin:
+    def __init__(self, stage_name: str) -> None:
+        self.stage = _stage_named(stage_name)
+
+    @controlgs_adapter.hookimpl
+    def controlgs_register_stages(self):
+        return [self.stage]
+
+
+def test_a_name_registered_twice(fresh_plugins, monkeypatch, tmp_path):
+    lens = _StagePlugin("lens")  # a third-party stage named as a built-in one replaces it, with a warning
+    plugins.register_plugin(lens, name="my_lens")
+    with pytest.warns(UserWarning, match="stage 'lens' from my_lens \\(runtime\\) replaces the built-in"):
+        assert plugins.stages()["lens"].obj is lens.stage
+    plugins.register_plugin(_StagePlugin("lens"), name="other_lens")  # two third-party ones: refused, both named
+    with pytest.raises(PluginLoadError, match="stage 'lens' is registered twice: by other_lens \\(runtime\\) and "
+                                              "my_lens \\(runtime\\)"):
+        plugins.stages()
+    plugins.reset_plugin_manager()  # two built-in modules with one name: refused too
+    (tmp_path / "dup_builtin_stage.py").write_text(
+        "from controlgs_adapter.hookspecs import hookimpl\n"
+        "from controlgs_adapter.downstream.lens import LensPrewarp\n\n"
+        "@hookimpl(trylast=True)\ndef controlgs_register_stages():\n    return [LensPrewarp]\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(plugins, "BUILTIN_PLUGINS", (*plugins.BUILTIN_PLUGINS, "dup_builtin_stage"))
+    with pytest.raises(PluginLoadError, match="stage 'lens' is registered twice: by .*built-in"):
+        plugins.stages()
+
+
+@pytest.mark.parametrize("value, strict", [("0", False), ("", False), ("1", True), ("yes", True)])
+def test_strict_plugins_environment_variable(fresh_plugins, monkeypatch, value, strict):
+    _fake_distributions(monkeypatch, _FakeDistribution("broken-xr", "0.1", [
+        _FakeEntryPoint("broken", ModuleNotFoundError("No module named 'cupy'"))]))
+    monkeypatch.setenv("CONTROLGS_STRICT_PLUGINS", value)
+    if strict:
+        with pytest.raises(PluginLoadError, match="'broken' from broken-xr 0.1"):
+            plugins.get_plugin_manager()
+    else:
+        with pytest.warns(RuntimeWarning, match="'broken' from broken-xr 0.1 failed to load"):
+            plugins.get_plugin_manager()
