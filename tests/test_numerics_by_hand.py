@@ -210,3 +210,29 @@ def test_checkpoint_cadence_and_until_past_the_end(tiny, tmp_path):
         assert t.saved_at == [2, 4, 5]  # every 2nd iteration, then at the end
     finally:
         t.cgs.unwrap()
+
+
+# ----------------------------------------------------------------------------- ray tracer
+
+
+def test_slab_rays_clip_at_the_semi_diameter_and_extend_back_to_the_image_plane():
+    """A plane-parallel slab of semi-diameter 2 mm: a ray from the axis with slope u meets the first
+    surface at height u d (d the object distance); it passes iff that height (and its exit height)
+    is within 2 mm. Its backward extension crosses the image plane at exit + u (z_image - z_exit)."""
+    from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription, cauchy_index
+    from controlgs_adapter.downstream.optics.raytrace import trace
+
+    spec = dict(CARDBOARD, surfaces=[
+        {"radius_mm": None, "thickness_mm": 5.0, "after": {"nd": 1.6, "vd": 40.0}, "semi_diameter_mm": 2.0},
+        {"radius_mm": None, "thickness_mm": 10.0, "after": "air", "semi_diameter_mm": 2.0}])
+    rx = Prescription(spec)
+    d = rx.object_distance
+    u = torch.tensor([0.5, 1.5, 2.5, -1.7]).double().numpy() / d  # first-surface heights 0.5, 1.5, 2.5, -1.7 mm
+    _, _, X, _, ok = trace(rx, 550.0, 0.0, 0.0, u, 0.0)
+    n = cauchy_index(1.6, 40.0, 550.0)
+    slope_glass = torch.tan(torch.asin(torch.from_numpy(u / (1 + u * u) ** 0.5) / n)).numpy()
+    exit_x = u * d + slope_glass * 5.0
+    assert ok.tolist() == [bool(abs(h) <= 2.0) for h in exit_x]
+    assert ok.tolist() == [True, True, False, True]
+    want_X = exit_x + u * (rx.image_z - (d + 5.0))
+    assert abs(X - want_X).max() < 1e-9
