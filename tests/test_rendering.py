@@ -181,3 +181,19 @@ def test_training_step_host_syncs(tiny):
         kinds[kind] += 1
     print("host syncs of one training step:", dict(kinds))
     assert kinds["loss log"] == 1 and kinds["step"] <= 2, dict(kinds)
+
+
+def test_render_view_without_adapter_or_state_is_the_bare_backbone(tiny):
+    scene, model = tiny
+    cam = scene.test_cameras[0]
+    with torch.no_grad():
+        bare = model.render(cam, model.visible_anchors(cam), scene.background).color
+        cgs = ControlGS.wrap(model)
+        try:
+            for p in cgs.injector.parameters():  # an adapter that changes the decode
+                p.add_(0.05 * torch.randn_like(p))
+            assert not torch.equal(render_view(cgs, model, cam, STATE, scene.background), bare)
+            assert torch.equal(render_view(cgs, model, cam, None, scene.background), bare)  # no state: no condition
+            assert torch.equal(render_view(None, model, cam, STATE, scene.background), bare)  # no adapter
+        finally:
+            cgs.unwrap()
