@@ -236,3 +236,23 @@ def test_slab_rays_clip_at_the_semi_diameter_and_extend_back_to_the_image_plane(
     assert ok.tolist() == [True, True, False, True]
     want_X = exit_x + u * (rx.image_z - (d + 5.0))
     assert abs(X - want_X).max() < 1e-9
+
+
+# ----------------------------------------------------------------------------- pipeline sizes
+
+
+def test_pipeline_refuses_an_image_larger_than_native_and_a_reference_at_another_size():
+    from controlgs_adapter.downstream.oled import OLEDEmission
+    from controlgs_adapter.downstream.pipeline import Pipeline
+
+    p = Pipeline([OLEDEmission()])
+    img = torch.rand(3, 4, 6, dtype=F64)
+    state = RuntimeState(downsample=2.0)
+    for native in ((3, 6), (4, 5)):  # either side smaller than the image
+        with pytest.raises(ShapeError, match="larger than the native size"):
+            p(img, state, native_size=native)
+    with pytest.raises(ShapeError, match="reference must be at native_size"):
+        p(img, state, reference=torch.rand(3, 8, 12, dtype=F64), native_size=(8, 11))
+    # the native size taken from the reference: box emission to it (display pixel floor((i + 0.5) n / S))
+    out = p(img, state, reference=torch.rand(3, 8, 9, dtype=F64))
+    assert torch.allclose(out, img[:, [0, 0, 1, 1, 2, 2, 3, 3]][:, :, [0, 1, 1, 2, 3, 3, 4, 5, 5]], atol=1e-12)
