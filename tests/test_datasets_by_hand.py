@@ -402,3 +402,150 @@ def test_colmap_binary_unknown_model_id_and_non_utf8_name(tmp_path):
     q.write_bytes(struct.pack("<Q", 1) + head + b"x.png\0" + struct.pack("<Q", 1) + b"\0" * 24)
     im = _read_images_bin(q)[5]
     assert (im.qvec, im.tvec, im.camera_id, im.name) == ((1.0, 0.0, 0.0, 0.0), (1.0, 2.0, 3.0), 3, "x.png")
+
+
+# --- instant-ngp and Blender JSON written by hand
+
+_EYE = [[1.0, 0.0, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 2.0], [0.0, 0.0, 0.0, 1.0]]
+
+
+def _ngp(root, meta: dict, frames: list[dict], sizes: dict[str, tuple[int, int]]):
+    import json
+
+    from PIL import Image
+
+    root.mkdir(parents=True, exist_ok=True)
+    for name, (w, h) in sizes.items():
+        Image.fromarray(np.zeros((h, w, 3), np.uint8)).save(root / name)
+    (root / "transforms.json").write_text(json.dumps({**meta, "frames": [{"transform_matrix": _EYE, **f} for f in frames]}))
+    return root
+
+
+def test_ngp_intrinsics_defaults_and_group_overrides_by_hand(tmp_path):
+    import math
+
+    from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
+
+    meta = {"fl_y": 6.0, "w": 8, "h": 4, "k1": 0.0, "k2": 0.0}
+    frames = [{"file_path": "a.png"},
+              {"file_path": "b.png", "camera_angle_x": math.pi / 2, "cx": 1.0, "k3": 0.01},
+              {"file_path": "c.png", "camera_angle_y": math.pi / 2, "w": 16, "h": 8}]
+    root = _ngp(tmp_path, meta, frames, {"a.png": (8, 4), "b.png": (4, 2), "c.png": (8, 4)})
+    scene = read_instant_ngp(root, holdout=0)
+    a, b, c = scene.splits["train"]
+    assert a.camera.intrinsics.tolist() == [[6.0, 0.0, 4.0], [0.0, 6.0, 2.0], [0.0, 0.0, 1.0]]  # fx from fl_y; centre w/2, h/2
+    assert a.distortion is None  # all-zero coefficients: pinhole
+    # b: its own focal group (fx = 0.5 w / tan(pi/4) = 4; fy from fx), its own cx (cy from the top level's h/2): half size
+    np.testing.assert_allclose(b.camera.intrinsics, [[2.0, 0.0, 0.5], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]], rtol=1e-6)
+    assert b.distortion == (0.0, 0.0, 0.0, 0.0, 0.01)  # the frame's distortion group replaces the top level's
+    # c: fy = 0.5 h / tan(pi/4) = 4 at 16 x 8, image at half size
+    np.testing.assert_allclose(c.camera.intrinsics, [[2.0, 0.0, 4.0], [0.0, 2.0, 2.0], [0.0, 0.0, 1.0]], rtol=1e-6)
+    assert scene.points is None and scene.format == "instant_ngp" and scene.source == str(root)
+
+
+@pytest.mark.parametrize("meta, frame, words", [
+    ({"camera_model": "OPENCV_FISHEYE"}, {}, "camera_model 'OPENCV_FISHEYE' is not supported"),
+    ({}, {"camera_model": "EQUIRECTANGULAR"}, "camera_model 'EQUIRECTANGULAR' is not supported"),
+    ({"is_fisheye": True}, {}, "is_fisheye set: fisheye cameras are not supported"),
+    ({}, {"k4": 0.1}, "k4 set: fisheye cameras are not supported"),
+    ({"w": 0}, {}, "w and h must be > 0, got 0.0 x 4.0"),
+    ({"h": -4}, {}, "w and h must be > 0"),
+    ({"fl_x": None}, {}, "fl_x must be a finite number, got None"),
+    ({"fl_x": "5"}, {}, "fl_x must be a finite number, got '5'"),
+    ({"fl_x": 0.0}, {}, "no usable focal length"),
+    ({"fl_x": -1.0, "fl_y": 2.0}, {}, "no usable focal length"),
+    ({"fl_x": None}, {"fl_y": 1.0, "camera_angle_x": 0.0}, "camera_angle_x must be in (0, pi) radians, got 0.0"),
+    ({}, {"camera_angle_y": 3.2}, "camera_angle_y must be in (0, pi) radians, got 3.2"),
+    ({"fl_x": None}, {"cx": 1.0}, "fl_x must be a finite number"),
+    ({"w": 8, "h": 2}, {}, "the file says 8 x 2 but the image"),
+    ({"w": 6, "h": 4}, {}, "the file says 6 x 4 but the image"),
+    ({}, {"transform_matrix": None}, "no 'transform_matrix'"),
+    ({}, {"transform_matrix": [[2.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "not a rotation"),
+])
+def test_ngp_camera_refusals_name_file_and_frame(tmp_path, meta, frame, words):
+    from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
+
+    root = _ngp(tmp_path, {"fl_x": 5.0, **meta}, [{"file_path": "a.png", **frame}], {"a.png": (8, 4)})
+    with pytest.raises(FileFormatError) as e:
+        read_instant_ngp(root, holdout=0)
+    assert "transforms.json: frames[0] ('a.png')" in str(e.value) and words in str(e.value)
+
+
+def test_ngp_file_level_refusals_and_missing_frames(tmp_path):
+    from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
+
+    with pytest.raises(FileFormatError, match="nowhere: dataset folder not found"):
+        read_instant_ngp(tmp_path / "nowhere")
+    root = _ngp(tmp_path / "r", {"fl_x": 5.0}, [{"file_path": f"f{i}.png"} for i in range(8)],
+                {"f0.png": (8, 4), "f7.png": (8, 4)})
+    for bad in (1, -1, True, 2.0):
+        with pytest.raises(InputValueError, match=f"holdout must be 0 \\(no test split\\) or an int >= 2, got {bad!r}"):
+            read_instant_ngp(root, holdout=bad)
+    with pytest.warns(RuntimeWarning, match=r"transforms.json: 6 of 8 frames list an image that is not there, skipped: "
+                                            r"f1.png, f2.png, f3.png, f4.png, f5.png, \.\.\.$"):
+        scene = read_instant_ngp(root, holdout=2)
+    assert [f.name for f in scene.splits["test"]] == ["f0.png"] and [f.name for f in scene.splits["train"]] == ["f7.png"]
+    with pytest.raises(FileFormatError, match=r"other.json: not found \(an instant-ngp dataset needs other.json\)"):
+        read_instant_ngp(root, transforms="other.json")
+    gone = _ngp(tmp_path / "g", {"fl_x": 5.0}, [{"file_path": "x.png"}, {"file_path": "y.png"}], {})
+    with pytest.warns(RuntimeWarning, match="skipped: x.png, y.png$"), \
+            pytest.raises(FileFormatError, match=r"none of the 2 images its frames list exists \(first: .*g/x.png\)"):
+        read_instant_ngp(gone)
+    twice = _ngp(tmp_path / "t", {"fl_x": 5.0}, [{"file_path": "a.png"}, {"file_path": "./a"}], {"a.png": (8, 4)})
+    with pytest.raises(FileFormatError, match="an image is listed twice \\('a.png'\\)"):
+        read_instant_ngp(twice)
+    (twice / "transforms.json").write_text('{"frames": []}')
+    with pytest.raises(FileFormatError, match=r"'frames' must be a non-empty list, got \[\]"):
+        read_instant_ngp(twice)
+    (twice / "transforms.json").write_text('[1]')
+    with pytest.raises(FileFormatError, match="transforms.json: expected a JSON object, got list"):
+        read_instant_ngp(twice)
+    (twice / "transforms.json").write_text('{"frames": [')
+    with pytest.raises(FileFormatError, match=r"transforms.json: cannot read it as JSON \("):
+        read_instant_ngp(twice)
+    (twice / "transforms.json").write_text('{"frames": [{"file_path": 3}]}')
+    with pytest.raises(FileFormatError, match=r"transforms.json: frames\[0\] needs a 'file_path' string"):
+        read_instant_ngp(twice)
+
+
+def test_blender_by_hand_and_refusals(tmp_path):
+    import json
+    import math
+
+    from PIL import Image
+
+    from controlgs_adapter.datasets.blender import read_blender
+
+    with pytest.raises(FileFormatError, match="nowhere: dataset folder not found"):
+        read_blender(tmp_path / "nowhere")
+    with pytest.raises(FileFormatError, match="no transforms_train.json"):
+        read_blender(tmp_path)
+    (tmp_path / "train").mkdir()
+    Image.fromarray(np.zeros((4, 8, 4), np.uint8), "RGBA").save(tmp_path / "train" / "r_0.png")
+    meta = {"camera_angle_x": math.pi / 2, "frames": [{"file_path": "./train/r_0", "transform_matrix": _EYE}]}
+    (tmp_path / "transforms_train.json").write_text(json.dumps(meta))
+    scene = read_blender(tmp_path, white_background=True)
+    (f,) = scene.splits["train"]
+    assert scene.splits["test"] == [] and f.name == "train/r_0.png" and scene.background.tolist() == [1.0, 1.0, 1.0]
+    np.testing.assert_allclose(f.camera.intrinsics, [[4.0, 0.0, 4.0], [0.0, 4.0, 2.0], [0.0, 0.0, 1.0]], rtol=1e-6)
+    # OpenGL camera at (0.5, 0, 2) looking down -z: OpenCV w2c flips y and z, t = -R^T c
+    assert f.camera.world_to_camera.tolist() == [[1, 0, 0, -0.5], [0, -1, 0, 0], [0, 0, -1, 2], [0, 0, 0, 1]]
+    assert read_blender(tmp_path, background=torch.tensor([0.2, 0.4, 0.6]), white_background=True).background.tolist() \
+        == pytest.approx([0.2, 0.4, 0.6])
+    with pytest.raises(InputValueError, match=r"background must be an sRGB colour in \[0, 1\], got \[0.0, 2.0, 0.0\]"):
+        read_blender(tmp_path, background=torch.tensor([0.0, 2.0, 0.0]))
+    for angle in (0.0, math.pi, "1", None):
+        (tmp_path / "transforms_train.json").write_text(json.dumps({**meta, "camera_angle_x": angle}))
+        with pytest.raises(FileFormatError, match=rf"transforms_train.json: camera_angle_x must be a number in \(0, pi\) "
+                                                  rf"radians, got {angle!r}"):
+            read_blender(tmp_path)
+    (tmp_path / "transforms_train.json").write_text(json.dumps({**meta, "frames": {}}))
+    with pytest.raises(FileFormatError, match="transforms_train.json: 'frames' must be a list, got dict"):
+        read_blender(tmp_path)
+    (tmp_path / "transforms_train.json").write_text(json.dumps({**meta, "frames": [{"file_path": "train/r_1.jpg"}]}))
+    with pytest.raises(FileFormatError, match=r"frames\[0\] image 'train/r_1.jpg' not found \(looked for .*r_1.jpg and "
+                                              r"with .png appended\)"):
+        read_blender(tmp_path)
+    (tmp_path / "transforms_train.json").write_text(json.dumps({**meta, "frames": [{"file_path": "train/r_1.png"}]}))
+    with pytest.raises(FileFormatError, match=r"r_1.png\)$"):
+        read_blender(tmp_path)
