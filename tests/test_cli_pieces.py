@@ -238,3 +238,16 @@ def test_user_scene_defaults_every_8th_view_held_out(tmp_path: Path) -> None:
     rec = user.record(args, iterations=3)
     assert rec["holdout"] == 8 and rec["model"] == str(model.resolve()) and rec["data"] == str((tmp_path / "data").resolve())
     assert (rec["allow_unquantized"], rec["white_background"], rec["format"], rec["iterations"]) == (False, False, "colmap", 3)
+
+
+def test_eval_seed_folders(tmp_path: Path) -> None:
+    from controlgs_adapter.commands.eval import seed_folders
+
+    assert seed_folders(tmp_path, 5, None) == [(5, tmp_path)]  # no seed folders: the run folder itself
+    for name in ("seed-2", "seed--1", "seed-10", "seed-x", "seed-"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "seed-7").write_text("")  # a file, not a folder
+    assert seed_folders(tmp_path, 0, None) == [(-1, tmp_path / "seed--1"), (2, tmp_path / "seed-2"),
+                                               (10, tmp_path / "seed-10")]
+    assert seed_folders(tmp_path, 2, 1) == [(2, tmp_path)]
+    assert seed_folders(tmp_path, -1, 2) == [(-1, tmp_path / "seed--1"), (0, tmp_path / "seed-0")]
