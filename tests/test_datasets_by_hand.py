@@ -549,3 +549,84 @@ def test_blender_by_hand_and_refusals(tmp_path):
     (tmp_path / "transforms_train.json").write_text(json.dumps({**meta, "frames": [{"file_path": "train/r_1.png"}]}))
     with pytest.raises(FileFormatError, match=r"r_1.png\)$"):
         read_blender(tmp_path)
+
+
+# --- check_scene by hand
+
+
+def _looking(n: int, flipped: int = 0) -> list[Frame]:
+    """``n`` cameras at the origin looking down +z (8 x 6, f = 4, centre (4, 3)); the last ``flipped`` look down -z."""
+    out = []
+    for i in range(n):
+        cam = _cam(8, 6, fx=4.0, fy=4.0)
+        if i >= n - flipped:
+            cam.world_to_camera[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
+        out.append(Frame(f"v{i}", cam, torch.zeros(3, 6, 8)))
+    return out
+
+
+def test_check_scene_fractions_and_image_borders_by_hand():
+    from controlgs_adapter.datasets.sanity import check_scene
+
+    # u = 4 x / z + 4, v = 4 y / z + 3: inside iff 0 <= u < 8 and 0 <= v < 6
+    pts = torch.tensor([[0.0, 0.0, 1.0],      # centre: inside
+                        [-1.0, -0.75, 1.0],   # u = 0, v = 0: inside (left/top edges included)
+                        [1.0, 0.0, 1.0],      # u = 8: outside (right edge excluded)
+                        [0.0, 0.75, 1.0],     # v = 6: outside (bottom edge excluded)
+                        [0.0, 0.0, -1.0],     # behind
+                        [0.0, 0.0, 0.0],      # depth 0: not in front
+                        [0.99, 0.74, 1.0],    # inside
+                        [10.0, 0.0, 1.0]])    # outside
+    data = SceneData({"train": _looking(2), "test": []}, source="src", format="colmap")
+    rep = check_scene(data, pts, required=("train",))
+    assert rep["in_front"] == {"v0": 3 / 8, "v1": 3 / 8} and rep["blind"] == [] and rep["points"] == 8
+    assert rep["splits"] == {"train": 2, "test": 0} and rep["images_checked"] == 2
+    assert (rep["source"], rep["format"]) == ("src", "colmap")
+    # a camera exactly at the threshold is not blind
+    assert check_scene(data, pts, min_in_front=3 / 8)["blind"] == []
+    with pytest.warns(RuntimeWarning, match=r"src: 1 of 2 cameras see almost none of the 8 points \(< 38% in front"):
+        assert check_scene(SceneData({"train": _looking(2, flipped=1)}, source="src"), pts, min_in_front=0.375)["blind"] \
+            == ["v1"]
+
+
+def test_check_scene_half_blind_warns_more_than_half_raises_with_the_formats_hint():
+    from controlgs_adapter.datasets.sanity import check_scene
+
+    pts = torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.0, 2.0]])
+    with pytest.warns(RuntimeWarning, match=r"3 of 6 cameras .*: v3, v4, v5$"):
+        check_scene(SceneData({"train": _looking(6, flipped=3)}), pts)
+    with pytest.warns(RuntimeWarning, match=r"6 of 12 cameras .*: v6, v7, v8, v9, v10, \.\.\.$"):
+        check_scene(SceneData({"train": _looking(12, flipped=6)}), pts)
+    for fmt, hint in [("blender", "NeRF-synthetic transform_matrix must be camera to world in OpenGL axes"),
+                      ("instant_ngp", "instant-ngp transform_matrix must be camera to world"),
+                      ("colmap", "COLMAP's images file must hold world to camera"),
+                      ("", "this dataset: cameras must be world to camera in OpenCV axes")]:
+        with pytest.raises(InputValueError) as e:
+            check_scene(SceneData({"train": _looking(3, flipped=2)}, source="s", format=fmt), pts)
+        msg = str(e.value)
+        assert msg.startswith("s: 2 of 3 cameras see none of the scene") and hint in msg
+        assert "fewer than 5% of 2 points" in msg and "on average 67% lie behind the cameras" in msg
+
+
+def test_check_scene_points_choice_stride_and_refusals():
+    from controlgs_adapter.datasets import sanity
+
+    data = SceneData({"train": _looking(1)}, points=torch.tensor([[0.0, 0.0, -1.0]]), source="s")
+    with pytest.raises(InputValueError, match="1 of 1 cameras"):
+        sanity.check_scene(data)  # the SfM points, behind the camera
+    assert sanity.check_scene(data, torch.tensor([[0.0, 0.0, 1.0]]))["in_front"] == {"v0": 1.0}  # given points win
+    assert sanity.check_scene(data, torch.zeros(0, 3))["points"] == 0
+    assert sanity.check_scene(SceneData({"train": _looking(1)}))["in_front"] == {}  # no points: skipped
+    n = sanity._MAX_POINTS + 1
+    assert sanity.check_scene(data, torch.tensor([[0.0, 0.0, 1.0]]).repeat(n, 1))["points"] == (n + 1) // 2
+    for bad in (-0.1, 1.0, True, "0.5"):
+        with pytest.raises(InputValueError, match=f"min_in_front must be a fraction in \\[0, 1\\), got {bad!r}"):
+            sanity.check_scene(data, min_in_front=bad)
+    with pytest.raises(InputValueError, match=r"^s: the 'test' split is empty \(splits: train=1\)$"):
+        sanity.check_scene(data, required=("train", "test"))
+    with pytest.raises(InputValueError, match=r"the 'train' split is empty \(splits: none\)$"):
+        sanity.check_scene(SceneData({}))
+    frames = [Frame(f"w{i}", _cam(8, 6), torch.zeros(3, 6, 7)) for i in range(7)]
+    with pytest.raises(FileFormatError, match=r"^7 of 8 images do not match their camera's size: w0 is 7x6, its camera "
+                                              r"8x6; .*w4 is 7x6, its camera 8x6; \.\.\.$"):
+        sanity.check_scene(SceneData({"train": _looking(1) + frames}))
