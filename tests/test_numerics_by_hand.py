@@ -208,6 +208,15 @@ def test_checkpoint_cadence_and_until_past_the_end(tiny, tmp_path):
         t.train(until=50, progress=False)  # until beyond iterations stops at iterations
         assert t.iteration == 5 and len(t.history) == 5
         assert t.saved_at == [2, 4, 5]  # every 2nd iteration, then at the end
+        # without a display stage every state has rho = 0; d = max_d ** u0 from the same draws
+        g = torch.Generator().manual_seed(config.seed)
+        t.generator.manual_seed(config.seed)
+        for _ in range(20):
+            view = int(torch.randint(len(t.views), (1,), generator=g))
+            u = torch.rand(2, generator=g, dtype=F64)
+            got_view, state = t.sample()
+            assert got_view == view and state.power_saving == 0.0
+            assert state.downsample == pytest.approx(config.max_downsample ** float(u[0]), rel=1e-12)
     finally:
         t.cgs.unwrap()
 
