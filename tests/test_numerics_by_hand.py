@@ -163,6 +163,7 @@ def test_nested_conditioned_blocks_are_refused():
     cgs = ControlGS.wrap(model)
     try:
         with cgs.conditioned(RuntimeState(downsample=2.0), camera=cam):
+            model.decode(model.decoder_input(cam.center))  # the outer block is used
             with pytest.raises(LifecycleError, match="already inside"):
                 with cgs.conditioned(RuntimeState(), camera=cam):
                     pass
