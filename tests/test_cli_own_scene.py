@@ -51,6 +51,7 @@ def _train_eval(tmp_path, data, name: str, *extra: str) -> dict:
                  "--no-ablations", *FAST, *extra]) == 0
     record = json.loads((run / "run.json").read_text())
     assert record["family"] == "scaffold_gs" and record["iterations"] == 3 and record["effects"] == ["display", "resample"]
+    assert (record["seeds"], record["seed"], record["holdout"]) == (1, 0, 8)  # one seed, the defaults
     assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress"]) == 0
     for f in ("results.json", "report.md", "heatmap.png", "comparison.png", "condition_response.png"):
         assert (report / f).is_file() and (report / f).stat().st_size > 0, f

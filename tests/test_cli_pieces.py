@@ -251,3 +251,10 @@ def test_eval_seed_folders(tmp_path: Path) -> None:
                                                (10, tmp_path / "seed-10")]
     assert seed_folders(tmp_path, 2, 1) == [(2, tmp_path)]
     assert seed_folders(tmp_path, -1, 2) == [(-1, tmp_path / "seed--1"), (0, tmp_path / "seed-0")]
+
+
+def test_cli_error_with_a_newline_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """torch's message repeats the raw device string: the CLI still prints one line."""
+    assert cli.main(["train", "--model", "m", "--data", "d", "--out", str(tmp_path / "r"), "--device", "cu\nda"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("controlgs train: error: --device 'cu\\nda': "), err
