@@ -258,3 +258,44 @@ def test_cli_error_with_a_newline_is_one_line(tmp_path: Path, capsys: pytest.Cap
     assert cli.main(["train", "--model", "m", "--data", "d", "--out", str(tmp_path / "r"), "--device", "cu\nda"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("controlgs train: error: --device 'cu\\nda': "), err
+
+
+def _eval_run(tmp_path: Path, seeds: dict[str, tuple[str, ...]]) -> Path:
+    run = tmp_path / "run"
+    for folder, names in seeds.items():
+        (run / folder).mkdir(parents=True, exist_ok=True)
+        for n in names:
+            (run / folder / f"{n}.controlgs.safetensors").write_text("")  # checked for presence before any load
+    return run
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["view", "--threads", "0"], "--threads must be an integer in [1, "),
+    (["view", "--model", "m", "--data", "d"], "--model/--data need --run RUN"),
+    (["view", "--rasterizer", "nope"], "--rasterizer 'nope' is not registered"),
+    (["optics", "fit-prewarp", "--size", "9", "--out", "{d}/lut.safetensors"], "--size must be an even integer >= 8, got 9"),
+    (["optics", "fit-prewarp", "--size", "6", "--out", "{d}/lut.safetensors"], "--size must be an even integer >= 8, got 6"),
+    (["optics", "fit-prewarp", "--out", "{d}"], "--out {d}: is a folder"),
+    (["optics", "build-bank", "--out", "{d}"], "--out {d}: is a folder"),
+    (["optics", "build-bank", "--prescription", "{d}/big.json", "--out", "{d}/b.safetensors"], "big.json: 1048577 bytes, too large"),
+    (["optics", "bench", "--sizes", "256", "1x4"], "--sizes: size must be N or HxW with N, H, W >= 2, got '1x4'"),
+    (["eval", "--run", "{d}/run"], "seed-2: no controlgs.controlgs.safetensors"),
+])
+def test_command_refusals_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+                                       message: str) -> None:
+    (tmp_path / "big.json").write_bytes(b" " * ((1 << 20) + 1))
+    _eval_run(tmp_path, {"seed-1": ("controlgs",), "seed-2": ("wo_lens",)})
+    d = str(tmp_path)
+    assert cli.main([a.replace("{d}", d) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"controlgs {argv[0]}: error: ") and message.replace("{d}", d) in err[0], err
+
+
+def test_eval_refuses_seed_folders_with_different_adapters(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    run = _eval_run(tmp_path, {"seed-1": ("controlgs",), "seed-2": ("controlgs", "wo_lens")})
+    assert cli.main(["eval", "--run", str(run)]) == 2
+    assert (f"{run}: the seed folders hold different adapters (seed-1: controlgs; seed-2: controlgs, wo_lens)"
+            in capsys.readouterr().err)
+    run = _eval_run(tmp_path / "one", {".": ()})
+    assert cli.main(["eval", "--run", str(run)]) == 2  # one seed: the run folder itself is named
+    assert f"controlgs eval: error: {run}: no controlgs.controlgs.safetensors" in capsys.readouterr().err
