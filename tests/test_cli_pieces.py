@@ -299,3 +299,26 @@ def test_eval_refuses_seed_folders_with_different_adapters(tmp_path: Path, capsy
     run = _eval_run(tmp_path / "one", {".": ()})
     assert cli.main(["eval", "--run", str(run)]) == 2  # one seed: the run folder itself is named
     assert f"controlgs eval: error: {run}: no controlgs.controlgs.safetensors" in capsys.readouterr().err
+
+
+def test_load_renderer_from_files_and_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from controlgs_adapter.commands.common import load_renderer
+
+    (tmp_path / "r.py").write_text(
+        "def fn(model, camera, visible, background):\n    return 'image'\n\n"
+        "class Obj:\n    def visible(self, model, camera):\n        return 'mask'\n\n"
+        "    def render(self, model, camera, visible, background):\n        return 'obj image'\n\nobj = Obj()\n")
+    (tmp_path / "inner_fail.py").write_text("import xyz_missing_pkg_for_test\n")
+    r = load_renderer(f"{tmp_path / 'r.py'}:fn")
+    assert isinstance(r, FunctionRenderer) and r.render(None, None, None, None) == "image" and r.visible(None, None) is None
+    o = load_renderer(f"{tmp_path / 'r.py'}:obj")
+    assert (o.visible(None, None), o.render(None, None, None, None)) == ("mask", "obj image")
+    monkeypatch.chdir(tmp_path)
+    assert load_renderer("r:obj").render(None, None, None, None) == "obj image"  # a module of the current folder
+    with pytest.raises(ModuleNotFoundError) as e:  # a module the renderer's module imports: not hidden
+        load_renderer("inner_fail:render")
+    assert e.value.name == "xyz_missing_pkg_for_test"
+    for spec, message in ((":fn", "must be MODULE:ATTR"), ("r.py:1fn", "must be MODULE:ATTR"),
+                          ("r.py:nope", "r.py has no attribute 'nope'")):
+        with pytest.raises(InputValueError, match=message):
+            load_renderer(spec)

@@ -185,3 +185,18 @@ def test_strict_plugins_environment_variable(fresh_plugins, monkeypatch, value, 
     else:
         with pytest.warns(RuntimeWarning, match="'broken' from broken-xr 0.1 failed to load"):
             plugins.get_plugin_manager()
+
+
+def test_register_blocked_unregister_and_report(fresh_plugins):
+    pm = plugins.get_plugin_manager()
+    pm.set_blocked("blocked_one")
+    with pytest.raises(PluginLoadError, match="plug-in 'blocked_one' is blocked"):
+        plugins.register_plugin(_StagePlugin("never"), name="blocked_one")
+    plugins.register_plugin(_StagePlugin("extra_stage"), name="mine")
+    info = plugins.stages()["extra_stage"]
+    assert (info.kind, info.plugin, info.source) == ("stage", "mine", "runtime")
+    report = plugins.plugin_report()
+    assert [i for i in report if i.name == "extra_stage"] == [info]
+    assert {i.kind for i in report} == {"backend", "stage", "schedule", "rasterizer"}
+    plugins.unregister_plugin("mine")
+    assert "extra_stage" not in plugins.stages() and pm.get_plugin("mine") is None

@@ -381,3 +381,30 @@ def test_body_size_limit_and_loopback_host_names(server: Any) -> None:
     for tag in (True, None, 1.0):
         status, out = request(server, "POST", "/api/extra", {"generation": tag})
         assert status == 400 and "/api/extra takes" in json.loads(out)["error"], tag
+
+
+class FailingSession:
+    """Stands in for a session whose render fails with a library bug (not a bad request)."""
+
+    cameras = [None]
+
+    def render(self, state: ViewState, check: Any, tag: int) -> dict[str, Any]:
+        raise RuntimeError("boom")
+
+
+def test_server_errors_keep_it_serving() -> None:
+    srv = make_server(FailingSession())  # type: ignore[arg-type]
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        status, out = request(srv, "POST", "/api/render", {})
+        assert status == 500 and json.loads(out) == {"error": "RuntimeError: boom"}
+        status, out = request(srv, "POST", "/api/render", raw=b"{}", headers={"Content-Length": "two"})
+        assert status == 400 and json.loads(out)["error"] == "bad Content-Length"
+        status, out = request(srv, "POST", "/api/render", raw=b"")
+        assert status == 400 and "at most" in json.loads(out)["error"]
+        status, out = request(srv, "POST", "/api/render", {"view": 1})  # one camera: views are [0, 0]
+        assert status == 400 and "view must be an integer in [0, 0]" in json.loads(out)["error"]
+        assert request(srv, "GET", "/")[0] == 200
+    finally:
+        srv.shutdown()
+        srv.server_close()
