@@ -408,3 +408,39 @@ def test_server_errors_keep_it_serving() -> None:
     finally:
         srv.shutdown()
         srv.server_close()
+
+
+def test_encode_png_rounds_to_the_nearest_level() -> None:
+    from controlgs_adapter.viewer.session import encode_png
+
+    img = torch.tensor([0.0, 0.5, 1.0, 1.5, -0.2, 0.3]).view(1, 2, 3).expand(3, 2, 3)  # values outside [0, 1] clip
+    got = decode(encode_png(img))
+    want = torch.tensor([0, 128, 255, 255, 0, 77], dtype=torch.float32).view(2, 3)  # round(v * 255)
+    assert got.shape == (2, 3, 3) and torch.equal(got[..., 0], want) and torch.equal(got[..., 2], want)
+    rgba = torch.cat([img, torch.full((1, 2, 3), 0.2)])
+    assert torch.equal(decode(encode_png(rgba))[..., 3], torch.full((2, 3), 51.0))
+
+
+def test_scene_centre_fallbacks_and_axes_by_hand() -> None:
+    from controlgs_adapter.state import Camera
+
+    k = torch.tensor([[10.0, 0.0, 8.0], [0.0, 10.0, 8.0], [0.0, 0.0, 1.0]])
+
+    def looking_at_origin_from(c: list[float], sign: float = 1.0) -> Camera:  # sign -1: looking away from it
+        z = -sign * torch.tensor(c, dtype=torch.float64)
+        z = z / z.norm()
+        x = torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), z)
+        x = x / x.norm()
+        r = torch.stack([x, torch.linalg.cross(z, x), z])
+        w2c = torch.eye(4, dtype=torch.float64)
+        w2c[:3, :3], w2c[:3, 3] = r, -(r @ torch.tensor(c, dtype=torch.float64))
+        return Camera(w2c.float(), k, 16, 16)
+
+    cams = [looking_at_origin_from([4.0, 0.0, 0.0]), looking_at_origin_from([0.0, 0.0, 4.0])]
+    assert torch.allclose(scene_centre(cams, None), torch.zeros(3, dtype=torch.float64), atol=1e-5)
+    points = torch.tensor([[0.0, 1.0, 2.0], [10.0, -1.0, 3.0], [2.0, 5.0, 9.0]])
+    assert torch.equal(scene_centre(cams[:1], points), torch.tensor([2.0, 1.0, 3.0], dtype=torch.float64))  # median
+    assert torch.equal(scene_centre(cams[:1], None), torch.zeros(3, dtype=torch.float64))
+    away = [looking_at_origin_from([4.0, 0.0, 0.0], -1.0), looking_at_origin_from([0.0, 0.0, 4.0], -1.0)]
+    # the axes meet at the origin, behind both cameras: the points' median is taken
+    assert torch.equal(scene_centre(away, points), torch.tensor([2.0, 1.0, 3.0], dtype=torch.float64))
