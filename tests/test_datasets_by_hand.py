@@ -368,7 +368,8 @@ def test_colmap_folders_and_encodings_refused(tmp_path):
 
 
 @pytest.mark.parametrize("size, ok", [((4, 3), True), ((4, 4), True), ((5, 3), True), ((2, 2), True), ((6, 3), True), ((8, 3), False),
-                                      ((4, 5), False), ((16, 12), True), ((9, 6), True), ((10, 6), True), ((12, 6), False)])
+                                      ((4, 5), False), ((16, 12), True), ((9, 6), True), ((10, 6), True), ((12, 6), False),
+                                      ((3, 4), True), ((13, 6), False)])  # 3 x 4: lo = hi = 1/2 exactly
 def test_colmap_image_size_must_be_the_camera_divided_by_one_factor(tmp_path, size, ok):
     from controlgs_adapter.datasets.colmap import read_colmap
 
@@ -461,6 +462,7 @@ def test_ngp_intrinsics_defaults_and_group_overrides_by_hand(tmp_path):
     ({"w": 6, "h": 4}, {}, "the file says 6 x 4 but the image"),
     ({}, {"transform_matrix": None}, "no 'transform_matrix'"),
     ({}, {"transform_matrix": [[2.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "not a rotation"),
+    ({}, {"transform_matrix": [[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 0], [0, 0, 0, 1]]}, "not a rotation"),  # mirrored
 ])
 def test_ngp_camera_refusals_name_file_and_frame(tmp_path, meta, frame, words):
     from controlgs_adapter.datasets.instant_ngp import read_instant_ngp

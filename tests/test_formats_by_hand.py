@@ -9,6 +9,7 @@ import os
 import struct
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -725,3 +726,89 @@ def test_decoders_split_mode_from_traces(tmp_path):
     mods = dec.modules()
     for attr, file in [("mlp_opacity", "opacity_mlp.pt"), ("mlp_cov", "cov_mlp.pt"), ("mlp_color", "color_mlp.pt")]:
         assert torch.equal(mods[attr](x), nets[file](x))
+
+
+# --- added after batch T2's first run (m231, m235, m241, m242)
+
+
+def test_yaml_hash_inside_a_value_is_not_a_comment(tmp_path):
+    (tmp_path / "c.yaml").write_text("tag: v1#2\ncolour: '#ff0000'\nsize: 3 # a comment\n#whole: 1\n")
+    assert bb.read_yaml_scalars(tmp_path / "c.yaml") == {"tag": ["v1#2"], "colour": ["#ff0000"], "size": [3]}
+
+
+def test_row_map_bounds_the_source_index_by_the_saved_rows(tmp_path):
+    from test_backend_contextgs import PAD, A, _arrays, _decoders, _model, _write_dir
+
+    from controlgs_adapter.backends.contextgs import ContextGSBackend, load_contextgs_dir
+    from controlgs_adapter.formats.adapter import row_map, valid_fingerprint
+
+    arr, decs = _arrays(7, decoded=True), _decoders(7)
+    arr["mask"][3] = 0.0
+    live, loaded = _model(arr, decs, decoded=True), load_contextgs_dir(_write_dir(tmp_path / "s", arr, decs))
+    backend = ContextGSBackend()
+    spec = {"valid_fingerprint": valid_fingerprint(live, backend), "num_anchors": A}
+    kind, rows = row_map(loaded, backend, spec)
+    assert kind == "gather" and rows.tolist() == [i for i in range(A - PAD) if i != 3]
+    source = loaded.source_index.clone()
+    loaded.source_index = source.clone()
+    loaded.source_index[-1] = A - 1  # the last saved row: still a row of the file
+    assert row_map(loaded, backend, spec)[0] == "gather"
+    loaded.source_index[-1] = A  # one past the saved rows: no mapping
+    assert row_map(loaded, backend, spec) is None
+    assert row_map(loaded, backend, {**spec, "valid_fingerprint": 1}) is None
+    loaded.source_index = source
+    assert row_map(loaded, backend, {**spec, "num_anchors": A - PAD - 1}) is None  # same count: nothing to map
+
+
+@pytest.mark.parametrize("beta, threshold", [(0.5, 20.0), (1.0, 1.5), (2.0, 10.0)])
+def test_softplus_settings_come_from_the_archive(tmp_path, beta, threshold):
+    from torch import nn
+
+    from controlgs_adapter.formats.torchscript import eager_from_archive
+
+    eager = nn.Sequential(nn.Linear(1, 1), nn.Softplus(beta=beta, threshold=threshold)).eval()
+    with torch.no_grad():
+        eager[0].weight.fill_(1.0)
+        eager[0].bias.zero_()
+    for mode in ("trace", "script"):
+        path = tmp_path / f"sp_{mode}.pt"
+        with warnings.catch_warnings():  # torch's deprecation of TorchScript: the families' format all the same
+            warnings.simplefilter("ignore", DeprecationWarning)
+            sm = torch.jit.trace(eager, torch.zeros(2, 1)) if mode == "trace" else torch.jit.script(eager)
+            sm.save(str(path))
+        rebuilt = eager_from_archive(path)
+        x = torch.tensor([[-3.0], [0.0], [0.5], [1.0], [2.0], [4.0], [8.0], [12.0]], dtype=torch.float64)
+        want = torch.where(beta * x > threshold, x, torch.log1p(torch.exp(beta * x)) / beta)  # float64 by hand
+        torch.testing.assert_close(rebuilt.double()(x), want, rtol=1e-12, atol=1e-12)
+
+
+def test_tensor_record_one_element_past_its_storage_is_refused(tmp_path):
+    import zipfile
+
+    from torch import nn
+
+    from controlgs_adapter.formats.torchscript import eager_from_archive
+
+    src = tmp_path / "l.pt"
+    net = nn.Sequential(nn.Linear(2, 3))
+    torch.jit.trace(net, torch.zeros(1, 2)).save(str(src))
+    with zipfile.ZipFile(src) as z:
+        pkl_name = next(n for n in z.namelist() if n.endswith("/data.pkl"))
+        pkl = z.read(pkl_name)
+    record = b"K\x00(K\x03K\x02t(K\x02K\x01t"  # weight: offset 0, size (3, 2), stride (2, 1) in a 6-element storage
+    assert pkl.count(record) == 1
+
+    def patched(new: bytes):
+        dst = tmp_path / f"p{len(list(tmp_path.iterdir()))}.pt"
+        with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+            for info in zin.infolist():
+                zout.writestr(info, pkl.replace(record, new) if info.filename == pkl_name else zin.read(info))
+        return dst
+
+    # offset 1: the last element is index 1 + 2*2 + 1 = 6, one past the storage's 0..5
+    with pytest.raises(FileFormatError, match=r"p\d+.pt: .*a tensor of shape \[3, 2\] that reaches past its storage data/0"):
+        eager_from_archive(patched(b"K\x01(K\x03K\x02t(K\x02K\x01t"))
+    # stride (1, 3): element [i, j] is storage index i + 3 j, the last one 2 + 3 = 5: in bounds
+    ok = eager_from_archive(patched(b"K\x00(K\x03K\x02t(K\x01K\x03t"))
+    flat = net[0].weight.detach().flatten()
+    assert ok[0].weight.tolist() == [[flat[i + 3 * j].item() for j in range(2)] for i in range(3)]
