@@ -812,3 +812,55 @@ def test_tensor_record_one_element_past_its_storage_is_refused(tmp_path):
     ok = eager_from_archive(patched(b"K\x00(K\x03K\x02t(K\x01K\x03t"))
     flat = net[0].weight.detach().flatten()
     assert ok[0].weight.tolist() == [[flat[i + 3 * j].item() for j in range(2)] for i in range(3)]
+
+
+def _linear_archive(tmp_path):
+    """A traced ``Sequential(Linear(2, 3))`` archive, its eager module, and a function writing a copy
+    with entries replaced (``name suffix -> bytes``, None drops the entry)."""
+    import zipfile
+
+    from torch import nn
+
+    src = tmp_path / "lin.pt"
+    net = nn.Sequential(nn.Linear(2, 3))
+    torch.jit.trace(net, torch.zeros(1, 2)).save(str(src))
+
+    def patched(edit: dict[str, bytes | None], name: str) -> object:
+        dst = tmp_path / name
+        with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+            for info in zin.infolist():
+                hit = next((k for k in edit if info.filename.endswith(k)), None)
+                if hit is None:
+                    zout.writestr(info, zin.read(info))
+                elif edit[hit] is not None:
+                    zout.writestr(info.filename, edit[hit])  # type: ignore[arg-type]
+        return dst
+
+    with zipfile.ZipFile(src) as z:
+        pkl = z.read(next(n for n in z.namelist() if n.endswith("/data.pkl")))
+    return src, net, patched, pkl
+
+
+def test_archive_container_refusals_name_file_and_cause(tmp_path):
+    from controlgs_adapter.formats.torchscript import eager_from_archive, tensors_from_archive
+
+    src, net, patched, pkl = _linear_archive(tmp_path)
+    assert torch.equal(eager_from_archive(src)[0].weight, net[0].weight)
+    cases = [
+        ({"/byteorder": b"big"}, "a.pt", "refused (nothing in it was run): big-endian tensor data"),
+        ({"/data/0": None}, "b.pt", "refused (nothing in it was run): no entry 'lin/data/0'"),
+        ({"/data/0": bytes(20)}, "c.pt", "storage data/0 holds 20 bytes, its record needs 24"),
+        ({"/data.pkl": pkl.replace(b"K\x00(K\x03K\x02t", b"J\xff\xff\xff\xff(K\x03K\x02t")}, "d.pt", "a malformed tensor record"),
+        ({"/data.pkl": pkl.replace(b"(K\x03K\x02t(K\x02K\x01t", b"(K\x03K\x02t(K\x02t")}, "e.pt", "a malformed tensor record"),
+        ({"/data.pkl": None}, "f.pt", "no <name>/data.pkl (not a TorchScript or torch.save zip archive)"),
+    ]
+    for edit, name, words in cases:
+        with pytest.raises(FileFormatError, match=rf"{name}: ") as e:
+            eager_from_archive(patched(edit, name))
+        assert words in str(e.value), (name, str(e.value))
+    torch.save(net.state_dict(), tmp_path / "sd.pt")
+    with pytest.raises(FileFormatError, match=r"sd.pt: .*no code/ folder \(not a TorchScript archive; a torch.save file\?\)"):
+        eager_from_archive(tmp_path / "sd.pt")
+    with pytest.raises(FileFormatError, match="a.pt: .*big-endian tensor data"):
+        tensors_from_archive(tmp_path / "a.pt")
+    assert eager_from_archive(patched({"/byteorder": b"little\n"}, "g.pt"))[0].bias.tolist() == net[0].bias.tolist()
