@@ -864,3 +864,31 @@ def test_archive_container_refusals_name_file_and_cause(tmp_path):
     with pytest.raises(FileFormatError, match="a.pt: .*big-endian tensor data"):
         tensors_from_archive(tmp_path / "a.pt")
     assert eager_from_archive(patched({"/byteorder": b"little\n"}, "g.pt"))[0].bias.tolist() == net[0].bias.tolist()
+
+
+def test_archive_size_bound_is_on_the_total_of_its_entries(tmp_path, monkeypatch):
+    import zipfile
+
+    from controlgs_adapter.formats import torchscript as ts
+
+    src, net, _, _ = _linear_archive(tmp_path)
+    with zipfile.ZipFile(src) as z:
+        sizes = [i.file_size for i in z.infolist()]
+    assert max(sizes) < sum(sizes) - 1
+    monkeypatch.setattr(ts, "_MAX_TOTAL_BYTES", sum(sizes))
+    assert torch.equal(ts.eager_from_archive(src)[0].weight, net[0].weight)  # exactly at the bound
+    monkeypatch.setattr(ts, "_MAX_TOTAL_BYTES", sum(sizes) - 1)  # every entry fits, their total does not
+    with pytest.raises(FileFormatError, match=rf"lin.pt: .*an uncompressed size over {sum(sizes) - 1} bytes"):
+        ts.eager_from_archive(src)
+
+
+@pytest.mark.parametrize("drop", ["lr", "loss"])
+def test_checkpoint_missing_a_config_field_is_another_run(tmp_path, drop):
+    from controlgs_adapter.formats.checkpoint import read_checkpoint
+
+    c = _ckpt()
+    header = c.header()
+    header["config"] = {k: v for k, v in c.config.items() if k != drop}
+    _raw_ckpt(tmp_path / "c.safetensors", c.tensors(), header)
+    with pytest.raises(FileFormatError, match=rf"c.safetensors: checkpoint was written with a different config \({drop}\)"):
+        read_checkpoint(tmp_path / "c.safetensors", c, _SHAPES)
