@@ -196,8 +196,10 @@ def test_adapter(cgs, tmp_path, call, error, name):
 
 
 def test_conditioned_takes_one_module_name_as_one_module(cgs):
-    with cgs.conditioned(RuntimeState(power_saving=0.4), camera=make_camera(), modules="display"):
-        pass
+    # "display" is one module, not the letters d, i, s, ...; nothing renders here, so the block warns
+    with pytest.warns(RuntimeWarning, match="no wrapped decoder ran inside this conditioned block"):
+        with cgs.conditioned(RuntimeState(power_saving=0.4), camera=make_camera(), modules="display"):
+            assert list(cgs.injector._ctx.strengths) == ["display"]
 
 
 # ============================================================================ API: safetensors I/O
