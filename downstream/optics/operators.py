@@ -32,7 +32,7 @@ from torch.autograd.function import once_differentiable
 from controlgs_adapter.checks import check_tensor
 from controlgs_adapter.errors import InputValueError
 
-from .resampled import ResampledBank
+from .resampled import GatherBucket, ResampledBank
 
 __all__ = ["psf_exact", "psf_reference", "psf_distortion", "psf_fast"]
 
@@ -147,34 +147,55 @@ class _ZonesFn(torch.autograd.Function):
         return gx, None, None, None
 
 
+_TABLE_MAX_AREA = 4096   # a bucket whose padded boxes average at most this many canvas pixels uses index tables
+
+
 class _GatherFn(torch.autograd.Function):
     """``sum_r a_r . (E_r * C)`` per bucket of field groups on the warped canvas ``C`` (radiance),
     forward and its exact adjoint (FFT correlation of the weighted gradient, then an add back to
-    the canvas). Each group reads and writes rectangular boxes: plain slices."""
+    the canvas). Each group reads and writes rectangular boxes. Size rule: a bucket whose padded
+    boxes (output box plus kernel reach) average at most ``_TABLE_MAX_AREA`` pixels moves them all
+    in one gather and one ``index_add_`` through its flat :meth:`GatherBucket.tables` (small sizes,
+    ~900 boxes per wavelength: one Python step per box would dominate); larger boxes are moved by
+    plain slices, which hold no tables in memory (1024^2 exact: all buckets)."""
 
     @staticmethod
     def forward(ctx, C: torch.Tensor, rb: ResampledBank, buckets: list, skip: bool) -> torch.Tensor:
         ctx.rb, ctx.buckets, ctx.size = rb, buckets, C.shape[-1]               # C [B, L, Hc Wc + 1]
         B, m = C.shape[0], rb.m
         Cv = C[..., :-1].view(B, rb.L, rb.Hc, rb.Wc)
-        out = C.new_zeros(B, rb.L, rb.H, rb.W)
+        out = C.new_zeros(B, rb.L, rb.H * rb.W)
+        ov = out.view(B, rb.L, rb.H, rb.W)
         for li in range(rb.L):
-            Cl, ol = Cv[:, li], out[:, li]
+            Cl, ol = Cv[:, li], ov[:, li]
             for bk in buckets[li]:
                 R, Z = bk.kernel_fft.shape[:2]
                 fh, fw = bk.fft_size
-                arr = C.new_zeros(B, Z, fh, fw)
-                for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
-                    arr[:, s, :bh + 2 * mz, :bw + 2 * mz] = Cl[:, r0 + m - mz:r0 + m + bh + mz, c0 + m - mz:c0 + m + bw + mz]
-                if skip and not bool(arr.any()):
-                    continue
+                tab = _use_tables(bk)
+                if tab:
+                    in_slot, in_canvas, out_slot, out_index, out_weight = bk.tables(m, rb.Wc, rb.W)
+                    vals = C[:, li, in_canvas]
+                    if skip and not bool(vals.any()):
+                        continue
+                    arr = C.new_zeros(B, Z, fh, fw)
+                    arr.view(B, -1)[:, in_slot] = vals
+                else:
+                    arr = C.new_zeros(B, Z, fh, fw)
+                    for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
+                        arr[:, s, :bh + 2 * mz, :bw + 2 * mz] = Cl[:, r0 + m - mz:r0 + m + bh + mz, c0 + m - mz:c0 + m + bw + mz]
+                    if skip and not bool(arr.any()):
+                        continue
                 spec = torch.fft.rfft2(arr.unsqueeze(1))
                 spec = spec.mul_(bk.kernel_fft) if R == 1 else spec * bk.kernel_fft
                 res = torch.fft.irfft2(spec, s=(fh, fw))                           # [B, R, Z, fh, fw]
+                if tab:
+                    res = res.reshape(B, R, -1)[..., out_slot]                     # [B, R, M]
+                    out[:, li].index_add_(1, out_index, res[:, 0] * out_weight[0] if R == 1 else (res * out_weight).sum(1))
+                    continue
                 for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
                     piece, wgt = res[:, :, s, mz:mz + bh, mz:mz + bw], bk.weights[s]
                     ol[:, r0:r0 + bh, c0:c0 + bw] += piece[:, 0] * wgt[0] if R == 1 else (piece * wgt).sum(1)
-        return out.reshape(B, rb.L, rb.H * rb.W)
+        return out
 
     @staticmethod
     @once_differentiable
@@ -189,15 +210,28 @@ class _GatherFn(torch.autograd.Function):
             for bk in buckets[li]:
                 R, Z = bk.kernel_fft.shape[:2]
                 fh, fw = bk.fft_size
+                tab = _use_tables(bk)
                 garr = g.new_zeros(B, R, Z, fh, fw)
-                for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
-                    garr[:, :, s, mz:mz + bh, mz:mz + bw] = gl[:, None, r0:r0 + bh, c0:c0 + bw] * bk.weights[s]
+                if tab:
+                    in_slot, in_canvas, out_slot, out_index, out_weight = bk.tables(m, rb.Wc, rb.W)
+                    garr.view(B, R, -1)[..., out_slot] = g[:, li, out_index][:, None, :] * out_weight
+                else:
+                    for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
+                        garr[:, :, s, mz:mz + bh, mz:mz + bw] = gl[:, None, r0:r0 + bh, c0:c0 + bw] * bk.weights[s]
                 spec = torch.fft.rfft2(garr)
                 spec = spec.mul_(bk.kernel_fft.conj()) if R == 1 else spec * bk.kernel_fft.conj()
                 G = torch.fft.irfft2(spec.sum(1) if R > 1 else spec[:, 0], s=(fh, fw))   # [B, Z, fh, fw]
+                if tab:
+                    gC[:, li].index_add_(1, in_canvas, G.reshape(B, -1)[:, in_slot])
+                    continue
                 for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
                     gcl[:, r0 + m - mz:r0 + m + bh + mz, c0 + m - mz:c0 + m + bw + mz] += G[:, s, :bh + 2 * mz, :bw + 2 * mz]
         return gC, None, None, None
+
+
+def _use_tables(bk: GatherBucket) -> bool:
+    """The size rule of :class:`_GatherFn`: index tables when the bucket's padded boxes are small on average."""
+    return sum((bh + 2 * mz) * (bw + 2 * mz) for _, _, bh, bw, mz in bk.boxes) <= _TABLE_MAX_AREA * len(bk.boxes)
 
 
 def _apply_zones(x: torch.Tensor, rb: ResampledBank, buckets: list) -> torch.Tensor:

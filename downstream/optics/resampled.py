@@ -36,7 +36,7 @@ lands outside it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal, overload
 
 import torch
@@ -511,12 +511,40 @@ class GatherBucket:
     ``C`` the warped canvas, transformed in one batched call. Group ``s`` reads the canvas patch of
     its output box ``boxes[s] = (r0, c0, bh, bw, mz)`` (frame rows ``r0 .. r0 + bh``, columns
     ``c0 .. c0 + bw``) widened by its kernel reach ``mz`` into slot ``s`` of the FFT array, and adds
-    ``weights[s] * result`` back to the box (plain slices: no index tables)."""
+    ``weights[s] * result`` back to the box, by plain slices or by the flat :meth:`tables`."""
 
     kernel_fft: torch.Tensor    # [R, Z, fh, fw // 2 + 1]
     fft_size: tuple[int, int]
     boxes: list[tuple[int, int, int, int, int]]
     weights: list[torch.Tensor]  # Z x [R, bh, bw] coefficient map a_r on the box (field weight x transmission)
+    _tables: tuple[torch.Tensor, ...] | None = field(default=None, repr=False, compare=False)
+
+    def tables(self, m: int, Wc: int, W: int) -> tuple[torch.Tensor, ...]:
+        """Every box element as flat indices (built once, cached): ``(in_slot, in_canvas)`` [Min]
+        long, the padded boxes' positions in the ``[Z, fh, fw]`` FFT array and in the ``Hc x Wc``
+        canvas (margin ``m``, width ``Wc``); ``(out_slot, out_index)`` [Mout] long, the boxes'
+        positions in the FFT array and in the ``H x W`` frame (width ``W``); ``out_weight``
+        [R, Mout], the weights there."""
+        if self._tables is None:
+            fh, fw = self.fft_size
+            dev = self.kernel_fft.device
+            r0, c0, bh, bw, mz = torch.tensor(self.boxes, device=dev).T
+
+            def elements(h: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, ...]:
+                n = h * w                                        # box s: rows i, cols j (row-major)
+                s = torch.repeat_interleave(torch.arange(len(n), device=dev), n)
+                e = torch.arange(int(n.sum()), device=dev) - (torch.cumsum(n, 0) - n)[s]
+                return s, e // w[s], e % w[s]
+
+            s, i, j = elements(bh + 2 * mz, bw + 2 * mz)
+            in_slot = (s * fh + i) * fw + j
+            in_canvas = (r0[s] + m - mz[s] + i) * Wc + c0[s] + m - mz[s] + j
+            s, i, j = elements(bh, bw)
+            out_slot = (s * fh + mz[s] + i) * fw + mz[s] + j
+            out_index = (r0[s] + i) * W + c0[s] + j
+            out_weight = torch.cat([w.reshape(w.shape[0], -1) for w in self.weights], 1)
+            self._tables = (in_slot, in_canvas, out_slot, out_index, out_weight)
+        return self._tables
 
 
 def _build_gather(rb: "ResampledBank", zone: int, tol: float, max_rank: int | None) -> list[list[GatherBucket]]:
