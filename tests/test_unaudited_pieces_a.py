@@ -1,0 +1,143 @@
+"""Refusals and branches of pieces no other test reaches (issue 15, section 5): the TorchScript
+archive reader's code-text checks, one crafted archive per refusal branch, each checked for the
+library's error type, the file's name and what was found."""
+
+from __future__ import annotations
+
+import warnings
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+
+from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.formats.torchscript import eager_from_archive
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.*: the format under test
+
+
+@pytest.fixture(scope="module")
+def traced(tmp_path_factory) -> Path:
+    """A traced Sequential holding every activation kind (code as torch.jit.trace writes it)."""
+    path = tmp_path_factory.mktemp("ts") / "traced.pt"
+    module = nn.Sequential(nn.Linear(3, 2), nn.Softmax(dim=1), nn.LeakyReLU(0.2),
+                           nn.Softplus(beta=2.0, threshold=10.0), nn.ReLU(), nn.Identity())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.jit.save(torch.jit.trace(module, torch.randn(2, 3)), str(path))
+    return path
+
+
+def _edited(src: Path, dst: Path, old: str, new: str) -> Path:
+    """A copy of ``src`` whose one code file containing ``old`` has it replaced by ``new`` (once)."""
+    hits = 0
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            data = zin.read(info)
+            if info.filename.endswith(".py") and old.encode() in data:
+                hits += data.count(old.encode())
+                data = data.replace(old.encode(), new.encode())
+            zout.writestr(info, data)
+    assert hits == 1, f"{old!r} found {hits} times"
+    return dst
+
+
+def _refused(path: Path, *what: str) -> str:
+    with pytest.raises(FileFormatError) as info:
+        eager_from_archive(path)
+    msg = str(info.value)
+    assert str(path) in msg and "refused" in msg, msg
+    for w in what:
+        assert w in msg, msg
+    return msg
+
+
+def test_the_untouched_archive_loads_with_its_settings(traced):
+    """The base of every crafted archive below is accepted, settings read from its code's constants."""
+    eager = eager_from_archive(traced)
+    assert [type(m).__name__ for m in eager] == ["Linear", "Softmax", "LeakyReLU", "Softplus", "ReLU", "Identity"]
+    assert eager[1].dim == 1 and eager[2].negative_slope == 0.2
+    assert (eager[3].beta, eager[3].threshold) == (2.0, 10.0)
+
+
+SOFTMAX = "torch.softmax(argument_1, 1)"
+LEAKY = "torch.leaky_relu(argument_1, 0.20000000000000001)"
+SOFTPLUS = "torch.softplus(argument_1, 2., 10.)"
+RELU = "torch.relu(argument_1)"
+
+
+@pytest.mark.parametrize("old,new,what", [
+    # activations: constants beyond the layer's own settings, settings that are not constants
+    (RELU, "torch.relu(argument_1, 2)", ["4 (ReLU) whose forward passes [2] to relu"]),
+    (RELU, "torch.relu(argument_1, True)", None),  # the functional helper's inplace flag is fine
+    (SOFTMAX, "torch.softmax(argument_1, 1, 2, 6)", ["(Softmax) with a dtype argument 6"]),
+    (SOFTMAX, "torch.softmax(argument_1, 1, 2, None, None)", ["(Softmax) with a dtype argument None"]),
+    (SOFTMAX, "torch.softmax(argument_1, 1.5)", ["(Softmax) whose forward does not give dim as a constant"]),
+    (SOFTMAX, "torch.softmax(argument_1)", ["(Softmax) whose forward does not give dim as a constant"]),
+    (LEAKY, "torch.leaky_relu(argument_1, 0.2, False, 1)", ["(LeakyReLU) whose forward passes [0.2, False, 1]"]),
+    (LEAKY, "torch.leaky_relu(argument_1, True)", ["does not give negative_slope as a constant"]),
+    (SOFTPLUS, "torch.softplus(argument_1, 2.)", ["(Softplus) whose forward passes [2.0]"]),
+    (SOFTPLUS, "torch.softplus(argument_1, 2., 10., 1.)", ["(Softplus) whose forward passes [2.0, 10.0, 1.0]"]),
+    (SOFTPLUS, 'torch.softplus(argument_1, 2., "10")', ["does not give threshold as a constant"]),
+    (SOFTPLUS, 'torch.softplus(argument_1, "2", 10.)', ["does not give beta as a constant"]),
+    # the op called must be the layer's own, as torch.<op> or the scripted functional helper
+    (RELU, "torch.tanh(argument_1)", ["(ReLU) whose forward calls torch.tanh"]),
+    (RELU, "__torch__.evil.relu(argument_1)", ["(ReLU) whose forward calls __torch__.evil.relu"]),
+    (RELU, "torch.relu(self.x)", ["(ReLU) whose forward is not one call of ['relu', 'relu_'] on its input"]),
+    (RELU, "argument_1", ["(ReLU) whose forward is not one call"]),
+    # Linear and Identity
+    ("torch.linear(input, weight, bias)", "torch.linear(input, bias, weight)",
+     ["0 (Linear) whose forward is not torch.linear(input, self.weight, self.bias)"]),
+    ("NoneType:\n    return None", "NoneType:\n    return 1", ["5 (Identity) whose forward does not return its input"]),
+    # the forward's shape: signature, statements, return, expressions
+    ("argument_1: Tensor) -> Tensor:\n    return torch.relu",
+     "argument_1: Tensor, b: Tensor) -> Tensor:\n    return torch.relu", ["4.forward with the signature (self, argument_1, b)"]),
+    ("argument_1: Tensor) -> Tensor:\n    return torch.relu",
+     "argument_1: Tensor=None) -> Tensor:\n    return torch.relu", ["4.forward with the signature"]),
+    ("input = torch.leaky_relu", "input, b = torch.leaky_relu", ["2.forward with the statement 'input, b = torch.leaky_relu"]),
+    ("    return input\nclass Softplus", "    input\nclass Softplus", ["2.forward that does not end in a return of its result"]),
+    (RELU, "torch.relu(argument_1 + 1)", ["4.forward with the expression 'argument_1 + 1'"]),
+    (RELU, "torch.relu(argument_1, inplace=False)", ["4.forward with the expression"]),
+    (RELU, "torch.relu(-argument_1)", ["4.forward with the expression"]),
+    # classes and names
+    ("class ReLU(Module)", "class ReLU2(Module)", ["no code for the class __torch__.torch.nn.modules.activation.ReLU"]),
+    ("return torch.relu(argument_1)\n", "return torch.relu(argument_1)\n  def __len__(self) -> int:\n    return 1\n", None),
+])
+def test_code_text_refusals(traced, tmp_path, old, new, what):
+    path = _edited(traced, tmp_path / "crafted.pt", old, new)
+    if what is None:
+        assert isinstance(eager_from_archive(path)[4], nn.ReLU)
+    else:
+        _refused(path, *what)
+
+
+def test_a_class_with_len_but_no_forward_is_refused(traced, tmp_path):
+    """``__len__`` alone passes the method check; the missing forward is then named."""
+    path = _edited(traced, tmp_path / "crafted.pt", "def forward(self: __torch__.torch.nn.modules.activation.ReLU",
+                   "def __len__(self: __torch__.torch.nn.modules.activation.ReLU")
+    _refused(path, "4 (ReLU) without a forward method")
+
+
+@pytest.mark.parametrize("extra,what", [
+    ("def helper(x: Tensor) -> Tensor:\n  return torch.save(x)\n", "that calls torch.save"),
+    ("def helper(x: Tensor) -> Tensor:\n  return __torch__.nowhere.f(x)\n",
+     "that uses __torch__.nowhere.f, which the archive does not define"),
+    ("def helper(x: Tensor) -> Tensor:\n  return os.getcwd(x)\n", "that uses os.getcwd"),
+    ("def helper(x: Tensor) -> Tensor:\n  return eval(x)\n", "that calls eval"),
+    ("def helper(x: Tensor) -> Tensor:\n  y = torch.relu(x)\n  return y\n", None),  # locals and safe ops pass
+    ("def helper(x: Tensor) -> Tensor:\n  return int(getattr(x, \"y\"))\n", None),  # TorchScript builtins pass
+])
+def test_names_in_unused_code_are_checked_too(traced, tmp_path, extra, what):
+    """Every function of the code files is checked, also one no forward calls."""
+    path = _edited(traced, tmp_path / "crafted.pt", "class Softmax(Module)", extra + "class Softmax(Module)")
+    if what is None:
+        assert len(eager_from_archive(path)) == 6
+    else:
+        _refused(path, "code (__torch__.torch.nn.modules.activation)", what)
+
+
+def test_code_that_is_not_python_is_refused(traced, tmp_path):
+    path = _edited(traced, tmp_path / "crafted.pt", "class Softmax(Module)", "class Softmax(Module")
+    _refused(path, "code file", "activation.py", "that is not TorchScript source (SyntaxError)")
