@@ -1,0 +1,241 @@
+"""By-hand checks of lens pre-warp pieces no other test pins: LUT resizing (interpolation and
+linear extrapolation), the learned map's output layout, Newton inversion, chief-ray grids, the
+bank fingerprint, and the foveation placeholder."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from controlgs_adapter.downstream.lens import (
+    LUTMap, MLPMap, bank_fingerprint, chief_ray_grid, invert_map, pixel_grid,
+)
+from controlgs_adapter.errors import InputValueError, ShapeError
+
+CPU = torch.device("cpu")
+# per channel c: F_c(x, y) = (a0 + a1 x + a2 y + a3 x y, b0 + b1 x + b2 y + b3 x y)
+_COEF = torch.tensor([
+    [[0.05, 1.10, 0.10, 0.20], [-0.02, 0.05, 0.90, -0.10]],
+    [[-0.03, 0.95, -0.05, 0.00], [0.04, 0.02, 1.05, 0.15]],
+    [[0.00, 1.20, 0.00, -0.05], [0.01, -0.10, 1.15, 0.00]],
+], dtype=torch.float64)  # [3, 2 (out x, y), 4]
+
+
+def _bilinear_field(p: torch.Tensor, coef: torch.Tensor = _COEF) -> torch.Tensor:
+    """``coef`` ``[3, D, 4]`` evaluated at points ``p`` ``[H, W, 2]`` -> ``[3, H, W, D]`` (float64)."""
+    x, y = p[..., 0].double(), p[..., 1].double()
+    basis = torch.stack([torch.ones_like(x), x, y, x * y], -1)  # [H, W, 4]
+    return torch.einsum("cdk,hwk->chwd", coef, basis)
+
+
+# --- LUTMap -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("size", [(7, 5), (2, 9), (4, 3)])
+def test_lut_map_interpolates_and_extrapolates_a_bilinear_table_exactly(size):
+    """Bilinear interpolation reproduces a bilinear function exactly, and so does linear
+    extrapolation past the table's outer pixel centres (the border pixels of a larger image)."""
+    table_size = (4, 3)
+    grid = _bilinear_field(pixel_grid(table_size, torch.float64))  # [3, 4, 3, 2]
+    gain_coef = torch.tensor([[[1.0, 0.2, -0.1, 0.05]], [[0.8, 0.0, 0.3, 0.0]], [[1.2, -0.2, 0.0, 0.1]]],
+                             dtype=torch.float64)
+    gain = _bilinear_field(pixel_grid(table_size, torch.float64), gain_coef)[..., 0]  # [3, 4, 3]
+    got_grid, got_gain = LUTMap(grid, gain)(size, torch.float64, CPU)
+    p = pixel_grid(size, torch.float64)
+    assert got_grid.shape == (3, *size, 2) and got_gain.shape == (3, *size)
+    assert torch.allclose(got_grid, _bilinear_field(p), atol=1e-6, rtol=0)  # buffers are float32
+    assert torch.allclose(got_gain, _bilinear_field(p, gain_coef)[..., 0], atol=1e-6, rtol=0)
+
+
+def test_lut_map_same_size_returns_the_table_and_no_gain_means_one():
+    g = torch.Generator().manual_seed(3)
+    grid = pixel_grid((3, 4), torch.float64) + 0.1 * torch.rand(3, 3, 4, 2, dtype=torch.float64, generator=g)
+    out_grid, out_gain = LUTMap(grid)((3, 4), torch.float64, CPU)
+    assert torch.allclose(out_grid, grid, atol=1e-7, rtol=0)
+    assert torch.equal(out_gain, torch.ones(3, 3, 4, dtype=torch.float64))
+    assert out_grid.dtype == torch.float64
+    assert LUTMap(grid)((3, 4), torch.float32, CPU)[0].dtype == torch.float32
+
+
+def test_lut_map_is_identity_follows_its_buffers():
+    ident = pixel_grid((3, 3), torch.float64).expand(3, -1, -1, -1).clone()
+    m = LUTMap(ident)
+    assert m.is_identity()
+    m.gain[1, 2, 0] = 1.5  # in-place edit after the first answer
+    assert not m.is_identity()
+    m.gain[1, 2, 0] = 1.0
+    assert m.is_identity()
+    m.displacement[0, 0, 0, 1] = 1e-3
+    assert not m.is_identity()
+    assert not LUTMap(ident, torch.full((3, 3, 3), 2.0, dtype=torch.float64)).is_identity()
+
+
+def test_lut_map_refusals_name_the_argument():
+    with pytest.raises(ShapeError, match="grid needs at least 2x2"):
+        LUTMap(torch.zeros(3, 1, 4, 2))
+    with pytest.raises(ShapeError, match="grid needs at least 2x2"):
+        LUTMap(torch.zeros(3, 4, 1, 2))
+    with pytest.raises(ShapeError, match="gain"):
+        LUTMap(torch.zeros(3, 2, 2, 2), torch.ones(3, 2, 3))
+    with pytest.raises(ShapeError, match="grid"):
+        LUTMap(torch.zeros(2, 2, 2, 2))
+
+
+# --- MLPMap -------------------------------------------------------------------------------------
+
+def test_mlp_map_output_layout_by_hand():
+    """With a zero last weight the output is the bias: channel c reads (dx, dy, log gain) from
+    bias[3c : 3c + 3]."""
+    m = MLPMap(hidden=5, layers=2, frequencies=1).double()
+    assert m.is_identity()
+    bias = torch.tensor([0.1, -0.2, 0.3, 0.0, 0.05, -0.4, -0.1, 0.0, 0.7], dtype=torch.float64)
+    with torch.no_grad():
+        m.mlp[-1].bias.copy_(bias)
+    assert not m.is_identity()
+    grid, gain = m((3, 4), torch.float64, CPU)
+    p = pixel_grid((3, 4), torch.float64)
+    b = bias.reshape(3, 3)
+    for c in range(3):
+        assert torch.allclose(grid[c], p + b[c, :2], atol=1e-15)
+        assert torch.allclose(gain[c], torch.full((3, 4), float(torch.exp(b[c, 2])), dtype=torch.float64), atol=1e-15)
+    with torch.no_grad():
+        m.mlp[-1].bias.zero_()
+        m.mlp[-1].weight[4, 0] = 1e-3
+    assert not m.is_identity()
+
+
+def test_mlp_map_fourier_features_by_hand():
+    m = MLPMap(hidden=3, layers=3, frequencies=2)
+    assert m.mlp[0].in_features == 2 + 4 * 2
+    assert [type(x).__name__ for x in m.mlp] == ["Linear", "SiLU"] * 3 + ["Linear"]
+    assert m.mlp[2].in_features == 3 and m.mlp[-1].out_features == 9
+    p = torch.tensor([[0.25, -0.5]], dtype=torch.float64)
+    x, y = 0.25, -0.5
+    pi = torch.pi
+    ang = torch.tensor([pi * x, 2 * pi * x, pi * y, 2 * pi * y], dtype=torch.float64)
+    want = torch.cat([torch.tensor([x, y], dtype=torch.float64), ang.sin(), ang.cos()])
+    assert torch.allclose(m._encode(p)[0], want, atol=1e-15)
+    raw = MLPMap(hidden=3, layers=1, frequencies=0)
+    assert raw.mlp[0].in_features == 2 and torch.equal(raw._encode(p), p)
+
+
+@pytest.mark.parametrize("kwargs", [dict(hidden=0), dict(layers=0), dict(frequencies=-1)])
+def test_mlp_map_refuses_bad_sizes(kwargs):
+    with pytest.raises(InputValueError, match="hidden, layers must be >= 1 and frequencies >= 0"):
+        MLPMap(**kwargs)
+
+
+def test_mlp_map_accepts_the_bounds():
+    m = MLPMap(hidden=1, layers=1, frequencies=0)
+    assert m.is_identity() and m((2, 2), torch.float32, CPU)[0].shape == (3, 2, 2, 2)
+
+
+# --- invert_map / chief_ray_grid ---------------------------------------------------------------
+
+def _affine(a: torch.Tensor, t: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Per channel ``a[c] @ p + t[c]``: ``a`` ``[3, 2, 2]``, ``t`` ``[3, 2]``, ``p`` ``[H, W, 2]`` -> ``[3, H, W, 2]``."""
+    return torch.einsum("cij,hwj->chwi", a, p) + t[:, None, None, :]
+
+
+_A = torch.tensor([[[1.2, 0.1], [-0.05, 0.9]], [[0.8, 0.0], [0.0, 1.1]], [[1.0, -0.2], [0.15, 1.05]]], dtype=torch.float64)
+_T = torch.tensor([[0.05, -0.1], [0.0, 0.02], [-0.07, 0.03]], dtype=torch.float64)
+
+
+def test_invert_map_of_an_affine_map_on_custom_samples():
+    """F_c affine on samples running -1 .. 1 (edges, not cell centres): G_c = A_c^-1 (q - t_c)."""
+    sx, sy = torch.linspace(-1, 1, 5, dtype=torch.float64), torch.linspace(-1, 1, 4, dtype=torch.float64)
+    p = torch.stack(torch.meshgrid(sx, sy, indexing="xy"), -1)  # [4, 5, 2]
+    fmap = _affine(_A, _T, p)
+    q = pixel_grid((6, 7), torch.float64)
+    want = _affine(torch.linalg.inv(_A), -torch.einsum("cij,cj->ci", torch.linalg.inv(_A), _T), q)
+    got = invert_map(fmap, (6, 7), sample_x=sx, sample_y=sy)
+    assert got.shape == (3, 6, 7, 2) and got.dtype == torch.float64
+    assert torch.allclose(got, want, atol=1e-9, rtol=0)
+    assert invert_map(fmap.float(), (6, 7), sample_x=sx, sample_y=sy).dtype == torch.float32
+
+
+def test_invert_map_without_iterations_is_the_first_order_start():
+    """No Newton step (iterations=0, or a tolerance every residual meets): G = 2 q - F(q)."""
+    a = torch.eye(2, dtype=torch.float64).expand(3, 2, 2) * 1.25
+    fmap = _affine(a, torch.zeros(3, 2, dtype=torch.float64), pixel_grid((3, 3), torch.float64))
+    q = pixel_grid((4, 5), torch.float64)
+    start = (2.0 - 1.25) * q.expand(3, -1, -1, -1)
+    assert torch.allclose(invert_map(fmap, (4, 5), iterations=0), start, atol=1e-12)
+    assert torch.allclose(invert_map(fmap, (4, 5), tol=10.0), start, atol=1e-12)
+    assert torch.allclose(invert_map(fmap, (4, 5)), q.expand(3, -1, -1, -1) / 1.25, atol=1e-9)
+
+
+def test_invert_map_refusals():
+    with pytest.raises(InputValueError, match="not invertible"):
+        invert_map(torch.full((3, 3, 3, 2), 0.3, dtype=torch.float64), (2, 2))  # constant: zero Jacobian
+    with pytest.raises(ShapeError, match="forward_map needs at least 2x2"):
+        invert_map(torch.zeros(3, 2, 1, 2), (2, 2))
+    with pytest.raises(ShapeError, match="forward_map"):
+        invert_map(torch.zeros(2, 2, 2, 2), (2, 2))
+    fmap = pixel_grid((3, 3), torch.float64).expand(3, -1, -1, -1)
+    with pytest.raises(InputValueError, match="sample_y must be uniformly spaced"):
+        invert_map(fmap, (2, 2), sample_y=torch.tensor([-1.0, -0.9, 1.0], dtype=torch.float64))
+    with pytest.raises(ShapeError, match="sample_x"):
+        invert_map(fmap, (2, 2), sample_x=torch.linspace(-1, 1, 4, dtype=torch.float64))
+
+
+def test_chief_ray_grid_display_to_eye_and_jacobian_gain_of_an_affine_map():
+    sx, sy = torch.linspace(-1.2, 1.2, 4, dtype=torch.float64), torch.linspace(-1, 1, 3, dtype=torch.float64)
+    chief = _affine(_A, _T, torch.stack(torch.meshgrid(sx, sy, indexing="xy"), -1))
+    size = (5, 6)
+    grid, gain = chief_ray_grid(chief, size, sample_x=sx, sample_y=sy)
+    assert gain is None
+    assert torch.allclose(grid, _affine(_A, _T, pixel_grid(size, torch.float64)), atol=1e-12, rtol=0)
+    _, jac = chief_ray_grid(chief, size, sample_x=sx, sample_y=sy, gain="jacobian")
+    assert jac is not None
+    det = torch.linalg.det(_A).abs()  # constant area magnification of an affine map
+    assert torch.allclose(jac, det[:, None, None].expand(3, *size), atol=1e-12)
+    given = torch.rand(3, *size, dtype=torch.float64)
+    assert chief_ray_grid(chief, size, sample_x=sx, sample_y=sy, gain=given)[1] is given
+
+
+def test_chief_ray_grid_eye_to_display_inverts():
+    sx = torch.linspace(-1, 1, 4, dtype=torch.float64)
+    chief = _affine(_A, _T, torch.stack(torch.meshgrid(sx, sx, indexing="xy"), -1))
+    grid, _ = chief_ray_grid(chief, (4, 4), direction="eye_to_display", sample_x=sx, sample_y=sx)
+    back = torch.einsum("cij,chwj->chwi", _A, grid) + _T[:, None, None, :]  # F_c(G_c(q))
+    assert torch.allclose(back, pixel_grid((4, 4), torch.float64).expand(3, -1, -1, -1), atol=1e-9)
+
+
+def test_chief_ray_grid_refusals():
+    ok = pixel_grid((3, 3), torch.float64).expand(3, -1, -1, -1)
+    with pytest.raises(ShapeError, match="chief_ray_map needs at least 2x2"):
+        chief_ray_grid(torch.zeros(3, 3, 1, 2), (2, 2))
+    with pytest.raises(InputValueError, match="direction must be"):
+        chief_ray_grid(ok, (2, 2), direction="up")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="gain must be a tensor, 'jacobian' or None"):
+        chief_ray_grid(ok, (2, 2), gain="area")  # type: ignore[arg-type]
+
+
+# --- bank_fingerprint ---------------------------------------------------------------------------
+
+def test_bank_fingerprint_tracks_every_optics_field():
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+
+    bank = PSFBank.default()
+    fp = bank_fingerprint(bank)
+    assert len(fp) == 16 and all(ch in "0123456789abcdef" for ch in fp)
+    # copies bypass __init__: PSFBank renormalises its PSFs there, which moves float32 rounding
+    def with_fields(**fields: object) -> PSFBank:
+        other = copy.copy(bank)
+        for name, value in fields.items():
+            setattr(other, name, value)
+        return other
+
+    same = with_fields(psf=bank.psf.clone(), chief=bank.chief.clone(), meta={"other": 1})
+    assert bank_fingerprint(same) == fp  # same numbers, other metadata
+    changed = {
+        "psf": bank.psf.flip(-1), "psf_pitch_mm": bank.psf_pitch_mm * 1.01, "field_x": bank.field_x * 0.99,
+        "field_y": bank.field_y * 0.99, "chief": bank.chief * 1.001, "chief_x": bank.chief_x * 0.99,
+        "chief_y": bank.chief_y * 0.99, "wavelengths_nm": tuple(w + 1 for w in bank.wavelengths_nm),
+        "display_mm": (bank.display_mm[0] + 1, bank.display_mm[1]),
+    }
+    fps = {name: bank_fingerprint(with_fields(**{name: value})) for name, value in changed.items()}
+    assert all(v != fp for v in fps.values()), fps
+    assert len(set(fps.values())) == len(fps)
