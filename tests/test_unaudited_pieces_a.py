@@ -4,6 +4,7 @@ library's error type, the file's name and what was found."""
 
 from __future__ import annotations
 
+import sys
 import warnings
 import zipfile
 from pathlib import Path
@@ -141,3 +142,41 @@ def test_names_in_unused_code_are_checked_too(traced, tmp_path, extra, what):
 def test_code_that_is_not_python_is_refused(traced, tmp_path):
     path = _edited(traced, tmp_path / "crafted.pt", "class Softmax(Module)", "class Softmax(Module")
     _refused(path, "code file", "activation.py", "that is not TorchScript source (SyntaxError)")
+
+
+# --------------------------------------------------------------------------------------------------
+# cli.REQUIRES: a missing optional package stops the command before its work starts
+# --------------------------------------------------------------------------------------------------
+
+_DEMO_HINT = "which is not installed: pip install 'controlgs-adapter[demo]'"
+
+
+@pytest.mark.parametrize("argv,blocked,purpose,missing", [
+    (["demo"], "skimage", "controlgs demo (the built-in scene and the report's plots)", "scikit-image"),
+    (["optics", "bench"], "skimage", "controlgs optics bench (the optics benchmark's test image and plot)",
+     "scikit-image"),
+    (["scene", "export"], "skimage", "controlgs scene export (exporting the built-in scene's views as PNG)",
+     "scikit-image"),
+    (["eval", "--run", "RUN"], "matplotlib", "controlgs eval (the report's plots)", "matplotlib"),
+    (["demo"], "matplotlib", "controlgs demo (the built-in scene and the report's plots)", "matplotlib"),
+])
+def test_cli_refuses_a_missing_extra_before_any_work(tmp_path, monkeypatch, capsys, argv, blocked, purpose, missing):
+    from controlgs_adapter.cli import main
+
+    monkeypatch.setitem(sys.modules, blocked, None)  # ``import <blocked>`` raises ImportError
+    out = tmp_path / "out"
+    argv = [str(tmp_path / "run") if a == "RUN" else a for a in argv] + ["--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"controlgs {argv[0]}: error: {purpose} needs {missing}, {_DEMO_HINT}", err
+    assert not out.exists()
+
+
+def test_cli_eval_needs_matplotlib_only(tmp_path, monkeypatch, capsys):
+    """eval's table entry names matplotlib alone: without scikit-image it goes on (to its own error)."""
+    from controlgs_adapter.cli import main
+
+    monkeypatch.setitem(sys.modules, "skimage", None)
+    assert main(["eval", "--run", str(tmp_path / "no-run"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("controlgs eval: error: ") and "scikit-image" not in err and "no-run" in err, err
