@@ -4,6 +4,7 @@ library's error type, the file's name and what was found."""
 
 from __future__ import annotations
 
+import math
 import sys
 import warnings
 import zipfile
@@ -180,3 +181,74 @@ def test_cli_eval_needs_matplotlib_only(tmp_path, monkeypatch, capsys):
     assert main(["eval", "--run", str(tmp_path / "no-run"), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("controlgs eval: error: ") and "scikit-image" not in err and "no-run" in err, err
+
+
+# --------------------------------------------------------------------------------------------------
+# viewer.session: constructor refusals, heat_overlay, the LRU cache
+# --------------------------------------------------------------------------------------------------
+
+def test_viewer_session_refuses_baseline_names_and_no_views():
+    from controlgs_adapter.errors import InputValueError
+    from controlgs_adapter.viewer.session import ViewerSession
+
+    with pytest.raises(InputValueError, match=r"adapter names \['ss'\] clash with the baselines \('no_ss', 'ss'\)"):
+        ViewerSession(None, [object()], {"controlgs": "a.safetensors", "ss": "b.safetensors"})
+    with pytest.raises(InputValueError, match=r"adapter names \['no_ss'\] clash"):
+        ViewerSession(None, [object()], {"no_ss": "a.safetensors"})
+    with pytest.raises(InputValueError, match="the viewer needs at least one view"):
+        ViewerSession(None, [], {})
+
+
+def test_viewer_cache_evicts_the_least_recently_used():
+    from controlgs_adapter.viewer.session import _Cache
+
+    made: list[str] = []
+    cache = _Cache(2)
+
+    def get(key: str) -> str:
+        return cache.get_or(key, lambda: made.append(key) or key.upper())
+
+    assert [get("a"), get("b"), get("a")] == ["A", "B", "A"] and made == ["a", "b"]  # a hit makes nothing
+    get("c")  # over the size: b (used least recently) goes, a (just used) stays
+    assert list(cache) == ["a", "c"] and made == ["a", "b", "c"]
+    get("b")
+    assert list(cache) == ["c", "b"] and made == ["a", "b", "c", "b"]
+
+
+def _heat_by_hand(pixels: list[tuple[int, int, float]], w: int, h: int) -> torch.Tensor:
+    """heat_overlay's documented map in float64 loops: per pixel the mean strength of the anchors in
+    the k x k window (k = 2 max(1, round(max(h, w) / 48)) + 1, clipped at the borders), coloured on the
+    4-stop heat map; alpha 0.55 min(1, 4 k^2 (anchors in the window) / (window pixels in the image))."""
+    heat = [[0.0, 0.0, 0.2], [0.45, 0.05, 0.55], [0.9, 0.35, 0.1], [1.0, 0.95, 0.3]]
+    r = max(1, round(max(h, w) / 48))
+    k = 2 * r + 1
+    out = torch.zeros(4, h, w, dtype=torch.float64)
+    for y in range(h):
+        for x in range(w):
+            inside = [(u, v) for v in range(y - r, y + r + 1) for u in range(x - r, x + r + 1) if 0 <= u < w and 0 <= v < h]
+            hits = [s for (u, v, s) in pixels if (u, v) in inside]
+            lam = min(max(sum(hits) / len(hits), 0.0), 1.0) if hits else 0.0
+            t = lam * 3
+            i = min(math.floor(t), 2)
+            for c in range(3):
+                out[c, y, x] = heat[i][c] + (t - i) * (heat[i + 1][c] - heat[i][c])
+            out[3, y, x] = 0.55 * min(1.0, k * k * 4.0 * len(hits) / len(inside))
+    return out
+
+
+@pytest.mark.parametrize("w,h", [(20, 12), (100, 30)])  # k = 3 and k = 5
+def test_heat_overlay_against_loops(w, h):
+    from controlgs_adapter.state import Camera
+    from controlgs_adapter.viewer.session import heat_overlay
+
+    f, cx, cy = 10.0, w / 2, h / 2
+    cam = Camera(torch.eye(4), torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]), w, h)
+    landing = [(0, 0, 0.2), (3, 2, 0.9), (3, 2, 0.5), (w - 1, h - 1, 1.0), (w // 2, h // 2, 0.35), (7, 5, 1.7)]
+    pts = [[(u + 0.5 - cx) / f * z, (v + 0.5 - cy) / f * z, z] for (u, v, _), z in zip(landing, (1.0, 2.0, 1.0, 3.0, 1.0, 1.0))]
+    strength = [s for (_, _, s) in landing]
+    # dropped: behind the camera, left of / below the image, a NaN strength
+    pts += [[0.0, 0.0, -1.0], [(-0.5 - cx) / f, 0.0, 1.0], [0.0, (h + 0.5 - cy) / f, 1.0], [(5.5 - cx) / f, (5.5 - cy) / f, 1.0]]
+    strength += [1.0, 1.0, 1.0, float("nan")]
+    got = heat_overlay(torch.tensor(pts, dtype=torch.float64), torch.tensor(strength), cam)
+    assert got.shape == (4, h, w)
+    torch.testing.assert_close(got.double(), _heat_by_hand(landing, w, h), atol=1e-5, rtol=0)
