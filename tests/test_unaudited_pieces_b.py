@@ -9,10 +9,15 @@ import copy
 import pytest
 import torch
 
+from controlgs_adapter.downstream.color import convert_domain, linear_to_srgb, srgb_to_linear
+from controlgs_adapter.downstream.foveation import Foveation, foveation
 from controlgs_adapter.downstream.lens import (
-    LUTMap, MLPMap, bank_fingerprint, chief_ray_grid, invert_map, pixel_grid,
+    LensPrewarp, LUTMap, MLPMap, bank_fingerprint, chief_ray_grid, invert_map, pixel_grid,
 )
+from controlgs_adapter.downstream.pipeline import Pipeline
+from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import InputValueError, ShapeError
+from controlgs_adapter.state import RuntimeState
 
 CPU = torch.device("cpu")
 # per channel c: F_c(x, y) = (a0 + a1 x + a2 y + a3 x y, b0 + b1 x + b2 y + b3 x y)
@@ -239,3 +244,107 @@ def test_bank_fingerprint_tracks_every_optics_field():
     fps = {name: bank_fingerprint(with_fields(**{name: value})) for name, value in changed.items()}
     assert all(v != fp for v in fps.values()), fps
     assert len(set(fps.values())) == len(fps)
+
+
+# --- foveation, pipeline ------------------------------------------------------------------------
+
+_CALLS: list[str] = []  # names of the _Scale stages processed, in call order
+
+
+class _Scale(Stage):
+    """A stage multiplying by ``factor`` in its domain; the identity (skipped) when factor is 1."""
+
+    name = "scale"
+    domain = "linear"
+    order = 15.0
+
+    def __init__(self, factor: float = 2.0) -> None:
+        super().__init__()
+        self.factor = factor
+
+    def is_identity(self, state: RuntimeState, ctx: StageContext | None = None) -> bool:
+        return self.factor == 1.0
+
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+        _CALLS.append(self.name)
+        return image * self.factor
+
+
+def _stage(name: str, order: float, domain: str = "linear", factor: float = 1.0) -> Stage:
+    return type(name.title(), (_Scale,), {"name": name, "order": order, "domain": domain})(factor)
+
+
+def test_foveation_is_an_identity_stub_before_the_lens():
+    image = torch.rand(3, 5, 4)
+    gazing = RuntimeState(gaze=(0.3, -0.2))
+    stage = Foveation()
+    assert stage.is_identity(gazing) and stage.is_identity(RuntimeState(2.0, 0.5))
+    assert foveation(image, (0.3, -0.2)) is image and stage(image, gazing) is image
+    assert stage.name == "foveation" and stage.domain == "linear" and stage.order < LensPrewarp.order
+    p = Pipeline.from_config({"foveation": True, "lens": True, "oled": False})
+    assert p.names == ["foveation", "lens"] and p.active(gazing) == ["lens"]
+
+
+def test_pipeline_orders_by_order_then_name_and_skips_identities():
+    b, a, c = _stage("b", 1.0, factor=3.0), _stage("a", 1.0, factor=2.0), _stage("c", 0.5, factor=1.0)
+    p = Pipeline([b, a, c]).double()
+    assert p.names == ["c", "a", "b"]  # c first by order; a before b by name at equal order
+    image = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)[:, None, None].expand(3, 2, 2)
+    _CALLS.clear()
+    eye, rec = p.run_recorded(image)
+    assert _CALLS == ["a", "b"] and rec["stages_run"] == ["a", "b"]  # c is the identity: not called
+    assert torch.allclose(eye, linear_to_srgb(srgb_to_linear(image) * 6.0), atol=1e-12)
+    # no physical stage: post and displayed are the eye image, rendered the input
+    assert torch.equal(rec["post"], eye) and torch.equal(rec["displayed"], eye) and torch.equal(rec["rendered"], image)
+    assert rec["diagnostics"] == {}
+    assert p.active(RuntimeState()) == ["a", "b"]
+    assert "a" in p and "z" not in p and p["b"] is b
+    with pytest.raises(KeyError, match="no stage 'z'"):
+        p["z"]
+
+
+def test_pipeline_converts_domains_only_around_stages_that_run():
+    lin, enc = _stage("lin", 1.0, "linear", 2.0), _stage("enc", 2.0, "srgb", 0.5)
+    image = torch.rand(3, 3, 3, dtype=torch.float64)
+    out = Pipeline([lin, enc]).double()(image)
+    assert torch.allclose(out, linear_to_srgb(srgb_to_linear(image) * 2.0) * 0.5, atol=1e-12)
+    only_srgb = Pipeline([_stage("lin", 1.0, "linear", 1.0), enc]).double()(image)
+    assert torch.allclose(only_srgb, image * 0.5, atol=1e-15)  # skipped linear stage: no round trip
+
+
+def test_pipeline_post_is_taken_before_the_first_physical_stage():
+    p = Pipeline([_stage("pre", 1.0, factor=0.5), _stage("oled", 40.0, factor=2.0), _stage("optics", 50.0, factor=3.0)]).double()
+    image = torch.rand(3, 2, 3, dtype=torch.float64)
+    eye, rec = p.run_recorded(image)
+    lin = srgb_to_linear(image)
+    assert torch.allclose(rec["post"], linear_to_srgb(lin * 0.5), atol=1e-12)
+    assert torch.allclose(rec["displayed"], linear_to_srgb(lin * 1.0), atol=1e-12)  # after oled, before optics
+    assert torch.allclose(eye, linear_to_srgb(lin * 3.0), atol=1e-12)
+    assert rec["stages_run"] == ["pre", "oled", "optics"]
+
+
+def test_pipeline_refusals_name_what_is_wrong():
+    nameless = _stage("x", 1.0)
+    nameless.name = ""
+    with pytest.raises(InputValueError, match=r"stages\[1\] \(X\) has no name"):
+        Pipeline([_stage("a", 1.0), nameless])
+    with pytest.raises(InputValueError, match="stage 'hsv' has domain 'hsv'"):
+        Pipeline([_stage("hsv", 1.0, "hsv")])
+    with pytest.raises(InputValueError, match="effects\\['resample'\\] is a stage named 'lens'"):
+        Pipeline.from_config({"resample": LensPrewarp()})
+    with pytest.raises(InputValueError, match="effects\\['resample'\\]"):
+        Pipeline.from_config({"resample": {"no_such_option": 1}})
+    with pytest.raises(ShapeError, match="larger than the native size"):
+        Pipeline([_stage("a", 1.0)])(torch.rand(3, 4, 4), native_size=(4, 3))
+    assert Pipeline.from_config({"resample": None, "display": False}).names == ["oled"]
+
+
+# --- colour -------------------------------------------------------------------------------------
+
+def test_convert_domain_identity_and_refusal():
+    x = torch.rand(3, 2, 2, dtype=torch.float64)
+    assert convert_domain(x, "linear", "linear") is x and convert_domain(x, "srgb", "srgb") is x
+    assert torch.equal(convert_domain(x, "srgb", "linear"), srgb_to_linear(x))
+    assert torch.equal(convert_domain(x, "linear", "srgb"), linear_to_srgb(x))
+    with pytest.raises(ValueError, match="'srgb' -> 'xyz'"):
+        convert_domain(x, "srgb", "xyz")  # type: ignore[arg-type]
