@@ -252,3 +252,58 @@ def test_heat_overlay_against_loops(w, h):
     got = heat_overlay(torch.tensor(pts, dtype=torch.float64), torch.tensor(strength), cam)
     assert got.shape == (4, h, w)
     torch.testing.assert_close(got.double(), _heat_by_hand(landing, w, h), atol=1e-5, rtol=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# commands.common.make_renderer: --renderer / --rasterizer
+# --------------------------------------------------------------------------------------------------
+
+_RENDERER_FILE = '''
+from controlgs_adapter.rendering.rasterizers import _CHOICE
+
+class Recorder:
+    def __init__(self):
+        self.seen = []
+
+    def visible(self, model, camera):
+        self.seen.append(("visible", _CHOICE.get()))
+        return "VIS"
+
+    def render(self, model, camera, visible, background):
+        self.seen.append(("render", _CHOICE.get(), visible))
+        return "IMG"
+
+recorder = Recorder()
+'''
+
+
+def test_make_renderer_wraps_the_chosen_rasterizer(tmp_path):
+    from argparse import Namespace
+
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.commands.common import RasterizerRenderer, make_renderer
+    from controlgs_adapter.errors import InputValueError
+    from controlgs_adapter.rendering.protocol import renderer_for
+
+    model = NeuralGaussianModel(6, feat_dim=8, n_offsets=2)
+    assert make_renderer(Namespace(rasterizer=None, renderer=None), model) is None  # the model's own
+    assert make_renderer(Namespace(rasterizer="auto", renderer=None), model) is None
+    plain = make_renderer(Namespace(rasterizer="torch", renderer=None), model)
+    assert isinstance(plain, RasterizerRenderer) and plain.rasterizer == "torch"
+    assert type(plain.renderer) is type(renderer_for(model))
+
+    (tmp_path / "rec.py").write_text(_RENDERER_FILE)
+    wrapped = make_renderer(Namespace(rasterizer="torch", renderer=f"{tmp_path / 'rec.py'}:recorder"), model)
+    assert isinstance(wrapped, RasterizerRenderer) and wrapped.rasterizer == "torch"
+    assert wrapped.visible(model, None) == "VIS" and wrapped.render(model, None, "VIS", None) == "IMG"
+    # the user's object itself is wrapped; the rasterizer is chosen around render only, for that call
+    assert wrapped.renderer.seen == [("visible", None), ("render", "torch", "VIS")]
+    from controlgs_adapter.rendering.rasterizers import _CHOICE
+    assert _CHOICE.get() is None
+
+    with pytest.raises(InputValueError, match=r"--rasterizer 'nope' is not registered; available: .*torch.*, auto"):
+        make_renderer(Namespace(rasterizer="nope", renderer=None), model)
+    with pytest.raises(InputValueError) as info:
+        make_renderer(Namespace(rasterizer="gsplat", renderer=None), model)
+    msg = str(info.value)
+    assert msg.startswith("--rasterizer gsplat cannot render on cpu: ") and "pip install 'controlgs-adapter[gsplat]'" in msg
