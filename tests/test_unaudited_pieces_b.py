@@ -14,10 +14,12 @@ from controlgs_adapter.downstream.foveation import Foveation, foveation
 from controlgs_adapter.downstream.lens import (
     LensPrewarp, LUTMap, MLPMap, bank_fingerprint, chief_ray_grid, invert_map, pixel_grid,
 )
+from controlgs_adapter.downstream.optics.operators import psf_fast, psf_reference
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import RuntimeState
+from test_optics_operators import synthetic_bank
 
 CPU = torch.device("cpu")
 # per channel c: F_c(x, y) = (a0 + a1 x + a2 y + a3 x y, b0 + b1 x + b2 y + b3 x y)
@@ -348,3 +350,43 @@ def test_convert_domain_identity_and_refusal():
     assert torch.equal(convert_domain(x, "linear", "srgb"), linear_to_srgb(x))
     with pytest.raises(ValueError, match="'srgb' -> 'xyz'"):
         convert_domain(x, "srgb", "xyz")  # type: ignore[arg-type]
+
+
+# --- psf_fast edge cases ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("radiometry", ["radiance", "energy"])
+def test_psf_fast_is_exact_for_any_zone_size_at_tol_zero_and_for_one_field_zones(radiometry):
+    """A 4 x 4 field grid of different PSFs: zones of 1 (any tol), 3 (not dividing 4) and 10 (larger
+    than the grid) at tol=0 all equal the brute-force splat."""
+    bank = synthetic_bank(K=5, G=4, L=2, uniform=False, identity=False, seed=2)
+    rb = bank.resample_to(12, 10, dtype=torch.float64, radiometry=radiometry)
+    x = torch.rand(2, 12, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    ref = psf_reference(x, rb)
+    for zone, tol in ((1, 0.9), (3, 0.0), (10, 0.0), (4, 0.0)):
+        assert torch.allclose(psf_fast(x, rb, tol=tol, zone=zone), ref, atol=1e-10, rtol=0), (zone, tol)
+
+
+@pytest.mark.parametrize("radiometry", ["radiance", "energy"])
+def test_psf_fast_extreme_tol_is_rank_one(radiometry):
+    """tol near 1 keeps one eigen-PSF per group: the same operator as max_rank=1, and not exact."""
+    bank = synthetic_bank(K=5, G=4, L=2, uniform=False, identity=False, seed=2)
+    rb = bank.resample_to(12, 10, dtype=torch.float64, radiometry=radiometry)
+    x = torch.rand(2, 12, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    rank_one = psf_fast(x, rb, tol=0.999, zone=4)
+    assert torch.allclose(rank_one, psf_fast(x, rb, tol=0.0, zone=4, max_rank=1), atol=1e-12, rtol=0)
+    ref = psf_reference(x, rb)
+    assert float((rank_one - ref).norm() / ref.norm()) > 1e-3
+
+
+def test_psf_fast_refuses_bad_knobs():
+    rb = synthetic_bank(K=3, G=2, L=1).resample_to(6, 6, dtype=torch.float64)
+    x = torch.rand(1, 6, 6, dtype=torch.float64)
+    for tol in (1.0, -0.01, float("nan"), "0.1"):
+        with pytest.raises(InputValueError, match=r"tol must be in \[0, 1\)"):
+            psf_fast(x, rb, tol=tol)  # type: ignore[arg-type]
+    for zone in (0, -2, 2.0):
+        with pytest.raises(InputValueError, match="zone must be an int >= 1"):
+            psf_fast(x, rb, zone=zone)  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="primaries"):
+        psf_fast(x.float(), rb)
+    assert psf_fast(x, rb, tol=0.0, zone=1).shape == (1, 6, 6)
