@@ -390,3 +390,52 @@ def test_psf_fast_refuses_bad_knobs():
     with pytest.raises(InputValueError, match="primaries"):
         psf_fast(x.float(), rb)
     assert psf_fast(x, rb, tol=0.0, zone=1).shape == (1, 6, 6)
+
+
+# --- distributed (CPU, one process) -------------------------------------------------------------
+
+def test_init_distributed_refusals_name_the_argument(monkeypatch):
+    from controlgs_adapter.distributed import init_distributed
+
+    with pytest.raises(InputValueError, match="exchange must be one of .*'fast'"):
+        init_distributed(exchange="fast")
+    for timeout in (0.0, -1.0, float("nan")):
+        with pytest.raises(InputValueError, match="timeout must be > 0 seconds"):
+            init_distributed(timeout=timeout)
+    env = {"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": "1"}
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    with pytest.raises(InputValueError, match="backend must be 'gloo' or 'nccl', got 'mpi'"):
+        init_distributed("mpi")
+
+
+def test_shard_scenes_refuses_an_empty_list_and_batch_equal_to_world_is_fine():
+    from controlgs_adapter.distributed import DistContext, shard_scenes
+
+    with pytest.raises(InputValueError, match="scenes must name at least one scene"):
+        shard_scenes([], DistContext())
+    DistContext(rank=2, world_size=3).check_batch(3)  # the bound: one view per rank
+    with pytest.raises(InputValueError, match=r"need 0 <= rank < world_size, got rank=3, world_size=3"):
+        DistContext(rank=3, world_size=3)
+
+
+def test_an_existing_one_process_gloo_group_is_used_as_it_is():
+    import torch.distributed as dist
+
+    from controlgs_adapter.distributed import DistContext, init_distributed
+
+    if not dist.is_available() or dist.is_initialized():
+        pytest.skip("torch.distributed unavailable or a group already exists in this process")
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        ctx = init_distributed(exchange="dense")
+        assert (ctx.rank, ctx.world_size, ctx.backend, ctx.device, ctx.exchange) == (0, 1, "gloo", torch.device("cpu"), "dense")
+        assert isinstance(ctx, DistContext) and ctx.is_main and not ctx.is_distributed
+        p = torch.nn.Parameter(torch.zeros(2, 3))
+        p.grad = torch.arange(6.0).reshape(2, 3)
+        assert ctx.sync_gradients([p], row_sparse=[p], loss=1.5, step=4) == 1.5
+        assert torch.equal(p.grad, torch.arange(6.0).reshape(2, 3))  # one rank: the sum is its own gradient
+        ctx.close()  # not its group: left for its owner
+        assert dist.is_initialized()
+    finally:
+        dist.destroy_process_group()
