@@ -145,6 +145,92 @@ def test_code_that_is_not_python_is_refused(traced, tmp_path):
     _refused(path, "code file", "activation.py", "that is not TorchScript source (SyntaxError)")
 
 
+def _with(module: nn.Module, **state: object) -> nn.Module:
+    """``module`` with extra attributes set (a plain value, or a tensor as a buffer)."""
+    for k, v in state.items():
+        if isinstance(v, torch.Tensor):
+            module.register_buffer(k, v)
+        else:
+            setattr(module, k, v)
+    return module
+
+
+def _linear(bias: torch.Tensor | None = None, weight: torch.Tensor | None = None) -> nn.Linear:
+    lin = nn.Linear(3, 2)
+    if bias is not None:
+        lin.bias = nn.Parameter(bias)
+    if weight is not None:
+        lin.weight = nn.Parameter(weight)
+    return lin
+
+
+@pytest.mark.parametrize("make,mode,what", [
+    (lambda: _with(nn.Sequential(nn.Linear(3, 2)), foo=3), "script",
+     "the root module (Sequential) with unexpected attributes ['foo']"),
+    (lambda: nn.Sequential(nn.Linear(3, 2), _with(nn.ReLU(), b=torch.zeros(1))), "trace", "1 (ReLU) with tensors ['b']"),
+    (lambda: nn.Sequential(nn.Linear(3, 2), _with(nn.ReLU(), child=nn.Identity())), "trace",
+     "1 (ReLU) with submodules ['child']"),
+    (lambda: nn.Sequential(_with(nn.Linear(3, 2), scale=torch.ones(2))), "trace",
+     "0 (Linear) holding ['bias', 'scale', 'weight']; expected weight[, bias]"),
+    (lambda: _with(nn.Sequential(nn.Linear(3, 2)), x=torch.ones(2)), "trace",
+     "the root Sequential (Sequential) holding ['0', 'x']; expected submodules '0'..'n-1'"),
+    (lambda: nn.Sequential(_linear(bias=torch.zeros(2, dtype=torch.float64))), "script",
+     "0 (Linear) with weight torch.float32 and bias torch.float64"),
+    (lambda: nn.Sequential(_linear(bias=torch.zeros(3))), "script",
+     "0 (Linear) with weight [2, 3] and bias [3]; expected [out, in] and [out]"),
+    (lambda: nn.Sequential(_linear(weight=torch.zeros(2, 3, 1))), "script", "0 (Linear) with weight [2, 3, 1] and bias [2]"),
+    (lambda: nn.Sequential(_with(nn.Linear(3, 2), n=torch.zeros(1, dtype=torch.long))), "trace",
+     "a non-float tensor (torch.int64); decoders hold floating-point weights only"),
+])
+def test_module_state_refusals(tmp_path, make, mode, what):
+    """Modules whose pickled state is not what their kind holds (extra attributes, tensors, children,
+    shapes, dtypes), written by torch.jit itself."""
+    path = tmp_path / "crafted.pt"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        module = make()
+        torch.jit.save(torch.jit.trace(module, torch.randn(2, 3)) if mode == "trace" else torch.jit.script(module), str(path))
+    _refused(path, what)
+
+
+def _with_entries(src: Path, dst: Path, entries: dict[str, bytes]) -> Path:
+    """A copy of ``src`` with ``entries`` (name relative to the archive's folder) replaced or added."""
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        prefix = zin.namelist()[0].split("/")[0]
+        full = {f"{prefix}/{k}": v for k, v in entries.items()}
+        for info in zin.infolist():
+            zout.writestr(info, full.pop(info.filename, None) or zin.read(info))
+        for name, data in full.items():
+            zout.writestr(name, data)
+    return dst
+
+
+def test_constants_and_several_trees_are_refused(traced, tmp_path):
+    import pickle
+
+    _refused(_with_entries(traced, tmp_path / "c.pt", {"constants.pkl": pickle.dumps((1.0,), protocol=2)}),
+             "tensor constants used by its code (a decoder has none)")
+    assert len(eager_from_archive(_with_entries(traced, tmp_path / "e.pt", {"constants.pkl": pickle.dumps(())}))) == 6
+    with zipfile.ZipFile(traced) as z:
+        pkl = next(z.read(n) for n in z.namelist() if n.endswith("/data.pkl"))
+    path = _with_entries(traced, tmp_path / "two.pt", {})
+    with zipfile.ZipFile(path, "a") as z:
+        z.writestr("other/data.pkl", pkl)
+    _refused(path, "several module trees")
+
+
+def test_code_size_bound_is_on_all_code_files_together(traced, tmp_path, monkeypatch):
+    import controlgs_adapter.formats.torchscript as ts
+
+    with zipfile.ZipFile(traced) as z:
+        sizes = [i.file_size for i in z.infolist() if "/code/" in i.filename and i.filename.endswith(".py")]
+    assert len(sizes) >= 3
+    monkeypatch.setattr(ts, "_MAX_CODE_BYTES", sum(sizes))
+    assert len(eager_from_archive(traced)) == 6  # exactly at the bound: accepted
+    monkeypatch.setattr(ts, "_MAX_CODE_BYTES", sum(sizes) - 1)  # each file fits, their total does not
+    _refused(traced, f"over {sum(sizes) - 1} bytes of code")
+
+
 # --------------------------------------------------------------------------------------------------
 # cli.REQUIRES: a missing optional package stops the command before its work starts
 # --------------------------------------------------------------------------------------------------
