@@ -12,7 +12,7 @@ import torch
 from controlgs_adapter.downstream.color import convert_domain, linear_to_srgb, srgb_to_linear
 from controlgs_adapter.downstream.foveation import Foveation, foveation
 from controlgs_adapter.downstream.lens import (
-    LensPrewarp, LUTMap, MLPMap, bank_fingerprint, chief_ray_grid, invert_map, pixel_grid,
+    DisplayLUTMap, LensPrewarp, LUTMap, MLPMap, bank_fingerprint, chief_ray_grid, invert_map, pixel_grid,
 )
 from controlgs_adapter.downstream.optics.operators import psf_fast, psf_reference
 from controlgs_adapter.downstream.pipeline import Pipeline
@@ -439,3 +439,129 @@ def test_an_existing_one_process_gloo_group_is_used_as_it_is():
         assert dist.is_initialized()
     finally:
         dist.destroy_process_group()
+
+
+# --- DisplayLUTMap, BankMap, LensPrewarp refusals -----------------------------------------------
+
+def _display_tables(hd: int = 5, wd: int = 4) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A display table whose displacement is ``M_c q + t_c`` at display point ``q`` (exact under
+    bilinear interpolation) and gain ``1 + 0.1 c``: ``(displacement, gain, M)``."""
+    m = torch.tensor([[0.10, -0.05], [0.02, 0.08], [-0.06, 0.04]], dtype=torch.float64)  # diagonal of M_c
+    t = torch.tensor([[0.01, 0.02], [-0.03, 0.0], [0.0, -0.01]], dtype=torch.float64)
+    q = pixel_grid((hd, wd), torch.float64)
+    disp = m[:, None, None, :] * q + t[:, None, None, :]
+    gain = (1.0 + 0.1 * torch.arange(3, dtype=torch.float64))[:, None, None].expand(3, hd, wd).clone()
+    return disp, gain, torch.cat([m, t], 1)
+
+
+@pytest.mark.parametrize("placement, size, half", [("stretch", (4, 8), (1.0, 1.0)), ("fit", (4, 8), (1.0, 0.5)),
+                                                  ("fit", (6, 3), (0.5, 1.0))])
+def test_display_lut_map_samples_the_image_region_of_the_display(placement, size, half):
+    """grid(u) = (u h + disp(u h)) / h on a square display: a 4 x 8 image fit on it spans the full
+    width and half the height (h = (1, 0.5))."""
+    disp, gain, mt = _display_tables()
+    lut = DisplayLUTMap({"exact": (disp, gain)}, display_mm=(24.0, 24.0), placement=placement)
+    grid, got_gain = lut(size, torch.float64, CPU)
+    h = torch.tensor(half, dtype=torch.float64)
+    q = pixel_grid(size, torch.float64) * h  # display-normalised
+    want = (q + mt[:, None, None, :2] * q + mt[:, None, None, 2:]) / h
+    assert torch.allclose(grid, want, atol=1e-6, rtol=0)  # tables are stored as float32
+    assert torch.allclose(got_gain, gain[:, :1, :1].expand(3, *size), atol=1e-6)
+    assert not lut.is_identity()
+
+
+def test_display_lut_map_table_choice():
+    disp, gain, _ = _display_tables()
+    other = (disp * 2.0, gain)
+    assert DisplayLUTMap({"distortion": (disp, gain), "exact": other}).table_mode() == "distortion"  # first
+    assert DisplayLUTMap({"distortion": (disp, gain), "exact": other}, mode="exact").table_mode() == "exact"
+
+    class _Optics(torch.nn.Module):
+        mode = "fast"
+
+    optics = _Optics()
+    assert DisplayLUTMap({"distortion": (disp, gain), "exact": other}).follow(optics).table_mode() == "exact"
+    only_distortion = DisplayLUTMap({"distortion": (disp, gain)}).follow(optics)
+    with pytest.raises(InputValueError, match=r"tables for \('distortion',\), not for optics mode 'fast'"):
+        only_distortion.table_mode()
+    fast = DisplayLUTMap({"fast": (disp, gain), "exact": other}, mode="fast")
+    assert fast.table_mode() == "fast"  # its own fast table wins over the exact one
+
+
+def test_display_lut_map_refusals(tmp_path):
+    from controlgs_adapter.errors import FileFormatError
+    from controlgs_adapter.formats.safetensors import save_tensors
+
+    disp, gain, _ = _display_tables()
+    with pytest.raises(InputValueError, match="tables must hold at least one optics mode"):
+        DisplayLUTMap({})
+    with pytest.raises(InputValueError, match="placement must be one of .*'centre'"):
+        DisplayLUTMap({"exact": (disp, gain)}, placement="centre")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="table modes must be among .*'paraxial'"):
+        DisplayLUTMap({"paraxial": (disp, gain)})
+    with pytest.raises(ShapeError, match="table 'exact' needs at least 2x2 samples"):
+        DisplayLUTMap({"exact": (disp[:, :1], gain[:, :1])})
+    with pytest.raises(ShapeError, match=r"gain\['exact'\]"):
+        DisplayLUTMap({"exact": (disp, gain[:, :2])})
+    kind = {"kind": "controlgs-prewarp-display-lut", "format_version": 1}
+    no_modes = save_tensors(tmp_path / "no_modes.safetensors", {"gain_exact": gain.float()}, {}, **kind)
+    with pytest.raises(FileFormatError, match="no_modes.safetensors: display LUT header lacks its modes"):
+        DisplayLUTMap.load(no_modes)
+    lacking = save_tensors(tmp_path / "lacking.safetensors", {"gain_exact": gain.float()}, {"modes": ["exact"]}, **kind)
+    with pytest.raises(FileFormatError, match=r"lacking.safetensors: display LUT lacks \['displacement_exact'\]"):
+        DisplayLUTMap.load(lacking)
+    bad = save_tensors(tmp_path / "bad.safetensors", {"displacement_exact": disp[:, :1].float(), "gain_exact": gain[:, :1].float()},
+                       {"modes": ["exact"]}, **kind)
+    with pytest.raises(FileFormatError, match="bad.safetensors: table 'exact' needs at least 2x2"):
+        DisplayLUTMap.load(bad)
+    saved = DisplayLUTMap({"exact": (disp, gain)}, display_mm=(20.0, 10.0), meta={"bank": "x"}).save(tmp_path / "ok.safetensors")
+    back = DisplayLUTMap.load(saved, placement="stretch")
+    assert back.display_mm == (20.0, 10.0) and back.placement == "stretch" and back.meta == {"bank": "x"}
+    assert torch.equal(back.displacement_exact, disp.float())
+
+
+def test_lens_prewarp_and_bank_map_refusals(tmp_path):
+    from controlgs_adapter.downstream.lens import BankMap, lens_prewarp
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+    from controlgs_adapter.errors import FileFormatError
+    from controlgs_adapter.formats.safetensors import save_tensors
+
+    img = torch.rand(3, 4, 4)
+    with pytest.raises(InputValueError, match="basis must be one of .*'xyz'"):
+        lens_prewarp(img, pixel_grid((4, 4)).expand(3, -1, -1, -1).contiguous(), basis="xyz")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="basis must be one of .*'xyz'"):
+        LensPrewarp(basis="xyz")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="either prewarp_map or coefficients, not both"):
+        LensPrewarp(MLPMap(), coefficients=[[0.1]] * 3)
+    two = synthetic_bank(L=2)
+    with pytest.raises(InputValueError, match="bank must have 3 wavelengths .*600.0, 500.0"):
+        BankMap(two)
+    with pytest.raises(InputValueError, match="bank must have 3 wavelengths"):
+        LensPrewarp.from_psf_bank(two, (4, 4))
+    bank = PSFBank.default()
+    with pytest.raises(InputValueError, match="placement must be one of .*'centre'"):
+        BankMap(bank, "centre")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="gain must be 'jacobian' or None, got 'area'"):
+        BankMap(bank, gain="area")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="a gain tensor needs a LUT size"):
+        LensPrewarp.from_psf_bank(bank, gain=torch.ones(3, 4, 4))
+    with pytest.raises(InputValueError, match="optics must be an optics stage with a PSFBank .*Identity"):
+        LensPrewarp.for_optics(torch.nn.Identity())
+
+    class _Optics(torch.nn.Module):
+        def __init__(self, placement: str = "fit") -> None:
+            super().__init__()
+            self.bank, self.placement = bank, placement
+
+    with pytest.raises(InputValueError, match="source must be 'fitted' or 'chief_rays', got 'traced'"):
+        LensPrewarp.for_optics(_Optics(), source="traced")  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="gain applies to source='chief_rays'"):
+        LensPrewarp.for_optics(_Optics(), gain="jacobian")
+    with pytest.raises(InputValueError, match="optics.placement must be one of .*'crop'"):
+        LensPrewarp.for_optics(_Optics("crop"), source="chief_rays")
+    chief = LensPrewarp.for_optics(_Optics("stretch"), source="chief_rays", gain="jacobian", basis="rgb")
+    assert isinstance(chief.map, BankMap) and (chief.map.placement, chief.map.gain, chief.basis) == ("stretch", "jacobian", "rgb")
+    no_gain = save_tensors(tmp_path / "lut.safetensors", {"grid": torch.zeros(3, 2, 2, 2)}, {},
+                           kind="controlgs-prewarp-lut", format_version=1)
+    with pytest.raises(FileFormatError, match=r"lut.safetensors: pre-warp LUT lacks \['gain'\]"):
+        LensPrewarp.load_lut(no_gain)
