@@ -393,3 +393,64 @@ def test_make_renderer_wraps_the_chosen_rasterizer(tmp_path):
         make_renderer(Namespace(rasterizer="gsplat", renderer=None), model)
     msg = str(info.value)
     assert msg.startswith("--rasterizer gsplat cannot render on cpu: ") and "pip install 'controlgs-adapter[gsplat]'" in msg
+
+
+# --------------------------------------------------------------------------------------------------
+# eager_from_script: refusals and settings read from a live TorchScript module
+# --------------------------------------------------------------------------------------------------
+
+class Linear(nn.Module):
+    """Named like torch's Linear (so ``original_name`` says Linear), but its forward doubles the output."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.randn(2, 3))
+        self.bias = nn.Parameter(torch.randn(2))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 2.0 * torch.nn.functional.linear(x, self.weight, self.bias)
+
+
+class LeakyReLU(nn.Module):
+    """Named like torch's LeakyReLU, with no slope anywhere."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(x)
+
+
+def _trace(module: nn.Module) -> torch.jit.ScriptModule:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return torch.jit.trace(module, torch.randn(2, 3))
+
+
+def test_eager_from_script_refusals():
+    from controlgs_adapter.errors import TargetError
+    from controlgs_adapter.formats.torchscript import eager_from_script
+
+    with pytest.raises(TargetError, match=r"decoder 'mlp_x': the TorchScript module holds no Linear layer"):
+        eager_from_script(torch.jit.script(nn.Sequential(nn.ReLU())), "mlp_x")
+    with pytest.raises(TargetError, match=r"decoder 'mlp_x.1': TorchScript layer of type 'GELU' cannot be rebuilt .*"
+                                          r"\(supported: Sequential of Identity, LeakyReLU, Linear, ReLU, SiLU, Sigmoid, "
+                                          r"Softmax, Softplus, Tanh\)"):
+        eager_from_script(torch.jit.script(nn.Sequential(nn.Linear(3, 2), nn.GELU())), "mlp_x")
+    with pytest.raises(TargetError, match=r"decoder 'mlp_x': the TorchScript module does not take a \[rows, 3\] input"):
+        eager_from_script(torch.jit.script(nn.Sequential(nn.Linear(3, 2), nn.Linear(4, 1))), "mlp_x")
+    with pytest.raises(TargetError, match=r"decoder 'mlp_x': the eager rebuild .* does not reproduce its output"):
+        eager_from_script(_trace(nn.Sequential(Linear())), "mlp_x")
+    with pytest.raises(TargetError, match=r"mlp_x.1: cannot read LeakyReLU.negative_slope from its TorchScript code"):
+        eager_from_script(_trace(nn.Sequential(nn.Linear(3, 2), LeakyReLU())), "mlp_x")
+
+
+@pytest.mark.parametrize("convert", ["trace", "script"])
+def test_eager_from_script_reads_each_setting(convert):
+    """Settings from the traced code's constants (trace) or the module's attributes (script), each a
+    different number so a swapped index or attribute shows; mode as stored."""
+    from controlgs_adapter.formats.torchscript import eager_from_script
+
+    module = nn.Sequential(nn.Linear(3, 3), nn.LeakyReLU(0.3), nn.Softplus(beta=1.5, threshold=7.0), nn.Softmax(dim=0))
+    module.eval()
+    sm = _trace(module) if convert == "trace" else torch.jit.script(module)
+    eager = eager_from_script(sm)
+    assert eager[1].negative_slope == 0.3 and (eager[2].beta, eager[2].threshold) == (1.5, 7.0) and eager[3].dim == 0
+    assert not eager.training and not eager[1].training
