@@ -565,3 +565,60 @@ def test_lens_prewarp_and_bank_map_refusals(tmp_path):
                            kind="controlgs-prewarp-lut", format_version=1)
     with pytest.raises(FileFormatError, match=r"lut.safetensors: pre-warp LUT lacks \['gain'\]"):
         LensPrewarp.load_lut(no_gain)
+
+
+# --- RadialMap, lens_prewarp in the primaries basis ---------------------------------------------
+
+def test_radial_map_default_and_higher_orders_by_hand():
+    from controlgs_adapter.downstream.lens import CARDBOARD_RADIAL, RadialMap
+
+    landing = (606.5, 611.8, 617.1)  # px from the centre of a 1024 px display, corner (r^2 = 2)
+    assert torch.allclose(RadialMap().coefficients, torch.tensor([[(d / 512 - 1) / 2] for d in landing]))
+    assert RadialMap().coefficients.tolist() == RadialMap(CARDBOARD_RADIAL).coefficients.tolist()
+    k = [[0.1, 0.02], [0.0, -0.03], [-0.05, 0.0]]
+    m = RadialMap(k)
+    grid, gain = m((4, 4), torch.float64, CPU)  # square image on the square display: r = |p|
+    assert gain is None
+    p = pixel_grid((4, 4), torch.float64)
+    r2 = (p ** 2).sum(-1)
+    for c, (k1, k2) in enumerate(k):
+        want = p * (1 + k1 * r2 + k2 * r2 ** 2)[..., None]
+        assert torch.allclose(grid[c], want, atol=1e-7, rtol=0)  # coefficients are stored as float32
+    with torch.no_grad():
+        m.coefficients[1, 1] = 0.0  # in place: the cached grid must follow
+    assert torch.allclose(m((4, 4), torch.float64, CPU)[0][1], p, atol=1e-12)
+    assert not m.is_identity() and RadialMap([[0.0, 0.0]] * 3).is_identity()
+
+
+def test_learnable_radial_lens_is_skipped_only_outside_training():
+    stage = LensPrewarp.radial([[0.0]] * 3, learnable=True)
+    assert not stage.train().is_identity(RuntimeState())  # trainable: runs so that it gets gradients
+    assert stage.eval().is_identity(RuntimeState())
+    stage.map.coefficients.requires_grad_(False)
+    assert stage.train().is_identity(RuntimeState())
+
+
+def test_lens_prewarp_in_the_primaries_basis_shifts_each_primary():
+    """Whole-pixel shifts, a different one per channel: in the primaries basis each display primary
+    is shifted (zero fill) and the result converted back to RGB; brute force by slicing."""
+    from controlgs_adapter.downstream.color import primaries_to_rgb, rgb_to_primaries
+    from controlgs_adapter.downstream.lens import lens_prewarp
+
+    h, w = 5, 6
+    img = torch.rand(2, 3, h, w, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
+    shifts = [(1, 0), (0, -2), (-1, 1)]  # (dy, dx) pixels sampled from: out[y, x] = in[y + dy, x + dx]
+    base = pixel_grid((h, w), torch.float64)
+    grid = torch.stack([base + torch.tensor([2.0 * dx / w, 2.0 * dy / h], dtype=torch.float64) for dy, dx in shifts])
+    gain = torch.tensor([1.0, 0.5, 2.0], dtype=torch.float64)[:, None, None].expand(3, h, w).contiguous()
+
+    def shifted(x: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros_like(x)
+        for c, (dy, dx) in enumerate(shifts):
+            src = torch.nn.functional.pad(x[:, c], (2, 2, 2, 2))
+            out[:, c] = src[:, 2 + dy:2 + dy + h, 2 + dx:2 + dx + w] * gain[c, 0, 0]
+        return out
+
+    assert torch.allclose(lens_prewarp(img, grid, gain, basis="rgb"), shifted(img), atol=1e-12)
+    want = primaries_to_rgb(shifted(rgb_to_primaries(img)))
+    assert torch.allclose(lens_prewarp(img, grid, gain, basis="primaries"), want, atol=1e-12)
+    assert not torch.allclose(want, shifted(img), atol=1e-3)
