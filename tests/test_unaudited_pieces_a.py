@@ -454,3 +454,28 @@ def test_eager_from_script_reads_each_setting(convert):
     eager = eager_from_script(sm)
     assert eager[1].negative_slope == 0.3 and (eager[2].beta, eager[2].threshold) == (1.5, 7.0) and eager[3].dim == 0
     assert not eager.training and not eager[1].training
+
+
+# --------------------------------------------------------------------------------------------------
+# the restricted unpickler and the module tree: hand-written data.pkl opcodes (protocol 2)
+# --------------------------------------------------------------------------------------------------
+
+_M = b"c__torch__.torch.nn.modules.container\nSequential\n"  # GLOBAL of the root's class
+
+
+@pytest.mark.parametrize("pkl,what", [
+    (_M + b"K\x01\x85\x81.", "object of class __torch__.torch.nn.modules.container.Sequential built with arguments"),
+    (b"K\x01.", " is a pickled int, not a TorchScript module"),
+    (_M + b")\x81K\x01b.", "module  (__torch__.torch.nn.modules.container.Sequential) whose state is not a plain dict"),
+    (_M + b")\x81}K\x01K\x02sb.", "whose state is not a plain dict"),  # a non-string key
+    (_M + b")\x81}X\x01\x00\x00\x00xK\x01\x85sb.", "attribute .x holding a tuple"),
+    (b"K\x01Q.", "an unexpected persistent id '1'"),
+    (b"(X\x07\x00\x00\x00storagectorch\nLongStorage\nX\x01\x00\x00\x000X\x03\x00\x00\x00cpuK\x01tQ.",
+     "a non-float tensor (torch.int64)"),
+    (b"(X\x07\x00\x00\x00storagectorch\nFloatStorage\nX\x01\x00\x00\x00aX\x03\x00\x00\x00cpuK\x01tQ.",
+     "an unexpected persistent id"),  # a storage key that is not a number
+    (b"cbuiltins\neval\n.", "a pickled reference to the global 'builtins.eval'"),
+    (b"c__torch__.a-b\nM\n.", "a pickled reference to the global '__torch__.a-b.M'"),  # not identifiers
+])
+def test_pickle_refusals(traced, tmp_path, pkl, what):
+    _refused(_with_entries(traced, tmp_path / "p.pt", {"data.pkl": b"\x80\x02" + pkl}), what)
