@@ -622,3 +622,23 @@ def test_lens_prewarp_in_the_primaries_basis_shifts_each_primary():
     want = primaries_to_rgb(shifted(rgb_to_primaries(img)))
     assert torch.allclose(lens_prewarp(img, grid, gain, basis="primaries"), want, atol=1e-12)
     assert not torch.allclose(want, shifted(img), atol=1e-3)
+
+
+def test_primaries_matrix_from_the_iec_srgb_matrix_by_hand():
+    """C^-1 M with M the IEC 61966-2-1 sRGB -> XYZ matrix as printed (4 digits) and C the CIE 1931
+    2-degree CMFs at 656 / 550 / 486 nm; rows scaled so that white drives every primary at 1."""
+    colour = pytest.importorskip("colour")
+    import numpy as np
+
+    from controlgs_adapter.downstream.color import primaries_to_rgb_matrix, rgb_to_primaries_matrix
+
+    iec = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    c = np.stack([np.asarray(cmfs[w], dtype=np.float64) for w in (656, 550, 486)], axis=1)
+    raw = np.linalg.solve(c, iec)
+    want = raw / raw.sum(1, keepdims=True)
+    got = rgb_to_primaries_matrix().numpy()
+    assert np.allclose(got, want, atol=2e-3)
+    assert np.allclose(got.sum(1), 1.0, atol=1e-12)
+    assert np.allclose(primaries_to_rgb_matrix().numpy(), np.linalg.inv(want), atol=5e-3)
+    assert rgb_to_primaries_matrix(torch.float32).dtype == torch.float32
