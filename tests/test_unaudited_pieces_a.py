@@ -479,3 +479,35 @@ _M = b"c__torch__.torch.nn.modules.container\nSequential\n"  # GLOBAL of the roo
 ])
 def test_pickle_refusals(traced, tmp_path, pkl, what):
     _refused(_with_entries(traced, tmp_path / "p.pt", {"data.pkl": b"\x80\x02" + pkl}), what)
+
+
+def _nested(tmp_path: Path, name: str, fill: float | None = None) -> tuple[Path, nn.Module]:
+    """A traced nested Sequential; ``fill`` written into the inner Linear's bias[1]; the outer weight frozen."""
+    module = nn.Sequential(nn.Linear(3, 4), nn.Sequential(nn.Linear(4, 2), nn.Tanh()))
+    module[0].weight.requires_grad_(False)
+    if fill is not None:
+        with torch.no_grad():
+            module[1][0].bias[1] = fill
+    path = tmp_path / name
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.jit.save(torch.jit.trace(module, torch.randn(2, 3), check_trace=False), str(path))
+    return path, module
+
+
+def test_tensors_from_archive_names_values_and_non_finite(tmp_path):
+    from controlgs_adapter.formats.torchscript import tensors_from_archive
+
+    path, module = _nested(tmp_path, "ok.pt")
+    got = tensors_from_archive(path)
+    want = module.state_dict()
+    assert list(got) == list(want) == ["0.weight", "0.bias", "1.0.weight", "1.0.bias"]
+    assert all(torch.equal(got[k], want[k]) for k in want)
+    eager = eager_from_archive(path)  # requires_grad as stored, per tensor
+    assert [p.requires_grad for p in eager.parameters()] == [False, True, True, True]
+    for fill, word in ((float("inf"), "inf"), (float("-inf"), "inf"), (float("nan"), "NaN")):
+        bad, _ = _nested(tmp_path, f"bad_{word}.pt", fill)
+        for load in (tensors_from_archive, eager_from_archive):
+            with pytest.raises(FileFormatError) as info:
+                load(bad)
+            assert str(bad) in str(info.value) and f"non-finite weights ({word}) in 1.0.bias" in str(info.value)
