@@ -642,3 +642,45 @@ def test_primaries_matrix_from_the_iec_srgb_matrix_by_hand():
     assert np.allclose(got.sum(1), 1.0, atol=1e-12)
     assert np.allclose(primaries_to_rgb_matrix().numpy(), np.linalg.inv(want), atol=5e-3)
     assert rgb_to_primaries_matrix(torch.float32).dtype == torch.float32
+
+
+def test_for_optics_checks_a_fitted_lut_and_falls_back_to_chief_rays(tmp_path):
+    from controlgs_adapter.downstream.lens import BankMap
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+
+    bank = PSFBank.default()
+
+    class _Optics(torch.nn.Module):
+        def __init__(self, bank_: PSFBank, radiometry: str, mode: str = "exact") -> None:
+            super().__init__()
+            self.bank, self.radiometry, self.mode, self.placement = bank_, radiometry, mode, "fit"
+
+    disp, gain, _ = _display_tables()
+    fp = bank_fingerprint(bank)
+    lut = DisplayLUTMap({"distortion": (disp, gain), "exact": (disp * 2, gain)},
+                        meta={"bank": fp, "radiometry": "energy"}).save(tmp_path / "fit.safetensors")
+    with pytest.raises(InputValueError, match="fit.safetensors: this pre-warp LUT was fitted for radiometry 'energy'"):
+        LensPrewarp.for_optics(_Optics(bank, "radiance"), lut=lut)
+    optics = _Optics(bank, "energy", mode="distortion")
+    stage = LensPrewarp.for_optics(optics, lut=lut)
+    assert isinstance(stage.map, DisplayLUTMap) and stage.map.table_mode() == "distortion"
+    optics.mode = "fast"
+    assert stage.map.table_mode() == "exact"  # follows the optics' current mode
+    other = copy.copy(bank)
+    other.chief = bank.chief * 1.001
+    with pytest.raises(InputValueError, match=f"another PSF bank .*{fp}"):
+        LensPrewarp.for_optics(_Optics(other, "energy"), lut=lut)
+    for radiometry, fallback in (("energy", "jacobian"), ("radiance", None)):
+        with pytest.warns(UserWarning, match=f"no fitted pre-warp LUT for this PSF bank and radiometry '{radiometry}'"):
+            chief = LensPrewarp.for_optics(_Optics(other, radiometry))
+        assert isinstance(chief.map, BankMap) and chief.map.gain == fallback and chief.map.bank is other
+
+
+def test_lut_map_evaluation_follows_in_place_edits():
+    grid = pixel_grid((3, 3), torch.float64).expand(3, -1, -1, -1).clone()
+    m = LUTMap(grid)
+    first, _ = m((5, 5), torch.float64, CPU)
+    assert torch.allclose(first, pixel_grid((5, 5), torch.float64).expand(3, -1, -1, -1), atol=1e-7)
+    m.displacement[:, :, :, 0] += 0.25  # a uniform shift in x
+    moved, _ = m((5, 5), torch.float64, CPU)
+    assert torch.allclose(moved[..., 0] - first[..., 0], torch.full((3, 5, 5), 0.25, dtype=torch.float64), atol=1e-7)
