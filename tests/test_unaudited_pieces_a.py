@@ -511,3 +511,37 @@ def test_tensors_from_archive_names_values_and_non_finite(tmp_path):
             with pytest.raises(FileFormatError) as info:
                 load(bad)
             assert str(bad) in str(info.value) and f"non-finite weights ({word}) in 1.0.bias" in str(info.value)
+
+
+def _ints(values: tuple[int, ...]) -> bytes:
+    return b"(" + b"".join(b"J" + v.to_bytes(4, "little", signed=True) for v in values) + b"t"
+
+
+def _record(size: tuple[int, ...], stride: tuple[int, ...], offset: int = 0, requires_grad: bytes = b"\x89",
+            hooks: bytes = b"", storage: bytes = b"FloatStorage", numel: int = 6) -> bytes:
+    """Opcodes of ``torch._utils._rebuild_tensor_v2(storage data/0, offset, size, stride, requires_grad, hooks)``."""
+    pid = (b"(X\x07\x00\x00\x00storagectorch\n" + storage + b"\nX\x01\x00\x00\x000X\x03\x00\x00\x00cpu"
+           + b"J" + numel.to_bytes(4, "little") + b"tQ")
+    return (b"ctorch._utils\n_rebuild_tensor_v2\n(" + pid + b"J" + offset.to_bytes(4, "little", signed=True)
+            + _ints(size) + _ints(stride) + requires_grad + b"ccollections\nOrderedDict\n)R" + hooks + b"tR")
+
+
+@pytest.mark.parametrize("pkl,what", [
+    # the base archive's data/0 holds 6 float32 (its Linear's weight); every record below points at it
+    (_record((1,) * 8, (1,) * 8), "is a pickled _TensorRecord, not a TorchScript module"),  # 8 dims: read
+    (_record((1,) * 9, (1,) * 9), "a malformed tensor record"),  # over _MAX_DIMS
+    (_record((6,), (1,), requires_grad=b"K\x01"), "a malformed tensor record"),  # 1 is not a bool
+    (_record((6,), (1,), hooks=b"K\x01K\x02s"), "a malformed tensor record"),  # backward hooks
+    (_record((2,), (1,), offset=4), "is a pickled _TensorRecord"),  # last element data/0[5]: inside
+    (_record((2,), (1,), offset=5), "a tensor of shape [2] that reaches past its storage data/0"),
+    (_record((2, 2), (3, 1), offset=1), "is a pickled _TensorRecord"),  # last element 1 + 3 + 1 = 5
+    (_record((2, 2), (4, 1), offset=1), "a tensor of shape [2, 2] that reaches past its storage data/0"),
+    (_record((7,), (0,)), "a tensor of shape [7] larger than its storage data/0"),
+    (_record((0,), (1,), offset=100), "is a pickled _TensorRecord"),  # empty: no element to reach
+    (b"(" + _record((6,), (1,)) + _record((3,), (1,), storage=b"DoubleStorage", numel=3) + b"t",
+     "storage data/0 is referenced with two dtypes or sizes"),
+    (b"(" + _record((6,), (1,)) + _record((5,), (1,), numel=5) + b"t", "storage data/0 is referenced with two dtypes or sizes"),
+    (_record((6,), (1,)) + b"}b", "a pickled BUILD on a tensor"),
+])
+def test_tensor_record_refusals_and_bounds(traced, tmp_path, pkl, what):
+    _refused(_with_entries(traced, tmp_path / "t.pt", {"data.pkl": b"\x80\x02" + pkl + b"."}), what)
