@@ -545,3 +545,19 @@ def _record(size: tuple[int, ...], stride: tuple[int, ...], offset: int = 0, req
 ])
 def test_tensor_record_refusals_and_bounds(traced, tmp_path, pkl, what):
     _refused(_with_entries(traced, tmp_path / "t.pt", {"data.pkl": b"\x80\x02" + pkl + b"."}), what)
+
+
+@pytest.mark.parametrize("global_,what", [
+    (b"c__torch__.torch.nn.modules.activation\nReLU6\n",
+     "4 of type __torch__.torch.nn.modules.activation.ReLU6 (supported: Sequential of Linear, Identity, ReLU, "
+     "Tanh, Sigmoid, SiLU, Softmax, LeakyReLU, Softplus)"),
+    (b"c__torch__.mylib\nReLU\n", "4 of type __torch__.mylib.ReLU (supported"),  # a kind, but not torch.nn's
+    (b"c__torch__.torch.nn.modules.activation.___torch_mangle_3\nReLU\n",
+     "no code for the class __torch__.torch.nn.modules.activation.___torch_mangle_3.ReLU"),  # mangled: a kind
+])
+def test_layer_kind_is_read_from_the_torch_nn_class_name(traced, tmp_path, global_, what):
+    with zipfile.ZipFile(traced) as z:
+        pkl = next(z.read(n) for n in z.namelist() if n.endswith("/data.pkl"))
+    old = b"c__torch__.torch.nn.modules.activation\nReLU\n"
+    assert pkl.count(old) == 1
+    _refused(_with_entries(traced, tmp_path / "k.pt", {"data.pkl": pkl.replace(old, global_)}), what)
