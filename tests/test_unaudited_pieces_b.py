@@ -231,6 +231,7 @@ def test_bank_fingerprint_tracks_every_optics_field():
     # copies bypass __init__: PSFBank renormalises its PSFs there, which moves float32 rounding
     def with_fields(**fields: object) -> PSFBank:
         other = copy.copy(bank)
+        other._cache = {}  # not shared with the process-wide default bank
         for name, value in fields.items():
             setattr(other, name, value)
         return other
@@ -667,7 +668,7 @@ def test_for_optics_checks_a_fitted_lut_and_falls_back_to_chief_rays(tmp_path):
     optics.mode = "fast"
     assert stage.map.table_mode() == "exact"  # follows the optics' current mode
     other = copy.copy(bank)
-    other.chief = bank.chief * 1.001
+    other._cache, other.chief = {}, bank.chief * 1.001  # own cache: the default bank is process-wide
     with pytest.raises(InputValueError, match=f"another PSF bank .*{fp}"):
         LensPrewarp.for_optics(_Optics(other, "energy"), lut=lut)
     for radiometry, fallback in (("energy", "jacobian"), ("radiance", None)):
