@@ -561,3 +561,24 @@ def test_layer_kind_is_read_from_the_torch_nn_class_name(traced, tmp_path, globa
     old = b"c__torch__.torch.nn.modules.activation\nReLU\n"
     assert pkl.count(old) == 1
     _refused(_with_entries(traced, tmp_path / "k.pt", {"data.pkl": pkl.replace(old, global_)}), what)
+
+
+@pytest.mark.parametrize("channels,mode", [(3, "RGB"), (4, "RGBA")])
+def test_encode_png_rounds_to_nearest_and_clamps(channels, mode):
+    import base64
+    import io
+
+    from PIL import Image
+
+    from controlgs_adapter.viewer.session import encode_png
+
+    # x * 255: 127.5 -> 128, 127.49 -> 127, 0.51 -> 1, 0.49 -> 0, 254.6 -> 255; out of [0, 1] clamps
+    values = torch.tensor([127.5, 127.49, 0.51, 0.49, 254.6, -20.0, 300.0, 255.0]) / 255.0
+    image = values.view(1, 2, 4).expand(channels, 2, 4).clone()
+    image[0, 0, 0] = 1.0  # channels differ: the channel order shows
+    png = Image.open(io.BytesIO(base64.b64decode(encode_png(image))))
+    assert png.mode == mode and png.size == (4, 2)
+    got = torch.tensor(list(png.getdata())).T.reshape(channels, 2, 4)
+    want = torch.tensor([128, 127, 1, 0, 255, 0, 255, 255]).view(1, 2, 4).expand(channels, 2, 4).clone()
+    want[0, 0, 0] = 255
+    assert torch.equal(got, want)
