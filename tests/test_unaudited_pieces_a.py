@@ -582,3 +582,24 @@ def test_encode_png_rounds_to_nearest_and_clamps(channels, mode):
     want = torch.tensor([128, 127, 1, 0, 255, 0, 255, 255]).view(1, 2, 4).expand(channels, 2, 4).clone()
     want[0, 0, 0] = 255
     assert torch.equal(got, want)
+
+
+def test_cli_import_errors_outside_the_table_are_one_line(tmp_path, monkeypatch, capsys):
+    """A package missing at the command's own import (not in REQUIRES) and a broken install (a name
+    missing from a module) each end in one line and exit code 2, never a traceback."""
+    import controlgs_adapter.report as report
+    from controlgs_adapter.cli import main
+
+    pytest.importorskip("matplotlib")
+    argv = ["eval", "--run", str(tmp_path / "run"), "--out", str(tmp_path / "out")]
+    with monkeypatch.context() as mp:
+        mp.setitem(sys.modules, "controlgs_adapter.report", None)
+        assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == ("controlgs eval: error: needs the Python package 'controlgs_adapter.report', which is not installed "
+                   "(pip install 'controlgs-adapter[demo]' installs the optional ones)\n"), err
+    monkeypatch.delattr(report, "write_report")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("controlgs eval: error: cannot import name 'write_report' from 'controlgs_adapter.report'"), err
+    assert err.endswith(" (pip install 'controlgs-adapter[demo]' installs the optional ones)\n") and err.count("\n") == 1
