@@ -603,3 +603,16 @@ def test_cli_import_errors_outside_the_table_are_one_line(tmp_path, monkeypatch,
     err = capsys.readouterr().err
     assert err.startswith("controlgs eval: error: cannot import name 'write_report' from 'controlgs_adapter.report'"), err
     assert err.endswith(" (pip install 'controlgs-adapter[demo]' installs the optional ones)\n") and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("dim", [b"K\x00", b"K\x01"])
+def test_a_stored_softmax_dim_is_an_unexpected_attribute(traced, tmp_path, dim):
+    """torch.jit keeps Softmax's dim in the code only (a Final constant); a dim in the pickled state,
+    equal to the code's (1) or not, is refused like any attribute a decoder does not hold."""
+    import re
+
+    with zipfile.ZipFile(traced) as z:
+        pkl = next(z.read(n) for n in z.namelist() if n.endswith("/data.pkl"))
+    crafted, n = re.subn(rb"(activation\nSoftmax\nq.\)\x81\}\()", lambda m: m.group(1) + b"X\x03\x00\x00\x00dim" + dim, pkl)
+    assert n == 1
+    _refused(_with_entries(traced, tmp_path / "d.pt", {"data.pkl": crafted}), "1 (Softmax) with unexpected attributes ['dim']")
