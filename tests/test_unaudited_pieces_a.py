@@ -616,3 +616,28 @@ def test_a_stored_softmax_dim_is_an_unexpected_attribute(traced, tmp_path, dim):
     crafted, n = re.subn(rb"(activation\nSoftmax\nq.\)\x81\}\()", lambda m: m.group(1) + b"X\x03\x00\x00\x00dim" + dim, pkl)
     assert n == 1
     _refused(_with_entries(traced, tmp_path / "d.pt", {"data.pkl": crafted}), "1 (Softmax) with unexpected attributes ['dim']")
+
+
+@pytest.mark.parametrize("byteorder,ok", [(b"little", True), (b"little\n", True), (None, True), (b"big", False),
+                                          (b"littl", False)])
+def test_byteorder_entry(traced, tmp_path, byteorder, ok):
+    """Little-endian data (torch's ``byteorder`` entry, whitespace around it ignored, or no entry: older
+    archives) is read; anything else is refused."""
+    path = tmp_path / "b.pt"
+    with zipfile.ZipFile(traced) as zin, zipfile.ZipFile(path, "w") as zout:
+        prefix = zin.namelist()[0].split("/")[0]
+        for info in zin.infolist():
+            if info.filename != f"{prefix}/byteorder":
+                zout.writestr(info, zin.read(info))
+        if byteorder is not None:
+            zout.writestr(f"{prefix}/byteorder", byteorder)
+    if ok:
+        assert torch.equal(eager_from_archive(path)[0].weight, eager_from_archive(traced)[0].weight)
+    else:
+        _refused(path, "big-endian tensor data")
+
+
+def test_python_files_outside_the_code_folder_are_not_code(traced, tmp_path):
+    """Only ``<name>/code/**.py`` is parsed: a .py elsewhere in the zip (a torch.package extra, say) is ignored."""
+    path = _with_entries(traced, tmp_path / "x.pt", {"extra/evil.py": b"import os\nos.system('x')\n(((("})
+    assert len(eager_from_archive(path)) == 6
