@@ -641,3 +641,34 @@ def test_python_files_outside_the_code_folder_are_not_code(traced, tmp_path):
     """Only ``<name>/code/**.py`` is parsed: a .py elsewhere in the zip (a torch.package extra, say) is ignored."""
     path = _with_entries(traced, tmp_path / "x.pt", {"extra/evil.py": b"import os\nos.system('x')\n(((("})
     assert len(eager_from_archive(path)) == 6
+
+
+def _looking(centre: tuple[float, ...], forward: tuple[float, ...]):
+    """An OpenCV camera at ``centre`` looking along the horizontal unit ``forward`` (y down)."""
+    from controlgs_adapter.state import Camera
+
+    f = torch.tensor(forward, dtype=torch.float64)
+    d = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    r = torch.linalg.cross(d, f)
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, :3] = torch.stack([r, d, f])
+    w2c[:3, 3] = -(w2c[:3, :3] @ torch.tensor(centre, dtype=torch.float64))
+    return Camera(w2c, torch.tensor([[10.0, 0.0, 8.0], [0.0, 10.0, 8.0], [0.0, 0.0, 1.0]], dtype=torch.float64), 16, 16)
+
+
+def test_scene_centre_each_branch():
+    """Axes meeting in front: their meeting point; meeting behind, parallel or one camera: the anchors'
+    per-axis median; no anchors either: the origin."""
+    from controlgs_adapter.viewer.session import scene_centre
+
+    t = (0.5, -1.0, 2.0)
+    front = [_looking((t[0] - 3, t[1], t[2]), (1.0, 0.0, 0.0)), _looking((t[0], t[1], t[2] - 3), (0.0, 0.0, 1.0))]
+    behind = [_looking((t[0] - 3, t[1], t[2]), (-1.0, 0.0, 0.0)), _looking((t[0], t[1], t[2] - 3), (0.0, 0.0, -1.0))]
+    parallel = [_looking((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)), _looking((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
+    points = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [5.0, -2.0, 3.0]])
+    median = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(scene_centre(front, points), torch.tensor(t, dtype=torch.float64), atol=1e-12, rtol=0)
+    for cams in (behind, parallel, front[:1]):
+        torch.testing.assert_close(scene_centre(cams, points), median, atol=0, rtol=0)
+        assert torch.equal(scene_centre(cams, None), torch.zeros(3, dtype=torch.float64))
+        assert torch.equal(scene_centre(cams, torch.zeros(0, 3)), torch.zeros(3, dtype=torch.float64))
