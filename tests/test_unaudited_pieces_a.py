@@ -672,3 +672,16 @@ def test_scene_centre_each_branch():
         torch.testing.assert_close(scene_centre(cams, points), median, atol=0, rtol=0)
         assert torch.equal(scene_centre(cams, None), torch.zeros(3, dtype=torch.float64))
         assert torch.equal(scene_centre(cams, torch.zeros(0, 3)), torch.zeros(3, dtype=torch.float64))
+
+
+def test_settings_with_signs_and_exponents(tmp_path):
+    """Negative and exponent-written constants in traced code read exactly, live and from the file."""
+    from controlgs_adapter.formats.torchscript import eager_from_script
+
+    module = nn.Sequential(nn.Linear(3, 3), nn.LeakyReLU(-0.5), nn.Softplus(beta=2.5e-7, threshold=1e20), nn.Softmax(dim=-1))
+    sm = _trace(module)
+    path = tmp_path / "s.pt"
+    torch.jit.save(sm, str(path))
+    for eager in (eager_from_script(sm), eager_from_archive(path)):
+        assert eager[1].negative_slope == -0.5 and (eager[2].beta, eager[2].threshold) == (2.5e-7, 1e20)
+        assert eager[3].dim == -1
