@@ -685,3 +685,19 @@ def test_settings_with_signs_and_exponents(tmp_path):
     for eager in (eager_from_script(sm), eager_from_archive(path)):
         assert eager[1].negative_slope == -0.5 and (eager[2].beta, eager[2].threshold) == (2.5e-7, 1e20)
         assert eager[3].dim == -1
+
+
+_CHAIN = "(_4).forward((_3).forward((_2).forward(_6, ), ), )"
+
+
+@pytest.mark.parametrize("old,new", [
+    (_CHAIN, "(_4).forward((_3).forward((_3).forward((_2).forward(_6, ), ), ), )"),  # a layer applied twice
+    (_CHAIN, "(_4).forward((_2).forward((_3).forward(_6, ), ), )"),  # two layers swapped
+    ("(_1).forward((_0).forward(input, ), )", "(_1).forward((_0).forward(input, ), input)"),  # a second input
+    ("(_1).forward((_0).forward(input, ), )", "(_1).forward((_0).forward(_1, ), )"),  # not fed the input
+    ("return _7", "return _6"),  # the last layers dropped
+])
+def test_sequential_chain_refusals(traced, tmp_path, old, new):
+    _refused(_edited(traced, tmp_path / "c.pt", old, new),
+             "the root Sequential (Sequential) whose forward is not the chain of its submodules "
+             "['0', '1', '2', '3', '4', '5'] in order")
