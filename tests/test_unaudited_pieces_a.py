@@ -701,3 +701,21 @@ def test_sequential_chain_refusals(traced, tmp_path, old, new):
     _refused(_edited(traced, tmp_path / "c.pt", old, new),
              "the root Sequential (Sequential) whose forward is not the chain of its submodules "
              "['0', '1', '2', '3', '4', '5'] in order")
+
+
+def test_entry_count_and_pickle_size_bounds(traced, tmp_path, monkeypatch):
+    """Each bound accepts an archive exactly at it and refuses one a unit over."""
+    import controlgs_adapter.formats.torchscript as ts
+
+    with zipfile.ZipFile(traced) as z:
+        count = len(z.infolist())
+        pkl = next(i for i in z.infolist() if i.filename.endswith("/data.pkl"))
+    monkeypatch.setattr(ts, "_MAX_ENTRIES", count)
+    assert len(eager_from_archive(traced)) == 6
+    monkeypatch.setattr(ts, "_MAX_ENTRIES", count - 1)
+    _refused(traced, f"{count} zip entries (at most {count - 1}; not a decoder archive)")
+    monkeypatch.setattr(ts, "_MAX_ENTRIES", count)
+    monkeypatch.setattr(ts, "_MAX_PICKLE_BYTES", pkl.file_size)
+    assert len(eager_from_archive(traced)) == 6
+    monkeypatch.setattr(ts, "_MAX_PICKLE_BYTES", pkl.file_size - 1)
+    _refused(traced, f"entry '{pkl.filename}' of {pkl.file_size} bytes (at most {pkl.file_size - 1})")
