@@ -719,3 +719,22 @@ def test_entry_count_and_pickle_size_bounds(traced, tmp_path, monkeypatch):
     assert len(eager_from_archive(traced)) == 6
     monkeypatch.setattr(ts, "_MAX_PICKLE_BYTES", pkl.file_size - 1)
     _refused(traced, f"entry '{pkl.filename}' of {pkl.file_size} bytes (at most {pkl.file_size - 1})")
+
+
+@pytest.mark.parametrize("levels,ok", [(32, True), (33, False)])
+def test_nesting_bound(tmp_path, levels, ok):
+    """A Linear under 32 nested Sequentials (depth 32) is read; one level more is refused, naming where."""
+    module: nn.Module = nn.Linear(3, 2)
+    for _ in range(levels):
+        module = nn.Sequential(module)
+    path = tmp_path / "n.pt"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.jit.save(torch.jit.trace(module, torch.randn(2, 3)), str(path))
+    if ok:
+        got = eager_from_archive(path)
+        for _ in range(levels):
+            got = got[0]
+        assert torch.equal(got.weight, module.get_submodule(".".join(["0"] * levels)).weight)
+    else:
+        _refused(path, "modules nested deeper than 32 (or a cycle) at " + ".".join(["0"] * 33))
