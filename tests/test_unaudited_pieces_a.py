@@ -5,6 +5,7 @@ library's error type, the file's name and what was found."""
 from __future__ import annotations
 
 import math
+import subprocess
 import sys
 import warnings
 import zipfile
@@ -24,11 +25,13 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.j
 def traced(tmp_path_factory) -> Path:
     """A traced Sequential holding every activation kind (code as torch.jit.trace writes it)."""
     path = tmp_path_factory.mktemp("ts") / "traced.pt"
-    module = nn.Sequential(nn.Linear(3, 2), nn.Softmax(dim=1), nn.LeakyReLU(0.2),
-                           nn.Softplus(beta=2.0, threshold=10.0), nn.ReLU(), nn.Identity())
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.jit.save(torch.jit.trace(module, torch.randn(2, 3)), str(path))
+    # traced in a fresh process: TorchScript mangles the class names of modules traced earlier in the
+    # same process (``___torch_mangle_N``), and the code edits below match the unmangled text
+    script = ("import warnings, torch; from torch import nn; warnings.simplefilter('ignore'); "
+              "m = nn.Sequential(nn.Linear(3, 2), nn.Softmax(dim=1), nn.LeakyReLU(0.2), "
+              "nn.Softplus(beta=2.0, threshold=10.0), nn.ReLU(), nn.Identity()); "
+              f"torch.jit.save(torch.jit.trace(m, torch.randn(2, 3)), {str(path)!r})")
+    subprocess.run([sys.executable, "-c", script], check=True)
     return path
 
 

@@ -556,8 +556,6 @@ def _activation(kind: str, op: str, consts: list[Any], attrs: dict[str, Any], la
         dim = arg(0, (int, type(None)), "dim")
         if len(consts) > 3 or consts[2:3] not in ([], [None]):
             raise _Refused(f"{label} (Softmax) with a dtype argument {consts[2]!r}")
-        if "dim" in attrs and attrs["dim"] != dim:
-            raise _Refused(f"{label} (Softmax) whose stored dim {attrs['dim']} differs from its code's {dim}")
         return nn.Softmax(dim=dim)
     if kind == "LeakyReLU":
         if len(consts) > 2:
