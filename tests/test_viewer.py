@@ -444,3 +444,18 @@ def test_scene_centre_fallbacks_and_axes_by_hand() -> None:
     away = [looking_at_origin_from([4.0, 0.0, 0.0], -1.0), looking_at_origin_from([0.0, 0.0, 4.0], -1.0)]
     # the axes meet at the origin, behind both cameras: the points' median is taken
     assert torch.equal(scene_centre(away, points), torch.tensor([2.0, 1.0, 3.0], dtype=torch.float64))
+
+
+def test_a_client_that_hangs_up_is_not_reported_but_other_errors_are(capsys) -> None:
+    srv = make_server(FailingSession())  # type: ignore[arg-type]
+    try:
+        for exc, reported in ((BrokenPipeError(32, "Broken pipe"), False), (ConnectionResetError(104, "reset"), False),
+                              (ValueError("a real bug"), True)):
+            try:
+                raise exc
+            except Exception:
+                srv.handle_error(None, ("127.0.0.1", 1))
+            err = capsys.readouterr().err
+            assert ("Traceback" in err and type(exc).__name__ in err) if reported else err == "", (exc, err)
+    finally:
+        srv.server_close()

@@ -19,6 +19,7 @@ older generation is dropped when it reaches the worker or between two methods (:
 from __future__ import annotations
 
 import json
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -71,6 +72,13 @@ class ViewerServer(ThreadingHTTPServer):
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="controlgs-view")
         folder = resources.files("controlgs_adapter.viewer") / "static"
         self.static = {name: (folder / name).read_bytes() for name in STATIC_FILES}
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A client that hung up mid-answer (a refused over-long request, a closed tab) is not a server
+        error: no traceback for it; anything else keeps the standard report."""
+        if isinstance(sys.exc_info()[1], ConnectionError):
+            return
+        super().handle_error(request, client_address)
 
     @property
     def url(self) -> str:
