@@ -12,3 +12,19 @@ def _one_intra_op_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """The built-in AR scene at 16 px (4 views) and an untrained backbone whose colours match it: enough
+    to exercise the trainer. Built under a fixed seed without touching the global generator, so the
+    model does not depend on which tests ran before."""
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.scene import load_builtin_scene
+
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=20)
+    return scene, model.eval()

@@ -8,22 +8,13 @@ import torch
 
 pytest.importorskip("skimage")
 
-from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND, read_checkpoint
 from controlgs_adapter.formats.safetensors import load_tensors
-from controlgs_adapter.scene import load_builtin_scene
 from controlgs_adapter.training import TrainConfig, Trainer
 
 EFFECTS = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
 
-
-@pytest.fixture(scope="module")
-def tiny():
-    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
-    xyz, rgb = scene.points(0.25)
-    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=5)
-    return scene, model.eval()
 
 
 def _trainer(tiny, path, effects=EFFECTS):

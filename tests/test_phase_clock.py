@@ -7,21 +7,12 @@ import time
 import pytest
 import torch
 
-from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.benchmarking import STEP_PHASES, ClockedRasterizer, PhaseClock, clock_stage
 from controlgs_adapter.rendering.rasterizers import use_rasterizer
-from controlgs_adapter.scene import load_builtin_scene
 from controlgs_adapter.training import TrainConfig, Trainer
 
 EFFECTS = {"lens": True, "resample": True, "display": True, "oled": True, "optics": True}
 
-
-@pytest.fixture(scope="module")
-def tiny():
-    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
-    xyz, rgb = scene.points(0.25)
-    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=20)
-    return scene, model.eval()
 
 
 def _trainer(scene, model):

@@ -7,23 +7,13 @@ import torch
 
 pytest.importorskip("skimage")
 
-from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import FileFormatError, InputValueError
-from controlgs_adapter.scene import load_builtin_scene
 from controlgs_adapter.state import RuntimeState
 from controlgs_adapter.training import DEFAULT_EFFECTS, TrainConfig, Trainer, modules_for
 
 EFFECTS = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
 
-
-@pytest.fixture(scope="module")
-def tiny():
-    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
-    xyz, rgb = scene.points(0.25)
-    # an untrained backbone whose colours match the scene: enough to exercise the trainer
-    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=20)
-    return scene, model.eval()
 
 
 def _trainer(tiny, tmp_path=None, **cfg):
