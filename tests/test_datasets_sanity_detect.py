@@ -221,3 +221,11 @@ def test_views_first_keeps_the_leading_frames_in_order():
     assert len(data.views("test")) == 5 and len(data.views("test", first=9)) == 5
     cam, img = data.views("test", first=2, resolution=8)[1]
     assert (cam.width, cam.height) == (8, 6) and torch.allclose(img, torch.full((3, 6, 8), 0.1))
+
+
+@pytest.mark.parametrize("first", ["2", 1.5, True, float("nan")])
+def test_views_first_must_be_an_integer(first):
+    k = torch.tensor([[20.0, 0, 8.0], [0, 20.0, 6.0], [0, 0, 1]])
+    data = SceneData({"test": [Frame("f0", Camera(torch.eye(4), k, 16, 12), torch.zeros(3, 12, 16))]})
+    with pytest.raises(InputValueError, match="first"):
+        data.views("test", first=first)

@@ -20,6 +20,7 @@ from typing import Any, Iterator, Sequence
 import torch
 import torch.nn.functional as F
 
+from ..checks import check_number
 from ..errors import InputValueError
 from ..state import Camera
 
@@ -72,7 +73,8 @@ class SceneData:
         full size). Raises if the split is empty."""
         if split not in self.splits:
             raise InputValueError(f"{self.source or 'dataset'}: no split {split!r} (splits: {sorted(self.splits)})")
-        frames = self.splits[split] if first is None else self.splits[split][:max(1, first)]
+        frames = self.splits[split] if first is None else \
+            self.splits[split][:max(1, int(check_number("first", first, integer=True)))]
         if not frames:
             raise InputValueError(f"{self.source or 'dataset'}: the {split!r} split is empty")
         return PosedImages(frames, resolution=resolution, factor=factor, background=self.background,
