@@ -1,0 +1,324 @@
+"""Automatic mutation sweep (not run in CI): plausible one-line bugs at sampled lines of the library,
+each run against the tests that execute that line, and the survivors listed.
+
+1. Record which test executes which line (once per tree state; about 1.5x the suite's time)::
+
+       .venv/bin/coverage run --rcfile=scripts/coverage-contexts.rc -m pytest -q -p no:cacheprovider
+
+2. Sweep files or folders (one mutant per sampled line; ``--all`` for every line)::
+
+       .venv/bin/python scripts/mutation_sweep.py downstream/display.py --sample 30 --seed 1
+
+Mutations: arithmetic / comparison / boolean operator swaps, numeric constants changed, ``not`` dropped,
+``min``/``max`` and ``sum``/``mean`` swapped, ``.detach()``/``.clamp(...)``/``.abs()`` dropped, the first
+two arguments of a call swapped, a keyword argument dropped, a ``raise`` replaced by ``pass``, an ``if`` test negated. A line that no
+test executes is reported UNCOVERED without a run. Tests are run with ``-x`` in a git worktree of HEAD
+(committed code only: commit the tests first), at most ``--max-tests`` of them first and, for a survivor,
+every test file that holds one of them. The sample's first run is the honest figure (docs/testing.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import random
+import sqlite3
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+_BINOP = {ast.Add: ast.Sub, ast.Sub: ast.Add, ast.Mult: ast.Div, ast.Div: ast.Mult, ast.FloorDiv: ast.Div,
+          ast.Pow: ast.Mult, ast.Mod: ast.FloorDiv, ast.BitAnd: ast.BitOr, ast.BitOr: ast.BitAnd,
+          ast.LShift: ast.RShift, ast.RShift: ast.LShift}
+_CMP = {ast.Lt: ast.LtE, ast.LtE: ast.Lt, ast.Gt: ast.GtE, ast.GtE: ast.Gt, ast.Eq: ast.NotEq, ast.NotEq: ast.Eq,
+        ast.In: ast.NotIn, ast.NotIn: ast.In, ast.Is: ast.IsNot, ast.IsNot: ast.Is}
+_NAMES = {"min": "max", "max": "min", "sum": "mean", "mean": "sum", "any": "all", "all": "any",
+          "minimum": "maximum", "maximum": "minimum", "amin": "amax", "amax": "amin", "floor": "ceil", "ceil": "floor"}
+_DROPPED = {"detach", "clamp", "clamp_min", "clamp_max", "clip", "abs", "round"}
+_QUIET = {"warn", "print", "write", "info", "debug", "warning", "set_description", "set_postfix", "echo"}
+
+
+@dataclass(frozen=True)
+class Mutant:
+    path: str  # repository-relative source file
+    line: int  # 1-based first line
+    end: int  # 1-based last line replaced
+    new: str  # replacement text of lines line..end
+    what: str
+
+
+def _seg(lines: list[str], node: ast.AST) -> tuple[int, int, int] | None:
+    """(line index, start char, end char) of a one-line node (ast offsets are UTF-8 bytes)."""
+    ln, end_ln = getattr(node, "lineno", None), getattr(node, "end_lineno", None)
+    if ln is None or ln != end_ln:
+        return None
+    raw = lines[ln - 1].encode()
+    c0 = len(raw[: node.col_offset].decode(errors="replace"))  # type: ignore[attr-defined]
+    c1 = len(raw[: node.end_col_offset].decode(errors="replace"))  # type: ignore[attr-defined]
+    return ln - 1, c0, c1
+
+
+def _skipped_ids(tree: ast.AST) -> set[int]:
+    """Nodes whose descendants are not mutated: docstrings, annotations, f-strings, messages."""
+    skip: set[int] = set()
+
+    def mark(n: ast.AST | None) -> None:
+        if n is not None:
+            skip.update(id(d) for d in ast.walk(n))
+
+    for n in ast.walk(tree):
+        if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            mark(n.returns)
+            for a in [*n.args.args, *n.args.kwonlyargs, *n.args.posonlyargs, n.args.vararg, n.args.kwarg]:
+                if a is not None:
+                    mark(a.annotation)
+        elif isinstance(n, ast.AnnAssign):
+            mark(n.annotation)
+        elif isinstance(n, ast.JoinedStr):
+            mark(n)
+        elif isinstance(n, ast.Call):
+            f = n.func
+            name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+            if name in _QUIET:
+                mark(n)
+        elif isinstance(n, ast.If) and isinstance(n.test, ast.Name) and n.test.id == "TYPE_CHECKING":
+            mark(n)
+        elif isinstance(n, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "__all__" for t in n.targets):
+            mark(n)
+    return skip
+
+
+def mutants_of(path: str) -> list[Mutant]:
+    """Every mutant of one source file (repository-relative ``path``) that still compiles."""
+    src = (ROOT / path).read_text()
+    lines = src.splitlines(keepends=True)
+    tree = ast.parse(src)
+    skip = _skipped_ids(tree)
+    out: list[Mutant] = []
+
+    def put(node: ast.AST, text: str, what: str) -> None:
+        seg = _seg(lines, node)
+        if seg is None:
+            return
+        i, c0, c1 = seg
+        new = lines[i][:c0] + text + lines[i][c1:]
+        out.append(Mutant(path, i + 1, i + 1, new, what))
+
+    for n in ast.walk(tree):
+        if id(n) in skip:
+            continue
+        if isinstance(n, ast.BinOp) and type(n.op) in _BINOP:
+            m = ast.BinOp(n.left, _BINOP[type(n.op)](), n.right)
+            put(n, f"({ast.unparse(m)})", f"{type(n.op).__name__} -> {type(m.op).__name__}")
+        elif isinstance(n, ast.AugAssign) and type(n.op) in _BINOP:
+            m2 = ast.AugAssign(n.target, _BINOP[type(n.op)](), n.value)
+            put(n, ast.unparse(m2), f"{type(n.op).__name__}= -> {type(m2.op).__name__}=")
+        elif isinstance(n, ast.Compare) and len(n.ops) == 1 and type(n.ops[0]) in _CMP:
+            m3 = ast.Compare(n.left, [_CMP[type(n.ops[0])]()], n.comparators)
+            put(n, f"({ast.unparse(m3)})", f"{type(n.ops[0]).__name__} -> {type(m3.ops[0]).__name__}")
+        elif isinstance(n, ast.BoolOp):
+            m4 = ast.BoolOp(ast.Or() if isinstance(n.op, ast.And) else ast.And(), n.values)
+            put(n, f"({ast.unparse(m4)})", "and <-> or")
+        elif isinstance(n, ast.UnaryOp) and isinstance(n.op, ast.Not):
+            put(n, f"({ast.unparse(n.operand)})", "not dropped")
+        elif isinstance(n, ast.Constant) and type(n.value) in (int, float, bool):
+            v = n.value
+            if isinstance(v, bool):
+                new = repr(not v)
+            elif isinstance(v, int):
+                new = repr(1 if v == 0 else 0 if v == 1 else v + 1)
+            else:
+                new = repr(1.0 if v == 0.0 else v * 2.0)
+            put(n, new, f"constant {v!r} -> {new}")
+        elif isinstance(n, ast.Call):
+            f = n.func
+            if isinstance(f, ast.Name) and f.id in _NAMES:
+                put(f, _NAMES[f.id], f"{f.id} -> {_NAMES[f.id]}")
+            elif isinstance(f, ast.Attribute) and f.attr in _NAMES:
+                put(n, f"{ast.unparse(f.value)}.{_NAMES[f.attr]}({', '.join(map(ast.unparse, [*n.args, *n.keywords]))})",
+                    f".{f.attr} -> .{_NAMES[f.attr]}")
+            elif isinstance(f, ast.Attribute) and f.attr in _DROPPED:
+                put(n, f"({ast.unparse(f.value)})", f".{f.attr}(...) dropped")
+            if len(n.args) >= 2 and not any(isinstance(a, ast.Starred) for a in n.args[:2]) \
+                    and ast.unparse(n.args[0]) != ast.unparse(n.args[1]):
+                swapped = ast.Call(n.func, [n.args[1], n.args[0], *n.args[2:]], n.keywords)
+                put(n, ast.unparse(swapped), "first two arguments swapped")
+            for k, kw in enumerate(n.keywords):
+                if kw.arg is not None:
+                    fewer = ast.Call(n.func, n.args, n.keywords[:k] + n.keywords[k + 1:])
+                    put(n, ast.unparse(fewer), f"keyword {kw.arg}= dropped")
+        elif isinstance(n, ast.Raise):
+            i = n.lineno - 1
+            indent = lines[i][: len(lines[i]) - len(lines[i].lstrip())]
+            out.append(Mutant(path, n.lineno, n.end_lineno or n.lineno, f"{indent}pass\n", "raise -> pass"))
+        elif isinstance(n, (ast.If, ast.While)) and id(n.test) not in skip:
+            seg = _seg(lines, n.test)
+            if seg is not None:
+                i, c0, c1 = seg
+                new = lines[i][:c0] + f"not ({ast.unparse(n.test)})" + lines[i][c1:]
+                out.append(Mutant(path, i + 1, i + 1, new, "condition negated"))
+    good = []
+    for m in out:
+        text = "".join(lines[: m.line - 1]) + m.new + "".join(lines[m.end:])
+        if text != src:
+            try:
+                compile(text, path, "exec")
+            except SyntaxError:
+                continue
+            good.append(m)
+    return good
+
+
+class Coverage:
+    """Tests per executed line, read from a coverage data file recorded with per-test contexts."""
+
+    def __init__(self, data_file: Path) -> None:
+        if not data_file.exists():
+            raise SystemExit(f"no coverage data at {data_file}: record it first (see this script's docstring)")
+        self.db = sqlite3.connect(str(data_file))
+        self.contexts = dict(self.db.execute("select id, context from context"))
+        self.files = dict(self.db.execute("select path, id from file"))
+        from coverage.numbits import numbits_to_nums
+
+        self.size: dict[str, int] = {}  # lines each test executes: focused (fast) tests are run first
+        for ctx, bits in self.db.execute("select context_id, numbits from line_bits"):
+            name = self.contexts[ctx]
+            self.size[name] = self.size.get(name, 0) + len(numbits_to_nums(bits))
+
+    def tests_by_line(self, path: str) -> dict[int, set[str]]:
+        fid = self.files.get(str(ROOT / path))
+        by_line: dict[int, set[str]] = {}
+        if fid is None:
+            return by_line
+        from coverage.numbits import numbits_to_nums
+
+        for ctx, bits in self.db.execute("select context_id, numbits from line_bits where file_id = ?", (fid,)):
+            for ln in numbits_to_nums(bits):
+                by_line.setdefault(ln, set()).add(self.contexts[ctx])
+        return by_line
+
+
+def _node_id(context: str) -> str | None:
+    """``test_x.TestC.test_f`` (coverage's test_function context) -> ``tests/test_x.py::TestC::test_f``."""
+    parts = context.split(".")
+    if len(parts) < 2 or not (ROOT / "tests" / f"{parts[0]}.py").exists():
+        return None
+    return f"tests/{parts[0]}.py::" + "::".join(parts[1:])
+
+
+def _tests_for(m: Mutant, by_line: dict[int, set[str]], size: dict[str, int]) -> list[str]:
+    """Node ids of the tests that execute the mutated lines, most focused first."""
+    ctxs = set().union(*(by_line.get(ln, set()) for ln in range(m.line, m.end + 1)))
+    if ctxs and not any(_node_id(c) for c in ctxs):  # executed only while importing: every test of the file
+        ctxs = set().union(*by_line.values())
+    named: dict[str, int] = {}
+    for c in ctxs:
+        if (t := _node_id(c)) is not None:
+            named[t] = min(named.get(t, 1 << 30), size.get(c, 0))
+    return sorted(named, key=lambda t: (named[t], t))
+
+
+def _run(worktree: Path, m: Mutant, tests: list[str], timeout: float) -> tuple[bool, str]:
+    target = worktree / m.path
+    original = target.read_text()
+    lines = original.splitlines(keepends=True)
+    target.write_text("".join(lines[: m.line - 1]) + m.new + "".join(lines[m.end:]))
+    boot = ("import sys, pytest, __editable___controlgs_adapter_0_1_0_finder as f; "
+            f"f.MAPPING.update({{'controlgs_adapter': {str(worktree / 'controlgs_adapter')!r}, "
+            f"'controlgs_adapter.backends': {str(worktree / 'backends')!r}, "
+            f"'controlgs_adapter.downstream': {str(worktree / 'downstream')!r}}}); "
+            "sys.exit(pytest.main(sys.argv[1:]))")
+    try:
+        proc = subprocess.run([sys.executable, "-c", boot, "-x", "-q", "-rf", "-p", "no:cacheprovider", *tests],
+                              cwd=worktree, capture_output=True, text=True, timeout=timeout)
+        failed = [ln.split(" ")[1] for ln in proc.stdout.splitlines() if ln.startswith("FAILED ")]
+        if proc.returncode in (4, 5):  # usage error / no tests collected: not a verdict
+            raise SystemExit(f"pytest could not run {tests[:3]}...: {proc.stdout[-500:]}{proc.stderr[-500:]}")
+        return proc.returncode != 0, (failed or proc.stdout.strip().splitlines() or [""])[-1]
+    except subprocess.TimeoutExpired:
+        return True, "timeout"
+    finally:
+        target.write_text(original)
+
+
+def _sources(targets: list[str]) -> list[str]:
+    files: list[str] = []
+    for t in targets:
+        p = ROOT / t
+        found = sorted(p.rglob("*.py")) if p.is_dir() else [p]
+        files += [str(f.relative_to(ROOT)) for f in found if not f.name.startswith("_version")]
+    return files
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("targets", nargs="+", help="source files or folders (repository-relative)")
+    ap.add_argument("--sample", type=int, default=20, help="lines sampled over all targets (one mutant each)")
+    ap.add_argument("--all", action="store_true", help="every mutant of every line instead of a sample")
+    ap.add_argument("--lines", help="only lines A-B (one target file)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-tests", type=int, default=40, help="tests run first (their whole files for a survivor)")
+    ap.add_argument("--also", nargs="*", default=[], help="test files run for every mutant (tests newer than the coverage data)")
+    ap.add_argument("--coverage", default=str(ROOT / ".coverage-contexts"), help="coverage data file")
+    ap.add_argument("--worktree", default=f"/tmp/sweep-{int(time.time())}")
+    ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--list", action="store_true", help="only list the chosen mutants")
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args()
+    cov = Coverage(Path(args.coverage))
+    rng = random.Random(args.seed)
+    chosen: list[Mutant] = []
+    by_line_of: dict[str, dict[int, set[str]]] = {}
+    pool: dict[tuple[str, int], list[Mutant]] = {}
+    for path in _sources(args.targets):
+        by_line_of[path] = cov.tests_by_line(path)
+        for m in mutants_of(path):
+            if args.lines:
+                a, b = map(int, args.lines.split("-"))
+                if not a <= m.line <= b:
+                    continue
+            pool.setdefault((m.path, m.line), []).append(m)
+    if args.all:
+        chosen = [m for ms in pool.values() for m in ms]
+    else:
+        keys = sorted(pool)
+        for key in rng.sample(keys, min(args.sample, len(keys))):
+            chosen.append(rng.choice(pool[key]))
+    chosen.sort(key=lambda m: (m.path, m.line))
+    if args.list:
+        for m in chosen:
+            print(f"{m.path}:{m.line}  {m.what}\n    {m.new.strip()}")
+        return
+    worktree = Path(args.worktree)
+    subprocess.run(["git", "worktree", "add", "--detach", str(worktree), "HEAD"], cwd=ROOT, check=True, capture_output=True)
+    results = []
+    try:
+        for m in chosen:
+            t0 = time.perf_counter()
+            tests = list(args.also) + _tests_for(m, by_line_of[m.path], cov.size)
+            if not tests:
+                verdict, tail = "UNCOVERED", "no test executes this line"
+            else:
+                caught, tail = _run(worktree, m, tests[: args.max_tests] if len(tests) > args.max_tests else tests,
+                                    args.timeout)
+                if not caught:  # whole files: fixtures' lines are recorded under a neighbouring test's name
+                    caught, tail = _run(worktree, m, sorted({t.split("::")[0] for t in tests}), args.timeout)
+                verdict = "caught" if caught else "MISSED"
+            results.append({**asdict(m), "verdict": verdict, "tests": len(tests), "by": tail})
+            print(f"{verdict:9s} {time.perf_counter() - t0:6.1f}s {m.path}:{m.line}  {m.what}  [{tail}]\n"
+                  f"          {m.new.strip()}", flush=True)
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, check=False)
+    n = sum(r["verdict"] == "caught" for r in results)
+    print(f"caught {n}/{len(results)}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
