@@ -12,7 +12,8 @@ each run against the tests that execute that line, and the survivors listed.
 Mutations: arithmetic / comparison / boolean operator swaps, numeric constants changed, ``not`` dropped,
 ``min``/``max`` and ``sum``/``mean`` swapped, ``.detach()``/``.clamp(...)``/``.abs()`` dropped, the first
 two arguments of a call swapped, a keyword argument dropped, a ``raise`` replaced by ``pass``, an ``if`` test negated. A line that no
-test executes is reported UNCOVERED without a run. Tests are run with ``-x`` in a git worktree of HEAD
+test executes (by coverage's record) is run against the test files that name its module (lines run only at
+import or in a subprocess); when there are none it is reported UNCOVERED. Tests are run with ``-x`` in a git worktree of HEAD
 (committed code only: commit the tests first), at most ``--max-tests`` of them first and, for a survivor,
 every test file that holds one of them. The sample's first run is the honest figure (docs/testing.md).
 """
@@ -23,6 +24,7 @@ import argparse
 import ast
 import json
 import random
+import re
 import sqlite3
 import subprocess
 import sys
@@ -212,15 +214,20 @@ def _node_id(context: str) -> str | None:
 
 
 def _tests_for(m: Mutant, by_line: dict[int, set[str]], size: dict[str, int]) -> list[str]:
-    """Node ids of the tests that execute the mutated lines, most focused first."""
+    """Node ids of the tests that execute the mutated lines, most focused first; for a line executed
+    only at import or in a subprocess (no test's context), the test files that name the module."""
     ctxs = set().union(*(by_line.get(ln, set()) for ln in range(m.line, m.end + 1)))
-    if ctxs and not any(_node_id(c) for c in ctxs):  # executed only while importing: every test of the file
-        ctxs = set().union(*by_line.values())
     named: dict[str, int] = {}
     for c in ctxs:
         if (t := _node_id(c)) is not None:
             named[t] = min(named.get(t, 1 << 30), size.get(c, 0))
-    return sorted(named, key=lambda t: (named[t], t))
+    if named:
+        return sorted(named, key=lambda t: (named[t], t))
+    stem = Path(m.path).stem
+    word = re.compile(rf"\b{re.escape(stem)}\b")
+    files = sorted((f for f in (ROOT / "tests").glob("test_*.py") if word.search(f.read_text())),
+                   key=lambda f: f.stat().st_size)
+    return [str(f.relative_to(ROOT)) for f in files[:6]]
 
 
 def _run(worktree: Path, m: Mutant, tests: list[str], timeout: float) -> tuple[bool, str]:
