@@ -104,15 +104,21 @@ def convert_domain(image: torch.Tensor, src: Domain, dst: Domain) -> torch.Tenso
 @lru_cache(maxsize=1)
 def _primaries_matrices_f64() -> tuple[np.ndarray, np.ndarray]:
     """(rgb->primaries, primaries->rgb) as float64 ``[3, 3]`` numpy arrays, built from colour-science."""
+    return _primaries_matrices_for(PRIMARY_WAVELENGTHS_NM)
+
+
+def _primaries_matrices_for(wavelengths_nm: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_primaries_matrices_f64` for primaries at ``wavelengths_nm`` (R, G, B), uncached;
+    :class:`RuntimeError` if the sRGB white lies outside their gamut."""
     import colour  # heavy import, done once and only when the primaries are used
 
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
-    c = np.stack([np.asarray(cmfs[w], dtype=np.float64) for w in PRIMARY_WAVELENGTHS_NM], axis=1)  # [3 XYZ, 3 primaries]
+    c = np.stack([np.asarray(cmfs[w], dtype=np.float64) for w in wavelengths_nm], axis=1)  # [3 XYZ, 3 primaries]
     m = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ, dtype=np.float64)  # [3 XYZ, 3 RGB]
     raw = np.linalg.solve(c, m)  # C^-1 M: linear RGB -> primary intensities (unit: one CMF emission)
     white = raw @ np.ones(3)
     if not np.all(white > 0):  # the sRGB white point must lie inside the primaries' triangle
-        raise RuntimeError(f"sRGB white is outside the gamut of the {PRIMARY_WAVELENGTHS_NM} nm primaries: {white}")
+        raise RuntimeError(f"sRGB white is outside the gamut of the {wavelengths_nm} nm primaries: {white}")
     to_primaries = raw / white[:, None]  # white (1, 1, 1) -> (1, 1, 1)
     return to_primaries, np.linalg.inv(to_primaries)
 
