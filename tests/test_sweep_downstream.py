@@ -4,12 +4,11 @@ refusals and option branches, each against a number worked out by hand or a floa
 
 from __future__ import annotations
 
-import math
 
 import pytest
 import torch
 
-from controlgs_adapter.downstream import color, display, oled, placement, resample
+from controlgs_adapter.downstream import color, display, placement
 from controlgs_adapter.downstream.display import DisplayMapping, display_mapping, display_mapping_with_stats, display_power
 from controlgs_adapter.downstream.foveation import Foveation, foveation
 from controlgs_adapter.downstream.oled import OLEDEmission, oled_emission
