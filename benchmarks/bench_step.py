@@ -25,8 +25,9 @@ CUDA rows are measured where ``torch.cuda.is_available()``; elsewhere the output
 FILE (e.g. ``git show REV:controlgs_adapter/rendering/splatter.py > /tmp/splatter_before.py``), in
 the same run.
 
-Prints the table; ``--doc`` rewrites docs/benchmarks-step.md (the generated part; the page's
-hand-written section from ``## Reading the numbers`` on is kept).
+Prints the table; ``--doc`` rewrites docs/benchmarks-step.md, or docs/benchmarks-step-gpu.md when
+only CUDA rows were measured (the generated part; the page's hand-written section from
+``## Reading the numbers`` on is kept), so a GPU run does not replace the CPU rows.
 
 Usage: ``python benchmarks/bench_step.py [--anchors 10000 100000] [--sizes 256 512 1024]
 [--optics exact distortion] [--device cpu cuda] [--rasterizer torch gsplat] [--preset dense]
@@ -63,6 +64,7 @@ from controlgs_adapter.training import TrainConfig, Trainer
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "benchmarks-step.md"
+DOC_GPU = ROOT / "docs" / "benchmarks-step-gpu.md"
 READING = "## Reading the numbers"
 #: column label -> lap(s) of the step's clock
 PHASES: dict[str, tuple[str, ...]] = {"sample": ("sample",), "decode": ("decode", "render"), "splat": ("splat",),
@@ -339,6 +341,12 @@ def write_doc(path: Path, generated: list[str]) -> None:
     path.write_text("\n".join(generated) + "\n\n" + reading)
 
 
+def doc_page(pairs: list[tuple[str, str]]) -> Path:
+    """The page ``--doc`` rewrites for the (device, rasterizer) pairs measured: the GPU page when
+    all are CUDA, else the CPU page."""
+    return DOC_GPU if pairs and all(torch.device(d).type == "cuda" for d, _ in pairs) else DOC
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--anchors", type=int, nargs="+", default=[10_000, 100_000])
@@ -362,7 +370,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="the torch splatter's early-termination threshold (default: its default)")
     ap.add_argument("--baseline", help="splatter module file to compare the CPU torch rows against (same cases, same run)")
     ap.add_argument("--profile", action="store_true", help="also profile the splatter's phases (one more step)")
-    ap.add_argument("--doc", dest="out", action="store_const", const=DOC, help=f"rewrite {DOC.relative_to(ROOT)}")
+    ap.add_argument("--doc", action="store_true", help=f"rewrite {DOC.relative_to(ROOT)}, or {DOC_GPU.relative_to(ROOT)} "
+                                                       "when only CUDA rows are measured")
     ap.add_argument("--out", type=Path, help="write the page to this Markdown file")
     ap.add_argument("--case", nargs=5, metavar=("DEVICE", "RASTERIZER", "ANCHORS", "WIDTH", "OPTICS"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -373,6 +382,8 @@ def main(argv: list[str] | None = None) -> None:
         return
 
     pairs, notes = plan(args)
+    if args.doc:
+        args.out = doc_page(pairs)
     command = "python benchmarks/bench_step.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     scene = f"preset {args.preset}" if args.preset else f"--scale {args.scale:g} --opacity-gain {args.opacity_gain:g}"
     lines = ["# Training-step benchmark", "",

@@ -102,3 +102,20 @@ def test_bench_step_prints_the_table_and_rewrites_only_the_generated_part(tmp_pa
         assert "no GPU available in this run: GPU rows not measured" in res.stdout
         assert "no GPU available in this run: GPU rows not measured" in text
         assert not [row for row in rows if row[0].startswith("cuda")]
+
+
+def test_bench_step_doc_page_keeps_cpu_and_gpu_rows_apart():
+    """``--doc`` writes the GPU page only when every measured pair is on CUDA (a GPU run does not
+    replace the CPU rows), else the CPU page."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    spec = importlib.util.spec_from_file_location("bench_step_doc", root / "benchmarks" / "bench_step.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.doc_page([("cuda", "torch"), ("cuda:0", "gsplat")]).name == "benchmarks-step-gpu.md"
+    assert mod.doc_page([("cpu", "torch"), ("cuda", "gsplat")]).name == "benchmarks-step.md"
+    assert mod.doc_page([("cpu", "torch")]).name == "benchmarks-step.md"
+    assert mod.doc_page([]).name == "benchmarks-step.md"  # nothing measured (no GPU): the CPU page, with its note
