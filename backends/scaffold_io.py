@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.formats.safetensors import atomic_write, folder_mode
 
 from controlgs_adapter.formats.decoders import MLP_FILES, UNITE_FILE, Decoders
@@ -97,9 +97,9 @@ def save_scaffold_dir(model: NeuralGaussianModel, path: str | os.PathLike, itera
     is written atomically, so a reader never sees a half-written model.
     """
     if mlp_mode not in ("split", "unite"):
-        raise ValueError(f"mlp_mode must be 'split' or 'unite', got {mlp_mode!r}")
+        raise InputValueError(f"mlp_mode must be 'split' or 'unite', got {mlp_mode!r}")
     if int(iteration) < 0:
-        raise ValueError(f"iteration must be >= 0, got {iteration!r}")
+        raise InputValueError(f"iteration must be >= 0, got {iteration!r}")
     root = Path(path)
     parent = root / "point_cloud"
     parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,320 @@
+"""Backbone families (facts in /work/shared/notes/backbones.md): the refusals, defaults and option
+branches no other test reaches, each pinned against the family's published layout or a value worked
+out by hand (how is said next to each literal)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+import test_backend_compgs as compgs_t
+import test_backend_contextgs as contextgs_t
+import test_backend_hac as hac_t
+import test_backend_octree_gs as octree_t
+from _family_checks import make_camera, write_cfg_args
+from controlgs_adapter.backends import detect_family, load_model_dir
+from controlgs_adapter.backends.compgs import ResidualBlock, ResidualMLP, load_compgs_dir
+from controlgs_adapter.backends.contextgs import ContextGSModel, load_contextgs_dir, quantize_anchor
+from controlgs_adapter.backends.hac import HACModel, decoders_from_checkpoint, load_hac_dir, voxel_snap
+from controlgs_adapter.backends.models.anchor_model import feature_bank
+from controlgs_adapter.backends.octree_gs import OctreeGSBackend, OctreeGSModel, load_octree_gs_dir
+from controlgs_adapter.errors import FileFormatError, InputValueError
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit.trace: the format under test
+
+
+# ---------------------------------------------------------------- CompGS
+
+def test_residual_mlp_structure_default_and_forward_by_hand():
+    torch.manual_seed(0)
+    m = ResidualMLP(5, 6, 2)  # CompGS's ResidualMLP: one residual block unless told otherwise
+    assert [type(x).__name__ for x in m.net] == ["Linear", "LeakyReLU", "ResidualBlock", "Linear"]
+    assert isinstance(m.skip, nn.Linear) and isinstance(m.tail_activation, nn.Identity)
+    x = torch.randn(4, 5, dtype=torch.float64)
+    m = m.double()
+
+    def lin(layer, v):
+        return v @ layer.weight.T + layer.bias
+
+    def leaky(v):  # nn.LeakyReLU's default slope 0.01
+        return torch.where(v > 0, v, 0.01 * v)
+
+    h = leaky(lin(m.net[0], x))
+    blk = m.net[2].net
+    h = h + lin(blk[2], leaky(lin(blk[0], h)))
+    want = lin(m.net[3], h) + lin(m.skip, x)
+    assert torch.allclose(m(x), want, atol=1e-12)
+    # in == out: the skip path is the identity; a tail is applied to the sum
+    sq = ResidualMLP(3, 4, 3, num_res_layer=2, tail=nn.Tanh()).double()
+    assert isinstance(sq.skip, nn.Identity) and sum(isinstance(b, ResidualBlock) for b in sq.net) == 2
+    y = torch.randn(2, 3, dtype=torch.float64)
+    assert torch.allclose(sq(y), torch.tanh(sq.net(y) + y), atol=1e-12)
+
+
+def test_compgs_decoder_tails_and_residual_depths_follow_compgs():
+    # CompGS Prediction.py: means/covariance: no tail, 1 residual layer; opacity: Tanh, 1; colour: Sigmoid, 2;
+    # inputs C + G (means, covariance) and C + G + 4 (opacity, colour), hidden width C, outputs 3 / 7 / 1 / 3
+    arr = compgs_t._arrays(0)
+    net = compgs_t._model(arr, 0).network.prediction_net
+    c, g = compgs_t.C, compgs_t.G
+    want = {"means": (None, 1, c + g, 3), "covariance": (None, 1, c + g, 7), "opacity": (nn.Tanh, 1, c + g + 4, 1),
+            "color": (nn.Sigmoid, 2, c + g + 4, 3)}
+    for name, (tail, blocks, d_in, d_out) in want.items():
+        m = getattr(net, f"{name}_pred_mlp")
+        assert type(m.tail_activation) is (tail or nn.Identity), name
+        assert sum(isinstance(b, ResidualBlock) for b in m.net) == blocks, name
+        assert (m.net[0].in_features, m.net[0].out_features, m.net[-1].out_features) == (d_in, c, d_out), name
+        assert (m.skip.in_features, m.skip.out_features) == (d_in, d_out), name
+
+
+def _compgs_dir(tmp_path):
+    arr = compgs_t._arrays(3)
+    root = compgs_t._write_checkpoint(tmp_path / "exp", arr, compgs_t._model(arr, 3))
+    return root, root / "point_cloud" / "iteration_30000" / "weights.pth"
+
+
+def test_compgs_loader_refusals_name_the_file_and_the_key(tmp_path):
+    root, w = _compgs_dir(tmp_path)
+    state = torch.load(w, weights_only=True)
+    key = "prediction_net.color_pred_mlp.net.0.weight"
+    torch.save({k: v for k, v in state.items() if k != key}, w)
+    with pytest.raises(FileFormatError, match=rf"weights.pth: missing '{key}' \(not a CompGS network state dict\?\)"):
+        load_compgs_dir(root, allow_unquantized=True)
+    # colour FC1 [C + 1, C + G + 4]: its row count is not C = 32 f_ref_feat_* fields
+    torch.save({**state, key: torch.zeros(33, 44)}, w)
+    with pytest.raises(FileFormatError, match=r"is \[33, 44\], which does not fit C=32 f_ref_feat_\* and 80 f_res_feat_\*"):
+        load_compgs_dir(root, allow_unquantized=True)
+    # G = in - C - 4 = 36 - 32 - 4 = 0 < 1
+    torch.save({**state, key: torch.zeros(32, 36)}, w)
+    with pytest.raises(FileFormatError, match=r"\[C, C \+ G \+ 4\] expected"):
+        load_compgs_dir(root, allow_unquantized=True)
+    # G = 47 - 32 - 4 = 11 does not divide the 80 f_res_feat_* fields
+    torch.save({**state, key: torch.zeros(32, 47)}, w)
+    with pytest.raises(FileFormatError, match=r"\[C, C \+ G \+ 4\] expected"):
+        load_compgs_dir(root, allow_unquantized=True)
+    # the colour FC1 fits but another weight does not
+    bad = "prediction_net.means_pred_mlp.net.0.weight"
+    torch.save({**state, bad: torch.zeros(32, 41)}, w)
+    with pytest.raises(FileFormatError, match=r"weight shapes do not fit the point cloud: \['prediction_net.means_pred_mlp"
+                                              r".net.0.weight \[32, 41\] != \[32, 40\]'\]"):
+        load_compgs_dir(root, allow_unquantized=True)
+    torch.save(state, w)
+    with pytest.raises(FileFormatError, match="allow_unquantized=True"):
+        load_compgs_dir(root)
+    model = load_compgs_dir(root, allow_unquantized=True)
+    assert model.derive_factor == compgs_t.K  # K = 80 f_res_feat_* / G = 8
+
+
+# ---------------------------------------------------------------- ContextGS
+
+def test_quantize_anchor_by_hand():
+    # lo = 0, hi = 65.535 on every axis: step = 65.535 / 65535 + 1e-6 = 0.001001;
+    # 0.0025 / 0.001001 = 2.497 -> q = 2 -> 0.002002; below lo -> q = 0 -> lo; far above hi -> q = 65535
+    lo, hi = torch.zeros(3, dtype=torch.float64), torch.full((3,), 65.535, dtype=torch.float64)
+    a = torch.tensor([[0.0025, -1.0, 100.0]], dtype=torch.float64)
+    got = quantize_anchor(a, lo, hi)
+    assert torch.allclose(got, torch.tensor([[0.002002, 0.0, 65535 * 0.001001]], dtype=torch.float64), atol=1e-12)
+    # a lower bound of -1 shifts everything: (0.0025 + 1) / 0.001001 = 1001.5 -> 1001 -> 1001 * 0.001001 - 1
+    got = quantize_anchor(torch.tensor([[0.0025, 0.0025, 0.0025]], dtype=torch.float64), lo - 1.0, hi)
+    step = 66.535 / 65535 + 1e-6
+    assert torch.allclose(got, torch.full((1, 3), math.floor(1.0025 / step) * step - 1.0, dtype=torch.float64), atol=1e-12)
+
+
+def test_contextgs_bound_refusals(tmp_path):
+    arr = contextgs_t._arrays(0, decoded=False)
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    kw = dict(anchor=t["anchor"], offset=t["offset"], mask=t["mask"][:, :, None], anchor_feat=t["feat"], scaling=t["scale"],
+              hyper_latent=t["hyper"], **contextgs_t._decoders(0))
+    with pytest.raises(FileFormatError, match="x_bound_min and x_bound_max must be given together"):
+        ContextGSModel(x_bound_min=contextgs_t.LO, decoded_version=False, **kw)
+    with pytest.raises(FileFormatError, match="x_bound_min and x_bound_max must be given together"):
+        ContextGSModel(x_bound_max=contextgs_t.HI, decoded_version=True, **kw)
+    with pytest.raises(FileFormatError, match="a not-decoded ContextGS model needs x_bound_min/x_bound_max"):
+        ContextGSModel(decoded_version=False, **kw)
+    decoded = ContextGSModel(decoded_version=True, **kw)  # a decoded model needs no bound: positions as stored
+    assert torch.equal(decoded.get_anchor, t["anchor"])
+    # checkpoint.pth entry 'bound' malformed
+    root = contextgs_t._write_dir(tmp_path / "c", arr, contextgs_t._decoders(0))
+    ckpt = root / "point_cloud" / "iteration_30000" / "checkpoint.pth"
+    sd = torch.load(ckpt, weights_only=True)
+    for bad in ([contextgs_t.LO], [contextgs_t.LO, torch.zeros(2)], (contextgs_t.LO, [0.0, 0.0, 0.0])):
+        torch.save({**sd, "bound": bad}, ckpt)
+        with pytest.raises(FileFormatError, match=r"checkpoint.pth: entry 'bound' must be \[x_bound_min, x_bound_max\]"):
+            load_contextgs_dir(root, allow_unquantized=True)
+    torch.save({**sd, "bound": (contextgs_t.LO, contextgs_t.HI)}, ckpt)  # a tuple is as good as a list
+    m = load_contextgs_dir(root, allow_unquantized=True)
+    assert torch.equal(m.x_bound_min, contextgs_t.LO) and torch.equal(m.x_bound_max, contextgs_t.HI)
+
+
+def test_contextgs_defaults_feat_dim_50_and_n_offsets_10(tmp_path):
+    # ContextGS ModelParams: feat_dim 50, n_offsets 10: a cfg_args without them reads the test folder (F 50, K 10)
+    root = contextgs_t._write_dir(tmp_path / "c", contextgs_t._arrays(1, decoded=True), contextgs_t._decoders(1))
+    write_cfg_args(root / "cfg_args", hyper_divisor=4, use_feat_bank=False)
+    m = load_contextgs_dir(root)
+    assert (m.feat_dim, m.n_offsets) == (50, 10)
+
+
+# ---------------------------------------------------------------- HAC / HAC++
+
+def _hac_kw(n_mask_cols: int, seed: int = 0) -> dict:
+    arr = hac_t._arrays(seed, decoded=True, mask_cols=n_mask_cols)
+    return dict(anchor=torch.from_numpy(arr["anchor"]), offset=torch.from_numpy(arr["offset"]),
+                mask=torch.from_numpy(arr["mask"])[:, :, None], anchor_feat=torch.from_numpy(arr["feat"]),
+                scaling=torch.from_numpy(arr["scale"]), decoded_version=True, **hac_t._decoders(seed))
+
+
+def test_hac_model_variant_and_mask_column_refusals():
+    k = hac_t.K
+    with pytest.raises(InputValueError, match=r"variant must be 'hac\+\+' or 'hac', got 'hac\+'"):
+        HACModel(voxel_size=0.01, variant="hac+", **_hac_kw(k + 1))
+    with pytest.raises(InputValueError, match=rf"hac\+\+: mask must have {k + 1} columns \(n_offsets={k}\), got {k}"):
+        HACModel(voxel_size=0.01, variant="hac++", **_hac_kw(k))
+    with pytest.raises(InputValueError, match=rf"hac: mask must have {k} columns \(n_offsets={k}\), got {k + 1}"):
+        HACModel(voxel_size=0.01, variant="hac", **_hac_kw(k + 1))
+    assert HACModel(voxel_size=0.01, **_hac_kw(k + 1)).variant == "hac++"  # the default variant
+
+
+def test_hac_feature_bank_input_by_hand():
+    # HAC++'s renderer: feat re-weighted by mlp_feature_bank([view, dist]) before [feat, view, dist]
+    f = hac_t.F
+    torch.manual_seed(2)
+    bank = nn.Sequential(nn.Linear(4, f), nn.ReLU(), nn.Linear(f, 3), nn.Softmax(dim=1))
+    kw = _hac_kw(hac_t.K + 1, seed=2)
+    kw["anchor_feat"] = kw["anchor_feat"][:, :48]  # the bank needs F divisible by 4
+    kw.update(mlp_opacity=nn.Linear(52, 2), mlp_cov=nn.Linear(52, 2), mlp_color=nn.Linear(52, 2))
+    bank = nn.Sequential(nn.Linear(4, 48), nn.ReLU(), nn.Linear(48, 3), nn.Softmax(dim=1))
+    model = HACModel(voxel_size=0.01, mlp_feature_bank=bank, **kw)
+    cam = torch.tensor([0.3, -0.2, 4.0])
+    ids = torch.tensor([5, 1, 9])
+    x = model.decoder_inputs(cam, ids)["mlp_opacity"]
+    anchor = kw["anchor"][ids].double()
+    v = anchor - cam.double()
+    dist = v.norm(dim=1, keepdim=True)
+    view = v / dist
+    w = bank.double()(torch.cat([view, dist], dim=1))
+    feat = kw["anchor_feat"][ids].double()
+    # every 4th channel repeated 4 times, every 2nd twice, all channels; mixed by the three weights
+    mixed = feat[:, ::4].repeat(1, 4) * w[:, :1] + feat[:, ::2].repeat(1, 2) * w[:, 1:2] + feat * w[:, 2:]
+    assert torch.allclose(x.double(), torch.cat([mixed, view, dist], dim=1), atol=1e-5)
+    assert torch.allclose(feature_bank(feat, w), mixed)
+
+
+def test_hac_checkpoint_and_ply_refusals(tmp_path):
+    sd = {"opacity_mlp": {}, "cov_mlp": {}, "color_mlp": {}}
+    with pytest.raises(FileFormatError, match=r"ck.pth: missing entry 'mlp_feature_bank' \(cfg_args has use_feat_bank=True\)"):
+        decoders_from_checkpoint(sd, tmp_path / "ck.pth", feature_bank=True)
+    root = hac_t._write_dir(tmp_path / "h", hac_t._arrays(0, decoded=True, mask_cols=hac_t.K + 1), hac_t._decoders(0))
+    write_cfg_args(root / "cfg_args", feat_dim=48, n_offsets=hac_t.K, voxel_size=0.01, use_feat_bank=False)
+    with pytest.raises(FileFormatError, match="point_cloud.ply: 50 f_anchor_feat_\\* fields, the configuration says feat_dim=48"):
+        load_hac_dir(root)
+    write_cfg_args(root / "cfg_args", feat_dim=50, n_offsets=9, voxel_size=0.01, use_feat_bank=False)
+    with pytest.raises(FileFormatError, match=r"11 f_mask_\* fields, expected 9 or 10 for n_offsets=9"):
+        load_hac_dir(root)
+    # HAC++ ModelParams defaults feat_dim 50, n_offsets 10: a cfg_args without them reads the folder
+    write_cfg_args(root / "cfg_args", voxel_size=0.01)
+    m = load_hac_dir(root)
+    assert (m.feat_dim, m.n_offsets, m.variant, m.voxel_size) == (50, 10, "hac++", 0.01)
+
+
+def test_voxel_snap_by_hand():
+    # round(0.026 / 0.01) = 3 -> 0.03; round(-0.014 / 0.01) = -1 -> -0.01; round(0.004 / 0.01) = 0
+    got = voxel_snap(torch.tensor([[0.026, -0.014, 0.004]], dtype=torch.float64), 0.01)
+    assert torch.allclose(got, torch.tensor([[0.03, -0.01, 0.0]], dtype=torch.float64), atol=1e-15)
+
+
+# ---------------------------------------------------------------- Octree-GS / Octree-AnyGS
+
+def test_octree_refusals_and_appearance_id():
+    arr = octree_t._arrays(0)
+    decs = octree_t._decoders(torch.Generator().manual_seed(0))
+
+    class NoMask:
+        pass
+
+    with pytest.raises(InputValueError, match="model has no _anchor_mask: call model.set_anchor_mask"):
+        OctreeGSBackend().anchor_ids(NoMask(), torch.ones(3, dtype=torch.bool))
+    with pytest.raises(InputValueError, match="dist2level must be 'round', 'floor', 'ceil' or 'progressive', got 'nearest'"):
+        OctreeGSModel(anchor=torch.from_numpy(arr["anchor"]), offset=torch.from_numpy(arr["offset"]),
+                      anchor_feat=torch.from_numpy(arr["feat"]), scaling=torch.from_numpy(arr["scale"]),
+                      level=torch.from_numpy(arr["level"][:, None]), extra_level=torch.from_numpy(arr["extra"]),
+                      voxel_size=0.1, standard_dist=3.0, dist2level="nearest", **decs)
+    emb = nn.Embedding(3, 2)
+    f, k = octree_t.F, octree_t.K
+    decs["mlp_color"] = nn.Sequential(nn.Linear(f + 3 + 1 + 2, f), nn.ReLU(), nn.Linear(f, 3 * k), nn.Sigmoid())
+    m = OctreeGSModel(anchor=torch.from_numpy(arr["anchor"]), offset=torch.from_numpy(arr["offset"]),
+                      anchor_feat=torch.from_numpy(arr["feat"]), scaling=torch.from_numpy(arr["scale"]),
+                      level=torch.from_numpy(arr["level"][:, None]), extra_level=torch.from_numpy(arr["extra"]),
+                      voxel_size=0.1, standard_dist=3.0, add_level=True, add_opacity_dist=True, embedding_appearance=emb,
+                      **decs)
+    ids = torch.tensor([0, 3])
+    with pytest.raises(InputValueError, match="appearance_id is required"):
+        m.decoder_inputs(torch.zeros(3), ids)
+    x = m.decoder_inputs(torch.zeros(3), ids, appearance_id=2)["mlp_color"]
+    assert torch.equal(x[:, -2:], emb.weight[2].detach().expand(2, 2))  # the code of camera 2, last
+    assert m.fork == 2 and m.dist2level == "round"  # Octree-GS defaults (arguments/__init__.py)
+    # decode() takes camera.extra["uid"] (default 0) when no appearance_id is given
+    cam = make_camera()
+    g0 = m.decode(cam)
+    g2 = m.decode(cam, appearance_id=2)
+    cam.extra["uid"] = 2
+    assert torch.equal(m.decode(cam).colors, g2.colors) and not torch.equal(g0.colors, g2.colors)
+
+
+def test_octree_loader_refusals_and_cfg_defaults(tmp_path):
+    arr = octree_t._arrays(1)
+    decs = octree_t._decoders(torch.Generator().manual_seed(1))
+    root = octree_t._write_dir(tmp_path / "o", arr, decs, mode="unite")
+    cfg = dict(octree_t.CFG)
+    write_cfg_args(root / "cfg_args", **{**cfg, "feat_dim": 16})
+    with pytest.raises(FileFormatError, match=r"point_cloud.ply: 32 f_anchor_feat_\* fields, .*cfg_args says feat_dim=16"):
+        load_octree_gs_dir(root)
+    # keys missing from cfg_args take Octree-GS's ModelParams defaults: fork 2, dist2level 'round', n_offsets 10
+    # (the folder has 4 offsets, so n_offsets must be given), feat_dim 32
+    write_cfg_args(root / "cfg_args", n_offsets=octree_t.K, add_opacity_dist=True, add_level=True)
+    m = load_octree_gs_dir(root)
+    assert (m.fork, m.dist2level, m.feat_dim, m.add_level, m.add_cov_dist) == (2, "round", 32, True, False)
+    # one anchor: the 'info' column cannot hold voxel_size and standard_dist in rows 0 and 1
+    from controlgs_adapter.formats.backbone import read_ply, write_ply
+
+    ply = root / "point_cloud" / "iteration_30000" / "point_cloud.ply"
+    fields, _ = read_ply(ply)
+    write_ply(ply, {n: c[:1] for n, c in fields.items()})
+    with pytest.raises(FileFormatError, match=r"'info' column holds voxel_size and standard_dist in rows 0 and 1; the "
+                                              r"file has 1 anchors"):
+        load_octree_gs_dir(root)
+
+
+def test_octree_anygs_yaml_key_with_two_values_is_refused(tmp_path):
+    root = tmp_path / "anygs"
+    (root / "point_cloud" / "iteration_1").mkdir(parents=True)
+    (root / "config.yaml").write_text("a: {\n  feat_dim: 32,\n}\nb: {\n  feat_dim: 16,\n}\n")
+    with pytest.raises(FileFormatError, match=r"config.yaml: key 'feat_dim' has several values \[32, 16\]"):
+        load_octree_gs_dir(root)
+    (root / "config.yaml").write_text("a: {\n  base_model: 'gaussians',\n}\n")
+    with pytest.raises(FileFormatError, match="base_model 'gaussians': only Octree-AnyGS's Scaffold-GS base model"):
+        load_octree_gs_dir(root)
+    (root / "config.yaml").unlink()
+    with pytest.raises(FileFormatError, match="neither 'cfg_args' \\(Octree-GS\\) nor 'config.yaml'"):
+        load_octree_gs_dir(root)
+
+
+# ---------------------------------------------------------------- model folders
+
+def test_detect_family_refusals_name_what_is_missing(tmp_path):
+    with pytest.raises(FileFormatError, match="nowhere: no such model folder"):
+        detect_family(tmp_path / "nowhere")
+    (tmp_path / "m" / "point_cloud" / "iteration_7").mkdir(parents=True)
+    with pytest.raises(FileFormatError, match=r"not a trained model folder of a supported family \(no point_cloud/"
+                                              r"iteration_7/point_cloud.ply\)"):
+        detect_family(tmp_path / "m")
+    with pytest.raises(FileFormatError, match=r"no 'iteration_3' folder \(present: \[7\]\)"):
+        detect_family(tmp_path / "m", iteration=3)
+    (tmp_path / "e").mkdir()
+    with pytest.raises(FileFormatError, match=r"\(no point_cloud/iteration_<N> folder"):
+        detect_family(tmp_path / "e")
+    with pytest.raises(InputValueError, match="unknown family 'scaffold' \\(supported: scaffold_gs, octree_gs, hac, "
+                                              "contextgs, compgs\\)"):
+        load_model_dir(tmp_path / "e", family="scaffold")
