@@ -87,14 +87,16 @@ def test_from_points_defaults_scales_and_refusals():
 def test_from_points_colour_fit_with_distance_and_appearance_inputs():
     pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     cols = torch.tensor([[0.9, 0.1, 0.2], [0.2, 0.7, 0.9]])
-    m = NeuralGaussianModel.from_points(pts, cols, voxel_size=0.5, feat_dim=8, n_offsets=2, add_color_dist=True,
-                                        appearance_dim=2, color_fit_steps=150)
+    with torch.random.fork_rng(devices=[]):  # the decoders' initial weights come from the global generator
+        torch.manual_seed(0)
+        m = NeuralGaussianModel.from_points(pts, cols, voxel_size=0.5, feat_dim=8, n_offsets=2, add_color_dist=True,
+                                            appearance_dim=2, color_fit_steps=150)
     # the fitted colour decoder on [feat, random view, dist 1, camera 0's code] gives each anchor's colour
     view = torch.nn.functional.normalize(torch.randn(2, 3, generator=torch.Generator().manual_seed(5)), dim=1)
     code = m.embedding_appearance(torch.zeros(2, dtype=torch.long))
     with torch.no_grad():
         pred = m.mlp_color(torch.cat([m._anchor_feat, view, torch.ones(2, 1), code], 1)).reshape(2, 2, 3)
-    # 150 steps bring it within 0.0063 at the distance it was fitted at (1); at distance 0 it is 0.056 off
+    # 150 steps (seed 0) bring it within 0.0077 at the distance it was fitted at (1); at distance 0 it is 0.033 off
     assert (pred - cols[:, None]).abs().max() < 0.02
 
 
