@@ -164,11 +164,8 @@ class Pipeline(nn.Module):
                 if bank is not None and hasattr(bank, "chief"):
                     from .lens import LensPrewarp
 
-                    options = dict(value) if isinstance(value, Mapping) else {}
-                    try:
-                        stages.append(LensPrewarp.for_optics(optics, **options))
-                    except TypeError as e:
-                        raise InputValueError(f"effects['lens']: {e}") from None
+                    options = dict(value) if isinstance(value, Mapping) else {}  # keys within _LENS_FOR_OPTICS
+                    stages.append(LensPrewarp.for_optics(optics, **options))
                     continue
             if value is None or value is False:
                 continue
