@@ -17,6 +17,7 @@ from typing import Any, Iterator
 import torch
 from torch import nn
 
+from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.rendering.rasterizers import RASTERIZER_ENV, Rasterizer, select_rasterizer
 from controlgs_adapter.state import Camera
 
@@ -87,7 +88,12 @@ class ClockedRasterizer(Rasterizer):
         return select_rasterizer(device, dtype, inner)
 
     def unavailable(self, device: torch.device, dtype: torch.dtype) -> str | None:
-        return self._inner(device, dtype).unavailable(device, dtype)
+        """None if the inner rasterizer can render these tensors, else why not (its selection's refusal)."""
+        try:
+            self._inner(device, dtype)  # selects only a rasterizer that can run them
+        except InputValueError as e:
+            return str(e)
+        return None
 
     def __call__(self, means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor, opacities: torch.Tensor,
                  colors: torch.Tensor, camera: Camera, background: torch.Tensor | None = None) -> Any:
