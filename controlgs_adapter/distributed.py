@@ -310,7 +310,7 @@ class DistContext:
                 self._run("the dense condition all-reduce", step, dist.all_reduce, g)
                 p.grad = g
                 sent += dense_bytes
-                exchange = "dense"
+                exchange = "dense" if exchange in ("none", "dense") else "mixed"
                 continue
             pad = k - ids.numel()  # all-gather needs equal sizes; the padding is cut off before the sum
             pad_ids = torch.cat([ids, ids.new_zeros(pad)]) if pad else ids

@@ -170,7 +170,7 @@ def _findings(result: GridResult) -> list[str]:
                        f"that bound in {int((d3 > 0).sum())}/{d3.numel()} settings (pre-compensating beyond it; mean "
                        f"ControlGS minus ideal {sign * float(d3.mean()):+.4g}).")
     ablations = [a for a in ABLATIONS if a in result.methods]
-    if ablations:
+    if ablations and "psnr" in result.metrics:
         drop = {a: result.mean("controlgs", "psnr") - result.mean(a, "psnr") for a in ablations}
         order = ", ".join(f"{_label(a)} {v:+.3f} dB" for a, v in sorted(drop.items(), key=lambda kv: -kv[1]))
         out.append(f"- PSNR lost by each ablation (ControlGS minus ablation, larger = that part matters more): {order}.")
@@ -191,7 +191,7 @@ def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[st
         lines += ["Run: " + ", ".join(f"{k} = {v}" for k, v in info.items() if not isinstance(v, (dict, list))), ""]
     over = f" and over {seeds} seeds (mean ± sample std of the seeds' means)" if seeds > 1 else ""
     lines += [f"End-to-end quality after the XR pipeline (optics `{result.optics_mode}`), averaged over the "
-              f"{result.per_view[result.methods[0]]['psnr'].shape[-1]} test views and the "
+              f"{result.per_view[result.methods[0]][metrics[0]].shape[-1]} test views and the "
               f"{len(result.downsample) * len(result.power_saving)} run-time settings{over} (paper Tbl. 1); the last row "
               "is the ideal-render bound, the ground truth itself through the same pipeline:", ""]
     lines += _table(summary, main + ([IDEAL] if IDEAL in result.methods else []), metrics, seeds) + [""]
