@@ -169,3 +169,57 @@ def test_undistort_points_refuses_a_bad_shape():
     # the identity without distortion
     uv = torch.tensor([[1.0, 2.0], [7.5, 0.5]])
     assert torch.allclose(undistort_points(uv, k, (0.0, 0.0, 0.0, 0.0)), uv)
+
+
+# ---------------------------------------------------------------- the data fingerprint a checkpoint stores
+
+def test_fingerprint_is_pinned_to_its_recipe():
+    """A checkpoint records the fingerprint of its training views: the value must not drift between
+    releases. Recipe: sha256 over each frame's name, "WxH", world-to-camera (float64, rounded to 6
+    decimals) and intrinsics (float64, rounded to 4), first 16 hex digits."""
+    import hashlib
+
+    from controlgs_adapter.datasets.base import PosedImages
+    from controlgs_adapter.datasets.memory import tensor_frames
+    from controlgs_adapter.state import Camera
+
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, 3] = torch.tensor([0.1234567, -2.0, 3.5], dtype=torch.float64)
+    k = torch.tensor([[10.12345, 0.0, 4.0], [0.0, 11.0, 3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cams = [Camera(w2c.float(), k.float(), 8, 6), Camera(w2c.float(), (k * torch.tensor([[0.5], [0.5], [1.0]])).float(), 4, 3)]
+    views = PosedImages(tensor_frames([torch.zeros(3, 6, 8), torch.zeros(3, 3, 4)], cams, prefix="fp"))
+    h = hashlib.sha256()
+    for name, cam in zip(("fp/0000", "fp/0001"), cams):
+        h.update(name.encode())
+        h.update(f"{cam.width}x{cam.height}".encode())
+        h.update(cam.world_to_camera.double().numpy().round(6).tobytes())
+        h.update(cam.intrinsics.double().numpy().round(4).tobytes())
+    assert views.fingerprint() == h.hexdigest()[:16]
+    # a pose change below the rounding (1e-7) keeps it, one above (1e-5) changes it
+    near = Camera(cams[0].world_to_camera + 1e-8, cams[0].intrinsics, 8, 6)
+    assert PosedImages(tensor_frames([torch.zeros(3, 6, 8), torch.zeros(3, 3, 4)], [near, cams[1]],
+                                     prefix="fp")).fingerprint() == views.fingerprint()
+
+
+# ---------------------------------------------------------------- instant-ngp: the file's w, h against the image's
+
+def test_ngp_size_tolerance_is_one_pixel_per_side(tmp_path):
+    """An 8 x 8 image whose file says w = 16: sx = 0.5. h = 18 gives h * sx - 8 = 1.0 (at the 1 px limit)
+    and w * sy - 8 = 16 * 8 / 18 - 8 = -0.89: accepted, each axis scaled by its own factor (fy * 8/18,
+    cy * 8/18); h = 18.2 gives 1.1 px: refused."""
+    import json
+
+    from PIL import Image
+
+    from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
+
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "a.png")
+    eye = np.eye(4).tolist()
+    meta = {"fl_x": 20.0, "fl_y": 18.0, "cx": 8.0, "cy": 9.0, "w": 16, "h": 18,
+            "frames": [{"file_path": "a.png", "transform_matrix": eye}]}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    cam = read_instant_ngp(tmp_path, holdout=0).splits["train"][0].camera
+    assert torch.allclose(cam.intrinsics, torch.tensor([[10.0, 0, 4.0], [0, 8.0, 4.0], [0, 0, 1]]))
+    (tmp_path / "transforms.json").write_text(json.dumps({**meta, "h": 18.2}))
+    with pytest.raises(FileFormatError, match="the file says 16 x 18.2 but the image"):
+        read_instant_ngp(tmp_path, holdout=0)
