@@ -318,3 +318,37 @@ def test_detect_family_refusals_name_what_is_missing(tmp_path):
     with pytest.raises(InputValueError, match="unknown family 'scaffold' \\(supported: scaffold_gs, octree_gs, hac, "
                                               "contextgs, compgs\\)"):
         load_model_dir(tmp_path / "e", family="scaffold")
+
+
+# ---------------------------------------------------------------- Scaffold-GS backend (duck-typed)
+
+def test_scaffold_backend_layout_positions_and_matching():
+    from types import SimpleNamespace
+
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
+
+    b = ScaffoldGSBackend()
+    m = NeuralGaussianModel(3, feat_dim=8, n_offsets=2, use_feat_bank=True, appearance_dim=5, num_cameras=2,
+                            add_cov_dist=True, add_color_dist=True)
+    assert b.matches(m) and b.decoder_paths(m) == ["mlp_opacity", "mlp_cov", "mlp_color", "mlp_feature_bank"]
+    assert b.default_targets(m) == ["mlp_opacity", "mlp_cov", "mlp_color"]
+    # Scaffold-GS's generate_neural_gaussians: [feat, view, (dist)] (+ appearance last, colour only)
+    assert b.input_layout(m, "mlp_opacity") == [("feat", 8), ("view", 3)]
+    assert b.input_layout(m, "mlp_cov") == [("feat", 8), ("view", 3), ("dist", 1)]
+    assert b.input_layout(m, "mlp_color") == [("feat", 8), ("view", 3), ("dist", 1), ("appearance", 5)]
+    assert b.input_layout(m, "mlp_feature_bank") is None
+    plain = NeuralGaussianModel(3, feat_dim=8, n_offsets=2)
+    assert b.decoder_paths(plain) == ["mlp_opacity", "mlp_cov", "mlp_color"]
+    assert b.input_layout(plain, "mlp_color") == [("feat", 8), ("view", 3)]
+    # anchors: a get_anchor property, a get_anchor() method (Scaffold-GS's GaussianModel), or _anchor alone
+    pos = torch.arange(6.0).reshape(2, 3)
+    decs = dict(mlp_opacity=nn.Linear(1, 1), mlp_cov=nn.Linear(1, 1), mlp_color=nn.Linear(1, 1))
+    by_attr = SimpleNamespace(_anchor=pos, **decs)
+    by_method = SimpleNamespace(get_anchor=lambda: pos + 1, **decs)
+    assert b.matches(by_attr) and b.matches(by_method)
+    assert torch.equal(b.anchor_positions(by_attr), pos) and torch.equal(b.anchor_positions(by_method), pos + 1)
+    assert b.input_layout(by_attr, "mlp_cov") is None  # no feat_dim: the layout is unknown
+    assert not b.matches(SimpleNamespace(**decs))  # no anchors
+    assert not b.matches(SimpleNamespace(_anchor=pos, mlp_opacity=nn.Linear(1, 1), mlp_cov=nn.Linear(1, 1), mlp_color=3))
+    assert torch.equal(b.visible_rows_to_anchor_ids(torch.tensor([False, True, True, False, True])), torch.tensor([1, 2, 4]))
