@@ -352,3 +352,50 @@ def test_scaffold_backend_layout_positions_and_matching():
     assert not b.matches(SimpleNamespace(**decs))  # no anchors
     assert not b.matches(SimpleNamespace(_anchor=pos, mlp_opacity=nn.Linear(1, 1), mlp_cov=nn.Linear(1, 1), mlp_color=3))
     assert torch.equal(b.visible_rows_to_anchor_ids(torch.tensor([False, True, True, False, True])), torch.tensor([1, 2, 4]))
+
+
+# ---------------------------------------------------------------- stand-in constructors check every per-anchor tensor
+
+def _family_kwargs():
+    """(class, kwargs, per-anchor tensor arguments) of every family stand-in."""
+    from controlgs_adapter.backends.compgs import CompGSModel
+
+    h = _hac_kw(hac_t.K + 1)
+    hac = (HACModel, {"voxel_size": 0.01, **h}, ["anchor", "offset", "mask", "anchor_feat", "scaling"])
+    arr = contextgs_t._arrays(0, decoded=True)
+    t = {k: torch.from_numpy(v) for k, v in arr.items()}
+    ctx = (ContextGSModel, dict(anchor=t["anchor"], offset=t["offset"], mask=t["mask"][:, :, None], anchor_feat=t["feat"],
+                                scaling=t["scale"], hyper_latent=t["hyper"], decoded_version=True, **contextgs_t._decoders(0)),
+           ["anchor", "offset", "mask", "anchor_feat", "scaling", "hyper_latent"])
+    oa = octree_t._arrays(0)
+    octo = (OctreeGSModel, dict(anchor=torch.from_numpy(oa["anchor"]), offset=torch.from_numpy(oa["offset"]),
+                                anchor_feat=torch.from_numpy(oa["feat"]), scaling=torch.from_numpy(oa["scale"]),
+                                level=torch.from_numpy(oa["level"][:, None]), extra_level=torch.from_numpy(oa["extra"]),
+                                voxel_size=0.1, standard_dist=3.0, **octree_t._decoders(torch.Generator().manual_seed(0))),
+            ["anchor", "offset", "anchor_feat", "scaling", "level", "extra_level"])
+    ca = compgs_t._arrays(0)
+    comp = (CompGSModel, dict(means=torch.from_numpy(ca["means"]), scales_before_exp=torch.from_numpy(ca["scales"]),
+                              ref_feats=torch.from_numpy(ca["ref"]), res_feats=torch.from_numpy(ca["res"])),
+            ["means", "scales_before_exp", "ref_feats", "res_feats"])
+    return [hac, ctx, octo, comp]
+
+
+def test_stand_in_constructors_refuse_a_tensor_with_another_anchor_count():
+    from controlgs_adapter.errors import ShapeError
+
+    for cls, kw, names in _family_kwargs():
+        cls(**kw)  # as built: accepted
+        for i, name in enumerate(names):
+            short = {**kw, name: kw[name][:-1]}
+            # the first tensor sets A: the next one is named as disagreeing with it
+            with pytest.raises(ShapeError, match=names[1] if i == 0 else name):
+                cls(**short)
+    # the fixed trailing sizes: positions 3, scales 6, offsets [K, 3], mask [M, 1], level [A, 1]
+    for cls, kw, _ in _family_kwargs():
+        for name, bad in (("scaling", lambda x: x[:, :5]), ("scales_before_exp", lambda x: x[:, :5]),
+                          ("anchor", lambda x: x[:, :2]), ("means", lambda x: x[:, :2]),
+                          ("offset", lambda x: x[:, :, :2]), ("mask", lambda x: x[:, :, :1].repeat(1, 1, 2)),
+                          ("level", lambda x: x.repeat(1, 2))):
+            if name in kw:
+                with pytest.raises(ShapeError, match=name):
+                    cls(**{**kw, name: bad(kw[name])})
