@@ -188,3 +188,165 @@ def test_the_display_reference_is_the_ground_truth_through_the_stages_that_ran()
     ref2 = display_power(area_resample(q["lens"](srgb_to_linear(gt)), 2.0))
     assert float(rec2["diagnostics"]["display.power_ref"]) == pytest.approx(float(ref2), rel=1e-12)
     assert float(rec2["diagnostics"]["display.power_target"]) == pytest.approx(0.8 * float(ref2), rel=1e-12)
+
+
+# ---------------------------------------------------------------- the pre-warp fit
+
+
+def test_fit_bank_prewarp_refusals_name_the_argument():
+    from controlgs_adapter.downstream.prewarp_fit import fit_bank_prewarp
+
+    with pytest.raises(InputValueError, match="optics must be an optics stage or a PSFBank, got Identity"):
+        fit_bank_prewarp(torch.nn.Identity())
+    if "optics" not in plugins.stages():
+        return
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
+
+    optics = PSFOptics()
+    for size in (7, 8.0, "16"):
+        with pytest.raises(InputValueError, match="size must be an int >= 8"):
+            fit_bank_prewarp(optics, size)  # type: ignore[arg-type]
+    for size, pool in [(16, 0), (16, 3), (8, 4), (16, 2.0)]:  # 8 / 4 = 2 samples < 4
+        with pytest.raises(InputValueError, match="pool must be an int >= 1 dividing size into >= 4 samples"):
+            fit_bank_prewarp(optics, size, pool=pool)  # type: ignore[arg-type]
+    with pytest.raises(InputValueError, match="modes must be a non-empty subset"):
+        fit_bank_prewarp(optics, 16, modes=())
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+
+    for bank in (PSFBank.default(), None):  # a bank or None is made an optics stage first
+        with pytest.raises(InputValueError, match="size must be an int >= 8"):
+            fit_bank_prewarp(bank, 7)
+
+
+def _fill_by_hand() -> tuple[torch.Tensor, torch.Tensor, list[list[float]]]:
+    # 3 x 3, valid (0, 0) = 1 and (0, 2) = 3. Round 1 (3 x 3 means of valid neighbours): (0, 1) = 2,
+    # (1, 0) = 1, (1, 1) = 2, (1, 2) = 3; round 2: (2, 0) = (1 + 2) / 2, (2, 1) = (1 + 2 + 3) / 3, (2, 2) = 2.5
+    values = torch.zeros(1, 3, 3, 1, dtype=D)
+    values[0, 0, 0, 0], values[0, 0, 2, 0] = 1.0, 3.0
+    values[0, 1, 1, 0] = 99.0  # an invalid pixel's value is never used
+    valid = torch.zeros(1, 3, 3, dtype=torch.bool)
+    valid[0, 0, 0] = valid[0, 0, 2] = True
+    return values, valid, [[1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [1.5, 2.0, 2.5]]
+
+
+def test_fill_invalid_by_hand_and_nothing_measured():
+    from controlgs_adapter.downstream.prewarp_fit import _fill_invalid
+
+    values, valid, expect = _fill_by_hand()
+    flat = [v for row in expect for v in row]
+    assert _fill_invalid(values, valid)[0, ..., 0].flatten().tolist() == pytest.approx(flat)
+    # two channels x two components are filled independently
+    both = torch.cat([values, -values], dim=-1).expand(2, 3, 3, 2)
+    out = _fill_invalid(both, valid.expand(2, 3, 3))
+    assert out[1, ..., 1].flatten().tolist() == pytest.approx([-v for v in flat])
+    with pytest.raises(InputValueError, match="no display pixel could be measured"):
+        _fill_invalid(values, torch.zeros_like(valid))
+
+
+@needs_optics
+def test_psf_centroids_are_the_bilinear_first_moments_of_the_field_psfs():
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+    from controlgs_adapter.downstream.prewarp_fit import _psf_centroids
+
+    bank = PSFBank.default()
+    k = bank.psf.shape[-1]
+
+    def moment(l_: int, gy: int, gx: int) -> tuple[float, float]:  # brute force, float64
+        psf = bank.psf[l_, gy, gx].double()
+        taps = torch.arange(k, dtype=D) - k // 2
+        pitch = float(bank.psf_pitch_mm[l_, gy, gx])
+        return (float((psf * taps[None, :]).sum()) * pitch / (bank.display_mm[0] / 2),
+                float((psf * taps[:, None]).sum()) * pitch / (bank.display_mm[1] / 2))
+
+    fx, fy = bank.field_x.double(), bank.field_y.double()
+    pts = torch.tensor([[[float(fx[3]), float(fy[5])],                                       # a field sample
+                         [0.5 * float(fx[7] + fx[8]), 0.5 * float(fy[10] + fy[11])],          # a cell centre
+                         [1.5, -1.5]]], dtype=D)                                              # beyond: clamped
+    c = _psf_centroids(bank, pts, D)
+    assert c.shape == (3, 1, 3, 2)
+    for l_ in range(3):
+        assert c[l_, 0, 0].tolist() == pytest.approx(moment(l_, 5, 3), abs=1e-9)
+        corners = [moment(l_, gy, gx) for gy in (10, 11) for gx in (7, 8)]
+        assert c[l_, 0, 1].tolist() == pytest.approx([sum(v[i] for v in corners) / 4 for i in range(2)], abs=1e-9)
+        assert c[l_, 0, 2].tolist() == pytest.approx(moment(l_, 0, len(fx) - 1), abs=1e-9)
+    assert float(c.abs().max()) > 1e-4  # the moments are not all zero (coma off axis)
+
+
+@needs_optics
+def test_exact_mode_fit_measures_centroids_and_flattens_by_brute_force():
+    from controlgs_adapter.downstream.color import primaries_to_rgb_matrix, rgb_to_primaries_matrix
+    from controlgs_adapter.downstream.lens import pixel_grid
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
+    from controlgs_adapter.downstream.stage import StageContext
+
+    from controlgs_adapter.downstream.prewarp_fit import fit_bank_prewarp
+
+    bank = PSFBank.default()
+    # energy radiometry: the lens's brightness fall-off needs a gain; its mode is replaced by "exact"
+    stage = PSFOptics(bank, mode="distortion", radiometry="energy")
+    lut = fit_bank_prewarp(stage, 8, modes=("exact",))  # defaults: pool 2, 4 gain iterations
+    assert lut.modes == ("exact",) and lut.placement == "fit" and stage.mode == "distortion"
+    assert (lut.meta["size"], lut.meta["pool"], lut.meta["gain_iterations"]) == ([8, 8], 2, 4)
+    assert lut.meta["radiometry"] == "energy" and set(lut.meta["residuals"]) == {"exact"}
+    disp, gain = lut.displacement_exact.double(), lut.gain_exact.double()
+    assert disp.shape == (3, 4, 4, 2) and gain.shape == (3, 4, 4)
+    # brute force: the eye image of every single lit display pixel (one primary at a time)
+    optics = PSFOptics(bank, mode="exact", placement="stretch", radiometry="energy").double()
+    to_p, to_rgb = rgb_to_primaries_matrix(), primaries_to_rgb_matrix()
+
+    def op(s: torch.Tensor) -> torch.Tensor:  # primaries [B, 3, 8, 8] -> primaries
+        out = optics(torch.einsum("ij,bjhw->bihw", to_rgb, s), RuntimeState(), StageContext((8, 8)))
+        return torch.einsum("ij,bjhw->bihw", to_p, out)
+
+    p = pixel_grid((8, 8), D)
+    ones = torch.eye(3 * 64, dtype=D).reshape(3 * 64, 3, 8, 8)
+    eye = op(ones).reshape(3, 8, 8, 3, 8, 8)  # [lit primary, lit y, lit x, eye primary, y, x]
+    light = eye.sum(dim=(3, 4, 5))
+    cx = (eye.sum(3) * p[..., 0]).sum(dim=(3, 4)) / light
+    cy = (eye.sum(3) * p[..., 1]).sum(dim=(3, 4)) / light
+    centroid_disp = torch.stack([cx, cy], -1) - p  # [3, 8, 8, 2]
+    pooled = centroid_disp.reshape(3, 4, 2, 4, 2, 2).mean(dim=(2, 4))
+    # the central 2 x 2 cells (pixels 2..5) are measured: the table holds the centroids there
+    assert torch.allclose(disp[:, 1:3, 1:3], pooled[:, 1:3, 1:3], atol=1e-5)
+    # the gain brings a flat field back to flat at the centre: within 3.5 % (pooled 2 x 2 at 8 px)
+    # where the uncorrected energy fall-off reaches 7 %
+    flat = op(lut((8, 8), D, "cpu")[1][None])[0]
+    assert float((flat[:, 2:6, 2:6] - 1.0).abs().max()) < 0.035
+    assert float((op(torch.ones(1, 3, 8, 8, dtype=D))[0, :, 2:6, 2:6] - 1.0).abs().max()) > 0.06
+    assert float(gain.min()) > 1.0  # brightens everywhere against the fall-off
+
+
+class _Lens(Stage):
+    name, domain, order = "lens", "linear", 10.0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.offset = torch.nn.Parameter(torch.zeros(3, dtype=D))
+
+    def process(self, image, state, ctx):
+        return image + self.offset[:, None, None]
+
+
+def test_fit_prewarp_loss_and_learning_rate_defaults():
+    from controlgs_adapter.metrics import ssim
+    from controlgs_adapter.downstream.prewarp_fit import fit_prewarp
+
+    g = torch.Generator().manual_seed(5)
+    images = torch.rand(1, 3, 16, 16, generator=g, dtype=D) * 0.5 + 0.25
+    targets = (images + 0.1 * torch.rand(1, 3, 16, 16, generator=g, dtype=D)).clamp(0, 1)
+    pipe = Pipeline([_Lens()]).eval()
+    losses = fit_prewarp(pipe, images, targets, steps=1)
+    # the paper's 3DGS loss 0.8 L1 + 0.2 (1 - SSIM), no MSE; the lens is the identity at step 1
+    l1 = float((images[0] - targets[0]).abs().mean())
+    expect = 0.8 * l1 + 0.2 * (1.0 - float(ssim(images[0], targets[0], data_range=1.0).mean()))
+    assert losses == [pytest.approx(expect, rel=1e-6)]
+    # Adam's first step moves every parameter with a gradient by lr = 1e-3
+    assert pipe["lens"].offset.abs().tolist() == pytest.approx([1e-3] * 3, rel=1e-4)
+    assert not pipe.training  # the caller's mode comes back
+    assert len(fit_prewarp(pipe, images, steps=3, lr=1e-2)) == 3
+    for kwargs in ({"lr": 0.0}, {"lr": -1.0}, {"steps": 0}):
+        with pytest.raises(InputValueError, match="steps must be >= 1 and lr > 0"):
+            fit_prewarp(pipe, images, **kwargs)
+    with pytest.raises(InputValueError, match="targets must have dtype"):
+        fit_prewarp(pipe, images, targets.float(), steps=1)
