@@ -500,3 +500,18 @@ def test_lock_holder_descriptions(tmp_path):
     import time as _time
     want = _time.strftime("%Y-%m-%d %H:%M:%S", _time.localtime(0))
     assert lock._describe(lock.lock_holder(tmp_path)) == f"pid 5 on h since {want} (c)"
+
+
+def test_value_objects_are_frozen():
+    import dataclasses
+
+    from controlgs_adapter.controlgs import Target
+    from controlgs_adapter.plugins import PluginInfo
+    from controlgs_adapter.training import TrainConfig
+
+    objs = [(LossWeights(), "l1"), (RuntimeState(), "downsample"), (TrainConfig(), "lr"),
+            (Target("d", "d.0", 3, 4), "fc1"), (PluginInfo("stage", "n", "p", "s", None), "name")]
+    for obj, field in objs:
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(obj, field, 1)
+    assert hash(LossWeights()) == hash(LossWeights(0.8, 0.2, 10.0, 0.0))  # frozen dataclasses hash by value

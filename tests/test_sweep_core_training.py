@@ -159,6 +159,13 @@ def test_optics_phase_switch_ends(tiny, fraction, want):
 def test_trainer_refusals_leave_the_model_unwrapped(tiny):
     scene, model = tiny
     views = scene.views("train")
+    t = Trainer(model, views, TrainConfig(cond_dim=3, lr=0.25, state_blind=True, modules="display"), effects=FAST)
+    try:  # the config reaches the wrap and the optimizer
+        assert t.cgs.injector.cond_dim == 3 and t.cgs.state_blind and t.cgs.modules == ("display",)
+        assert t.optimizer.param_groups[0]["lr"] == 0.25
+        assert {id(p) for p in t.optimizer.param_groups[0]["params"]} == {id(p) for p in t.cgs.trainable_parameters()}
+    finally:
+        t.cgs.unwrap()
     for args, kw, words in [((views, {"iterations": 1}), {}, "config must be a TrainConfig, got dict"),
                             ((views, TrainConfig()), {"effects": {"oled": True}},
                              "no condition module to train: the effects ['oled'] call for none"),
