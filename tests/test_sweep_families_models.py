@@ -297,3 +297,28 @@ def test_decoder_state_refusals_name_the_decoder(tmp_path):
     torch.save(sd, ck)
     m = load_scaffold_dir(tmp_path / "s")
     assert torch.equal(m.mlp_color[0].bias, raw["mlp_color"][0].bias.detach())
+
+
+class Sequential(nn.Sequential):  # a decoder outside the safe TorchScript subset (a class of its own), harmless
+    @torch.jit.export
+    def extra(self) -> int:
+        return 1
+
+
+def test_load_model_dir_passes_trust_code_to_the_scaffold_and_octree_loaders(tmp_path):
+    import test_backend_octree_gs as octree_t
+    from controlgs_adapter.backends import load_model_dir
+
+    m = _model(6)
+    folder = save_scaffold_dir(m, tmp_path / "s", 3)
+    octree = octree_t._write_dir(tmp_path / "o", octree_t._arrays(1), octree_t._decoders(torch.Generator().manual_seed(1)))
+    oct_folder = octree / "point_cloud" / "iteration_30000"
+    for root, it, dec in ((tmp_path / "s", folder, m.mlp_opacity),
+                          (octree, oct_folder, load_model_dir(octree).mlp_opacity)):
+        odd = Sequential(*[layer for layer in dec])
+        torch.jit.script(odd).save(str(it / "opacity_mlp.pt"))
+        with pytest.raises(FileFormatError, match="opacity_mlp.pt"):
+            load_model_dir(root)  # read as data by default: refused
+        x = torch.randn(4, dec[0].in_features)
+        trusted = load_model_dir(root, trust_code=True)
+        assert torch.allclose(trusted.mlp_opacity(x), dec(x))
