@@ -274,9 +274,8 @@ class RadialMap(PrewarpMap):
 
     def __init__(self, coefficients: Sequence[Sequence[float]] | torch.Tensor = CARDBOARD_RADIAL, learnable: bool = False) -> None:
         super().__init__()
-        k = torch.as_tensor(coefficients, dtype=torch.float64)
+        k = torch.as_tensor(coefficients, dtype=torch.float64).float()  # checked as stored: 1e39 is inf in float32
         check_tensor("coefficients", k, [3, "K"], finite=True)
-        k = k.float()
         if learnable:
             self.coefficients = nn.Parameter(k)
         else:

@@ -196,6 +196,9 @@ def test_black_threshold_is_one_picowatt_unit():
         img = _img([p / 1001.82] * 3)
         _, stats = display_mapping_with_stats(img, 0.0, reference_power=1.0)
         assert (float(stats["scale"]) == 1.0) is black
+    # exactly 1e-12 (red 1e-12 with coefficients (1, 0, 0): no rounding) is still black
+    _, at = display_mapping_with_stats(_img([1e-12, 0.0, 0.0]), 0.0, reference_power=1.0, coefficients=(1.0, 0.0, 0.0))
+    assert float(at["power"]) == 1e-12 and float(at["scale"]) == 1.0
 
 
 def test_reference_and_reference_power_refusals():
@@ -449,3 +452,11 @@ def test_foveation_is_always_the_identity():
         assert st.is_identity(s) and st.is_identity(s, StageContext((2, 2), reference=img))
     assert st(img, RuntimeState(gaze=(0.1, 0.1))) is img
     assert foveation(img, None) is img
+
+
+def test_radial_coefficients_are_checked_as_stored_in_float32():
+    from controlgs_adapter.downstream.lens import RadialMap
+
+    with pytest.raises(InputValueError, match="coefficients"):
+        RadialMap([[1e39], [0.0], [0.0]])  # finite in float64, inf in the float32 buffer
+    assert RadialMap([[1], [0], [0]]).coefficients.dtype == torch.float32  # integers are accepted
