@@ -62,12 +62,12 @@ def test_cuda_uses_tables_for_every_bucket_and_matches_the_cpu_reference(monkeyp
     monkeypatch.setattr(operators, "_TABLE_MAX_AREA", 0)            # the CPU rule: slices for every bucket
     bank = PSFBank.default()
     cpu = bank.resample_to(24, 24, dtype=D64, radiometry="radiance")
-    gpu = bank.resample_to(24, 24, device=torch.device("cuda"), dtype=D64, radiometry="radiance")
+    x = torch.rand(2, 3, 24, 24, dtype=D64, requires_grad=True)
+    xg = x.detach().cuda().requires_grad_(True)
+    gpu = bank.resample_to(24, 24, device=xg.device, dtype=D64, radiometry="radiance")   # cuda:0, as the stage does
     assert {operators._use_tables(bk) for bks in cpu.zones(1, 0.0) for bk in bks} == {False}
     assert {operators._use_tables(bk) for bks in gpu.zones(1, 0.0) for bk in bks} == {True}
-    x = torch.rand(2, 3, 24, 24, dtype=D64, requires_grad=True)
     w = torch.rand(2, 3, 24, 24, dtype=D64)
-    xg = x.detach().cuda().requires_grad_(True)
     out = psf_exact(xg, gpu)
     (g,) = torch.autograd.grad((out * w.cuda()).sum(), xg)
     ref = psf_reference(x, cpu)

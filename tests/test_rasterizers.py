@@ -203,3 +203,21 @@ def test_gsplat_opacity_cap_passes_the_gradient_straight_through(monkeypatch):
     above = opacities.detach() > ALPHA_MAX
     assert bool(above.any()) and bool((capped.grad[above] != 0).any())
     torch.testing.assert_close(opacities.grad, capped.grad, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("with_background", [True, False])
+def test_gsplat_empty_render_stays_in_the_graph_like_the_torch_splatter(monkeypatch, with_background):
+    """A view with no Gaussians (all culled by the decoder) renders the background; its loss must
+    back-propagate (zero gradients of the empty inputs), as with the torch splatter, not raise
+    "element 0 of tensors does not require grad" at ``loss.backward()`` in a CUDA training step."""
+    monkeypatch.setattr(rasterizers, "_import_gsplat", lambda: _fake_gsplat("1.5.3", {}))
+    (means, scales, rotations, opacities, colors), cam = _scene()
+    bg = torch.tensor([0.2, 0.3, 0.4]) if with_background else None
+    for r in (TorchSplatter(), GsplatRasterizer()):
+        xs = [t[:0].clone().requires_grad_(True) for t in (means, scales, rotations, opacities, colors)]
+        out = r(*xs, cam, bg)
+        want = torch.zeros(3, 32, 48) if bg is None else bg.view(3, 1, 1).expand(3, 32, 48)
+        assert torch.equal(out.color, want) and torch.equal(out.alpha, torch.zeros(1, 32, 48)), r.name
+        assert out.color.requires_grad and out.alpha.requires_grad, r.name
+        ((out.color - 1).square().sum() + out.alpha.sum()).backward()
+        assert [tuple(x.grad.shape) for x in xs] == [(0, 3), (0, 3), (0, 4), (0,), (0, 3)], r.name

@@ -114,9 +114,12 @@ class GsplatRasterizer(Rasterizer):
         if isinstance(gsplat, str):
             raise InputValueError(f"rasterizer 'gsplat': {gsplat}")
         n, dev, h, w = means.shape[0], means.device, camera.height, camera.width
-        if n == 0:  # nothing to draw: the background
-            zero = means.new_zeros(1, h, w)
-            color = means.new_zeros(3, h, w) if background is None else background.view(3, 1, 1).expand(3, h, w).clone()
+        if n == 0:  # nothing to draw: the background, kept in the autograd graph as the torch splatter's is
+            # (a training view whose Gaussians are all culled back-propagates zeros instead of raising
+            # "element 0 of tensors does not require grad" at loss.backward())
+            tie = torch.stack([t.sum() for t in (means, scales, rotations, opacities, colors)]).sum() * 0.0
+            zero = means.new_zeros(1, h, w) + tie
+            color = (means.new_zeros(3, h, w) if background is None else background.view(3, 1, 1).expand(3, h, w)) + tie
             return RasterOutput(color=color, alpha=zero, depth=zero.clone(), visible=torch.zeros(0, dtype=torch.bool, device=dev))
         if gsplat_alpha_max(getattr(gsplat, "__version__", "0")) > ALPHA_MAX:
             # the kernel clamps alpha at 0.999: cap the opacity at 0.99 so no splat exceeds the
