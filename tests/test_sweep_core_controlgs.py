@@ -312,6 +312,9 @@ def test_strengths_by_hand_state_blind_and_camera_refusal():
     # log2(2) / 3 and 0.2 / 0.8, one per requested anchor
     assert got["resample"].tolist() == pytest.approx([1 / 3, 1 / 3], abs=1e-7) and got["display"].tolist() == [0.25, 0.25]
     assert got["lens"].shape == (2,)
+    # strengths() lists every module, zeros included (a conditioned block leaves shared zeros out)
+    got = cgs.strengths(RuntimeState(), make_camera(), torch.tensor([3, 1, 0]))
+    assert got["resample"].tolist() == [0.0] * 3 and got["display"].tolist() == [0.0] * 3
     with pytest.raises(InputValueError, match=r"module 'lens' needs each anchor's screen position: pass "
                                               r"camera=Camera\(...\).*got NoneType"):
         cgs.strengths(state)

@@ -222,6 +222,8 @@ def test_camera_centre_scaling_and_projection_by_hand():
     assert torch.allclose(s.intrinsics, want, rtol=1e-15, atol=0)
     assert s.extra == {"uid": 7} and s.extra is not cam.extra and torch.equal(s.world_to_camera, w2c)
     assert torch.equal(cam.intrinsics[0, 0], torch.tensor(50.0, dtype=torch.float64))  # not scaled in place
+    s = cam.scaled(2.5)  # 64 / 2.5 = 25.6 -> 26 (rounded, not floored), 48 / 2.5 = 19.2 -> 19
+    assert (s.width, s.height) == (26, 19)
     tiny_cam = cam.scaled(1000.0)
     assert (tiny_cam.width, tiny_cam.height) == (1, 1)  # never below one pixel
 

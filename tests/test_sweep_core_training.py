@@ -201,3 +201,39 @@ def test_train_loop_checkpoint_cadence_until_and_state(trainer, tmp_path, monkey
     trainer.checkpoint_path = None
     trainer.train(progress=False)  # nothing left to do, nothing written
     assert written[-1] == 10 and len(written) == 7
+
+
+def test_a_batch_step_is_the_mean_of_its_samples_losses(tiny, tmp_path):
+    """step() with batch_size 2: the loss is (l_a + l_b) / 2 over the two sampled (view, state) pairs, each
+    rendered, passed through the pipeline and compared with its own ground truth (computed here sample by
+    sample from the same generator state, before the adapter moves)."""
+    from controlgs_adapter.losses import image_loss
+    from controlgs_adapter.rendering.protocol import render_view
+
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, batch_size=2, checkpoint_every=0, seed=5),
+                effects=FAST, checkpoint=tmp_path / "none.safetensors")
+    try:
+        rng = t.generator.get_state()
+        pairs = [t.sample() for _ in range(2)]
+        assert pairs[0] != pairs[1]
+        losses = []
+        with torch.no_grad():
+            for view, state in pairs:
+                cam, gt = t.views[view]
+                image = render_view(t.cgs, model, cam, state, t.background, renderer=t.renderer)
+                losses.append(float(image_loss(t.pipeline(image, state, reference=gt), gt, t.config.loss)))
+        t.generator.set_state(rng)
+        got = t.step()
+        assert math.isclose(got, sum(losses) / 2, rel_tol=1e-5) and t.history == [got] and t.iteration == 1
+        assert bool(t.cgs.injector.conditions.detach().any())  # the optimizer moved the adapter
+        from controlgs_adapter.distributed import DistContext
+
+        t.dist = DistContext(rank=1, world_size=2)  # a replica: remembers the checkpoint, rank 0 writes it
+        assert t.save_checkpoint(tmp_path / "r1.safetensors") == tmp_path / "r1.safetensors"
+        assert not (tmp_path / "r1.safetensors").exists() and t.dist.last_checkpoint == (str(tmp_path / "r1.safetensors"), 1)
+        assert t.resume() is False  # no file at checkpoint_path yet
+        t.checkpoint_path = None
+        assert t.resume() is False
+    finally:
+        t.cgs.unwrap()
