@@ -223,9 +223,7 @@ def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, 
                 dx, dy = sx * ey + sy * ex, -sx * ex + sy * ey              # rotate (0, 1) -> (ex, ey)
                 extent = max(np.abs(dx).max(initial=0.0), np.abs(dy).max(initial=0.0)) + 3 * r_airy
                 p = max(min_pitch, extent / (K // 2 - 0.5))
-                spot = _bin(dx, dy, p, K, wt)
-                spot /= spot.sum()
-                img = _conv_same(spot, _airy_kernel(p, r_airy, K))
+                img = _conv_same(_bin(dx, dy, p, K, wt), _airy_kernel(p, r_airy, K))   # normalised below
                 psf[li, iy, ix] = img / img.sum()
                 pitch[li, iy, ix] = p
                 transmission[li, iy, ix] = tr
