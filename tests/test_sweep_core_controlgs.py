@@ -425,3 +425,54 @@ def test_adapters_are_named_switched_and_refused(tmp_path):
     cgs.set_adapter("default")
     assert cgs.injector is first
     cgs.unwrap()
+
+
+class _FC1Elsewhere(ScaffoldGSBackend):
+    """FC1-elsewhere test backend."""
+
+    name = "fc1_elsewhere"
+
+    def __init__(self, fc1):
+        self.fc1 = fc1
+
+    def first_linear_path(self, model, decoder_path):
+        return self.fc1.format(decoder_path)
+
+
+class _FailingHook(ScaffoldGSBackend):
+    """Failing-hook test backend: the second make_hookable fails."""
+
+    name = "failing_hook"
+
+    def __init__(self):
+        self.calls = 0
+
+    def make_hookable(self, model, decoder_path):
+        self.calls += 1
+        if self.calls == 2:
+            raise RuntimeError("hook failed")
+        return super().make_hookable(model, decoder_path)
+
+
+def test_torchscript_targets_and_rollback_of_a_failed_hook():
+    model = script_decoders(ScaffoldStandIn(6, feat_dim=4, n_offsets=2, seed=1))
+    originals = {d: getattr(model, d) for d in ("mlp_opacity", "mlp_cov", "mlp_color")}
+    with pytest.raises(TargetError) as e:
+        ControlGS.wrap(model, backend=_FC1Elsewhere("mlp_color.0"))
+    assert str(e.value) == "fc1_elsewhere: FC1 path 'mlp_color.0' of TorchScript decoder 'mlp_opacity' is not inside it"
+    with pytest.raises(TargetError, match="fc1_elsewhere: decoder 'mlp_opacity' has no first layer 'mlp_opacity.7'"):
+        ControlGS.wrap(model, backend=_FC1Elsewhere("{}.7"))
+    with pytest.raises(TargetError, match=r"fc1_elsewhere: first layer 'mlp_opacity.1' of 'mlp_opacity' must be an eager "
+                                          r"nn.Linear, got ReLU"):
+        ControlGS.wrap(model, backend=_FC1Elsewhere("{}.1"))
+    with pytest.raises(RuntimeError, match="hook failed"):
+        ControlGS.wrap(model, backend=_FailingHook())
+    # the first decoder had been replaced by its eager copy: put back, nothing attached
+    assert all(getattr(model, d) is m for d, m in originals.items())
+    assert ControlGS.attached(model) is None
+    cgs = ControlGS.wrap(model)
+    assert ControlGS.attached(model) is cgs and all(t.from_torchscript for t in cgs.targets)
+    assert all(isinstance(getattr(model, d), nn.Sequential) for d in originals)
+    cgs.unwrap()
+    assert all(getattr(model, d) is m for d, m in originals.items())
+    assert ControlGS.attached(nn.Linear(2, 2)) is None  # no backend recognises it
