@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -399,3 +400,51 @@ def test_stand_in_constructors_refuse_a_tensor_with_another_anchor_count():
             if name in kw:
                 with pytest.raises(ShapeError, match=name):
                     cls(**{**kw, name: bad(kw[name])})
+
+
+def _fake_folder(root, fields: list[str], files: list[str]):
+    """point_cloud/iteration_1 with a 2-vertex PLY holding ``fields`` and empty ``files`` (detection reads
+    only the PLY header and the file names)."""
+    from controlgs_adapter.formats.backbone import write_ply
+
+    it = root / "point_cloud" / "iteration_1"
+    it.mkdir(parents=True)
+    write_ply(it / "point_cloud.ply", {f: np.zeros(2, np.float32) for f in fields})
+    for f in files:
+        (it / f).write_bytes(b"")
+    return root
+
+
+@pytest.mark.parametrize("fields, files, family", [
+    (["x", "f_ref_feat_0"], [], "compgs"),
+    (["x", "f_anchor_feat_0", "f_offset_0"], ["weights.pth", "opacity_mlp.pt"], "compgs"),
+    (["x", "f_mask_0", "f_hyper_latent_0", "f_anchor_feat_0"], ["checkpoint.pth"], "contextgs"),
+    (["x", "f_mask_0", "f_anchor_feat_0"], ["checkpoint.pth"], "hac"),
+    (["x", "level", "extra_level", "f_anchor_feat_0", "f_offset_0"], ["opacity_mlp.pt"], "octree_gs"),
+    (["x", "f_mask_0", "level", "extra_level"], [], "octree_gs"),  # masks without checkpoint.pth: not HAC
+    (["x", "f_anchor_feat_0", "f_offset_0"], ["opacity_mlp.pt"], "scaffold_gs"),
+    (["x", "f_anchor_feat_0", "f_offset_0"], ["checkpoints.pth"], "scaffold_gs"),
+])
+def test_detection_rules_from_fields_and_file_names(tmp_path, fields, files, family):
+    assert detect_family(_fake_folder(tmp_path / "m", fields, files)) == family
+
+
+@pytest.mark.parametrize("fields, files, shown, held", [
+    (["x", "y", "f_anchor_feat_0", "f_anchor_feat_1", "f_offset_0"], [], "['x', 'y', 'f_anchor_feat_0', 'f_offset_0']",
+     "none of opacity_mlp.pt, checkpoints.pth, checkpoint.pth, weights.pth"),
+    (["x", "level", "f_anchor_feat_0"], ["opacity_mlp.pt"], "['x', 'level', 'f_anchor_feat_0']", "['opacity_mlp.pt']"),
+    (["x", "f_offset_0", "f_offset_1"], ["checkpoints.pth"], "['x', 'f_offset_0']", "['checkpoints.pth']"),
+])
+def test_unrecognised_folder_names_its_fields_and_files(tmp_path, fields, files, shown, held):
+    import re
+
+    root = _fake_folder(tmp_path / "m", fields, files)
+    with pytest.raises(FileFormatError, match=re.escape(f"point_cloud/iteration_1/point_cloud.ply has fields {shown}, "
+                                                        f"point_cloud/iteration_1 holds {held}")):
+        detect_family(root)
+
+
+def test_bitstreams_only_compgs_folder_is_detected_as_compgs(tmp_path):
+    (tmp_path / "c" / "point_cloud").mkdir(parents=True)
+    (tmp_path / "c" / "point_cloud" / "bitstreams.npz").write_bytes(b"")
+    assert detect_family(tmp_path / "c") == "compgs"

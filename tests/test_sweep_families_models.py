@@ -322,3 +322,24 @@ def test_load_model_dir_passes_trust_code_to_the_scaffold_and_octree_loaders(tmp
         x = torch.randn(4, dec[0].in_features)
         trusted = load_model_dir(root, trust_code=True)
         assert torch.allclose(trusted.mlp_opacity(x), dec(x))
+
+
+@pytest.mark.parametrize("given", [0.0, -1.0, None])
+def test_scaffold_voxel_size_not_given_is_the_median_anchor_spacing(tmp_path, given):
+    # Scaffold-GS estimates the voxel from the point cloud when the argument is <= 0; it is not saved
+    raw = make_raw_model(9, 8, 2, seed=8)
+    over = {"voxel_size": given} if given is not None else {}
+    write_scaffold_dir_by_hand(tmp_path / "s", raw, cfg_overrides=over)
+    if given is None:  # no key at all
+        import re
+
+        cfg = (tmp_path / "s" / "cfg_args").read_text()
+        (tmp_path / "s" / "cfg_args").write_text(re.sub(r"voxel_size=[^,]*, ", "", cfg))
+    m = load_scaffold_dir(tmp_path / "s")
+    a = raw["anchor"].double().numpy()
+    d = np.sqrt(((a[:, None] - a[None]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    nn_dist = np.sort(d.min(1))
+    assert m.voxel_size == pytest.approx(nn_dist[(len(nn_dist) - 1) // 2], rel=1e-6)  # torch's lower median
+    write_scaffold_dir_by_hand(tmp_path / "t", raw, cfg_overrides={"voxel_size": 0.25})
+    assert load_scaffold_dir(tmp_path / "t").voxel_size == 0.25
