@@ -61,8 +61,7 @@ def _area_taps(n_in: int, n_out: int, dtype: torch.dtype, device: torch.device) 
     idx = first[:, None] + torch.arange(taps)[None, :]  # [n_out, K]
     left = torch.maximum(idx.double(), lo[:, None])
     right = torch.minimum(idx.double() + 1.0, hi[:, None])
-    w = (right - left).clamp(min=0.0) * (n_out / n_in)
-    w = torch.where(idx < n_in, w, torch.zeros_like(w))
+    w = (right - left).clamp(min=0.0) * (n_out / n_in)  # taps past the end overlap nothing: hi <= n_in exactly
     w = w / w.sum(dim=1, keepdim=True)  # exact partition of unity despite float rounding
     return idx.clamp(max=n_in - 1).to(device), w.to(dtype=dtype, device=device)
 

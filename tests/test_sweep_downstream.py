@@ -211,6 +211,32 @@ def test_reference_and_reference_power_refusals():
     display_mapping(img, 0.1, reference_power=0.0)  # 0 is allowed
 
 
+def test_display_mapping_gradients_flow_through_the_image_power_only():
+    # no reference: out = x (1 - rho) P0 / P(x) with P0 = P(x) detached. With coefficients (1, 1, 1) on
+    # one pixel P = a + b + c, so d sum(out) / dx_i = s - s (sum_j x_j) / P = 0 (s = 1 - rho)
+    x = torch.tensor([0.2, 0.3, 0.4], dtype=D)[:, None, None].requires_grad_(True)
+    display_mapping(x, 0.5, coefficients=(1.0, 1.0, 1.0)).sum().backward()
+    assert x.grad.abs().max().item() < 1e-12
+    # a reference (or a reference power) is a constant: no gradient reaches it, the stats are detached
+    x.grad = None
+    ref = torch.full((3, 2, 2), 0.5, dtype=D, requires_grad=True)
+    out, stats = display_mapping_with_stats(x, 0.2, ref)
+    out.sum().backward()
+    assert ref.grad is None and x.grad is not None
+    assert not any(v.requires_grad for v in stats.values())
+    p_ref = torch.tensor(300.0, dtype=D, requires_grad=True)
+    display_mapping(x, 0.2, reference_power=p_ref).sum().backward()
+    assert p_ref.grad is None
+    st = DisplayMapping()
+    shown = torch.full((3, 2, 2), 0.5, dtype=D, requires_grad=True)
+    rec: dict = {}
+    st(x, RuntimeState(power_saving=0.2), StageContext((1, 1), reference=ref, displayed_reference=shown, record=rec)).sum().backward()
+    assert shown.grad is None and ref.grad is None and not rec["display.power_ref"].requires_grad
+    gt = DisplayMapping(p_ref="ground_truth")
+    gt(x, RuntimeState(power_saving=0.2), StageContext((1, 1), reference=ref)).sum().backward()
+    assert ref.grad is None
+
+
 def test_display_stage_options_and_records():
     with pytest.raises(InputValueError, match="p_ref must be 'displayed' or 'ground_truth'"):
         DisplayMapping(p_ref="eye")
