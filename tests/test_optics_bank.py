@@ -95,3 +95,15 @@ def test_an_image_of_another_aspect_is_placed_on_the_display():
     assert (stretch.region.half_x, stretch.region.half_y) == (1.0, 1.0)
     with pytest.raises(InputValueError, match="placement"):
         bank.resample_to(48, 64, placement="crop")
+
+
+def test_resample_to_names_the_device_as_tensors_report_it():
+    """A device given with an index ("cpu:0"; on a GPU "cuda" vs "cuda:0") is the tensors' device: the
+    bank is the cached one and applies to images on it (it was refused as another device)."""
+    from controlgs_adapter.downstream.optics.operators import psf_exact
+
+    bank = tiny_bank()
+    rb = bank.resample_to(12, 12, device="cpu:0", dtype=torch.float64)
+    assert rb is bank.resample_to(12, 12, device="cpu", dtype=torch.float64)
+    x = torch.rand(bank.num_wavelengths, 12, 12, dtype=torch.float64)
+    torch.testing.assert_close(psf_exact(x, rb), psf_exact(x, bank.resample_to(12, 12, dtype=torch.float64)))

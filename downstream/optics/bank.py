@@ -218,9 +218,10 @@ class PSFBank:
         if radiometry not in RADIOMETRIES:
             raise InputValueError(f"radiometry must be one of {RADIOMETRIES}, got {radiometry!r}")
         region = image_region(height, width, self.display_mm, placement)
-        key = (height, width, placement, radiometry, str(torch.device(device)), dtype)
+        device = torch.empty(0, device=device).device  # as tensors report it: "cuda" -> cuda:0, "cpu:0" -> cpu
+        key = (height, width, placement, radiometry, str(device), dtype)
         if key not in self._cache:
-            self._cache[key] = ResampledBank(self, height, width, region, device=torch.device(device), dtype=dtype,
+            self._cache[key] = ResampledBank(self, height, width, region, device=device, dtype=dtype,
                                              radiometry=radiometry)
         return self._cache[key]
 
