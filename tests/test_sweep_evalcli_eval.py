@@ -217,3 +217,47 @@ def test_an_adapter_with_fewer_modules_shows_only_those(setup, tmp_path: Path):
     cgs.unwrap()
     strips = condition_response(model, path, views[0][0], background=views.background)
     assert list(strips) == ["display"]
+
+
+def test_evaluate_seeds_shares_the_baselines(setup, tmp_path: Path):
+    from controlgs_adapter.commands.demo import evaluate_seeds, report_figures
+
+    model, views, path = setup
+    zero = ControlGS.wrap(model, cond_dim=4)
+    zpath = zero.save(tmp_path / "zero.controlgs.safetensors")
+    zero.unwrap()
+    kw = dict(downsample=(2.0,), power_saving=(0.6,), extra_metrics=False, progress=False, effects=CHEAP)
+    runs = evaluate_seeds(model, views, {4: {"controlgs": path}, 7: {"controlgs": zpath}}, **kw)
+    assert [r.info["seed"] for r in runs] == [4, 7] and [r.methods for r in runs] == [["no_ss", "ss", IDEAL, "controlgs"]] * 2
+    for m in ("no_ss", "ss", IDEAL):  # evaluated once, the same numbers in both seeds
+        assert runs[1].per_view[m] is runs[0].per_view[m]
+    # each seed's own adapter: the zero one renders as the backbone (SS), the other does not
+    assert torch.equal(runs[1].per_view["controlgs"]["psnr"], runs[0].per_view["ss"]["psnr"])
+    assert not torch.equal(runs[0].per_view["controlgs"]["psnr"], runs[0].per_view["ss"]["psnr"])
+    alone = evaluate_grid(model, views, {"controlgs": path}, **kw)
+    assert torch.equal(alone.per_view["controlgs"]["psnr"], runs[0].per_view["controlgs"]["psnr"])
+    comparison, response = report_figures(model, path, views, effects=CHEAP, optics_mode="fast")
+    cam, gt = views[0]
+    assert torch.equal(comparison["gt"], gt) and list(response) == ["resample", "display", "lens"]
+    assert torch.equal(response["lens"][0][1], render_view(None, model, cam, None, views.background))
+
+
+def test_make_renderer_of_the_options(setup):
+    import argparse
+
+    from controlgs_adapter.commands.common import RasterizerRenderer, make_renderer
+
+    model, views, _ = setup
+    ns = lambda **kw: argparse.Namespace(**{"rasterizer": None, "renderer": None, **kw})  # noqa: E731
+    assert make_renderer(ns(), model) is None and make_renderer(ns(rasterizer="auto"), model) is None
+    r = make_renderer(ns(rasterizer="torch"), model)
+    assert isinstance(r, RasterizerRenderer) and r.rasterizer == "torch"
+    cam, _ = views[0]
+    with torch.no_grad():
+        assert torch.equal(render_view(None, model, cam, None, views.background, renderer=r),
+                           render_view(None, model, cam, None, views.background))
+    with pytest.raises(InputValueError, match=r"--rasterizer gsplat cannot render on cpu: .*; it needs --device cuda "
+                                              r"and the gsplat extra: pip install 'controlgs-adapter\[gsplat\]'"):
+        make_renderer(ns(rasterizer="gsplat"), model)
+    with pytest.raises(InputValueError, match="--rasterizer 'nope' is not registered; available: gsplat, torch, auto"):
+        make_renderer(ns(rasterizer="nope"), model)
