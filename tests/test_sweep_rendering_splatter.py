@@ -157,3 +157,45 @@ def test_other_refusals() -> None:
     # bounds accepted: opacity 0 and 1, scale 0
     for o in (0.0, 1.0):
         rasterize(g[0], g[1] * 0, g[2], torch.tensor([o], dtype=F64), g[4], cam)
+
+
+@pytest.mark.parametrize("i", range(6))
+def test_tensors_on_another_device_are_refused_by_name(i: int) -> None:
+    """Each input on the meta device (value checks off, so that only the device check can refuse it)."""
+    from controlgs_adapter.checks import value_checks
+
+    names = ["means", "scales", "rotations", "opacities", "colors", "background"]
+    args = [*_one([0.0, 0.0, 2.0], [0.05] * 3, [1.0, 0, 0, 0], 0.5), torch.zeros(3, dtype=F64)]
+    args[i] = args[i].to("meta")
+    with value_checks(False), pytest.raises(InputValueError, match=f"tensors must be on one device, got .*{names[i]}=meta"):
+        rasterize(*args[:5], _camera(), args[5])
+
+
+def test_a_tile_whose_pixels_all_terminated_takes_no_further_pass(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 3 x 3 image in one 4 x 4 tile (7 padding pixels, which no record covers and which count as
+    terminated from the start) under 12 wide splats of opacity 0.95 (alpha in (0.945, 0.95] at every pixel:
+    G > 0.995 within 1.5 px of the centre for the first four, sigma = 3 px x 20 / z >= 15 px): with one depth rank per pass (tiny pair budget), every
+    pixel draws three (T <= 0.055^3 = 1.7e-4 stays >= 1e-4) and stops at the fourth (T <= 0.055^4 < 1e-5),
+    so the tile is done after 4 passes; the 8 other ranks are never expanded."""
+    from controlgs_adapter.rendering import splatter
+
+    monkeypatch.setattr(splatter, "_PAIR_BUDGET", 4)
+    monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
+    calls: list[int] = []
+    expand = splatter._candidates
+
+    def counting(*args):  # type: ignore[no-untyped-def]
+        calls.append(int(args[3].numel()))
+        return expand(*args)
+
+    monkeypatch.setattr(splatter, "_candidates", counting)
+    k = torch.tensor([[3.0, 0.0, 1.5], [0.0, 3.0, 1.5], [0.0, 0.0, 1.0]], dtype=F64)
+    cam = Camera(torch.eye(4, dtype=F64), k, 3, 3)
+    n = 12
+    means = torch.tensor([[0.0, 0.0, 1.0 + i] for i in range(n)], dtype=F64)
+    out = rasterize(means, torch.full((n, 3), 20.0, dtype=F64), torch.tensor([[1.0, 0, 0, 0]] * n, dtype=F64),
+                    torch.full((n,), 0.95, dtype=F64), torch.rand(n, 3, generator=torch.Generator().manual_seed(0),
+                                                                  dtype=F64), cam, tile_size=4)
+    # three splats drawn: T = prod (1 - alpha_i) in [0.05^3, 0.055^3]
+    assert float(out.alpha.min()) >= 1 - 0.055**3 and float(out.alpha.max()) <= 1 - 0.05**3 + 1e-12
+    assert len(calls) == 4, calls

@@ -377,3 +377,17 @@ def test_server_headers_and_query_strings(small: Any) -> None:
         assert local.server_address[1] > 0
     finally:
         local.server_close()
+
+
+def test_frame_cache_keeps_the_16_most_recent_cameras(small: Any) -> None:
+    session, _ = small
+    session._frames.clear()
+    first = session._frame(parse_state({"azimuth": 1.0}, 1))
+    for az in range(2, 18):  # 16 more cameras: the first one is evicted by the 17th
+        session._frame(parse_state({"azimuth": float(az)}, 1))
+    assert len(session._frames) == 16
+    assert (0, 1.0, 0.0) not in session._frames and (0, 2.0, 0.0) in session._frames
+    again = session._frame(parse_state({"azimuth": 1.0}, 1))
+    assert again is not first and torch.equal(again[2], first[2])  # rendered anew, the same image
+    assert session._frame(parse_state({"azimuth": 1.0}, 1)) is again  # now cached
+
