@@ -448,3 +448,74 @@ def test_bitstreams_only_compgs_folder_is_detected_as_compgs(tmp_path):
     (tmp_path / "c" / "point_cloud").mkdir(parents=True)
     (tmp_path / "c" / "point_cloud" / "bitstreams.npz").write_bytes(b"")
     assert detect_family(tmp_path / "c") == "compgs"
+
+
+# ---------------------------------------------------------------- the prefilter reads the anchor's first 3 scales
+
+def test_every_family_prefilter_uses_the_first_three_linear_scales():
+    """make_camera(): 64 x 48, f = 40, at z = -5 looking along +z. An anchor at (-4.625, 0, 0) (depth 5)
+    projects to u = 32 + 40 * (-4.625) / 5 = -5 px, 5 px left of the image. Its footprint radius is
+    ceil(3 sqrt(64 s^2 + 0.3)) px for an isotropic world scale s: 12 px for s = 0.5 (touches the image),
+    2 px for s = 0.01 (does not). Anchor 0 has s = 0.5 in scales[:3] and 0.01 in scales[3:], anchor 1 the
+    reverse: only anchor 0 is kept, whatever the family stores (log or linear scales)."""
+    from controlgs_adapter.backends.compgs import CompGSModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+
+    cam = make_camera()
+    pos = torch.tensor([[-4.625, 0.0, 0.0], [-4.625, 0.0, 0.0]])
+    lin = torch.tensor([[0.5] * 3 + [0.01] * 3, [0.01] * 3 + [0.5] * 3])
+    want = [True, False]
+    n = 2
+    ca = compgs_t._arrays(0)
+    comp = CompGSModel(means=pos, scales_before_exp=lin.log(), ref_feats=torch.from_numpy(ca["ref"][:n]),
+                       res_feats=torch.from_numpy(ca["res"][:n]))
+    assert comp.visible_anchors(cam).tolist() == want
+    for decoded in (True, False):
+        kw = _hac_kw(hac_t.K + 1)
+        kw = {k: (v[:n] if torch.is_tensor(v) else v) for k, v in kw.items()}
+        kw.update(anchor=pos, scaling=lin if decoded else lin.log(), decoded_version=decoded)
+        assert HACModel(voxel_size=0.001, **kw).visible_anchors(cam).tolist() == want, decoded
+    t = {k: torch.from_numpy(v[:n]) for k, v in contextgs_t._arrays(0, decoded=True).items()}
+    ctx = ContextGSModel(anchor=pos, offset=t["offset"], mask=torch.ones(n, contextgs_t.K, 1), anchor_feat=t["feat"],
+                         scaling=lin, hyper_latent=t["hyper"], decoded_version=True, **contextgs_t._decoders(0))
+    assert ctx.visible_anchors(cam).tolist() == want
+    oa = octree_t._arrays(0)
+    octo = OctreeGSModel(anchor=pos, offset=torch.from_numpy(oa["offset"][:n]), anchor_feat=torch.from_numpy(oa["feat"][:n]),
+                         scaling=lin.log(), level=torch.zeros(n, 1, dtype=torch.int32), extra_level=torch.zeros(n),
+                         voxel_size=0.1, standard_dist=3.0, **octree_t._decoders(torch.Generator().manual_seed(0)))
+    assert octo.visible_anchors(cam).tolist() == want  # level 0 is always in the LOD set
+    ref = NeuralGaussianModel(n, feat_dim=4, n_offsets=1)
+    with torch.no_grad():
+        ref._anchor.copy_(pos)
+        ref._scaling.copy_(lin.log())
+    assert ref.visible_anchors(cam).tolist() == want
+
+
+def test_octree_lod_distance_is_scaled_by_the_resolution_scale():
+    """Octree-GS's set_anchor_mask: dist = |voxel centre - camera| * resolution_scale; a float64 reference
+    at resolution_scale 2 and 0.5 (a larger scale reads as farther: coarser levels)."""
+    arr = octree_t._arrays(1)
+    model = octree_t._model(arr, octree_t._decoders(torch.Generator().manual_seed(1)))
+    cam = torch.tensor([0.3, -0.2, 4.0])
+    levels = int(arr["level"].max() - arr["level"].min() + 1)
+    masks = {}
+    for scale in (2.0, 0.5):
+        model.set_anchor_mask(cam, -1, scale)
+        want = []
+        for a in range(octree_t.A):
+            lv = int(arr["level"][a])
+            pos = arr["anchor"][a].astype(np.float64) + (octree_t.VOXEL / 2) / octree_t.FORK ** lv
+            d = float(np.linalg.norm(pos - cam.double().numpy())) * scale
+            pred = math.log2(octree_t.STD_DIST / d) / math.log2(octree_t.FORK) + float(arr["extra"][a])
+            want.append(lv <= min(max(int(np.round(pred)), 0), levels - 1))
+        assert model._anchor_mask.tolist() == want, scale
+        masks[scale] = want
+    assert sum(masks[2.0]) < sum(masks[0.5])  # the two scales select different sets
+    # visible_anchors passes its resolution_scale on to the LOD selection
+    c = make_camera()
+    model.visible_anchors(c, resolution_scale=0.25)
+    m2 = model._anchor_mask.clone()
+    model.set_anchor_mask(c.center, -1, 0.25)
+    assert torch.equal(m2, model._anchor_mask)
+    model.set_anchor_mask(c.center, -1, 1.0)
+    assert not torch.equal(m2, model._anchor_mask)  # for this camera, scales 1 and 0.25 select different sets
