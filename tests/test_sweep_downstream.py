@@ -486,3 +486,30 @@ def test_radial_coefficients_are_checked_as_stored_in_float32():
     with pytest.raises(InputValueError, match="coefficients"):
         RadialMap([[1e39], [0.0], [0.0]])  # finite in float64, inf in the float32 buffer
     assert RadialMap([[1], [0], [0]]).coefficients.dtype == torch.float32  # integers are accepted
+
+
+def test_functionals_pass_non_finite_values_through_unchecked():
+    # the pipeline checks its input once; the stages' functionals accept any value (finite=False)
+    from controlgs_adapter.downstream.lens import lens_prewarp, pixel_grid
+
+    x = _img([0.5, 0.5, 0.5], 2, 2)
+    x[0, 0, 0] = float("nan")
+    for f in (color.srgb_to_linear, color.linear_to_srgb, color.rgb_to_primaries, color.primaries_to_rgb,
+              lambda t: oled_emission(t, (4, 4)), lambda t: area_resample(t, 2.0),
+              lambda t: lens_prewarp(t, pixel_grid((2, 2), D)[None].expand(3, -1, -1, -1).contiguous()),
+              lambda t: display_power(t)[None, None, None].expand(3, 1, 1), lambda t: display_mapping(t, 0.5)):
+        assert bool(torch.isnan(f(x)).any())
+    assert bool(torch.isnan(display_mapping(_img([0.5] * 3), 0.5, x)).all())  # a NaN reference power
+
+
+def test_stages_follow_the_image_device():
+    # "meta" is a second device on a machine without a GPU: constants must be made on the image's device
+    from controlgs_adapter.downstream.lens import LensPrewarp
+
+    x = torch.ones(3, 4, 4, device="meta")
+    assert display_power(x).device.type == "meta"
+    assert display_mapping(x, 0.5).device.type == "meta"
+    assert area_resample(torch.ones(3, 5, 5, device="meta"), 2.5).device.type == "meta"
+    assert color.rgb_to_primaries(x).device.type == "meta"
+    assert LensPrewarp(basis="rgb")(x).device.type == "meta"
+    assert placement.to_display(torch.ones(2, 2, device="meta"), 9, 16).device.type == "meta"

@@ -168,6 +168,10 @@ def test_recorded_intermediates_by_hand():
     assert rec1["stages_run"] == ["scale", "display"]
     assert torch.equal(rec1["displayed"], rec1["post"]) and torch.equal(rec1["post"], eye1)
     assert torch.allclose(eye1, linear_to_srgb(torch.full((3, 4, 4), lin * 0.25, dtype=D)))
+    # the intermediates are detached copies; the eye keeps its graph
+    eye3, rec3 = p.run_recorded(img.clone().requires_grad_(True), RuntimeState(downsample=2.0, power_saving=0.5))
+    assert eye3.requires_grad
+    assert not any(rec3[k].requires_grad for k in ("rendered", "post", "displayed", "eye"))
     _, rec2 = Pipeline([_mk("a")]).run_recorded(img)
     assert rec2["stages_run"] == ["a"] and rec2["diagnostics"] == {}
 
@@ -348,6 +352,10 @@ def test_fit_prewarp_loss_and_learning_rate_defaults():
     # Adam's first step moves every parameter with a gradient by lr = 1e-3
     assert pipe["lens"].offset.abs().tolist() == pytest.approx([1e-3] * 3, rel=1e-4)
     assert not pipe.training  # the caller's mode comes back
+    fast = Pipeline([_Lens()])
+    fit_prewarp(fast, images, targets, steps=1, lr=0.02)
+    assert fast["lens"].offset.abs().tolist() == pytest.approx([0.02] * 3, rel=1e-4)
+    assert fast.training
     assert len(fit_prewarp(pipe, images, steps=3, lr=1e-2)) == 3
     for kwargs in ({"lr": 0.0}, {"lr": -1.0}, {"steps": 0}):
         with pytest.raises(InputValueError, match="steps must be >= 1 and lr > 0"):
