@@ -271,7 +271,8 @@ class Trainer:
                 lap("pipeline")
                 loss = image_loss(eye, gt, self.config.loss) / len(batch)
                 lap("loss")
-            loss.backward()
+            if loss.requires_grad:  # else no module was active for this sample (all strengths 0): no gradient
+                loss.backward()
             lap("backward")
             value += float(loss.detach())  # the loss log: the step's one device sync besides the check below
         value = self.dist.sync_gradients(self.cgs.trainable_parameters(), row_sparse=(self.cgs.injector.conditions,),

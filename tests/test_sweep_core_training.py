@@ -237,3 +237,71 @@ def test_a_batch_step_is_the_mean_of_its_samples_losses(tiny, tmp_path):
         assert t.resume() is False
     finally:
         t.cgs.unwrap()
+
+
+def test_projection_init_follows_the_seed_not_the_global_generator(tiny):
+    scene, model = tiny
+    views = scene.views("train")
+    inits = []
+    for seed in (4, 4, 5):
+        torch.manual_seed(100 + len(inits))  # the global generator differs every time
+        before = torch.random.get_rng_state()
+        t = Trainer(model, views, TrainConfig(iterations=1, seed=seed, modules="display"),
+                    effects={**FAST, "oled": False, "lens": None})
+        assert torch.equal(torch.random.get_rng_state(), before)  # and is left as it was
+        inits.append({k: v.clone() for k, v in t.cgs.injector.state_dict().items()})
+        assert t.checkpoint_state().effects == ["display", "resample"]  # stages switched on, sorted
+        t.cgs.unwrap()
+    assert all(torch.equal(inits[0][k], inits[1][k]) for k in inits[0])
+    assert not torch.equal(inits[0]["projections.display.d8.weight"], inits[2]["projections.display.d8.weight"])
+
+
+def test_step_refuses_a_view_whose_image_size_differs_from_its_camera(tiny):
+    scene, model = tiny
+    cam, image = scene.views("train")[0]
+
+    class Views(list):
+        background = scene.background
+
+    t = Trainer(model, Views([(cam, image[:, :8, :8])]), TrainConfig(iterations=1, checkpoint_every=0), effects=FAST)
+    try:
+        with pytest.raises(InputValueError, match=rf"view 0: image is \[3, 8, 8\], its camera renders "
+                                                  rf"\[3, {cam.height}, {cam.width}\]"):
+            t.step()
+    finally:
+        t.cgs.unwrap()
+
+
+def test_a_parameter_that_becomes_non_finite_stops_training(tiny):
+    """rho is always 0 (max_power_saving 0): the display strength is 0, its projection gets no gradient and
+    Adam leaves it as it is; an Inf planted there passes the loss check and is caught by the parameter check."""
+    from controlgs_adapter.errors import NonFiniteError
+
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0, modules="display",
+                                                         max_power_saving=0.0, lr=0.02), effects=FAST)
+    try:
+        with torch.no_grad():
+            t.cgs.injector.projections["display"]["d8"].weight[0, 0] = float("inf")
+        with pytest.raises(NonFiniteError) as e:
+            t.step()
+        assert str(e.value) == ("training diverged at iteration 0: parameter(s) ['projections.display.d8.weight'] became "
+                                "NaN/Inf (lr 0.02); the last good checkpoint was kept, this state not written")
+        assert t.iteration == 0 and t.history == []
+    finally:
+        t.cgs.unwrap()
+
+
+def test_a_module_never_active_in_the_sampled_states_trains_without_error(tiny):
+    """max_downsample 1: d = 1 always, log2 d = 0, the resample strength is 0 in every state: the loss has no
+    gradient (it raised torch's 'does not require grad' before); steps record the loss, the adapter stays."""
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0, modules="resample",
+                                                         max_downsample=1.0), effects=FAST)
+    try:
+        before = {k: v.clone() for k, v in t.cgs.injector.state_dict().items()}
+        t.train(progress=False)
+        assert t.iteration == 2 and len(t.history) == 2 and all(math.isfinite(v) and v > 0 for v in t.history)
+        assert all(torch.equal(before[k], v) for k, v in t.cgs.injector.state_dict().items())
+    finally:
+        t.cgs.unwrap()
