@@ -85,7 +85,8 @@ def test_lut_files_carry_format_version_one_and_refuse_newer(tmp_path):
     pixel = lens.pixel_grid((2, 3), torch.float32)
     stage = LensPrewarp.from_lut(pixel[None].expand(3, -1, -1, -1).contiguous())
     path = stage.save_lut(tmp_path / "lut.safetensors")
-    assert read_header(path, kind=lens.LUT_KIND, max_version=99)["format_version"] == 1
+    header = read_header(path, kind=lens.LUT_KIND, max_version=99)
+    assert (header["format_version"], header["size"], header["source"]) == (1, [2, 3], "LUTMap")
     newer = save_tensors(tmp_path / "newer.safetensors", {"grid": pixel[None].expand(3, -1, -1, -1).contiguous(),
                                                          "gain": torch.ones(3, 2, 3)},
                          {}, kind=lens.LUT_KIND, format_version=2)
@@ -109,3 +110,26 @@ def test_save_lut_needs_a_size_unless_the_map_is_a_lut(tmp_path):
     assert isinstance(again.map, LUTMap)
     expect, _ = RadialMap()((4, 6), torch.float32, torch.device("cpu"))
     assert torch.allclose(again.map((4, 6), torch.float32, torch.device("cpu"))[0], expect, atol=1e-6)
+
+
+def test_bake_keeps_the_basis_and_refusals_of_the_warp_inputs():
+    assert LensPrewarp(basis="rgb").bake((4, 4)).basis == "rgb"
+    assert LensPrewarp().bake((4, 4)).basis == "primaries"
+    image = torch.rand(3, 4, 4, dtype=D)
+    grid = lens.pixel_grid((4, 4), D)[None].expand(3, -1, -1, -1).contiguous()
+    with pytest.raises(InputValueError, match="grid must have dtype"):
+        lens.lens_prewarp(image, grid.float())
+    with pytest.raises(InputValueError, match="gain="):
+        lens.lens_prewarp(image, grid, torch.ones(3, 4, 4, dtype=D, device="meta"))
+    with pytest.raises(InputValueError, match="chief_ray_map must have dtype"):
+        lens.chief_ray_grid(torch.zeros(3, 2, 2, 2, dtype=torch.int64), (4, 4))
+
+
+def test_maps_are_evaluated_on_the_requested_device():
+    # "meta" stands in for a second device on a machine without a GPU
+    meta = torch.device("meta")
+    table = {"exact": (torch.zeros(3, 2, 2, 2), torch.ones(3, 2, 2))}
+    grid = lens.pixel_grid((2, 2))[None].expand(3, -1, -1, -1).contiguous()
+    for m in (lens.DisplayLUTMap(table), LUTMap(grid), RadialMap(), MLPMap(hidden=4, layers=1)):
+        g, gain = m.to(meta)((4, 6), torch.float32, meta)
+        assert g.device.type == "meta" and (gain is None or gain.device.type == "meta")
