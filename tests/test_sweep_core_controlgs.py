@@ -476,3 +476,43 @@ def test_torchscript_targets_and_rollback_of_a_failed_hook():
     cgs.unwrap()
     assert all(getattr(model, d) is m for d, m in originals.items())
     assert ControlGS.attached(nn.Linear(2, 2)) is None  # no backend recognises it
+
+
+def test_load_adapter_mismatches_with_the_live_wrapper(tmp_path):
+    from controlgs_adapter.errors import IncompatibleAdapterError
+
+    from _adapter_files import rewrite, trained
+
+    donor = trained(ScaffoldStandIn(8, feat_dim=4, n_offsets=2, seed=1), seed=3)  # all three targets
+    path = donor.save(tmp_path / "all.safetensors")
+    want = {k: v.clone() for k, v in donor.injector.state_dict().items()}
+    donor.unwrap()
+    model = ScaffoldStandIn(8, feat_dim=4, n_offsets=2, seed=1)  # the same backbone
+    cgs = ControlGS.wrap(model, targets=["mlp_cov"])
+    with pytest.raises(IncompatibleAdapterError) as e:
+        cgs.load_adapter(path, "b")
+    assert "target 'mlp_opacity': not wrapped (wrapped: ['mlp_cov'])" in str(e.value)
+    assert "target 'mlp_color': not wrapped (wrapped: ['mlp_cov'])" in str(e.value) and cgs.adapters == ("default",)
+    with pytest.warns(RuntimeWarning, match="non-strict load skipped"):
+        skipped = cgs.load_adapter(path, "b", strict=False)
+    assert skipped == ["target 'mlp_opacity': not wrapped (wrapped: ['mlp_cov'])",
+                       "target 'mlp_color': not wrapped (wrapped: ['mlp_cov'])"]
+    cgs.set_adapter("b")
+    assert cgs.skipped == skipped and cgs.injector.widths == {"mlp_cov": 4}
+    assert all(torch.equal(v, want[k]) for k, v in cgs.injector.state_dict().items())  # what fits loads exactly
+    # another rows-per-anchor is only warned about (loaded anyway, not listed as skipped)
+    rewrite(path, {"rows_per_anchor": 2})
+    with pytest.raises(IncompatibleAdapterError, match="rows per anchor: the adapter expects 2, the model has 1"):
+        ControlGS.load(path, ScaffoldStandIn(8, feat_dim=4, n_offsets=2, seed=1))
+    other = ScaffoldStandIn(8, feat_dim=4, n_offsets=2, seed=1)
+    with pytest.warns(RuntimeWarning, match=r"rows per anchor: the adapter expects 2, the model has 1 \(loaded anyway\)"):
+        loaded = ControlGS.load(path, other, strict=False)
+    assert loaded.skipped == [] and torch.equal(loaded.injector.conditions.detach(), want["conditions"])
+    loaded.unwrap()
+    # an adapter of another registered backend never loads onto this wrapper, not even non-strict
+    rewrite(path, {"backend": "octree_gs", "rows_per_anchor": 1})
+    with pytest.raises(IncompatibleAdapterError, match="backend: the adapter was made for 'octree_gs'; this model is "
+                                                       "wrapped with scaffold_gs"):
+        cgs.load_adapter(path, "c", strict=False)
+    assert cgs.adapters == ("default", "b")
+    cgs.unwrap()
