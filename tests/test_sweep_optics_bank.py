@@ -155,6 +155,8 @@ def test_saved_file_holds_float16_psfs_and_its_units(tmp_path):
     assert back.display_mm == (24.0, 24.0) and back.meta == {"k": [1, 2]}
     with pytest.raises(FileFormatError, match=r"b.safetensors: bank was made for a 24.0 x 24.0 mm display, expected 24.0 x 24.001"):
         PSFBank.load(tmp_path / "b.safetensors", display_mm=(24.0, 24.001))
+    with pytest.raises(FileFormatError, match="bank was made for a 24.0 x 24.0 mm display"):
+        PSFBank.load(tmp_path / "b.safetensors", display_mm=(24.0 * (1 + 1.5e-6), 24.0))   # beyond 1e-6 relative
 
 
 @pytest.mark.parametrize("tensors, header, match", [

@@ -355,3 +355,85 @@ def test_build_bank_defaults_made_the_shipped_bank():
     assert gen["chief_grid"] == [65, 65] == list(defaults["chief_grid"])
     assert gen["min_pitch_px"] == 0.125 == defaults["min_pitch_px"]
     assert gen["reference_width_px"] == 1024 == defaults["reference_width_px"]
+
+
+def _aimed_at_pupil_grid(rx, lam, r, n=64):
+    """Rays from display height ``r`` (on +y) aimed by Newton at a uniform grid over the pupil:
+    ``(X, Y, ok)`` on the virtual image plane."""
+    v0, _, _ = chief_ray(rx, lam, np.array([r]))
+    g = (np.arange(n) + 0.5) / n * 2 - 1
+    PX, PY = np.meshgrid(g, g)
+    inside = PX ** 2 + PY ** 2 <= 1
+    tx, ty = PX[inside] * rx.pupil_radius, PY[inside] * rx.pupil_radius
+    u, v = np.zeros_like(tx), np.full_like(tx, v0[0])
+    eps = 1e-7
+    for _ in range(10):
+        xp, yp, _, _, _ = trace(rx, lam, 0.0, r, u, v)
+        xu, yu, _, _, _ = trace(rx, lam, 0.0, r, u + eps, v)
+        xv, yv, _, _, _ = trace(rx, lam, 0.0, r, u, v + eps)
+        a, bb, c, d = (xu - xp) / eps, (xv - xp) / eps, (yu - yp) / eps, (yv - yp) / eps
+        ex, ey = tx - xp, ty - yp
+        det = a * d - bb * c
+        u, v = u + (d * ex - bb * ey) / det, v + (a * ey - c * ex) / det
+    xp, yp, X, Y, ok = trace(rx, lam, 0.0, r, u, v)
+    assert np.abs(xp - tx).max() < 1e-9 and np.abs(yp - ty).max() < 1e-9
+    return X, Y, ok
+
+
+def test_centre_psf_is_the_airy_pattern_of_the_pupil():
+    """On axis at 550 nm the lens is diffraction-limited (notes: 0.02 wave RMS): the PSF is the Airy
+    pattern of the 4 mm pupil seen from the 667 mm plane, first dark ring at 1.21967 lambda z / D,
+    divided by the reference magnification (display-equivalent mm). Reference: (2 J1(x) / x)^2 from
+    scipy, integrated over the same cells (16 x 16 sub-samples)."""
+    sp = pytest.importorskip("scipy.special")
+    bank = build_bank(grid=(1, 1), psf_size=33, pupil_samples=16, chief_grid=(2, 2), min_pitch_px=0.01)
+    rx = Prescription.cardboard()
+    r_airy = 1.21967 * 550e-6 * 667.0 / 4.0 / real_magnification(rx, 550.0)    # 0.00769 mm
+    assert r_airy == pytest.approx(0.00769, abs=1e-5)
+    p = bank.psf_pitch_mm[1, 0, 0].item()
+    assert 3 * r_airy / 15.5 < p < 1.1 * 3 * r_airy / 15.5                  # window: 3 dark-ring radii + the spot
+    q = bank.psf[1, 0, 0].double().numpy()
+    s = 16
+    sub = (np.arange(s) + 0.5) / s - 0.5
+    g = ((np.arange(33) - 16)[:, None] + sub[None, :]).ravel() * p
+    x = np.maximum(3.8317059702 * np.hypot(g[:, None], g[None, :]) / r_airy, 1e-12)   # first zero of J1
+    a = ((2 * sp.j1(x) / x) ** 2).reshape(33, s, 33, s).sum((1, 3))
+    a /= a.sum()
+    t = np.arange(33) - 16
+    R = np.hypot(t[:, None], t[None, :]) * p
+    assert q[R <= r_airy].sum() == pytest.approx(a[R <= r_airy].sum(), abs=0.015)   # ~0.87 in the first ring
+    assert np.abs(q - a).max() < 0.01 and q.max() > 0.04
+    assert (q * t[None, :]).sum() == pytest.approx(0.0, abs=1e-9) and (q * t[:, None]).sum() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_vignetting_aperture_and_a_non_square_display():
+    """An aperture 4 mm before the pupil (semi-diameter 2.3 mm) clips the beams of off-axis fields:
+    the bank's transmission at (+-8, 0) mm is the fraction of a uniform pupil grid whose Newton-aimed
+    rays pass (~0.89); the centre keeps 1. On a 24 x 16 mm display the chief rays are normalised by
+    12 and 8 mm, and the corner (12, 8) mm lands at the traced radial scale."""
+    spec = _spec(display_mm=[24.0, 16.0],
+                 surfaces=[dict(CARDBOARD["surfaces"][0]), dict(CARDBOARD["surfaces"][1], thickness_mm=14.0),
+                           {"radius_mm": None, "thickness_mm": 4.0, "after": "air", "semi_diameter_mm": 2.3}])
+    rx = Prescription(spec)
+    bank = build_bank(rx, grid=(1, 3), psf_size=9, pupil_samples=40, chief_grid=(3, 3))
+    assert bank.field_x.tolist() == pytest.approx([-2 / 3, 0.0, 2 / 3]) and bank.field_y.tolist() == [0.0]
+    assert bank.display_mm == (24.0, 16.0)
+    T = bank.transmission
+    for li, lam in enumerate(rx.wavelengths):
+        _, _, ok = _aimed_at_pupil_grid(rx, lam, 8.0)
+        assert 0.85 < ok.mean() < 0.93
+        assert T[li, 0, 2].item() == pytest.approx(ok.mean(), abs=0.01) and T[li, 0, 0].item() == T[li, 0, 2].item()
+        assert T[li, 0, 1].item() == 1.0
+    m = real_magnification(rx, 550.0)
+    _, Y, _ = chief_ray(rx, 550.0, np.array([math.hypot(12.0, 8.0), 8.0]))
+    s = Y[0] / m / math.hypot(12.0, 8.0)
+    assert bank.chief[1, 2, 2].tolist() == pytest.approx([s, s], abs=1e-6)         # (12 s / 12, 8 s / 8)
+    assert bank.chief[1, 2, 1].tolist() == pytest.approx([0.0, Y[1] / m / 8.0], abs=1e-6)
+    assert bank.meta["generator"]["min_pupil_coverage"] == pytest.approx(1.0, abs=0.02)
+
+
+def test_an_aperture_blocking_the_edge_chief_rays_is_refused():
+    spec = _spec(surfaces=[dict(CARDBOARD["surfaces"][0], semi_diameter_mm=5.0), dict(CARDBOARD["surfaces"][1])])
+    with pytest.raises(InputValueError, match=r"chief rays of \d+ warp-grid points \(up to 16.97 mm from the display "
+                                              r"centre\) at 656 nm are blocked by a lens aperture"):
+        build_bank(spec, grid=(1, 1), psf_size=5, pupil_samples=8, chief_grid=(3, 3))

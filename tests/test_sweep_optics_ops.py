@@ -325,3 +325,37 @@ def test_bench_timer_keeps_the_best_of_its_repeats():
     assert len(calls) == 4 and 0 <= wall < 0.5 and 0 <= cpu < 0.5
     r, w, c = bench._clock(lambda: math.sqrt(16.0))
     assert r == 4.0 and w >= 0 and c >= 0
+
+
+def test_bench_report_tables_by_hand(tmp_path):
+    from controlgs_adapter.downstream.optics import bench
+
+    rows = [dict(size="8x8", radiometry="radiance", op="tables", knob="-", resample_s=1.0, resample_cpu=2.0,
+                 exact_s=3.0, exact_cpu=4.0, fast_s={0.02: 0.5}, fast_cpu={0.02: 0.25}),
+            dict(size="8x8", radiometry="radiance", op="fast", knob="tol=0.02, zone=5", fwd_s=0.125, fwd_cpu=0.25,
+                 fwd_bwd_s=0.5, fwd_bwd_cpu=1.0, rel_l2=0.0123, max_rel=0.0456),
+            dict(size="8x8", radiometry="radiance", op="exact", knob="-", fwd_s=0.1, fwd_cpu=0.2,
+                 fwd_bwd_s=0.3, fwd_bwd_cpu=0.4, rel_l2=0.0, max_rel=0.0)]
+    bench._write(rows, [], [(33, 0.5), (129, 1.5)], threads=2, repeat=3, out=tmp_path / "o", command="cmd")
+    lines = (tmp_path / "o" / "optics_bench.md").read_text().splitlines()
+    assert lines[0].startswith("Operators of the shipped Cardboard bank") and "2 CPU threads, best of 3" in lines[0]
+    assert "Command: `cmd; " in lines[0]
+    assert "| 8x8 | radiance | 1.00 (2.00) | 3.00 (4.00) | tol 0.02: 0.50 (0.25) |" in lines
+    assert "| 8x8 | radiance | fast | tol=0.02, zone=5 | 0.125 | 0.250 | 0.500 | 1.000 | 1.23e-02 | 4.56e-02 |" in lines
+    assert "| 8x8 | radiance | exact | - | 0.100 | 0.200 | 0.300 | 0.400 | 0.00e+00 | 0.00e+00 |" in lines
+    assert lines[-1] == ("Kernel-size scaling of the fast mode (Gaussian PSF banks, fwd+bwd CPU time): k = 33: 0.500 s, "
+                         "k = 129: 1.500 s (ratio 3.00)")
+    assert not any("Radiance (default) vs energy" in ln for ln in lines)
+    if (tmp_path / "o" / "optics_bench.png").exists():
+        assert (tmp_path / "o" / "optics_bench.png").stat().st_size > 1000
+
+
+def test_bench_kernel_scaling_banks_span_33_and_129_px():
+    """Gaussian banks whose stored window spans k = 33 and 129 output px (24 / size mm per px, K = 33
+    cells): the resampled kernels are 33 and 129 (+2: the float32 pitch rounds the margin up) px wide."""
+    pytest.importorskip("skimage")
+    from controlgs_adapter.downstream.optics import bench
+
+    out = bench._kernel_scaling(16, zone=6)
+    assert [k for k, _ in out][0] == 33 and [k for k, _ in out][1] in (129, 131)
+    assert all(t > 0 for _, t in out)

@@ -203,7 +203,9 @@ def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, 
         # chief rays on the warp grid
         _, Yc, okc = chief_ray(rx, lam, CR.ravel())
         if not okc.all():
-            raise RuntimeError(f"chief ray did not converge for {int((~okc).sum())} warp-grid points at {lam} nm")
+            raise InputValueError(f"prescription: the chief rays of {int((~okc).sum())} warp-grid points (up to "
+                                  f"{CR.ravel()[~okc].max():.4g} mm from the display centre) at {lam:g} nm are blocked "
+                                  "by a lens aperture (semi_diameter_mm) or did not converge")
         scale = np.where(CR > 0, Yc.reshape(CR.shape) / np.maximum(CR, 1e-12), real_magnification(rx, lam)) / m_ref
         chief[li, ..., 0] = CX * scale / (W_mm / 2)
         chief[li, ..., 1] = CY * scale / (H_mm / 2)
