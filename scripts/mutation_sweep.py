@@ -254,12 +254,14 @@ def _run(worktree: Path, m: Mutant, tests: list[str], timeout: float) -> tuple[b
 
 
 def _sources(targets: list[str]) -> list[str]:
-    files: list[str] = []
+    """Repository paths of the targets' Python files (through the package symlinks: the real files, once)."""
+    files: dict[str, None] = {}
     for t in targets:
         p = ROOT / t
-        found = sorted(p.rglob("*.py")) if p.is_dir() else [p]
-        files += [str(f.relative_to(ROOT)) for f in found if not f.name.startswith("_version")]
-    return files
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            if not f.name.startswith("_version"):
+                files[str(f.resolve().relative_to(ROOT))] = None
+    return list(files)
 
 
 def main() -> None:
