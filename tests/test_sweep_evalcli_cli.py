@@ -342,3 +342,36 @@ def test_apply_run_defaults_refuses_a_broken_run_file(tmp_path):
     (tmp_path / "run.json").write_text("{oops")
     with pytest.raises(InputValueError, match=f"{tmp_path / 'run.json'}: not a controlgs run file"):
         apply_run_defaults(ns, tmp_path)
+
+
+def test_train_refusals_before_any_loading(capsys, tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    # --scenes trains built-in scenes only (and takes no run-folder lock: each process locks its scenes)
+    assert cli.main(["train", "--model", "m", "--data", "d", "--scenes", "ar", "--out", str(blocker / "run")]) == 2
+    assert _err(capsys, "train") == "--scenes trains built-in scenes; it does not combine with --model/--data"
+    # rank 0 takes the run folder's lock (which cannot be made under a file); another rank does not
+    assert cli.main(["train", "--model", "m", "--out", str(blocker / "run")]) == 2
+    assert str(blocker) in _err(capsys, "train")
+    monkeypatch.setenv("RANK", "1")
+    assert cli.main(["train", "--model", "m", "--out", str(blocker / "run")]) == 2
+    assert _err(capsys, "train") == "give both --model MODEL_DIR and --data DATA_DIR (or neither, for the built-in scene)"
+
+
+def test_scene_export_writes_every_view(tmp_path, capsys):
+    import matplotlib.image
+
+    from controlgs_adapter.scene import load_builtin_scene
+
+    assert cli.main(["scene", "export", "--resolution", "16", "--out", str(tmp_path)]) == 0
+    scene = load_builtin_scene("ar", 16, cache=True)
+    n_train, n_test = len(scene.train_images), len(scene.test_images)
+    assert capsys.readouterr().out.strip().endswith(f"{n_train} train and {n_test} test views written to {tmp_path}")
+    assert sorted(p.name for p in (tmp_path / "train").iterdir()) == [f"{i:03d}.png" for i in range(n_train)]
+    assert sorted(p.name for p in (tmp_path / "test").iterdir()) == [f"{i:03d}.png" for i in range(n_test)]
+    for split, images in (("train", scene.train_images), ("test", scene.test_images)):
+        for i in (0, len(images) - 1):
+            png = matplotlib.image.imread(tmp_path / split / f"{i:03d}.png")[..., :3]
+            assert png.shape == (16, 16, 3)
+            # 8-bit PNG: within one level (matplotlib rounds x * 255 down or to nearest)
+            assert float(abs(png - images[i].permute(1, 2, 0).numpy()).max()) <= 1 / 255 + 1e-6
