@@ -239,6 +239,8 @@ def test_camera_from_scaffold_by_hand():
     # fx = W / (2 tan(FoVx / 2)) = 80 / 1 = 80; fy = 40 / 0.5 = 80; principal point (W/2, H/2) = (40, 20)
     assert torch.allclose(cam.intrinsics, torch.tensor([[80.0, 0, 40], [0, 80.0, 20], [0, 0, 1]]), rtol=1e-6, atol=0)
     assert cam.extra == {"uid": 3} and (cam.width, cam.height) == (80, 40)
+    vc.uid = torch.tensor(5)  # a 0-d tensor id is read as its int
+    assert Camera.from_scaffold(vc).extra == {"uid": 5} and type(Camera.from_scaffold(vc).extra["uid"]) is int
     vc.uid = None
     assert Camera.from_scaffold(vc).extra == {}
     vc.uid = -1
@@ -284,6 +286,9 @@ def test_schedule_endpoints_and_strength_by_hand():
     lam = DisplaySchedule().strength(RuntimeState(power_saving=0.4), torch.zeros(4, 2), dtype=torch.float64)
     assert lam.tolist() == [0.5] * 4  # a global schedule takes its row count from screen_xy
     assert DisplaySchedule().strength(RuntimeState(), rows=2, device="meta").device.type == "meta"
+    # device: screen_xy's unless given
+    assert LensSchedule().strength(RuntimeState(), torch.zeros(2, 2)).device.type == "cpu"
+    assert LensSchedule().strength(RuntimeState(), torch.zeros(2, 2), device="meta").device.type == "meta"
     with pytest.raises(InputValueError, match="strength\\(\\) needs screen_xy or rows"):
         DisplaySchedule().strength(RuntimeState())
     with pytest.raises(ShapeError, match="screen_xy"):

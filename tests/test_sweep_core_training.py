@@ -94,6 +94,11 @@ def test_views_fingerprint_and_cameras():
     assert views_fingerprint(_Views([(_cam(), None), (_cam(tx=0.5 + 1e-8), None)])) == fp  # rounded to 6 decimals
     assert views_fingerprint(_Views([(_cam(), None), (_cam(tx=0.5 + 1e-5), None)])) != fp
     assert views_fingerprint(_Views([(_cam(), None), (_cam(w=10, tx=0.5), None)])) != fp  # sizes count
+    shifted = _cam(tx=0.5)
+    shifted.intrinsics[0, 0] += 1e-6  # intrinsics are rounded to 4 decimals
+    assert views_fingerprint(_Views([(_cam(), None), (shifted, None)])) == fp
+    shifted.intrinsics[0, 0] += 1e-3
+    assert views_fingerprint(_Views([(_cam(), None), (shifted, None)])) != fp
     assert views_fingerprint(_Views([(_cam(tx=0.5), None), (_cam(), None)])) != fp  # and the order
     views.cameras = [_cam(tx=0.5)]  # a listed camera set is read instead of the views
     assert view_cameras(views)[0].world_to_camera[0, 3].item() == 0.5 and views_fingerprint(views) != fp
