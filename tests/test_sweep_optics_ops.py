@@ -359,3 +359,64 @@ def test_bench_kernel_scaling_banks_span_33_and_129_px():
     out = bench._kernel_scaling(16, zone=6)
     assert [k for k, _ in out][0] == 33 and [k for k, _ in out][1] in (129, 131)
     assert all(t > 0 for _, t in out)
+
+
+@pytest.mark.parametrize("radiometry", ["radiance", "energy"])
+def test_gradient_at_a_sparse_image_is_the_dense_one(radiometry):
+    """Every operator is linear: d<A x, w>/dx = A^T w whatever x. Pixels that are zero may be skipped
+    only without a gradient; with one, the gradient at a mostly black image equals the one at a
+    dense image (where nothing is skipped)."""
+    rb = _bank(G=4, pitch_mm=2.0, chief=lambda d: d * (1 + 0.1 * d * d)).resample_to(12, 12, dtype=D64,
+                                                                                       radiometry=radiometry)
+    w = torch.rand(3, 12, 12, dtype=D64, generator=torch.Generator().manual_seed(5))
+    sparse = torch.zeros(3, 12, 12, dtype=D64)
+    sparse[:, 3:5, 6:8] = 1.0
+    dense = torch.rand(3, 12, 12, dtype=D64, generator=torch.Generator().manual_seed(6)) + 0.5
+    for op in (psf_distortion, psf_exact, psf_reference, lambda a, r: psf_fast(a, r, 0.05, 2)):
+        grads = []
+        for x in (sparse, dense):
+            xr = x.clone().requires_grad_(True)
+            (g,) = torch.autograd.grad((op(xr, rb) * w).sum(), xr)
+            grads.append(g)
+        assert grads[0].abs().sum() > 1 and torch.allclose(grads[0], grads[1], atol=1e-12)
+        with torch.no_grad():                                                    # and the skipping forward is exact
+            assert torch.allclose(op(sparse, rb), op(sparse.clone().requires_grad_(True), rb), atol=1e-12)
+
+
+def test_anisotropic_pixels_resample_each_axis_with_its_own_pitch():
+    """Stretch placement of a 12 x 24 image on the 24 mm display: pixels 1 mm wide, 2 mm tall. A
+    horizontal line PSF (5 cells of 1 mm in the centre row) is 5 taps of 1/5 along x and one tap
+    along y; the margin follows the finer axis (m = ceil(1 * 2.5 / 1 - 1/2) = 2)."""
+    psf = torch.zeros(3, 1, 1, 5, 5, dtype=D64)
+    psf[..., 2, :] = 0.2
+    c = torch.linspace(-1, 1, 5, dtype=D64)
+    cy, cx = torch.meshgrid(c, c, indexing="ij")
+    bank = PSFBank(psf=psf, psf_pitch_mm=torch.ones(3, 1, 1, dtype=D64), field_x=torch.zeros(1, dtype=D64),
+                   field_y=torch.zeros(1, dtype=D64), chief=torch.stack([cx, cy], -1).expand(3, 5, 5, 2).clone(),
+                   chief_x=c, chief_y=c, wavelengths_nm=(656.0, 550.0, 486.0), display_mm=(24.0, 24.0))
+    rb = bank.resample_to(12, 24, dtype=D64, placement="stretch", radiometry="energy")
+    assert rb.region.pitch_mm == (1.0, 2.0) and (rb.m, rb.k) == (2, 5)
+    want = torch.zeros(5, 5, dtype=D64)
+    want[2] = 0.2
+    assert torch.allclose(rb.kernels[1, 0], want, atol=1e-7)
+    k, r = rb.field_kernels(1, torch.tensor([0]))
+    assert r == 2 and torch.allclose(k[0], want, atol=1e-7)
+    k, r = rb.field_kernels(1, torch.tensor([0]), rb.box_matrices(1))
+    assert torch.allclose(k[0], want, atol=1e-7)
+    # the transposed image (24 x 12): 2 mm wide pixels; the line [-2.5, 2.5] mm covers 1.5 mm of the
+    # taps at +-2 mm and all 2 mm of the centre tap: 0.3, 0.4, 0.3 (the PSF is stored as float32)
+    rt = bank.resample_to(24, 12, dtype=D64, placement="stretch", radiometry="energy")
+    assert rt.region.pitch_mm == (2.0, 1.0) and rt.m == 2
+    assert rt.kernels[1, 0, 2].tolist() == pytest.approx([0.0, 0.3, 0.4, 0.3, 0.0], abs=1e-7)
+    assert rt.kernels[1, 0].sum().item() == pytest.approx(1.0, abs=1e-7)
+
+
+def test_fast_mode_rank_cap():
+    """``max_rank`` caps the eigen-PSFs per field group; without it, tol 0 keeps the full rank."""
+    rb = _bank(G=4).resample_to(12, 12, dtype=D64)
+    ranks = {b.kernel_fft.shape[0] for bk in rb.zones(2, 0.0, 1) for b in bk}
+    assert ranks == {1}
+    assert max(b.kernel_fft.shape[0] for bk in rb.zones(2, 0.0) for b in bk) == 4    # 2 x 2 random fields
+    x = torch.rand(3, 12, 12, dtype=D64, generator=torch.Generator().manual_seed(7))
+    assert (psf_fast(x, rb, 0.0, 2, max_rank=1) - psf_exact(x, rb)).abs().max() > 1e-4
+    assert torch.allclose(psf_fast(x, rb, 0.0, 2, max_rank=4), psf_exact(x, rb), atol=1e-12)
