@@ -506,8 +506,8 @@ def test_load_adapter_mismatches_with_the_live_wrapper(tmp_path):
         ControlGS.load(path, ScaffoldStandIn(8, feat_dim=4, n_offsets=2, seed=1))
     other = ScaffoldStandIn(8, feat_dim=4, n_offsets=2, seed=1)
     with pytest.warns(RuntimeWarning, match=r"rows per anchor: the adapter expects 2, the model has 1 \(loaded anyway\)"):
-        loaded = ControlGS.load(path, other, strict=False)
-    assert loaded.skipped == [] and torch.equal(loaded.injector.conditions.detach(), want["conditions"])
+        loaded = ControlGS.load(path, other, strict=False, name="mine")
+    assert loaded.adapters == ("mine",) and loaded.active_adapter == "mine" and loaded.skipped == [] and torch.equal(loaded.injector.conditions.detach(), want["conditions"])
     loaded.unwrap()
     # an adapter of another registered backend never loads onto this wrapper, not even non-strict
     rewrite(path, {"backend": "octree_gs", "rows_per_anchor": 1})
