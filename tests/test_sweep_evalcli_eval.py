@@ -261,3 +261,14 @@ def test_make_renderer_of_the_options(setup):
         make_renderer(ns(rasterizer="gsplat"), model)
     with pytest.raises(InputValueError, match="--rasterizer 'nope' is not registered; available: gsplat, torch, auto"):
         make_renderer(ns(rasterizer="nope"), model)
+
+
+def test_progress_bar_counts_every_scored_image(setup, capsys):
+    model, views, _ = setup
+    evaluate_grid(model, views, {}, downsample=(1.0, 2.0), power_saving=(0.0,), baselines=("ss",), ideal=True,
+                  extra_metrics=False, effects=CHEAP, progress=True)
+    err = capsys.readouterr().err
+    assert "evaluating grid" in err and "8/8" in err  # 2 views x 2 d x 1 rho x (ss + ideal)
+    evaluate_grid(model, views, {}, downsample=(1.0,), power_saving=(0.0,), baselines=("ss",), extra_metrics=False,
+                  effects=CHEAP, progress=False)
+    assert "evaluating grid" not in capsys.readouterr().err
