@@ -237,3 +237,48 @@ def test_clocked_rasterizer_laps_and_renders_like_its_inner(monkeypatch: pytest.
     monkeypatch.delenv(RASTERIZER_ENV)
     assert ClockedRasterizer(clock).unavailable(torch.device("cpu"), torch.float32) is None
     assert math.isfinite(clock.total) and os.environ.get(RASTERIZER_ENV) is None
+
+
+def test_psf_keywords() -> None:
+    assert at.psf_keywords("distortion") == {"psf_fraction": 0.0}
+    assert at.psf_keywords("fast") == {"psf_fraction": 1.0, "psf_mode": "fast"}
+    assert at.psf_keywords("exact") == {"psf_fraction": 1.0, "psf_mode": "exact"}
+
+
+def test_phase_times_configs_order_and_phases_adding_up(tiny: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Trainers recorded as the real ones run: one per mode with its optics for the whole run, the
+    seed given, steps + 1 iterations (a warm-up), stepping in turn in a rotating order; with one timed
+    step the phases of a mode add up to its total exactly (each is the one lap, not a median of sums)."""
+    from controlgs_adapter.training import Trainer
+
+    scene, model = tiny
+    made: list[Any] = []
+    order: list[str] = []
+
+    class Recorded(Trainer):
+        def __init__(self, *args: Any, **kw: Any) -> None:
+            super().__init__(*args, **kw)
+            made.append(self)
+
+        def step(self, *args: Any, **kw: Any) -> float:
+            c = self.config
+            order.append("distortion" if c.psf_fraction == 0 else c.psf_mode)
+            return super().step(*args, **kw)
+
+    monkeypatch.setattr(at, "Trainer", Recorded)
+    phases = at.phase_times(model, scene, ("distortion", "exact"), steps=2, seed=3)
+    assert [(t.config.iterations, t.config.checkpoint_every, t.config.seed, t.config.psf_fraction, t.config.psf_mode)
+            for t in made] == [(3, 0, 3, 0.0, "fast"), (3, 0, 3, 1.0, "exact")]
+    assert order == ["distortion", "exact", "exact", "distortion", "distortion", "exact"]  # rotated each iteration
+    assert all(t.model is not model for t in made)  # each on its own copy
+    assert all(not t.cgs._wrapped for t in made)  # unwrapped at the end
+    assert list(phases) == ["distortion", "exact"]
+    names = ["sample", "decode", "splat", "stages", "psf", "loss", "backward", "optimizer", "total"]
+    for mode, p in phases.items():
+        assert list(p) == names and all(v > 0 for v in p.values()), (mode, p)
+    made.clear()
+    order.clear()
+    one = at.phase_times(model, scene, ("fast",), steps=1)  # the default seed: 0
+    assert made[0].config.seed == 0 and order == ["fast", "fast"]
+    p = one["fast"]
+    assert p["total"] == pytest.approx(sum(v for k, v in p.items() if k != "total"), rel=1e-12, abs=0)

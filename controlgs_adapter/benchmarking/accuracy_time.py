@@ -103,6 +103,12 @@ def _median_times(fns: Sequence[Any], repeats: int) -> list[float]:
     return [statistics.median(ts) for ts in times]
 
 
+def psf_keywords(mode: str) -> dict[str, Any]:
+    """:class:`TrainConfig` keywords that run the optics operator ``mode`` of :data:`PSF_MODES` for the
+    whole training: ``distortion`` (no PSF), else that PSF mode from the first iteration."""
+    return {"psf_fraction": 0.0} if mode == "distortion" else {"psf_fraction": 1.0, "psf_mode": mode}
+
+
 def phase_times(model: Any, scene: Any, modes: tuple[str, ...], steps: int, seed: int = 0) -> dict[str, dict[str, float]]:
     """Median seconds per training step by phase, for each optics operator of ``modes``.
 
@@ -118,8 +124,7 @@ def phase_times(model: Any, scene: Any, modes: tuple[str, ...], steps: int, seed
     from controlgs_adapter.rendering.rasterizers import use_rasterizer
 
     def config(mode: str) -> TrainConfig:
-        psf = {"psf_fraction": 0.0} if mode == "distortion" else {"psf_fraction": 1.0, "psf_mode": mode}
-        return TrainConfig(iterations=steps + 1, checkpoint_every=0, seed=seed, **psf)
+        return TrainConfig(iterations=steps + 1, checkpoint_every=0, seed=seed, **psf_keywords(mode))
 
     trainers = {}
     try:
@@ -155,8 +160,7 @@ def _knob_configs(s: BenchSettings) -> list[tuple[str, str, dict[str, Any]]]:
     (N = 8, all modules, distortion-only then 10 % fast PSF)."""
     rows: list[tuple[str, str, dict[str, Any]]] = [("reference", "N=8, 3 modules, 90% distortion + 10% fast", {})]
     for mode in PSF_MODES:
-        kw = {"psf_fraction": 0.0} if mode == "distortion" else {"psf_fraction": 1.0, "psf_mode": mode}
-        rows.append(("PSF operator (whole training)", mode, kw))
+        rows.append(("PSF operator (whole training)", mode, psf_keywords(mode)))
     rows += [("condition dim N", f"N={n}", {"cond_dim": n}) for n in COND_DIMS if n != 8]
     rows += [("modules", "+".join(m), {"modules": m}) for m in MODULE_SETS if len(m) < 3]
     return rows
