@@ -77,6 +77,13 @@ def test_from_points_defaults_scales_and_refusals():
     one = NeuralGaussianModel.from_points(torch.tensor([[0.1, 0.2, 0.3]]), voxel_size=0.25, feat_dim=4, n_offsets=1)
     assert torch.allclose(one._scaling, torch.full((1, 6), math.log(0.25)))
     assert torch.allclose(one._anchor, torch.tensor([[0.0, 0.25, 0.25]]))  # round(p / 0.25) * 0.25
+    # a fifth point far away leaves the corners' 3 nearest as they were; its own 3 nearest are the corners at
+    # squared distances 16, 17, 25, 26 -> the closest three: mean 58 / 3
+    five = NeuralGaussianModel.from_points(torch.cat([pts, torch.tensor([[5.0, 0.0, 0.0]])]), voxel_size=0.5,
+                                           feat_dim=4, n_offsets=1)
+    assert five._anchor[4].tolist() == [5.0, 0.0, 0.0]
+    assert torch.allclose(five._scaling[:4], torch.full((4, 6), math.log(math.sqrt(4 / 3))))
+    assert torch.allclose(five._scaling[4], torch.full((6,), math.log(math.sqrt(58 / 3))))
     with pytest.raises(ShapeError, match=r"points must hold at least one point, got shape \[0, 3\]"):
         NeuralGaussianModel.from_points(torch.zeros(0, 3))
     for bad in (0.0, -1.0, float("nan")):
@@ -98,6 +105,22 @@ def test_from_points_colour_fit_with_distance_and_appearance_inputs():
         pred = m.mlp_color(torch.cat([m._anchor_feat, view, torch.ones(2, 1), code], 1)).reshape(2, 2, 3)
     # 150 steps (seed 0) bring it within 0.0077 at the distance it was fitted at (1); at distance 0 it is 0.033 off
     assert (pred - cols[:, None]).abs().max() < 0.02
+
+
+def test_median_spacing_samples_4096_rows_by_default():
+    # 8192 points: even rows far from every other point (their nearest neighbour at 10), odd rows in pairs
+    # 1 apart. All rows: half 1, half 10 -> lower median 1; every 2nd row (8192 // 4096 = 2, the default
+    # sample of 4096) reads only the even rows: 10
+    n = 8192
+    pts = torch.zeros(n, 3, dtype=torch.float64)
+    pts[0::2, 0] = torch.arange(n // 2, dtype=torch.float64) * 10.0
+    pts[0::2, 1] = 1000.0
+    odd = torch.arange(n // 2)
+    pts[1::2, 0] = (odd // 2) * 100.0
+    pts[1::2, 2] = (odd % 2).double()
+    pts[1::2, 1] = -1000.0
+    assert median_spacing(pts) == 10.0
+    assert median_spacing(pts[:4000]) == 1.0  # fewer than 4096 points: every row
 
 
 def test_nearest_neighbour_helpers_by_hand():
@@ -205,7 +228,22 @@ def test_trainer_defaults_without_points():
     m = train_reference_model(images, cams, iterations=0, progress=False)
     # defaults: feat_dim 32, n_offsets 5, at most 3000 anchors from a grid of 3000 points around camera_target
     assert (m.feat_dim, m.n_offsets) == (32, 5) and not m.training
-    assert 2000 < m.num_anchors <= 3000
+    # the three optical axes cross at the origin and the median camera distance is 3 (3, 3, 3.04): the box
+    # is the origin +- 0.5 * 3. 3000 points in a 3 x 3 x 3 box: spacing (27 / 3000)^(1/3) = 0.208 ->
+    # round(3 / 0.208) = 14 per axis, 14^3 = 2744 <= 3000 anchors at the grid's spacing 3 / 14, which snaps
+    # the outermost centres (+-1.393) to +-7 * 3 / 14 = +-1.5
+    assert m.num_anchors == 2744 and m.voxel_size == pytest.approx(3 / 14, rel=1e-5)
+    assert torch.allclose(m._anchor.detach().abs().amax(0), torch.full((3,), 1.5), atol=1e-5)
+
+
+def test_learning_rate_schedule_is_log_linear():
+    from controlgs_adapter.backends.models.train_backbone import _lr_at
+
+    # exp((1 - t) log a + t log b): the geometric mean at t = 0.5; the ends exactly; final 0: linear decay
+    assert _lr_at(1e-2, 1e-4, 0.0) == pytest.approx(1e-2) and _lr_at(1e-2, 1e-4, 1.0) == pytest.approx(1e-4)
+    assert _lr_at(1e-2, 1e-4, 0.5) == pytest.approx(1e-3)
+    assert _lr_at(1e-2, 1e-4, 0.25) == pytest.approx(1e-2 ** 0.75 * 1e-4 ** 0.25)
+    assert _lr_at(0.01, 0.0, 0.25) == pytest.approx(0.0075) and _lr_at(0.01, 0.0, 1.0) == 0.0
 
 
 # ---------------------------------------------------------------- Scaffold-GS folders
