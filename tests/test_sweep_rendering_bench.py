@@ -282,3 +282,47 @@ def test_phase_times_configs_order_and_phases_adding_up(tiny: Any, monkeypatch: 
     assert made[0].config.seed == 0 and order == ["fast", "fast"]
     p = one["fast"]
     assert p["total"] == pytest.approx(sum(v for k, v in p.items() if k != "total"), rel=1e-12, abs=0)
+
+
+def test_ss_rows_read_the_rho_0_column_of_each_method(tiny: Any) -> None:
+    """A hand-made grid (rho = 0 second, so its index matters): per-view PSNR base + 10 i + p + v / 2, whose
+    view mean at (i, p) is base + 10 i + p + 0.25; the rows take p = 1 (rho = 0)."""
+    from controlgs_adapter.evaluation import GridResult
+
+    scene, model = tiny
+
+    def psnr(base: float) -> dict[str, torch.Tensor]:
+        i, p, v = torch.meshgrid(torch.arange(2.0), torch.arange(2.0), torch.arange(2.0), indexing="ij")
+        return {"psnr": (base + 10 * i + p + 0.5 * v).double()}
+
+    grid = GridResult(downsample=(1.0, 2.5), power_saving=(0.4, 0.0),
+                      per_view={"no_ss": psnr(100.0), "ss": psnr(200.0), "k0": psnr(300.0)})
+    rows = at.ss_rows(model, scene, grid, BenchSettings(repeats=1))
+    assert [r["d"] for r in rows] == [1.0, 2.5]
+    assert [(r["psnr_no_ss"], r["psnr_ss"], r["psnr_controlgs"]) for r in rows] == [
+        (101.25, 201.25, 301.25), (111.25, 211.25, 311.25)]
+    assert all(r["render_s_no_ss"] > 0 and r["render_s_ss"] > 0 for r in rows)
+
+
+def test_render_overhead_counts_and_sizes(tiny: Any, tmp_path: Any) -> None:
+    from controlgs_adapter import ControlGS
+    from controlgs_adapter.scene import builtin_backbone_dir
+
+    scene, model = tiny
+    cgs = ControlGS.wrap(model)  # lens, resample, display with N = 8
+    adapter = cgs.save(tmp_path / "a.controlgs.safetensors")
+    cgs.unwrap()
+    o = at.render_overhead(model, scene, adapter, tmp_path, repeats=1)
+    assert o["render_s_ss"] > 0 and o["render_s_controlgs"] > 0
+    assert o["params_conditions"] == model.num_anchors * 3 * 8
+    assert o["params_backbone"] == float(sum(t.numel() for t in model.state_dict().values() if t.is_floating_point()))
+    assert o["params_conditions"] < o["params_adapter"] < o["params_conditions"] * 2
+    assert o["bytes_adapter"] == os.path.getsize(adapter)
+    fp16 = tmp_path / "fp16.controlgs.safetensors"
+    assert o["bytes_adapter_fp16"] == os.path.getsize(fp16)
+    # float16: the conditions take half the bytes (the header is the same order of size)
+    assert o["bytes_adapter"] - o["bytes_adapter_fp16"] >= 0.9 * 2 * o["params_conditions"]
+    folder = builtin_backbone_dir(scene.variant) / "point_cloud"
+    want = sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(folder) for f in files)
+    assert o["bytes_backbone"] == want > 0
+    assert not any(p.name.startswith("k0") for p in tmp_path.iterdir())  # writes only its fp16 copy
