@@ -519,3 +519,15 @@ def test_octree_lod_distance_is_scaled_by_the_resolution_scale():
     assert torch.equal(m2, model._anchor_mask)
     model.set_anchor_mask(c.center, -1, 1.0)
     assert not torch.equal(m2, model._anchor_mask)  # for this camera, scales 1 and 0.25 select different sets
+
+
+def test_detection_reads_the_largest_iteration_unless_told(tmp_path):
+    root = _fake_folder(tmp_path / "m", ["x", "f_ref_feat_0"], [])  # iteration_1: CompGS
+    it7 = root / "point_cloud" / "iteration_7"
+    it7.mkdir()
+    from controlgs_adapter.formats.backbone import write_ply
+
+    write_ply(it7 / "point_cloud.ply", {f: np.zeros(2, np.float32) for f in ("x", "f_mask_0", "f_anchor_feat_0")})
+    (it7 / "checkpoint.pth").write_bytes(b"")
+    assert detect_family(root) == "hac"  # iteration 7 (HAC files), not 1
+    assert detect_family(root, iteration=1) == "compgs"
