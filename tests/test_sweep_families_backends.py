@@ -531,3 +531,25 @@ def test_detection_reads_the_largest_iteration_unless_told(tmp_path):
     (it7 / "checkpoint.pth").write_bytes(b"")
     assert detect_family(root) == "hac"  # iteration 7 (HAC files), not 1
     assert detect_family(root, iteration=1) == "compgs"
+
+
+def test_infer_decoded_by_hand():
+    from controlgs_adapter.backends.hac import infer_decoded
+
+    s = np.array([[0.1] * 6, [0.0] * 6, [0.2] * 6])
+    m = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    assert infer_decoded(s, m, extra_mask_column=True) is True
+    one_off = m.copy()
+    one_off[2, 1] = 0.5  # a single mask value that is not 0/1: a raw model's logits
+    assert infer_decoded(s, one_off, extra_mask_column=False) is False
+    neg = s.copy()
+    neg[1, 3] = -0.1  # 0/1 masks but a negative scale: the file does not tell
+    assert infer_decoded(neg, m, extra_mask_column=False) is None
+    # an all-zero row (zero padding) is left out: without it, a raw model's logits decide
+    raw = np.array([[0.3, -2.0, 1.5], [0.0, 0.0, 0.0]])
+    raw_s = np.array([[-3.0] * 6, [0.0] * 6])
+    assert infer_decoded(raw_s, raw, extra_mask_column=False) is False
+    pad = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert infer_decoded(np.array([[0.1] * 6, [0.0] * 6]), pad, extra_mask_column=True) is True
+    # zero masks with a negative scale are not padding: that row makes the file undecidable
+    assert infer_decoded(np.array([[0.1] * 6, [-0.5] + [0.0] * 5]), pad, extra_mask_column=True) is None
