@@ -19,6 +19,7 @@ from controlgs_adapter import ControlGS
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.state import Camera
 from controlgs_adapter.viewer import STAGES, OPTICS_MODES, ViewerSession, ViewState, make_server, parse_state
+from controlgs_adapter.viewer import server as vs_server
 from controlgs_adapter.viewer import session as vs
 from controlgs_adapter.viewer.server import LOOPBACK, MAX_BODY, STATIC_FILES
 from controlgs_adapter.viewer.session import _Cache, _shared_copy, heat_overlay, orbit_camera, scene_centre
@@ -391,3 +392,75 @@ def test_frame_cache_keeps_the_16_most_recent_cameras(small: Any) -> None:
     assert again is not first and torch.equal(again[2], first[2])  # rendered anew, the same image
     assert session._frame(parse_state({"azimuth": 1.0}, 1)) is again  # now cached
 
+
+
+class _StubSession:
+    """Stands in for a session (the server's part is under test): a render answers ``self.answer`` and
+    records the worker thread's name; ``extra`` answers one metric."""
+
+    cameras = [None, None]
+
+    def __init__(self, answer: Any) -> None:
+        self.answer, self.threads = answer, []  # type: ignore[var-annotated]
+
+    def info(self) -> dict[str, Any]:
+        return {"name": "stub"}
+
+    def render(self, state: ViewState, check: Any, tag: int) -> dict[str, Any]:
+        self.threads.append(threading.current_thread().name)
+        return dict(self.answer)
+
+    def extra(self, tag: int, check: Any) -> dict[str, Any]:
+        return {"ss": {"flip": 0.5}}
+
+
+def _ask(srv: Any, method: str, path: str, raw: bytes | None = None, host: str | None = None) -> tuple[int, Any]:
+    conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+    conn.request(method, path, body=raw, headers={} if host is None else {"Host": host})
+    resp = conn.getresponse()
+    out = resp.status, json.loads(resp.read())
+    conn.close()
+    return out
+
+
+def test_server_answers_with_stub_session() -> None:
+    stub = _StubSession({"x": 1.5})
+    srv = make_server(stub)  # type: ignore[arg-type]
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        port = srv.server_address[1]
+        assert port >= 1024  # the default port 0: a free ephemeral one
+        assert _ask(srv, "POST", "/api/render", b"{}") == (200, {"x": 1.5, "generation": 1})
+        assert _ask(srv, "POST", "/api/render", b'{"view": 1}') == (200, {"x": 1.5, "generation": 2})
+        assert all(name.startswith("controlgs-view") for name in stub.threads) and len(stub.threads) == 2
+        # a one-byte body is read (the lower bound is 1 byte), then refused as not an object
+        status, out = _ask(srv, "POST", "/api/render", b"1")
+        assert status == 400 and out["error"].startswith("the state must be a JSON object")
+        assert _ask(srv, "POST", "/api/extra", b'{"generation": 2}') == (200, {"generation": 2, "metrics": {"ss": {"flip": 0.5}}})
+        assert _ask(srv, "POST", "/api/extra", b'{"generation": 1}') == (
+            409, {"superseded": True, "error": "request 1 was superseded by 2"})
+        # the host check: a bare IPv6 loopback (no port) is loopback too; a port on another host is not
+        assert _ask(srv, "GET", "/api/info", host="[::1]") == (200, {"name": "stub"})
+        assert _ask(srv, "GET", "/api/info", host=f"localhost:{port}") == (200, {"name": "stub"})
+        status, out = _ask(srv, "GET", "/api/info", host=f"example.com:{port}")
+        assert status == 403 and out["error"] == "host 'example.com' refused: the viewer answers loopback addresses only"
+        status, out = _ask(srv, "POST", "/api/render", b"{}", host="127.0.0.1.evil:80")
+        assert status == 403 and stub.threads == ["controlgs-view_0"] * 2  # refused before any work
+        status, out = _ask(srv, "GET", "/nope?x=1")
+        assert status == 404 and out["error"] == "no such page: '/nope' (the viewer serves only / and its static files)"
+        status, out = _ask(srv, "POST", "/api/nope", b"{}")
+        assert status == 404 and out["error"] == "no such endpoint: '/api/nope'"
+        # a result that is not JSON (a NaN) is a server error with its reason, and the server keeps serving
+        stub.answer = {"x": float("nan")}
+        status, out = _ask(srv, "POST", "/api/render", b"{}")
+        assert status == 500 and out["error"].startswith("ValueError: Out of range float values are not JSON compliant")
+        stub.answer = {"x": 2}
+        assert _ask(srv, "POST", "/api/render", b"{}")[0] == 200
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    direct = vs_server.ViewerServer(stub)  # type: ignore[arg-type]
+    try:
+        assert direct.server_address[1] >= 1024 and direct.url.startswith("http://127.0.0.1:")
+    finally:
+        direct.server_close()

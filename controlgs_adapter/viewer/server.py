@@ -19,6 +19,7 @@ older generation is dropped when it reaches the worker or between two methods (:
 from __future__ import annotations
 
 import json
+import re
 import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -36,6 +37,7 @@ STATIC_FILES: dict[str, str] = {"index.html": "text/html; charset=utf-8", "viewe
                                 "viewer.css": "text/css; charset=utf-8"}
 MAX_BODY = 64 * 1024
 LOOPBACK = ("127.0.0.1", "localhost", "[::1]")
+_PORT = re.compile(r":\d*$")  # a Host header's port (none in a bare "[::1]")
 
 
 class Generations:
@@ -124,7 +126,7 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _host_ok(self) -> bool:
         """Refuse requests addressed to another host name (DNS rebinding)."""
-        host = (self.headers.get("Host") or "").rsplit(":", 1)[0]
+        host = _PORT.sub("", self.headers.get("Host") or "")
         if host in LOOPBACK:
             return True
         self._json(403, {"error": f"host {host!r} refused: the viewer answers loopback addresses only"})
@@ -175,6 +177,7 @@ class _Handler(BaseHTTPRequestHandler):
                 if isinstance(tag, bool) or not isinstance(tag, int):
                     raise InputValueError(f"/api/extra takes {{\"generation\": int}}, got {body!r}")
                 result = {"generation": tag, "metrics": server.run(lambda check: session.extra(tag, check), tag)}
+            answer = json.dumps(result, allow_nan=False).encode()  # a NaN is a 500, not a dropped connection
         except Superseded as e:
             self._json(409, {"superseded": True, "error": str(e)})
         except InputValueError as e:
@@ -182,7 +185,7 @@ class _Handler(BaseHTTPRequestHandler):
         except Exception as e:  # the page shows the message; the server keeps serving
             self._json(500, {"error": f"{type(e).__name__}: {e}"})
         else:
-            self._json(200, result)
+            self._send(200, answer, "application/json")
 
 
 def make_server(session: ViewerSession, port: int = 0, host: str = "127.0.0.1") -> ViewerServer:
