@@ -41,6 +41,8 @@ def test_reference_model_defaults_are_scaffold_gs_s():
         m._rotation.copy_(torch.tensor([[2.0, 0.0, 0.0, 0.0], [0.0, 3.0, 0.0, 4.0]]))
     assert torch.allclose(m.get_rotation, torch.tensor([[1.0, 0, 0, 0], [0.0, 0.6, 0.0, 0.8]]))
     assert torch.allclose(NeuralGaussianModel.rotation_activation(m._rotation), m.get_rotation)
+    q = torch.tensor([[[0.0, 0.0, 3.0, 4.0]], [[2.0, 0.0, 0.0, 0.0]]])  # [2, 1, 4]: normalised along the last axis
+    assert torch.allclose(NeuralGaussianModel.rotation_activation(q), torch.tensor([[[0.0, 0.0, 0.6, 0.8]], [[1.0, 0, 0, 0]]]))
     # with every option: widths grow by the distance (1) and the appearance code (last, colour only)
     o = NeuralGaussianModel(1, feat_dim=8, n_offsets=2, use_feat_bank=True, appearance_dim=3, num_cameras=5,
                             add_opacity_dist=True, add_color_dist=True)
