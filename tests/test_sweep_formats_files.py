@@ -1,0 +1,95 @@
+"""Backbone files read as data, bounds pinned at their documented values: the cfg_args term budget
+at exactly 100 000 parse-tree nodes, the ASCII PLY size pre-check on the smallest valid body, the
+Scaffold offset layout worked out by hand, and the umask modes of written files and folders."""
+
+from __future__ import annotations
+
+import ast
+import os
+
+import numpy as np
+import pytest
+
+from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.formats import backbone as bb
+from controlgs_adapter.formats import safetensors as st
+
+
+def test_cfg_args_term_budget_is_100000_nodes():
+    # Namespace(a=[0, ..., 0]) with k zeros: Call, Name, Load, keyword, List, Load and k Constants = k + 6 nodes
+    k = 100_000 - 6
+    text = f"Namespace(a=[{', '.join(['0'] * k)}])"
+    assert sum(1 for _ in ast.walk(ast.parse(text, mode="eval").body)) == 100_000  # brute-force count
+    assert bb.parse_cfg_args(text, source="big")["a"] == [0] * k
+    text = f"Namespace(a=[{', '.join(['0'] * (k + 1))}])"  # one node more
+    with pytest.raises(FileFormatError, match=r"^over: nested deeper than 32 levels or longer than 100000 terms"):
+        bb.parse_cfg_args(text, source="over")
+
+
+def test_cfg_args_text_size_bound_is_1_mib():
+    pad = " " * ((1 << 20) - len("Namespace(a=1)"))
+    assert bb.parse_cfg_args("Namespace(a=1)" + pad) == {"a": 1}  # exactly 1 MiB: read
+    with pytest.raises(FileFormatError, match=r"1048577 characters, more than a cfg_args holds \(<= 1048576\)"):
+        bb.parse_cfg_args("Namespace(a=1)" + pad + " ")
+
+
+def test_ascii_ply_smallest_body_passes_the_size_check(tmp_path):
+    # two vertices of two values: the smallest body is "1 2\n3 4" (7 bytes, no final newline); the
+    # pre-check asks for count * (2 * props - 1) = 6 bytes, so this file must be read
+    p = tmp_path / "a.ply"
+    p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty uchar c\nend_header\n1 2\n3 4")
+    fields, _ = bb.read_ply(p)
+    assert fields["x"].tolist() == [1.0, 3.0] and fields["x"].dtype == np.float32
+    assert fields["c"].tolist() == [2, 4] and fields["c"].dtype == np.uint8
+    # one byte short of the pre-check's 6: refused before reading, naming the numbers
+    p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty uchar c\nend_header\n1 2 3")
+    with pytest.raises(FileFormatError, match=r"a\.ply: header declares 2 vertices of 2 values, but only 5 bytes follow"):
+        bb.read_ply(p)
+    # extra values on a line are ignored, only the declared ones are read
+    p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty double x\nend_header\n0.5 9 9\n")
+    fields, _ = bb.read_ply(p)
+    assert fields["x"].tolist() == [0.5] and fields["x"].dtype == np.float64
+
+
+def test_ply_offsets_layout_by_hand():
+    # K = 2 offsets: f_offset_{c*K + k} is coordinate c of offset k, so vertex 0's offsets are
+    # k=0: (f0, f2, f4) and k=1: (f1, f3, f5)
+    fields = {f"f_offset_{i}": np.array([float(i), 10.0 + i]) for i in range(6)}
+    got = bb.ply_offsets(fields, 2, source="s")
+    assert got.shape == (2, 2, 3) and got.dtype == np.float32
+    assert got[0].tolist() == [[0.0, 2.0, 4.0], [1.0, 3.0, 5.0]]
+    assert got[1].tolist() == [[10.0, 12.0, 14.0], [11.0, 13.0, 15.0]]
+    assert got.flags["C_CONTIGUOUS"]
+
+
+@pytest.mark.parametrize("mask, file_bits, folder_bits", [(0o022, 0o644, 0o755), (0o077, 0o600, 0o700), (0o027, 0o640, 0o750)])
+def test_modes_follow_the_umask(tmp_path, mask, file_bits, folder_bits):
+    old = os.umask(mask)
+    try:
+        assert st.file_mode() == file_bits and st.folder_mode() == folder_bits
+        out = st.atomic_write(tmp_path / "f.bin", lambda tmp: open(tmp, "wb").write(b"x"))
+        assert out.stat().st_mode & 0o777 == file_bits
+    finally:
+        os.umask(old)
+
+
+def test_pid_alive():
+    import subprocess
+    import sys
+
+    assert st._pid_alive(os.getpid())
+    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
+                              check=True).stdout)
+    assert not st._pid_alive(dead)
+
+
+def test_state_dict_file_must_be_a_dict(tmp_path):
+    import torch
+
+    torch.save([torch.zeros(2)], tmp_path / "l.pth")
+    with pytest.raises(FileFormatError, match=r"l\.pth: expected a dict of state dicts, got list"):
+        bb.load_state_dict_file(tmp_path / "l.pth")
+    with pytest.raises(FileFormatError, match=r"none\.pth: no such file"):
+        bb.load_state_dict_file(tmp_path / "none.pth")
+    torch.save({"a": {"w": torch.ones(2)}}, tmp_path / "d.pth")
+    assert torch.equal(bb.load_state_dict_file(tmp_path / "d.pth")["a"]["w"], torch.ones(2))
