@@ -89,7 +89,7 @@ def flip(test: torch.Tensor, reference: torch.Tensor, *, ppd: float = FLIP_PPD) 
     if isinstance(ppd, bool) or not isinstance(ppd, (int, float)) or not math.isfinite(ppd) or ppd <= 0:
         raise InputValueError(f"flip: ppd must be a finite number > 0 (pixels per degree), got {ppd!r}")
     for name, img in (("test", test), ("reference", reference)):
-        lo, hi = float(img.min()), float(img.max())
+        lo, hi = float(img.detach().min()), float(img.detach().max())
         if lo < 0.0 or hi > 1.0:
             raise InputValueError(f"flip: {name} must hold sRGB values in [0, 1] (LDR-FLIP), got [{lo:.4g}, {hi:.4g}]")
     try:

@@ -375,3 +375,36 @@ def test_scene_export_writes_every_view(tmp_path, capsys):
             assert png.shape == (16, 16, 3)
             # 8-bit PNG: within one level (matplotlib rounds x * 255 down or to nearest)
             assert float(abs(png - images[i].permute(1, 2, 0).numpy()).max()) <= 1 / 255 + 1e-6
+
+
+def test_every_command_action_and_option_has_a_help_text():
+    """``controlgs --help`` and each sub-command's ``--help`` describe everything they offer."""
+    undocumented: list[str] = []
+
+    def walk(p: argparse.ArgumentParser, path: list[str]) -> int:
+        n = 0
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for ca in a._choices_actions:
+                    n += 1
+                    if not ca.help:
+                        undocumented.append(" ".join(path + [ca.dest]))
+                for name, sp in a.choices.items():
+                    n += walk(sp, path + [name])
+            elif not isinstance(a, argparse._HelpAction):
+                n += 1
+                if not a.help:
+                    undocumented.append(" ".join(path + [a.option_strings[0] if a.option_strings else a.dest]))
+        return n
+
+    assert walk(cli.build_parser(), []) > 150  # every command, action and option was visited
+    assert undocumented == []
+
+
+def test_optics_figures_prints_json(capsys):
+    import json
+
+    assert cli.main(["optics", "figures"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["half_width_mm"] == 12.0  # Cardboard: a 24 mm wide display half
+    assert figures["px_per_mm_display_at_1024"] == pytest.approx(1024 / 24.0)

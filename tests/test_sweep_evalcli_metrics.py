@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import pickle
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +121,10 @@ def test_flip_observer_and_refusals():
         assert flip(a, b, ppd=ppd) == pytest.approx(float(want), abs=1e-7)
     assert flip(a, b) == pytest.approx(flip(a, b, ppd=FLIP_PPD), abs=0) and flip(a, b) != flip(a, b, ppd=10.0)
     assert flip(a.float(), b.float()) == pytest.approx(flip(a, b), abs=1e-6)
+    # an image that requires grad (a render being trained) is scored as its value
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # and without torch's warning on converting a grad tensor to a number
+        assert flip(a.clone().requires_grad_(True), b.clone().requires_grad_(True)) == flip(a, b)
     with pytest.raises(ShapeError, match=r"one image pair \[3, H, W\], got \[1, 3, 20, 24\]"):
         flip(a[None], b[None])
     for bad in (0, 0.0, -1.0, math.inf, math.nan, True, "67", None):

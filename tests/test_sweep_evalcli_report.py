@@ -151,7 +151,8 @@ def test_findings_by_hand():
     assert "- (needs ss and controlgs)" in only and "Differences against the seed spread" not in only
     assert "Ablations" not in only and "minus" not in only
     # no no_ss and no ideal: only the ControlGS-vs-SS lines
-    two = markdown_tables(_result(("ss", "controlgs")))
+    two = markdown_tables(_result(("ss", "controlgs")))  # exactly the two methods the findings need
+    assert "- PSNR: ControlGS better than SS-backbone in 3/4 settings" in two and "(needs ss and controlgs)" not in two
     assert "better than no-SS" not in two and "ideal render (ground truth" not in two
     assert "Ideal render" not in two
 

@@ -33,10 +33,10 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
                    help=f"training iterations per knob (default {DEFAULT_ITERATIONS}; {QUICK_ITERATIONS} with --quick)")
     p.add_argument("--test-views", type=int, default=None, help="test views of the quality evaluation (default 4; 1 with --quick)")
     p.add_argument("--quick", action="store_true", help="about 2 minutes: fewer iterations, one test view, a 2 x 2 grid")
-    p.add_argument("--variant", choices=("ar", "vr"), default="ar")
+    p.add_argument("--variant", choices=("ar", "vr"), default="ar", help="built-in scene: object-centric AR or immersive VR")
     p.add_argument("--seed", type=int, default=BenchSettings.seed,
                    help=f"training seed of every knob's adapter (default {BenchSettings.seed}, TrainConfig's)")
-    p.add_argument("--no-progress", dest="progress", action="store_false")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     p.set_defaults(func=run)
 
 

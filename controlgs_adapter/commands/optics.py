@@ -24,7 +24,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     b.set_defaults(func=run_build)
 
     f = osub.add_parser("figures", help="print paraxial and real-ray figures of a prescription")
-    f.add_argument("--prescription", type=Path, default=None)
+    f.add_argument("--prescription", type=Path, default=None, help="JSON prescription (default: Google Cardboard)")
     f.set_defaults(func=run_figures)
 
     c = osub.add_parser("bench", help="speed and error of the PSF operators, both radiometries: table build, fwd, "
@@ -40,7 +40,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     c.add_argument("--zone", type=int, default=5, help="fast-mode field-group size")
     c.add_argument("--exact-max", type=int, default=1024,
                    help="largest size where the exact operator is also timed (it is always the reference)")
-    c.add_argument("--threads", type=int, default=2)
+    c.add_argument("--threads", type=int, default=2, help="torch intra-op threads of the timings (default 2)")
     c.add_argument("--out", type=Path, default=None, help="folder for optics_bench.md / optics_bench.png (default: print only)")
     c.add_argument("--doc", dest="out", action="store_const", const=Path("docs"), help="write them into ./docs")
     c.set_defaults(func=run_bench)
@@ -49,7 +49,8 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     w.add_argument("--bank", type=Path, default=None, help="PSF bank .safetensors (default: the shipped Cardboard bank)")
     w.add_argument("--out", type=Path, required=True, help="output LUT .safetensors ({'lens': {'lut': OUT}})")
     w.add_argument("--size", type=int, default=256, help="display pixels along its shorter side for the fit")
-    w.add_argument("--modes", nargs="+", default=["distortion", "exact"], choices=["distortion", "exact", "fast"])
+    w.add_argument("--modes", nargs="+", default=["distortion", "exact"], choices=["distortion", "exact", "fast"],
+                   help="optics modes to fit the pre-warp for (default: distortion exact)")
     w.add_argument("--radiometry", choices=["radiance", "energy"], default="radiance", help="the optics' radiometry")
     w.set_defaults(func=run_fit_prewarp)
 

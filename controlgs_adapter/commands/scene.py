@@ -11,18 +11,18 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     b = ssub.add_parser("build-backbone", help="train the reference model on the built-in scene and bake it "
                                                "(Scaffold-GS format) into --out (the shipped one: "
                                                "controlgs_adapter/data/builtin_scene/VARIANT of a checkout)")
-    b.add_argument("--variant", choices=("ar", "vr"), default="ar")
+    b.add_argument("--variant", choices=("ar", "vr"), default="ar", help="object-centric AR or immersive VR (default ar)")
     b.add_argument("--resolution", type=int, default=128, help="native resolution S of the training views")
-    b.add_argument("--iterations", type=int, default=1500)
-    b.add_argument("--max-anchors", type=int, default=3000)
+    b.add_argument("--iterations", type=int, default=1500, help="training iterations of the reference model (default 1500)")
+    b.add_argument("--max-anchors", type=int, default=3000, help="anchor budget of the baked model (default 3000)")
     b.add_argument("--n-offsets", type=int, default=5, help="K Gaussians per anchor")
     b.add_argument("--out", required=True, help="folder to write (never the installed package by default)")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
     b.set_defaults(func=run_build)
     e = ssub.add_parser("export", help="write the ground-truth views as PNG files")
-    e.add_argument("--variant", choices=("ar", "vr"), default="ar")
-    e.add_argument("--resolution", type=int, default=128)
-    e.add_argument("--out", required=True)
+    e.add_argument("--variant", choices=("ar", "vr"), default="ar", help="object-centric AR or immersive VR (default ar)")
+    e.add_argument("--resolution", type=int, default=128, help="native resolution S of the views (default 128)")
+    e.add_argument("--out", required=True, help="folder to write train/NNN.png and test/NNN.png into")
     e.set_defaults(func=run_export)
 
 
