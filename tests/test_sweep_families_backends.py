@@ -553,3 +553,52 @@ def test_infer_decoded_by_hand():
     assert infer_decoded(np.array([[0.1] * 6, [0.0] * 6]), pad, extra_mask_column=True) is True
     # zero masks with a negative scale are not padding: that row makes the file undecidable
     assert infer_decoded(np.array([[0.1] * 6, [-0.5] + [0.0] * 5]), pad, extra_mask_column=True) is None
+
+
+# ---------------------------------------------------------------- a neural opacity of exactly 0 is dropped
+
+def _zero_some_opacities(seq: nn.Sequential, k: int) -> None:
+    """Last Linear of a Scaffold-family opacity decoder: output k is atanh(0.5) for even k and exactly 0 for
+    odd k (tanh(0) = 0), for every anchor."""
+    with torch.no_grad():
+        seq[2].weight.zero_()
+        seq[2].bias.copy_(torch.tensor([math.atanh(0.5) if i % 2 == 0 else 0.0 for i in range(k)]))
+
+
+def test_every_family_drops_gaussians_whose_neural_opacity_is_exactly_zero():
+    """Scaffold-GS (and every family after it) keeps a Gaussian only where neural opacity > 0."""
+    from controlgs_adapter.backends.compgs import CompGSModel
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+
+    cam = make_camera()
+    even = lambda k: torch.arange(0, k, 2)  # noqa: E731
+    ref = NeuralGaussianModel(3, feat_dim=4, n_offsets=4)
+    _zero_some_opacities(ref.mlp_opacity, 4)
+    g = ref.decode(cam)
+    assert torch.equal(g.offset_of, even(4).repeat(3)) and torch.allclose(g.opacities, torch.full((6,), 0.5))
+    kw = _hac_kw(hac_t.K + 1)
+    kw["mask"] = torch.ones_like(kw["mask"])
+    hac = HACModel(voxel_size=0.01, **kw)
+    _zero_some_opacities(hac.mlp_opacity, hac_t.K)
+    assert torch.equal(hac.decode(cam).offset_of, even(hac_t.K).repeat(hac_t.A))
+    oa = octree_t._arrays(0)
+    octo = octree_t._model(oa, octree_t._decoders(torch.Generator().manual_seed(0)))
+    _zero_some_opacities(octo.mlp_opacity, octree_t.K)
+    assert torch.equal(octo.decode(cam).offset_of, even(octree_t.K).repeat(octree_t.A))
+    # CompGS: one opacity per coupled primitive; the skip path reads res_feat channel 0, zero for odd slots
+    ca = compgs_t._arrays(0)
+    res = torch.from_numpy(ca["res"]).clone()
+    res[:, :, 0] = 1.0
+    res[:, 1::2, 0] = 0.0
+    comp = CompGSModel(means=torch.from_numpy(ca["means"]), scales_before_exp=torch.from_numpy(ca["scales"]),
+                       ref_feats=torch.from_numpy(ca["ref"]), res_feats=res)
+    op = comp.network.prediction_net.opacity_pred_mlp
+    with torch.no_grad():
+        op.net[-1].weight.zero_()
+        op.net[-1].bias.zero_()
+        op.skip.weight.zero_()
+        op.skip.bias.zero_()
+        op.skip.weight[0, compgs_t.C] = 1.0  # the first res_feat channel
+    g = comp.decode(cam)
+    assert torch.equal(g.offset_of, even(compgs_t.K).repeat(compgs_t.A))
+    assert torch.allclose(g.opacities, torch.full_like(g.opacities, math.tanh(1.0)))
