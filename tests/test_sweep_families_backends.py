@@ -602,3 +602,13 @@ def test_every_family_drops_gaussians_whose_neural_opacity_is_exactly_zero():
     g = comp.decode(cam)
     assert torch.equal(g.offset_of, even(compgs_t.K).repeat(compgs_t.A))
     assert torch.allclose(g.opacities, torch.full_like(g.opacities, math.tanh(1.0)))
+
+
+def test_load_model_dir_passes_allow_unquantized_to_hac_and_contextgs(tmp_path):
+    hac_root = hac_t._write_dir(tmp_path / "h", hac_t._arrays(5, decoded=False, mask_cols=hac_t.K + 1), hac_t._decoders(5))
+    ctx_root = contextgs_t._write_dir(tmp_path / "c", contextgs_t._arrays(5, decoded=False), contextgs_t._decoders(5))
+    for root, cls in ((hac_root, HACModel), (ctx_root, ContextGSModel)):
+        with pytest.raises(FileFormatError, match="raw \\(not decoded\\)"):
+            load_model_dir(root)
+        m = load_model_dir(root, allow_unquantized=True)
+        assert isinstance(m, cls) and not m.decoded_version and not m.training
