@@ -516,3 +516,31 @@ def test_load_adapter_mismatches_with_the_live_wrapper(tmp_path):
         cgs.load_adapter(path, "c", strict=False)
     assert cgs.adapters == ("default", "b")
     cgs.unwrap()
+
+
+class _BadHookable(ScaffoldGSBackend):
+    """Bad-hookable test backend: make_hookable installs another first layer."""
+
+    name = "bad_hookable"
+
+    def __init__(self, layer):
+        self.layer = layer
+
+    def make_hookable(self, model, decoder_path):
+        from controlgs_adapter.backend import get_attr_path, set_attr_path
+
+        original = get_attr_path(model, decoder_path)
+        set_attr_path(model, decoder_path, nn.Sequential(self.layer))
+        return original
+
+
+@pytest.mark.parametrize("layer, shown", [(nn.Linear(7, 5), "Linear(in_features=7, out_features=5, bias=True)"),
+                                          (nn.ReLU(), "ReLU()")])
+def test_a_backend_whose_make_hookable_breaks_fc1_is_refused_and_rolled_back(layer, shown):
+    model = ScaffoldStandIn(6, feat_dim=4, n_offsets=2, seed=1)
+    originals = {d: getattr(model, d) for d in ("mlp_opacity", "mlp_cov", "mlp_color")}
+    with pytest.raises(TargetError) as e:
+        ControlGS.wrap(model, backend=_BadHookable(layer))
+    assert str(e.value) == f"bad_hookable: make_hookable left 'mlp_opacity.0' as {shown}"
+    assert all(getattr(model, d) is m for d, m in originals.items()) and ControlGS.attached(model) is None
+    assert model._anchor.requires_grad  # the backbone was not frozen either
