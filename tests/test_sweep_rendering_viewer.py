@@ -9,6 +9,7 @@ import base64
 import http.client
 import io
 import json
+import math
 import threading
 from typing import Any
 
@@ -179,10 +180,11 @@ def test_heat_overlay_pixels_by_hand() -> None:
     strength = torch.tensor([0.5, 1.0, 0.2, 0.6, 1.0, 1.0, 1.0, float("nan")])
     out = heat_overlay(pos, strength, cam)
     assert out.shape == (4, 8, 8)
-    heat = vs._HEAT
-    # lam 0.5 -> t = 1.5: halfway between colours 1 and 2; lam 1 -> the last colour; two anchors in a pixel: the
-    # mean 0.4 -> t = 1.2: colour 1 + 0.2 (colour 2 - colour 1)
-    for (x, y), colour in (((2, 5), (heat[1] + heat[2]) / 2), ((6, 0), heat[3]), ((2, 1), heat[1] + 0.2 * (heat[2] - heat[1]))):
+    # the map's colours: black-blue (0, 0, 0.2), purple (0.45, 0.05, 0.55), orange (0.9, 0.35, 0.1), yellow (1, 0.95, 0.3)
+    # lam 0.5 -> t = 1.5: halfway between purple and orange; lam 1: yellow; two anchors in a pixel: the mean 0.4
+    # -> t = 1.2: purple + 0.2 (orange - purple)
+    cases = (((2, 5), [0.675, 0.2, 0.325]), ((6, 0), [1.0, 0.95, 0.3]), ((2, 1), [0.54, 0.11, 0.46]))
+    for (x, y), colour in ((xy, torch.tensor(c)) for xy, c in cases):
         for dx in (-1, 0, 1):
             for dy in (-1, 0, 1):
                 if 0 <= x + dx < 8 and 0 <= y + dy < 8:
@@ -191,7 +193,7 @@ def test_heat_overlay_pixels_by_hand() -> None:
     covered = torch.zeros(8, 8, dtype=torch.bool)
     covered[4:7, 1:4] = covered[0:2, 5:8] = covered[0:3, 1:4] = True
     assert torch.equal(out[3] > 0, covered)  # nothing from the culled anchors
-    assert torch.allclose(out[:3, ~covered], heat[0].view(3, 1), atol=1e-7)  # strength 0: the first colour
+    assert torch.allclose(out[:3, ~covered], torch.tensor([[0.0], [0.0], [0.2]]), atol=1e-7)  # lam 0: the first colour
 
 
 def test_heat_overlay_window_grows_with_the_image() -> None:
@@ -464,3 +466,69 @@ def test_server_answers_with_stub_session() -> None:
         assert direct.server_address[1] >= 1024 and direct.url.startswith("http://127.0.0.1:")
     finally:
         direct.server_close()
+
+
+def test_view_state_is_frozen_and_orbit_keeps_float64() -> None:
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ViewState().view = 1  # type: ignore[misc]
+    cam = _cam_at_minus_z()
+    cam64 = Camera(cam.world_to_camera.double(), cam.intrinsics, 8, 8)
+    turned = orbit_camera(cam64, torch.zeros(3, dtype=torch.float64), 30.0, 0.0)
+    assert turned.world_to_camera.dtype == torch.float64
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    # 30 degrees about up (-y): centre (0, 0, -4) -> 4 (sin 30, 0, -cos 30), exactly in float64
+    assert torch.allclose(turned.center.double(), torch.tensor([4 * s, 0.0, -4 * c], dtype=torch.float64), rtol=0, atol=1e-14)
+    assert torch.equal(scene_centre([cam], None), torch.zeros(3, dtype=torch.float64))
+    assert scene_centre([cam], None).dtype == torch.float64
+    assert scene_centre([cam], torch.ones(2, 3)).dtype == torch.float64
+
+
+def test_encode_png_compresses() -> None:
+    """Low compression (level 1), not none: a flat 64 x 64 image is well under its 12 kB of raw pixels."""
+    from controlgs_adapter.viewer.session import encode_png
+
+    png = base64.b64decode(encode_png(torch.full((3, 64, 64), 0.5)))
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) < 1000
+    assert len(base64.b64decode(encode_png(torch.full((3, 64, 64), 0.5), level=0))) > 12000  # stored: raw size
+
+
+def test_session_with_a_renderer_of_its_own_and_no_adapter(small: Any) -> None:
+    from controlgs_adapter.rendering import FunctionRenderer
+
+    session, scene = small
+    calls: list[int] = []
+
+    def render(m: Any, c: Any, v: Any, bg: Any) -> torch.Tensor:
+        calls.append(c.width)
+        return m.render(c, v, bg).color
+
+    plain = ViewerSession(session.model, scene.views("test"), {}, renderer=FunctionRenderer(render,
+                          visible=lambda m, c: m.visible_anchors(c)))
+    assert plain.methods == ["no_ss", "ss"] and plain.info()["orbit_truth"] is False
+    out = plain.render(parse_state({"downsample": 4.0}, 1))  # default tag 0
+    assert sorted(calls) == [SIZE // 4, SIZE] and isinstance(out["server_ms"], float)
+    assert plain.extra(0) == {} or set(plain.extra(0)) == {"no_ss", "ss"}
+    assert plain.background is not None and torch.equal(plain.background, scene.views("test").background)
+
+
+def test_strengths_of_a_camera_that_sees_no_anchor(small: Any) -> None:
+    """Looking away from the scene: no visible anchor; per-anchor strengths report 0 (mean, min, max), the
+    state-blind ablation its constant 1, global ones their value; no overlay pixel."""
+    session, _ = small
+    cam = session.cameras[0]
+    w2c = cam.world_to_camera.clone()  # turned half a circle about its own y axis: the scene is behind it
+    w2c[:3, :3] = torch.diag(torch.tensor([-1.0, 1.0, -1.0])) @ w2c[:3, :3]
+    w2c[:3, 3] = -(w2c[:3, :3] @ cam.center)
+    blind_cam = Camera(w2c, cam.intrinsics, cam.width, cam.height)
+    rs = parse_state({"downsample": 4.0, "power_saving": 0.4}, 1).runtime
+    copy_, cgs = session.adapters["controlgs"]
+    assert int(torch.as_tensor(session.renderer.visible(copy_, blind_cam)).sum()) == 0  # the case under test
+    strengths, overlay = session._strengths(cgs, copy_, blind_cam, rs)
+    assert strengths["lens"] == {"mean": 0.0, "min": 0.0, "max": 0.0}
+    assert strengths["resample"] == pytest.approx(2 / 3, abs=1e-6) and strengths["display"] == pytest.approx(0.5, abs=1e-6)
+    assert float(_decode(overlay)[..., 3].max()) == 0.0
+    copy_, cgs = session.adapters["blind"]
+    strengths, _ = session._strengths(cgs, copy_, blind_cam, rs)
+    assert strengths == {"lens": 1.0, "resample": 1.0, "display": 1.0}

@@ -364,12 +364,16 @@ class ViewerSession:
         lam = cgs.strengths(rs, cam, ids)
         out: dict[str, Any] = {}
         overlay = None
+        one: dict[str, torch.Tensor] | None = None  # strengths of anchor 0: the global values when none is visible
         for m, v in lam.items():
             if cgs.schedules[m].per_anchor and not cgs.state_blind:
                 out[m] = {"mean": float(v.mean()) if v.numel() else 0.0, "min": float(v.min()) if v.numel() else 0.0,
                           "max": float(v.max()) if v.numel() else 0.0}
             else:
-                out[m] = float(v[0]) if v.numel() else float(cgs.state_blind)
+                if not v.numel():
+                    one = one or cgs.strengths(rs, cam, torch.zeros(1, dtype=torch.long, device=ids.device))
+                    v = one[m]
+                out[m] = float(v[0])
         shown = next((m for m in ("lens", "foveation") if m in lam), None)
         if shown is not None:
             positions = cgs.backend.anchor_positions(cgs.model).detach()
