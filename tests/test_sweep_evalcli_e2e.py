@@ -63,3 +63,16 @@ def test_train_many_scenes_mode(tmp_path: Path, capsys: pytest.CaptureFixture[st
     want = [out / "ar" / f"seed-{s}" / "controlgs.controlgs.safetensors" for s in (5, 6)]
     assert lines[-2:] == [f"[rank 0] ar controlgs: {p}" for p in want]
     assert all(p.is_file() for p in want) and not (out / "run.json").exists()
+
+
+def test_optics_bench_and_fit_prewarp_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["optics", "bench", "--sizes", "16", "--radiometry", "radiance", "--repeat", "1", "--no-scaling",
+                 "--exact-max", "16", "--threads", "1", "--out", str(tmp_path / "ob")]) == 0
+    assert sorted(p.name for p in (tmp_path / "ob").iterdir()) == ["optics_bench.md", "optics_bench.png"]
+    assert "16x16 radiance exact" in capsys.readouterr().out
+    lut = tmp_path / "lut.safetensors"
+    assert main(["optics", "fit-prewarp", "--size", "8", "--modes", "distortion", "--out", str(lut)]) == 0
+    out = capsys.readouterr().out
+    meta = json.loads(out[:out.rindex("}") + 1])
+    assert (meta["size"], meta["radiometry"], list(meta["residuals"])) == ([8, 8], "radiance", ["distortion"])
+    assert lut.is_file() and out.strip().splitlines()[-1].startswith(f"wrote {lut} (")
