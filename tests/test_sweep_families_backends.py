@@ -612,3 +612,20 @@ def test_load_model_dir_passes_allow_unquantized_to_hac_and_contextgs(tmp_path):
             load_model_dir(root)
         m = load_model_dir(root, allow_unquantized=True)
         assert isinstance(m, cls) and not m.decoded_version and not m.training
+
+
+def test_abstract_bases_refuse_what_their_subclasses_must_define():
+    from controlgs_adapter.backends.hac import MaskedAnchorModel
+    from controlgs_adapter.backends.models.anchor_model import AnchorModel
+
+    base = AnchorModel()
+    with pytest.raises(NotImplementedError):
+        base.visible_anchors(make_camera())
+    with pytest.raises(NotImplementedError):
+        base.decode(make_camera())
+    masked = MaskedAnchorModel(**_hac_kw(hac_t.K + 1))
+    with pytest.raises(NotImplementedError):
+        masked.get_anchor  # noqa: B018 - the property is what is tested
+    with pytest.raises(InputValueError, match=r"AnchorModel.decode got unknown option\(s\) \['x', 'y'\]"):
+        base.refuse_options({"y": 1, "x": 2})
+    base.refuse_options({})
