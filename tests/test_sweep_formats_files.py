@@ -93,3 +93,50 @@ def test_state_dict_file_must_be_a_dict(tmp_path):
         bb.load_state_dict_file(tmp_path / "none.pth")
     torch.save({"a": {"w": torch.ones(2)}}, tmp_path / "d.pth")
     assert torch.equal(bb.load_state_dict_file(tmp_path / "d.pth")["a"]["w"], torch.ones(2))
+
+
+def test_load_tensors_unreadable_data_names_the_file(tmp_path):
+    import torch
+
+    p = st.save_tensors(tmp_path / "x.safetensors", {"a": torch.ones(2)}, {}, kind="k", format_version=1)
+    with pytest.raises(FileFormatError, match=r"x\.safetensors: tensor data unreadable"):
+        st.load_tensors(p, kind="k", max_version=1, device="nope")
+    tensors, header = st.load_tensors(p, kind="k", max_version=1, device="cpu")
+    assert torch.equal(tensors["a"], torch.ones(2)) and header["kind"] == "k"
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_trusted_torchscript_paths_name_the_file(tmp_path):
+    """``trust_code=True`` on archives this test wrote itself (the opt-in path: ``torch.jit.load``)."""
+    import warnings
+
+    import torch
+    from torch import nn
+
+    from controlgs_adapter.formats.torchscript import tensors_from_archive
+
+    with pytest.raises(FileFormatError, match=r"gone\.pt: no such file"):
+        bb.load_torchscript(tmp_path / "gone.pt", trust_code=True)
+    with pytest.raises(FileFormatError, match=r"gone\.pt: no such file"):
+        bb.load_torchscript_tensors(tmp_path / "gone.pt", trust_code=True)
+    (tmp_path / "junk.pt").write_bytes(b"not a zip at all")
+    with pytest.raises(FileFormatError, match=r"junk\.pt: not a loadable TorchScript archive \(truncated\?\)"):
+        bb.load_torchscript(tmp_path / "junk.pt", trust_code=True)
+    # without trust_code the same files are refused by the data reader, never returned as None
+    with pytest.raises(FileFormatError, match=r"gone\.pt: no such file"):
+        tensors_from_archive(tmp_path / "gone.pt")
+    with pytest.raises(FileFormatError, match=r"junk\.pt: not a TorchScript archive \(not a zip file"):
+        tensors_from_archive(tmp_path / "junk.pt")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.jit.save(torch.jit.script(nn.Sequential(nn.Linear(3, 2), nn.GELU())), str(tmp_path / "gelu.pt"))
+        lin = nn.Sequential(nn.Linear(3, 2), nn.Sigmoid())
+        torch.jit.save(torch.jit.trace(lin, torch.randn(2, 3)), str(tmp_path / "ok.pt"))
+    with pytest.raises(FileFormatError, match=r"gelu\.pt: TorchScript decoder cannot be rebuilt as an eager module: .*GELU"):
+        bb.load_torchscript(tmp_path / "gelu.pt", trust_code=True)
+    got = bb.load_torchscript(tmp_path / "ok.pt", trust_code=True)
+    x = torch.randn(4, 3)
+    assert not isinstance(got, torch.jit.ScriptModule) and torch.equal(got(x), lin(x))
+    sd = bb.load_torchscript_tensors(tmp_path / "ok.pt", trust_code=True)
+    assert list(sd) == ["0.weight", "0.bias"] and torch.equal(sd["0.weight"], lin[0].weight)
+    assert not sd["0.weight"].requires_grad
