@@ -133,3 +133,15 @@ def test_maps_are_evaluated_on_the_requested_device():
     for m in (lens.DisplayLUTMap(table), LUTMap(grid), RadialMap(), MLPMap(hidden=4, layers=1)):
         g, gain = m.to(meta)((4, 6), torch.float32, meta)
         assert g.device.type == "meta" and (gain is None or gain.device.type == "meta")
+
+
+def test_a_lut_is_evaluated_in_the_requested_dtype_at_its_own_size_and_another():
+    grid = lens.pixel_grid((3, 4))[None].expand(3, -1, -1, -1).contiguous() + 0.01
+    gain = torch.full((3, 3, 4), 1.5)
+    lut = LUTMap(grid, gain)
+    for size in ((3, 4), (6, 8)):
+        g, k = lut(size, D, torch.device("cpu"))
+        assert g.dtype == D and k.dtype == D
+        assert float(k.min()) == 1.5 and float(k.max()) == 1.5
+    out = LensPrewarp.from_lut(grid, gain)(torch.ones(3, 3, 4, dtype=D))
+    assert out.dtype == D
