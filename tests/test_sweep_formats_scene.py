@@ -457,3 +457,34 @@ def test_load_builtin_backbone_missing_names_the_bake_command(tmp_path, monkeypa
     monkeypatch.setattr(sb, "_DATA", tmp_path)  # an installation without the baked files
     with pytest.raises(FileFormatError, match=r"the built-in 'vr' backbone is not baked.*--variant vr --out "):
         load_builtin_backbone("vr")
+
+
+def test_build_builtin_backbone_records_its_arguments_and_scores(tmp_path, monkeypatch):
+    import json
+
+    from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
+    from controlgs_adapter.metrics import psnr
+    from controlgs_adapter.scene import build_builtin_backbone
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # the scene's ground truth is cached here
+    out = build_builtin_backbone("ar", out=tmp_path / "bb", resolution=16, iterations=2, max_anchors=40, n_offsets=2,
+                                 feat_dim=8, point_spacing=0.3, seed=1, progress=False)
+    assert out == tmp_path / "bb" and (out / "point_cloud" / "iteration_2").is_dir()
+    assert len(list((tmp_path / "cache" / "controlgs-adapter" / "scene").iterdir())) == 1  # cache=True
+    info = json.loads((out / "build.json").read_text())
+    assert {k: info[k] for k in ("variant", "resolution", "iterations", "max_anchors", "n_offsets", "feat_dim",
+                                 "point_spacing", "seed")} == {"variant": "ar", "resolution": 16, "iterations": 2,
+                                                               "max_anchors": 40, "n_offsets": 2, "feat_dim": 8,
+                                                               "point_spacing": 0.3, "seed": 1}
+    model = load_scaffold_dir(out).eval()
+    assert info["anchors"] == model.num_anchors <= 40
+    # 32 views, every 8th held out: 4 test views, each scored on the saved model's render
+    scene = load_builtin_scene("ar", 16, cache=True)
+    assert len(info["test_psnr"]) == len(info["test_ssim"]) == 4
+    with torch.no_grad():
+        want = [float(psnr(model.render(c, None, scene.background).color.clamp(0, 1), g))
+                for c, g in zip(scene.test_cameras, scene.test_images)]
+    np.testing.assert_allclose(info["test_psnr"], want, atol=1e-3)
+    assert abs(info["test_psnr_mean"] - sum(want) / 4) < 1e-3
+    assert abs(info["test_ssim_mean"] - sum(info["test_ssim"]) / 4) < 1e-12
+    assert all(0.0 < s <= 1.0 for s in info["test_ssim"]) and info["train_seconds"] >= 0.0
