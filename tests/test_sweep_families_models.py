@@ -383,3 +383,25 @@ def test_scaffold_voxel_size_not_given_is_the_median_anchor_spacing(tmp_path, gi
     assert m.voxel_size == pytest.approx(nn_dist[(len(nn_dist) - 1) // 2], rel=1e-6)  # torch's lower median
     write_scaffold_dir_by_hand(tmp_path / "t", raw, cfg_overrides={"voxel_size": 0.25})
     assert load_scaffold_dir(tmp_path / "t").voxel_size == 0.25
+
+
+def test_saved_cfg_args_holds_scaffold_gs_model_params(tmp_path):
+    """cfg_args as Scaffold-GS's train.py writes it: str(Namespace(**vars(args))) of its ModelParams
+    (arguments/__init__.py: sh_degree 3, update_depth 3, update_init_factor 16, update_hierachy_factor 4,
+    images 'images', resolution -1, white_background False, data_device 'cuda', eval True, lod 0) with the
+    model's own widths and options."""
+    import ast
+
+    m = _model(9, use_feat_bank=True, appearance_dim=2, num_cameras=3, add_opacity_dist=True)
+    save_scaffold_dir(m, tmp_path / "s", 1)
+    text = (tmp_path / "s" / "cfg_args").read_text()
+    assert text.startswith("Namespace(") and text.endswith(")")
+    call = ast.parse(text, mode="eval").body
+    cfg = {kw.arg: ast.literal_eval(kw.value) for kw in call.keywords}
+    want = {"sh_degree": 3, "feat_dim": 8, "n_offsets": 3, "voxel_size": 0.01, "update_depth": 3, "update_init_factor": 16,
+            "update_hierachy_factor": 4, "use_feat_bank": True, "source_path": "", "model_path": str(tmp_path / "s"),
+            "images": "images", "resolution": -1, "white_background": False, "data_device": "cuda", "eval": True,
+            "lod": 0, "appearance_dim": 2, "add_opacity_dist": True, "add_cov_dist": False, "add_color_dist": False}
+    assert {k: cfg[k] for k in want} == want
+    back = load_scaffold_dir(tmp_path / "s")  # and the loader reads its options back from it
+    assert (back.voxel_size, back.add_opacity_dist, back.appearance_dim) == (0.01, True, 2)
