@@ -420,3 +420,21 @@ def test_fast_mode_rank_cap():
     x = torch.rand(3, 12, 12, dtype=D64, generator=torch.Generator().manual_seed(7))
     assert (psf_fast(x, rb, 0.0, 2, max_rank=1) - psf_exact(x, rb)).abs().max() > 1e-4
     assert torch.allclose(psf_fast(x, rb, 0.0, 2, max_rank=4), psf_exact(x, rb), atol=1e-12)
+
+
+@pytest.mark.parametrize("radiometry", ["radiance", "energy"])
+def test_fast_mode_rank_is_the_smallest_within_the_relative_residual(radiometry):
+    """Per field group, the number of eigen-PSFs is the smallest R whose truncated SVD leaves a
+    relative Frobenius residual sqrt(sum_{i > R} s_i^2 / sum s_i^2) <= tol (reference: torch's SVD
+    of the group's 4 kernels, float64)."""
+    rb = _bank(G=2, K=5, seed=3).resample_to(10, 10, dtype=D64, radiometry=radiometry)
+    K, _ = rb.field_kernels(1, torch.arange(4))
+    s = torch.linalg.svdvals(K.reshape(4, -1))
+    rel = [(s[r:] ** 2).sum().sqrt().item() / (s ** 2).sum().sqrt().item() for r in range(5)]   # residual of rank r
+    seen = set()
+    for tol in (0.9, 0.5, 0.3, 0.1, 0.03, 0.01, 0.0):
+        want = min(r for r in range(1, 5) if rel[r] <= tol or r == 4)
+        (bk,) = rb.zones(2, tol)[1]
+        assert bk.kernel_fft.shape[0] == want, (tol, rel)
+        seen.add(want)
+    assert len(seen) >= 3                                                       # the tolerances reach several ranks
