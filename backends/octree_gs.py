@@ -43,11 +43,11 @@ __all__ = ["OctreeGSBackend", "OctreeGSModel", "lod_anchor_ids", "load_octree_gs
 #: Attribute names only Octree-GS (and Octree-AnyGS) models carry, on top of Scaffold-GS's.
 OCTREE_MARKERS: tuple[str, ...] = ("_level", "_extra_level", "set_anchor_mask")
 
-#: ModelParams defaults of Octree-GS (arguments/__init__.py), used for keys missing from cfg_args.
+#: ModelParams defaults of Octree-GS (arguments/__init__.py) for the keys the loader reads, used where
+#: cfg_args lacks them (the feature bank and the appearance code are told by the decoder files).
 CFG_DEFAULTS: dict[str, Any] = {
-    "feat_dim": 32, "n_offsets": 10, "fork": 2, "use_feat_bank": False, "appearance_dim": 32,
-    "add_opacity_dist": False, "add_cov_dist": False, "add_color_dist": False, "add_level": False,
-    "dist2level": "round", "progressive": False,
+    "feat_dim": 32, "n_offsets": 10, "fork": 2, "add_opacity_dist": False, "add_cov_dist": False,
+    "add_color_dist": False, "add_level": False, "dist2level": "round",
 }
 
 

@@ -276,7 +276,8 @@ def test_octree_loader_refusals_and_cfg_defaults(tmp_path):
     # (the folder has 4 offsets, so n_offsets must be given), feat_dim 32
     write_cfg_args(root / "cfg_args", n_offsets=octree_t.K, add_opacity_dist=True, add_level=True)
     m = load_octree_gs_dir(root)
-    assert (m.fork, m.dist2level, m.feat_dim, m.add_level, m.add_cov_dist) == (2, "round", 32, True, False)
+    assert (m.fork, m.dist2level, m.feat_dim, m.add_level, m.add_cov_dist, m.add_color_dist) == (2, "round", 32, True,
+                                                                                             False, False)
     # one anchor: the 'info' column cannot hold voxel_size and standard_dist in rows 0 and 1
     from controlgs_adapter.formats.backbone import read_ply, write_ply
 
