@@ -488,3 +488,48 @@ def test_build_builtin_backbone_records_its_arguments_and_scores(tmp_path, monke
     assert abs(info["test_psnr_mean"] - sum(want) / 4) < 1e-3
     assert abs(info["test_ssim_mean"] - sum(info["test_ssim"]) / 4) < 1e-12
     assert all(0.0 < s <= 1.0 for s in info["test_ssim"]) and info["train_seconds"] >= 0.0
+
+
+def _level_coded(plane: TexturedPlane, n_levels: int = 8) -> TexturedPlane:
+    """``plane`` with mip level l replaced by the constant l / 10: a rendered colour reads back the lod."""
+    plane.levels = [torch.full((3, 1, 1), lvl / 10.0, dtype=F64) for lvl in range(n_levels)]
+    return plane
+
+
+def _texel(plane: TexturedPlane, cam, u: float, v: float) -> np.ndarray:
+    """Texel coordinates (x, y) where the ray through pixel position (u, v) meets ``plane`` (float64 brute force)."""
+    k, w2c = cam.intrinsics.double().numpy(), cam.world_to_camera.double().numpy()
+    d = w2c[:3, :3].T @ np.array([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], 1.0])
+    o = cam.center.double().numpy()
+    c, r, dn = plane.center.numpy(), plane.right.numpy(), plane.down.numpy()
+    nrm = np.cross(r, dn)
+    p = o + d * ((c - o) @ nrm) / (d @ nrm)
+    h, w = plane.texture.shape[-2:]
+    return np.array([(p - c) @ r / (r @ r) * w * plane.repeat[0] / 2, (p - c) @ dn / (dn @ dn) * h * plane.repeat[1] / 2])
+
+
+@pytest.mark.parametrize("yaw, tex_hw, samples", [(0.0, (8, 32), 1), (0.0, (8, 24), 1), (50.0, (16, 20), 1),
+                                                  (-35.0, (40, 12), 2)])
+def test_mip_level_follows_the_sub_sample_footprint(yaw, tex_hw, samples):
+    """The lod is log2 of the larger texel footprint of one sub-sample step in u or v (at least 1),
+    checked against finite differences of the ray-plane hit (front plane 4 x 2 world units, 32 x 8
+    texels, camera 4 units away with f = 4: a pixel step moves 1 unit, i.e. 8 and 4 texels -> lod 3;
+    a min instead of the max would give 2)."""
+    cam = look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), size=8, fov_deg=90.0)
+    y = math.radians(yaw)
+    plane = _level_coded(TexturedPlane("p", _t(0, 0, 0), _t(2 * math.cos(y), 0, -2 * math.sin(y)), _t(0, -1, 0),
+                                       torch.zeros(3, *tex_hw, dtype=F64)))
+    img, cov, _ = render_planes([plane], cam, samples=samples)
+    n, eps = samples, 1e-4
+    for row, col in ((4, 4), (3, 4), (4, 3)):
+        vals = []
+        for i in range(n):
+            for j in range(n):
+                u, v = col + (j + 0.5) / n, row + (i + 0.5) / n
+                fu = np.linalg.norm(_texel(plane, cam, u + eps, v) - _texel(plane, cam, u - eps, v)) / (2 * eps) / n
+                fv = np.linalg.norm(_texel(plane, cam, u, v + eps) - _texel(plane, cam, u, v - eps)) / (2 * eps) / n
+                vals.append(math.log2(max(fu, fv, 1.0)) / 10)
+        assert float(cov[0, row, col]) == 1.0
+        assert abs(float(img[0, row, col]) - float(np.mean(vals))) < 1e-6, (row, col)
+    if yaw == 0.0 and tex_hw == (8, 32):
+        assert abs(float(img[0, 4, 4]) - 0.3) < 1e-9  # by hand: footprints 32/4 = 8 and 8/2 = 4 texels
