@@ -533,3 +533,13 @@ def test_mip_level_follows_the_sub_sample_footprint(yaw, tex_hw, samples):
         assert abs(float(img[0, row, col]) - float(np.mean(vals))) < 1e-6, (row, col)
     if yaw == 0.0 and tex_hw == (8, 32):
         assert abs(float(img[0, 4, 4]) - 0.3) < 1e-9  # by hand: footprints 32/4 = 8 and 8/2 = 4 texels
+
+
+def test_render_clamps_to_the_unit_range_and_baked_backbone_is_in_eval_mode():
+    cam = _cam()
+    near = _flat((0.25, 0.25, 0.25), (0.0, 0.0, 2.0), 0.5, 0.5)
+    img, _, _ = render_planes([near], cam, samples=1, background=(2.0, -1.0, 0.5))  # documented: image in [0, 1]
+    np.testing.assert_allclose(img[:, 0, 0].numpy(), [1.0, 0.0, 0.5], atol=0)
+    np.testing.assert_allclose(img[:, 4, 4].numpy(), [0.25, 0.25, 0.25], atol=1e-12)
+    model = load_builtin_backbone("ar")
+    assert not model.training and all(not m.training for m in model.modules())
