@@ -218,6 +218,11 @@ def test_hac_checkpoint_and_ply_refusals(tmp_path):
     write_cfg_args(root / "cfg_args", voxel_size=0.01)
     m = load_hac_dir(root)
     assert (m.feat_dim, m.n_offsets, m.variant, m.voxel_size) == (50, 10, "hac++", 0.01)
+    # a raw model without voxel_size in cfg_args cannot be snapped: refused
+    raw = hac_t._write_dir(tmp_path / "raw", hac_t._arrays(1, decoded=False, mask_cols=hac_t.K + 1), hac_t._decoders(1))
+    write_cfg_args(raw / "cfg_args", feat_dim=50, n_offsets=hac_t.K)
+    with pytest.raises(FileFormatError, match=r"voxel_size=0.0: the raw model's anchors are snapped to a voxel grid"):
+        load_hac_dir(raw, allow_unquantized=True)
 
 
 def test_voxel_snap_by_hand():
@@ -630,3 +635,34 @@ def test_abstract_bases_refuse_what_their_subclasses_must_define():
     with pytest.raises(InputValueError, match=r"AnchorModel.decode got unknown option\(s\) \['x', 'y'\]"):
         base.refuse_options({"y": 1, "x": 2})
     base.refuse_options({})
+
+
+def test_octree_anygs_defaults_for_keys_missing_from_config_yaml(tmp_path):
+    """Octree-AnyGS's GaussianLoDModel defaults: feat_dim 32, n_offsets 10, fork 2, dist2level 'round',
+    base model Scaffold-GS: a config.yaml naming none of them reads a folder of those widths."""
+    from controlgs_adapter.formats.backbone import write_ply
+
+    a, f, k = 6, 32, 10
+    rng = np.random.default_rng(0)
+    root = tmp_path / "anygs"
+    it = root / "point_cloud" / "iteration_5"
+    it.mkdir(parents=True)
+    (root / "config.yaml").write_text("optim_params: {\n    iterations: 40_000,\n}\n")
+    fields = {c: rng.normal(size=a).astype(np.float32) for c in "xyz"}
+    fields.update(level=np.zeros(a, np.float32), extra_level=np.zeros(a, np.float32))
+    fields.update({f"f_offset_{i}": rng.normal(size=a).astype(np.float32) for i in range(3 * k)})
+    fields.update({f"f_anchor_feat_{i}": rng.normal(size=a).astype(np.float32) for i in range(f)})
+    fields.update({f"scale_{i}": np.full(a, -2.0, np.float32) for i in range(6)})
+    write_ply(it / "point_cloud.ply", fields, comments=["standard_dist 3.0", "levels 2"], comment_keyword="obj_info")
+    torch.manual_seed(0)
+    torch.save({"opacity_mlp": nn.Sequential(nn.Linear(f + 3, f), nn.ReLU(), nn.Linear(f, k), nn.Tanh()).state_dict(),
+                "cov_mlp": nn.Sequential(nn.Linear(f + 3, f), nn.ReLU(), nn.Linear(f, 7 * k)).state_dict(),
+                "color_mlp": nn.Sequential(nn.Linear(f + 3, f), nn.ReLU(), nn.Linear(f, 3 * k), nn.Sigmoid()).state_dict()},
+               it / "checkpoints.pth")
+    m = load_octree_gs_dir(root)
+    assert (m.feat_dim, m.n_offsets, m.fork, m.dist2level, m.levels, m.standard_dist) == (32, 10, 2, "round", 2, 3.0)
+    assert not m.voxel_centre and m.voxel_size == 0.0
+    # the LOD header lines are required
+    write_ply(it / "point_cloud.ply", fields, comments=["standard_dist 3.0"], comment_keyword="obj_info")
+    with pytest.raises(FileFormatError, match="must carry 'obj_info standard_dist <v>' and 'obj_info levels <v>'"):
+        load_octree_gs_dir(root)
