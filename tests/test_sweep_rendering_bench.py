@@ -297,7 +297,20 @@ def test_ss_rows_read_the_rho_0_column_of_each_method(tiny: Any) -> None:
 
     grid = GridResult(downsample=(1.0, 2.5), power_saving=(0.4, 0.0),
                       per_view={"no_ss": psnr(100.0), "ss": psnr(200.0), "k0": psnr(300.0)})
-    rows = at.ss_rows(model, scene, grid, BenchSettings(repeats=1))
+    import controlgs_adapter.rendering.protocol as protocol
+
+    sizes: list[tuple[int, Any, Any]] = []
+    real = protocol.render_view
+
+    def recorded(cgs: Any, m: Any, cam: Any, state: Any, *args: Any, **kw: Any) -> Any:
+        sizes.append((cam.width, cgs, state))
+        return real(cgs, m, cam, state, *args, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(protocol, "render_view", recorded)
+        rows = at.ss_rows(model, scene, grid, BenchSettings(repeats=1))
+    # per d: the bare backbone at S / d and at S (16 px), interleaved, a warm-up and one timed call each
+    assert sizes == [(16, None, None)] * 4 + [(round(16 / 2.5), None, None), (16, None, None)] * 2
     assert [r["d"] for r in rows] == [1.0, 2.5]
     assert [(r["psnr_no_ss"], r["psnr_ss"], r["psnr_controlgs"]) for r in rows] == [
         (101.25, 201.25, 301.25), (111.25, 211.25, 311.25)]
@@ -312,7 +325,21 @@ def test_render_overhead_counts_and_sizes(tiny: Any, tmp_path: Any) -> None:
     cgs = ControlGS.wrap(model)  # lens, resample, display with N = 8
     adapter = cgs.save(tmp_path / "a.controlgs.safetensors")
     cgs.unwrap()
-    o = at.render_overhead(model, scene, adapter, tmp_path, repeats=1)
+    import controlgs_adapter.rendering.protocol as protocol
+
+    seen: list[tuple[Any, ...]] = []
+    real = protocol.render_view
+
+    def recorded(cgs: Any, m: Any, cam: Any, state: Any, *args: Any, **kw: Any) -> Any:
+        seen.append((cgs is None, cam is scene.test_cameras[0], None if state is None else
+                     (state.downsample, state.power_saving)))
+        return real(cgs, m, cam, state, *args, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(protocol, "render_view", recorded)
+        o = at.render_overhead(model, scene, adapter, tmp_path, repeats=2)
+    # bare, then through the adapter at d = 2, rho = 0.4, on the first test camera: a warm-up and two timed calls
+    assert seen == [(True, True, None), (False, True, (2.0, 0.4))] * 3
     assert o["render_s_ss"] > 0 and o["render_s_controlgs"] > 0
     assert o["params_conditions"] == model.num_anchors * 3 * 8
     assert o["params_backbone"] == float(sum(t.numel() for t in model.state_dict().values() if t.is_floating_point()))
