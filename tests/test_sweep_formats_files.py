@@ -140,3 +140,44 @@ def test_trusted_torchscript_paths_name_the_file(tmp_path):
     sd = bb.load_torchscript_tensors(tmp_path / "ok.pt", trust_code=True)
     assert list(sd) == ["0.weight", "0.bias"] and torch.equal(sd["0.weight"], lin[0].weight)
     assert not sd["0.weight"].requires_grad
+
+
+def test_cfg_args_nesting_bound_is_32_levels():
+    # Namespace(a=[[...]]) with n lists: Call (depth 0), keyword (1), lists (2 .. n + 1), the innermost
+    # list's Load (n + 2); the reader allows depth <= 32 + 2, so n = 32 is read and n = 33 refused
+    def nested(n: int) -> str:
+        return "Namespace(a=" + "[" * n + "]" * n + ")"
+
+    got = bb.parse_cfg_args(nested(32))["a"]
+    for _ in range(31):
+        got = got[0]
+    assert got == []
+    with pytest.raises(FileFormatError, match=r"^cfg_args: nested deeper than 32 levels or longer than 100000 terms; "
+                                              r"not a printed argparse Namespace$"):
+        bb.parse_cfg_args(nested(33))
+
+
+def test_file_size_bounds_are_1_mib(tmp_path):
+    mib = 1 << 20
+    # cfg_args files
+    p = tmp_path / "cfg_args"
+    p.write_text("Namespace(a=1)" + " " * (mib - len("Namespace(a=1)")))
+    assert bb.read_cfg_args(p) == {"a": 1}
+    p.write_text("Namespace(a=1)" + " " * (mib + 1 - len("Namespace(a=1)")))
+    with pytest.raises(FileFormatError, match=r"cfg_args: 1048577 bytes, more than a cfg_args holds \(<= 1048576\)"):
+        bb.read_cfg_args(p)
+    # YAML configs
+    y = tmp_path / "c.yaml"
+    y.write_text("a: 1\n" + "#" * (mib - 6) + "\n")
+    assert bb.read_yaml_scalars(y) == {"a": [1]}
+    y.write_text("a: 1\n" + "#" * (mib - 5) + "\n")
+    with pytest.raises(FileFormatError, match=r"c\.yaml: 1048577 bytes, more than a config file holds \(<= 1048576\)"):
+        bb.read_yaml_scalars(y)
+    # PLY headers: up to 1 MiB including the end_header line
+    head, tail = b"ply\nformat binary_little_endian 1.0\nelement vertex 0\ncomment ", b"\nend_header\n"
+    ply = tmp_path / "h.ply"
+    ply.write_bytes(head + b"x" * (mib - len(head) - len(tail)) + tail)
+    assert bb.read_ply(ply) == ({}, ["x" * (mib - len(head) - len(tail))])
+    ply.write_bytes(head + b"x" * (mib + 1 - len(head) - len(tail)) + tail)
+    with pytest.raises(FileFormatError, match=r"h\.ply: PLY header longer than 1048576 bytes without 'end_header'"):
+        bb.read_ply(ply)
