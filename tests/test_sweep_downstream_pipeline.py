@@ -362,3 +362,24 @@ def test_fit_prewarp_loss_and_learning_rate_defaults():
             fit_prewarp(pipe, images, **kwargs)
     with pytest.raises(InputValueError, match="targets must have dtype"):
         fit_prewarp(pipe, images, targets.float(), steps=1)
+
+
+class _WideOnly(Stage):
+    """Runs only for a native size wider than 10 pixels (a stage whose cost depends on the size)."""
+
+    name = "wide"
+
+    def is_identity(self, state, ctx=None):
+        return ctx is None or ctx.native_size[1] <= 10
+
+    def process(self, image, state, ctx):
+        return image
+
+
+def test_active_passes_the_native_size_to_the_stages():
+    p = Pipeline([_WideOnly()])
+    assert p.active(RuntimeState(), reference=torch.rand(3, 4, 20)) == ["wide"]
+    assert p.active(RuntimeState(), reference=torch.rand(3, 20, 4)) == []
+    assert p.active(RuntimeState(), native_size=(4, 11)) == ["wide"]
+    assert p.active(RuntimeState(), reference=torch.rand(3, 4, 20), native_size=(20, 4)) == []
+    assert p.active(RuntimeState()) == []  # no size known: (0, 0)
