@@ -171,3 +171,67 @@ def test_script_rebuild_keeps_mode_grad_flags_and_refuses():
         eager_from_script(m, name="x")  # type: ignore[arg-type]
     with pytest.raises(TargetError, match=r"decoder 'g.1': TorchScript layer of type 'GELU' cannot be rebuilt"):
         eager_from_script(_jit(nn.Sequential(nn.Linear(3, 2), nn.GELU()), "script", 3), name="g")
+
+
+def _padded(src: Path, dst: Path, suffix: str, pad: bytes) -> Path:
+    """A copy of ``src`` whose entry ending in ``suffix`` gets ``pad`` appended (compressed: small on disk)."""
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_DEFLATED) as zout:
+        for info in zin.infolist():
+            data = zin.read(info)
+            zout.writestr(info.filename, data + pad if info.filename.endswith(suffix) else data)
+    return dst
+
+
+def test_pickle_bound_is_16_mib(tmp_path):
+    src = _trace(nn.Sequential(nn.Linear(3, 2)), tmp_path / "a.pt", 3)
+    with zipfile.ZipFile(src) as z:
+        size = len(z.read("a/data.pkl"))
+    # bytes after the pickle's STOP opcode are never read by the unpickler: only the entry's size matters
+    ok = _padded(src, tmp_path / "ok.pt", "/data.pkl", b"\0" * ((16 << 20) - size))
+    assert isinstance(eager_from_archive(ok), nn.Sequential)
+    over = _padded(src, tmp_path / "over.pt", "/data.pkl", b"\0" * ((16 << 20) + 1 - size))
+    with pytest.raises(FileFormatError, match=r"over\.pt: .*entry 'a/data\.pkl' of 16777217 bytes \(at most 16777216\)"):
+        eager_from_archive(over)
+
+
+def test_code_bound_is_4_mib_in_all(tmp_path):
+    src = _trace(nn.Sequential(nn.Linear(3, 2)), tmp_path / "a.pt", 3)
+    with zipfile.ZipFile(src) as z:
+        code = {n: len(z.read(n)) for n in z.namelist() if n.startswith("a/code/") and n.endswith(".py")}
+    assert len(code) == 2  # container and linear (their paths may carry a ___torch_mangle_<n> part)
+    target = next(n for n in code if "/linear" in n)
+    pad = (4 << 20) - sum(code.values())  # a trailing comment: still valid source
+    ok = _padded(src, tmp_path / "ok.pt", target, b"\n#" + b"x" * (pad - 3) + b"\n")
+    assert isinstance(eager_from_archive(ok), nn.Sequential)
+    over = _padded(src, tmp_path / "over.pt", target, b"\n#" + b"x" * (pad - 2) + b"\n")
+    with pytest.raises(FileFormatError, match=r"over\.pt: .*over 4194304 bytes of code"):
+        eager_from_archive(over)
+
+
+def _declaring(src: Path, dst: Path, declared: int) -> Path:
+    """A copy of ``src`` with one more (empty, never read) entry whose central-directory record
+    declares ``declared`` uncompressed bytes (offset 24 of the record, little-endian uint32)."""
+    import struct
+
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            zout.writestr(info, zin.read(info))
+        zout.writestr("a/extra/declared", b"")
+    raw = bytearray(dst.read_bytes())
+    at = raw.rindex(b"PK\x01\x02")  # the last central-directory record: the entry just added
+    assert raw[at + 46: at + 46 + len("a/extra/declared")] == b"a/extra/declared"
+    raw[at + 24: at + 28] = struct.pack("<I", declared)
+    dst.write_bytes(bytes(raw))
+    return dst
+
+
+def test_total_size_bound_is_1_gib_declared(tmp_path):
+    src = _trace(nn.Sequential(nn.Linear(3, 2)), tmp_path / "a.pt", 3)
+    with zipfile.ZipFile(src) as z:
+        used = sum(i.file_size for i in z.infolist())
+    ok = _declaring(src, tmp_path / "ok.pt", (1 << 30) - used)
+    with zipfile.ZipFile(ok) as z:
+        assert sum(i.file_size for i in z.infolist()) == 1 << 30
+    assert isinstance(eager_from_archive(ok), nn.Sequential)
+    with pytest.raises(FileFormatError, match=r"over\.pt: .*an uncompressed size over 1073741824 bytes"):
+        eager_from_archive(_declaring(src, tmp_path / "over.pt", (1 << 30) + 1 - used))
