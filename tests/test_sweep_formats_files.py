@@ -181,3 +181,19 @@ def test_file_size_bounds_are_1_mib(tmp_path):
     ply.write_bytes(head + b"x" * (mib + 1 - len(head) - len(tail)) + tail)
     with pytest.raises(FileFormatError, match=r"h\.ply: PLY header longer than 1048576 bytes without 'end_header'"):
         bb.read_ply(ply)
+
+
+def test_checkpoint_at_iteration_zero_with_integer_losses(tmp_path):
+    """The smallest well-formed header values: iteration 0 (>= 0 is documented) and integer losses."""
+    import torch
+
+    from controlgs_adapter.formats.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
+
+    c = Checkpoint(adapter={"conditions": torch.zeros(2, 1, 2)}, optimizer_state={},
+                   param_groups=[{"lr": 0.1, "params": [0]}], rng=torch.zeros(4, dtype=torch.uint8), iteration=0,
+                   history=[2, 1], config={"lr": 0.1, "iterations": 5, "loss": {}}, modules=["lens"], effects=[],
+                   fingerprint="f", data="d")
+    p = write_checkpoint(tmp_path / "c.safetensors", c)
+    back = read_checkpoint(p, c, [torch.Size([2, 1, 2])])
+    assert back.iteration == 0 and back.history == [2, 1] and back.optimizer_state == {}
+    assert back.param_groups == [{"lr": 0.1, "params": [0]}] and back.effects == []
