@@ -666,3 +666,25 @@ def test_octree_anygs_defaults_for_keys_missing_from_config_yaml(tmp_path):
     write_ply(it / "point_cloud.ply", fields, comments=["standard_dist 3.0"], comment_keyword="obj_info")
     with pytest.raises(FileFormatError, match="must carry 'obj_info standard_dist <v>' and 'obj_info levels <v>'"):
         load_octree_gs_dir(root)
+
+
+def test_compgs_backend_needs_every_decoder_to_be_a_residual_mlp():
+    from controlgs_adapter.backends.compgs import CompGSBackend
+
+    b = CompGSBackend()
+    ca = compgs_t._arrays(0)
+    model = compgs_t._model(ca, 0)
+    assert b.matches(model)
+    model.network.prediction_net.color_pred_mlp = nn.Linear(44, 3)  # no .net: not CompGS's ResidualMLP
+    assert not b.matches(model)
+    other = compgs_t._model(ca, 0)
+    del other.gaussian_params.res_feats  # a marker missing
+    assert not b.matches(other)
+    assert not b.matches(NeuralGaussianModelForTest())
+
+
+class NeuralGaussianModelForTest(nn.Module):  # Scaffold-GS names only
+    def __init__(self) -> None:
+        super().__init__()
+        self.mlp_opacity, self.mlp_cov, self.mlp_color = nn.Linear(1, 1), nn.Linear(1, 1), nn.Linear(1, 1)
+        self._anchor = torch.zeros(2, 3)
