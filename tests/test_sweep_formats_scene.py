@@ -386,6 +386,11 @@ def test_load_builtin_scene_defaults_read_through_the_cache(tmp_path):
     assert torch.equal(s.background, torch.zeros(3)) and s.background.dtype == torch.float32
     assert [p.name for p in s.planes] == [row[0] for row in _AR]
     assert s.data.format == "builtin" and s.data.source == "builtin-ar"
+    assert [f.name for f in s.data.splits["test"]] == [f"builtin-ar/test/{i:04d}" for i in range(4)]
+    assert [f.name for f in s.data.splits["train"]][:2] == ["builtin-ar/train/0000", "builtin-ar/train/0001"]
+    assert torch.equal(s.data.splits["test"][2].source, images[16]) and s.data.splits["train"][7].source is not None
+    assert torch.equal(s.data.splits["train"][7].source, images[9])  # train view 7 is arc view 9 (0 and 8 held out)
+    assert torch.equal(s.data.background, torch.zeros(3))
     v = s.views("test")
     assert len(v) == 4
     # points(): default spacing 0.05, float32, the planes' grids concatenated
