@@ -112,7 +112,7 @@ def load_builtin_scene(variant: str = "ar", resolution: int = 128, *, views: int
     anti-aliasing. Views ``i`` with ``i % test_every == 0`` are the test split (3DGS's convention).
 
     ``cache``: a folder (or True for :func:`default_cache_dir`) where the rendered ground truth is
-    kept as a safetensors file keyed by every argument and the library version, so that the next
+    kept as a safetensors file keyed by every argument and :data:`SCENE_VERSION`, so that the next
     call reads it instead of ray casting again; None/False renders every time."""
     if int(resolution) < 16:
         raise InputValueError(f"resolution must be >= 16 pixels, got {resolution!r}")
