@@ -438,3 +438,31 @@ def test_fast_mode_rank_is_the_smallest_within_the_relative_residual(radiometry)
         assert bk.kernel_fft.shape[0] == want, (tol, rel)
         seen.add(want)
     assert len(seen) >= 3                                                       # the tolerances reach several ranks
+
+
+def test_bench_figure_lines_labels_and_exact_marker():
+    plt = pytest.importorskip("matplotlib.pyplot")
+    from controlgs_adapter.downstream.optics import bench
+
+    def row(rad, op, knob, cpu, rel):
+        return dict(size="8x8", radiometry=rad, op=op, knob=knob, fwd_bwd_cpu=cpu, rel_l2=rel)
+
+    ops = [row("radiance", "distortion", "-", 0.5, 0.2), row("radiance", "fast", "tol=0.02, zone=5", 2.0, 0.0),
+           row("radiance", "exact", "-", 4.0, 0.0), row("energy", "distortion", "-", 0.25, 0.3),
+           row("energy", "fast", "tol=0.05, zone=5", 1.0, 0.01)]
+    fig = bench._figure(plt, ops)
+    try:
+        ax = fig.axes[0]
+        rad, exact, en = ax.lines                                                   # the energy key has no exact row
+        assert list(rad.get_xdata()) == [0.5, 2.0] and list(rad.get_ydata()) == [0.2, 1e-7]   # 0 floored at 1e-7
+        assert (rad.get_marker(), rad.get_linestyle()) == ("o", "-") and rad.get_label() == "8x8 radiance"
+        assert list(en.get_xdata()) == [0.25, 1.0] and list(en.get_ydata()) == [0.3, 0.01]
+        assert (en.get_marker(), en.get_linestyle()) == ("s", "--") and en.get_label() == "8x8 energy"
+        assert list(exact.get_xdata()) == [4.0, 4.0] and exact.get_linestyle() == ":"
+        assert exact.get_color() == rad.get_color()
+        notes = [(t.get_text(), tuple(t.xy)) for t in ax.texts]
+        assert notes == [("distortion", (0.5, 0.2)), ("tol=0.02", (2.0, 1e-7)), ("distortion", (0.25, 0.3)),
+                         ("tol=0.05", (1.0, 0.01))]
+        assert (ax.get_xscale(), ax.get_yscale()) == ("log", "log")
+    finally:
+        plt.close(fig)
