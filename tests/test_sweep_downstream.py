@@ -513,3 +513,14 @@ def test_stages_follow_the_image_device():
     assert color.rgb_to_primaries(x).device.type == "meta"
     assert LensPrewarp(basis="rgb")(x).device.type == "meta"
     assert placement.to_display(torch.ones(2, 2, device="meta"), 9, 16).device.type == "meta"
+
+
+def test_one_pixel_images_are_placed():
+    # the bounds are inclusive: 1 x 1 spans the display (pitch 24 mm); 2 x 1 (tall) is height-limited,
+    # pitch 24 / 2 = 12 mm, width 12 mm = half_x 0.5; 1 x 2 likewise on its side
+    one = placement.image_region(1, 1)
+    assert (one.half_x, one.half_y, one.pitch_mm) == (1.0, 1.0, (24.0, 24.0))
+    tall = placement.image_region(2, 1)
+    assert (tall.half_x, tall.half_y, tall.pitch_mm, tall.size_mm) == (0.5, 1.0, (12.0, 12.0), (12.0, 24.0))
+    wide = placement.image_region(1, 2)
+    assert (wide.half_x, wide.half_y, wide.size_mm) == (1.0, 0.5, (24.0, 12.0))
