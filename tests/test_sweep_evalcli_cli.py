@@ -298,6 +298,16 @@ def test_plugins_listing(capsys):
     assert "built-in" in "\n".join(out)
     assert out[-1].startswith("backends and rasterizers are tried in the order listed") or any(
         line.startswith("FAILED: ") for line in out)
+    # one blank line between kinds, none inside a kind
+    body = out[2:]
+    rows = body[:next(i for i, line in enumerate(body) if line.startswith("backends and rasterizers")) - 1]
+    items = [line for line in rows if line]
+    want: list[str] = []
+    for i, line in enumerate(items):
+        if i and line.split()[0] != items[i - 1].split()[0]:
+            want.append("")
+        want.append(line)
+    assert rows == want and want.count("") == 3  # backend | stage | schedule | rasterizer
 
 
 def test_load_renderer_refusals(tmp_path, monkeypatch):

@@ -272,3 +272,13 @@ def test_progress_bar_counts_every_scored_image(setup, capsys):
     evaluate_grid(model, views, {}, downsample=(1.0,), power_saving=(0.0,), baselines=("ss",), extra_metrics=False,
                   effects=CHEAP, progress=False)
     assert "evaluating grid" not in capsys.readouterr().err
+
+
+def test_anchor_positions_are_plain_cpu_values(setup):
+    from controlgs_adapter.commands.common import anchor_positions
+
+    model, _, _ = setup
+    pos = anchor_positions(model)
+    assert pos.dtype == torch.float32 and pos.device.type == "cpu" and pos.shape[1] == 3
+    assert not pos.requires_grad and pos.grad_fn is None  # no autograd graph back into the model
+    assert anchor_positions(object()) is None  # no backend recognises it
