@@ -160,6 +160,20 @@ def _psf_centroids(bank: "PSFBank", p: torch.Tensor, dtype: torch.dtype) -> torc
     return _interp_regular(moments, q.expand(3, -1, -1, -1), (float(fx[0]), float(fx[-1])), (float(fy[0]), float(fy[-1])))
 
 
+def _reach(mode: str, bank: "PSFBank", p: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """How far ``[3, H, W]`` (display-normalised) the light of the display pixels at ``p`` ``[H, W, 2]``
+    spreads in the eye: 3 pixels in ``"distortion"`` mode; else 1.5 x the half-width ``K // 2 + 0.5``
+    of the PSF window at its (bilinear) sample pitch (room for the blend of neighbouring fields)."""
+    h, w = p.shape[:2]
+    if mode == "distortion":
+        return torch.full((3, h, w), 3.0 / min(h, w), dtype=dtype)  # a footprint: a few pixels
+    pitch = bank.psf_pitch_mm.to(dtype)[..., None]  # [3, Gy, Gx, 1]
+    spans = ((float(bank.field_x[0]), float(bank.field_x[-1])), (float(bank.field_y[0]), float(bank.field_y[-1])))
+    pitch = _interp_regular(pitch, p.expand(3, -1, -1, -1), *spans)[..., 0] if min(pitch.shape[1:3]) > 1 else pitch.amax()
+    half_mm = min(bank.display_mm) / 2
+    return 1.5 * pitch * (bank.psf.shape[-1] // 2 + 0.5) / half_mm
+
+
 def _fit_mode(optics: torch.nn.Module, bank: "PSFBank", size: tuple[int, int], gain_iterations: int,
               dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
     """One optics mode: ``(displacement [3, H, W, 2], gain [3, H, W], residuals)`` over the display."""
@@ -171,14 +185,7 @@ def _fit_mode(optics: torch.nn.Module, bank: "PSFBank", size: tuple[int, int], g
     probes = torch.stack([p[..., 0].expand(3, h, w), p[..., 1].expand(3, h, w), torch.ones(3, h, w, dtype=dtype)])
     (adj,) = torch.autograd.grad(op(x), x, probes)  # [3 probes, 3 primaries, H, W]
     chief, _ = chief_ray_grid(bank.chief.to(dtype), size, sample_x=bank.chief_x, sample_y=bank.chief_y)  # [3, H, W, 2]
-    if optics.mode == "distortion":
-        reach = torch.full((3, h, w), 3.0 / min(h, w), dtype=dtype)  # a footprint: a few pixels
-    else:  # the PSF window of the nearest fields, with room for the blend of neighbours
-        pitch = bank.psf_pitch_mm.to(dtype)[..., None]  # [3, Gy, Gx, 1]
-        spans = ((float(bank.field_x[0]), float(bank.field_x[-1])), (float(bank.field_y[0]), float(bank.field_y[-1])))
-        pitch = _interp_regular(pitch, p.expand(3, -1, -1, -1), *spans)[..., 0] if min(pitch.shape[1:3]) > 1 else pitch.amax()
-        half_mm = min(bank.display_mm) / 2
-        reach = 1.5 * pitch * (bank.psf.shape[-1] // 2 + 0.5) / half_mm
+    reach = _reach(str(optics.mode), bank, p, dtype)
     throughput = adj[2]
     centroid = torch.stack([adj[0], adj[1]], -1) / throughput.clamp(min=1e-12)[..., None]
     limit = 1.0 - 1.0 / min(h, w)

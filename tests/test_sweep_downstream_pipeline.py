@@ -383,3 +383,22 @@ def test_active_passes_the_native_size_to_the_stages():
     assert p.active(RuntimeState(), native_size=(4, 11)) == ["wide"]
     assert p.active(RuntimeState(), reference=torch.rand(3, 4, 20), native_size=(20, 4)) == []
     assert p.active(RuntimeState()) == []  # no size known: (0, 0)
+
+
+@needs_optics
+def test_reach_of_a_display_pixels_light_by_hand():
+    from controlgs_adapter.downstream.lens import pixel_grid
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+    from controlgs_adapter.downstream.prewarp_fit import _reach
+
+    bank = PSFBank.default()
+    assert bank.psf.shape[-1] == 33 and bank.display_mm == (24.0, 24.0) and bank.field_x.numel() == 30
+    # the 30 field samples sit at the pixel centres of a 30-pixel grid: the pitch there is the bank's own;
+    # 1.5 x the half-window 33 // 2 + 0.5 = 16.5 samples, over the 12 mm half display
+    p = pixel_grid((30, 30), D)
+    reach = _reach("exact", bank, p, D)
+    # (rtol: the field coordinates are stored in float32, so the samples sit 1e-8 off the pixel centres)
+    assert torch.allclose(reach, 1.5 * bank.psf_pitch_mm.double() * 16.5 / 12.0, rtol=1e-5)
+    # distortion mode: 3 / min(H, W) = 3 / 30 everywhere
+    dist = _reach("distortion", bank, pixel_grid((30, 40), D), D)
+    assert dist.shape == (3, 30, 40) and float(dist.min()) == float(dist.max()) == 0.1
