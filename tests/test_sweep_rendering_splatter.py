@@ -199,3 +199,19 @@ def test_a_tile_whose_pixels_all_terminated_takes_no_further_pass(monkeypatch: p
     # three splats drawn: T = prod (1 - alpha_i) in [0.05^3, 0.055^3]
     assert float(out.alpha.min()) >= 1 - 0.055**3 and float(out.alpha.max()) <= 1 - 0.05**3 + 1e-12
     assert len(calls) == 4, calls
+
+
+def test_opacity_exactly_at_the_clamp_keeps_its_gradient() -> None:
+    """Opacity 0.99 centred on a pixel centre: alpha = 0.99 there exactly (G = 1), on the clamp's kink. As
+    ``torch.clamp`` (the reference), the clamp passes the gradient at equality: d alpha / d o = G = 1; only
+    an alpha above 0.99 is frozen (zero gradient)."""
+    cam = _camera(f=20.0, width=16, height=16)  # principal point (8, 8): pixel (8, 8)'s centre is x / z = 0.5 / 20
+    z = 2.0
+    for o, want in ((0.99, 1.0), (0.995, 0.0)):
+        for fn in BOTH:
+            op = torch.tensor([o], dtype=F64, requires_grad=True)
+            g = _one([0.5 / 20 * z, 0.5 / 20 * z, z], [0.05] * 3, [1.0, 0, 0, 0], o)
+            out = fn(g[0], g[1], g[2], op, g[4], cam)
+            assert float(out.alpha[0, 8, 8].detach()) == pytest.approx(0.99, abs=1e-14)
+            (grad,) = torch.autograd.grad(out.alpha[0, 8, 8], op)
+            assert float(grad) == pytest.approx(want, abs=1e-12), (fn.__name__, o)
