@@ -235,3 +235,24 @@ def test_total_size_bound_is_1_gib_declared(tmp_path):
     assert isinstance(eager_from_archive(ok), nn.Sequential)
     with pytest.raises(FileFormatError, match=r"over\.pt: .*an uncompressed size over 1073741824 bytes"):
         eager_from_archive(_declaring(src, tmp_path / "over.pt", (1 << 30) + 1 - used))
+
+
+@pytest.mark.parametrize("after, what", [(b"ctorch\nFloatStorage\n", "a pickled BUILD on a storage type"),
+                                         (b"Q", "a pickled BUILD on a storage record")])
+def test_pickled_build_on_storage_objects_is_refused(tmp_path, after, what):
+    """pickle's BUILD updates an object's ``__dict__`` directly (a frozen dataclass does not stop it): a
+    storage type renamed that way ('LongStorage' called 'FloatStorage') would pass the float-only check."""
+    src = _trace(nn.Sequential(nn.Linear(3, 2)), tmp_path / "a.pt", 3)
+    with zipfile.ZipFile(src) as z:
+        pkl = z.read("a/data.pkl")
+    assert after in pkl
+    at = pkl.index(after) + len(after)
+    bad = pkl[:at] + b"}b" + pkl[at:]  # EMPTY_DICT, BUILD on the object just pushed
+    dst = tmp_path / "build.pt"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            zout.writestr(info, bad if info.filename == "a/data.pkl" else zin.read(info))
+    with pytest.raises(FileFormatError, match=rf"build\.pt: TorchScript archive refused \(nothing in it was run\): {what}"):
+        eager_from_archive(dst)
+    with pytest.raises(FileFormatError, match=what):
+        tensors_from_archive(dst)

@@ -193,12 +193,18 @@ class _StorageType:
     name: str
     dtype: torch.dtype
 
+    def __setstate__(self, state: Any) -> None:  # pickle's BUILD writes __dict__ directly, past frozen=True
+        raise _Refused("a pickled BUILD on a storage type")
+
 
 @dataclass(frozen=True)
 class _Storage:
     dtype: torch.dtype
     key: str
     numel: int
+
+    def __setstate__(self, state: Any) -> None:
+        raise _Refused("a pickled BUILD on a storage record")
 
 
 class _TensorRecord:
@@ -484,7 +490,8 @@ def _symbolic_forward(fn: ast.FunctionDef, where: str) -> tuple[Any, bool]:
 
 
 def _finite(t: _TensorRecord, where: str) -> torch.Tensor:
-    # a record's tensor is floating-point: persistent_load refuses every other storage type
+    if not t.tensor.is_floating_point():
+        raise _Refused(f"a non-float tensor {where} ({t.tensor.dtype})")
     if not torch.isfinite(t.tensor).all():
         bad = "NaN" if torch.isnan(t.tensor).any() else "inf"
         raise _Refused(f"non-finite weights ({bad}) in {where}")
