@@ -688,3 +688,20 @@ class NeuralGaussianModelForTest(nn.Module):  # Scaffold-GS names only
         super().__init__()
         self.mlp_opacity, self.mlp_cov, self.mlp_color = nn.Linear(1, 1), nn.Linear(1, 1), nn.Linear(1, 1)
         self._anchor = torch.zeros(2, 3)
+
+
+def test_as_param_is_a_frozen_float32_copy_unless_asked():
+    from controlgs_adapter.backends.models.anchor_model import as_param
+
+    src = np.arange(6, dtype=np.float64).reshape(2, 3)
+    p = as_param(src)
+    assert isinstance(p, nn.Parameter) and p.dtype == torch.float32 and not p.requires_grad
+    assert torch.equal(p, torch.arange(6.0).reshape(2, 3))
+    t = torch.ones(3)
+    q = as_param(t, requires_grad=True)
+    assert q.requires_grad and q.data_ptr() != t.data_ptr()  # a copy: the caller's tensor is not shared
+    with torch.no_grad():
+        q.add_(1.0)
+    assert torch.equal(t, torch.ones(3))
+    # a non-contiguous array (a column slice) is read correctly
+    assert torch.equal(as_param(src[:, 1]), torch.tensor([1.0, 4.0]))
