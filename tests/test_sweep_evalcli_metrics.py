@@ -243,6 +243,13 @@ def test_lpips_against_a_float64_network_written_out():
 
 def test_lpips_size_and_weight_refusals():
     net = LPIPS(_weights())
+    # the pair's checks name the argument at fault, x before y
+    with pytest.raises(ShapeError, match=r"x and y must have the same shape, got \[3, 31, 31\] and \[3, 31, 32\]"):
+        net(torch.rand(3, 31, 31), torch.rand(3, 31, 32))
+    with pytest.raises(Exception, match="^y"):
+        net(torch.rand(3, 31, 31), torch.rand(3, 31, 31, dtype=torch.float64).to(torch.int64))
+    with pytest.raises(Exception, match="^x"):
+        net(torch.rand(2, 31, 31), torch.rand(3, 31, 31))
     with torch.no_grad():
         net(torch.rand(3, LPIPS_MIN_SIZE, LPIPS_MIN_SIZE), torch.rand(3, LPIPS_MIN_SIZE, LPIPS_MIN_SIZE))
     assert LPIPS_MIN_SIZE == 31
