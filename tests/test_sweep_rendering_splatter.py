@@ -215,3 +215,40 @@ def test_opacity_exactly_at_the_clamp_keeps_its_gradient() -> None:
             assert float(out.alpha[0, 8, 8].detach()) == pytest.approx(0.99, abs=1e-14)
             (grad,) = torch.autograd.grad(out.alpha[0, 8, 8], op)
             assert float(grad) == pytest.approx(want, abs=1e-12), (fn.__name__, o)
+
+
+def test_pairs_that_fit_the_cache_exactly_are_kept_for_backward(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A chunk's pairs are kept while they fit in ``_CACHE_BYTES`` (size <= what is left): with a cache of
+    exactly their size, backward reuses them (no second expansion); one byte less, it recomputes them;
+    the gradients agree."""
+    from controlgs_adapter.rendering import splatter
+
+    sizes: list[int] = []
+    expand = splatter._chunk_passes
+
+    def counting(*args):  # type: ignore[no-untyped-def]
+        passes, first = expand(*args)
+        sizes.append(sum(p.nbytes() for p in passes))
+        return passes, first
+
+    monkeypatch.setattr(splatter, "_chunk_passes", counting)
+    g = _one([0.0, 0.0, 2.0], [0.1, 0.05, 0.02], [0.9, 0.1, 0.2, 0.3], 0.8)
+    cam = _camera(width=12, height=10)  # one 16 px tile: one chunk
+
+    def grads(cache: int) -> tuple[int, torch.Tensor]:
+        monkeypatch.setattr(splatter, "_CACHE_BYTES", cache)
+        sizes.clear()
+        means = g[0].clone().requires_grad_(True)
+        out = rasterize(means, *g[1:], cam)
+        n_forward = len(sizes)
+        (grad,) = torch.autograd.grad(out.color.sum(), means)
+        return len(sizes) - n_forward, grad
+
+    grads(1 << 30)
+    size = sizes[0]
+    assert size > 0 and len(sizes) == 1
+    recomputed, exact_fit = grads(size)
+    assert recomputed == 0
+    recomputed, too_small = grads(size - 1)
+    assert recomputed == 1
+    torch.testing.assert_close(exact_fit, too_small, rtol=0, atol=0)
