@@ -111,6 +111,8 @@ def test_display_power_literal_values_and_defaults():
     # sRGB encoding decodes first: 0.5 encoded = 0.21404114 linear
     assert float(display_power(_img([0.5, 0.5, 0.5]), encoding="srgb")) == pytest.approx(0.21404114 * 1001.82, rel=1e-7)
     assert float(display_power(_img([1.0, 1.0, 1.0]), (1.0, 2.0, 3.0))) == pytest.approx(6.0)
+    watts = display.display_power_watts(_img([0.5, 0.5, 0.5]), encoding="srgb")
+    assert float(watts) == pytest.approx(0.21404114 * 1001.82 * 0.003, rel=1e-7)
     # leading dims give one value per image
     batch = torch.stack([_img([1.0, 0.0, 0.0]), _img([0.0, 0.0, 1.0])])
     assert display_power(batch).tolist() == pytest.approx([228.52, 567.64])
@@ -176,6 +178,8 @@ def test_mapping_to_a_reference_power_by_hand():
     out4, stats4 = display_mapping_with_stats(img, 0.0, ref)
     assert float(stats4["scale"]) == pytest.approx(2.0)
     assert float(out4.max()) == 1.0
+    assert torch.equal(display_mapping(img, 0.0, ref), out4)  # brightens by default too
+    assert torch.equal(display_mapping(img, 0.0, ref, brighten=False), img)
 
 
 def test_clipped_fraction_counts_values_below_zero_and_above_one():

@@ -145,3 +145,14 @@ def test_a_lut_is_evaluated_in_the_requested_dtype_at_its_own_size_and_another()
         assert float(k.min()) == 1.5 and float(k.max()) == 1.5
     out = LensPrewarp.from_lut(grid, gain)(torch.ones(3, 3, 4, dtype=D))
     assert out.dtype == D
+
+
+def test_display_lut_tables_must_be_finite():
+    gain = torch.ones(3, 2, 2)
+    gain[1, 0, 1] = float("nan")
+    with pytest.raises(InputValueError, match="gain\\['exact'\\]"):
+        lens.DisplayLUTMap({"exact": (torch.zeros(3, 2, 2, 2), gain)})
+    disp = torch.zeros(3, 2, 2, 2)
+    disp[0, 0, 0, 0] = float("inf")
+    with pytest.raises(InputValueError, match="displacement\\['exact'\\]"):
+        lens.DisplayLUTMap({"exact": (disp, torch.ones(3, 2, 2))})

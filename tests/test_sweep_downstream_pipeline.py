@@ -172,6 +172,8 @@ def test_recorded_intermediates_by_hand():
     eye3, rec3 = p.run_recorded(img.clone().requires_grad_(True), RuntimeState(downsample=2.0, power_saving=0.5))
     assert eye3.requires_grad
     assert not any(rec3[k].requires_grad for k in ("rendered", "post", "displayed", "eye"))
+    _, rec4 = Pipeline([_Scale()]).run_recorded(img.clone().requires_grad_(True))  # no physical stage
+    assert not rec4["post"].requires_grad and not rec4["displayed"].requires_grad
     _, rec2 = Pipeline([_mk("a")]).run_recorded(img)
     assert rec2["stages_run"] == ["a"] and rec2["diagnostics"] == {}
 
@@ -297,6 +299,7 @@ def test_exact_mode_fit_measures_centroids_and_flattens_by_brute_force():
     # the fixed point takes the 7 % fall-off to below 0.2 % at the centroids in 4 iterations
     assert lut.meta["residuals"]["exact"]["measured_fraction"] == 0.5625
     assert lut.meta["residuals"]["exact"]["flat_max_abs"] < 2e-3
+    assert 0.0 <= lut.meta["seconds"] < 600.0
     disp, gain = lut.displacement_exact.double(), lut.gain_exact.double()
     assert disp.shape == (3, 4, 4, 2) and gain.shape == (3, 4, 4)
     # brute force: the eye image of every single lit display pixel (one primary at a time)
