@@ -57,16 +57,20 @@ def re_escape(s: str) -> str:
 # ---------------------------------------------------------------- COLMAP binary files, written byte by byte
 
 def test_camera_model_ids_and_parameter_counts_follow_colmap():
-    # COLMAP's camera models (src/colmap/sensor/models.h; read_write_model.py): id -> (name, #params)
+    # COLMAP's camera models (src/colmap/sensor/models.h: the CameraModelId enum, and each model's focal +
+    # principal point + extra parameter counts, e.g. SIMPLE_DIVISION 1 + 2 + 1, EUCM 2 + 2 + 2;
+    # EQUIRECTANGULAR 2 metadata parameters): id -> (name, #params)
     documented = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
                   4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5),
-                  8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12)}
-    for model_id, want in documented.items():
-        assert CAMERA_MODELS[model_id] == want
+                  8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
+                  11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16), 12: ("SIMPLE_DIVISION", 4), 13: ("DIVISION", 5),
+                  14: ("SIMPLE_FISHEYE", 3), 15: ("FISHEYE", 4), 16: ("EUCM", 6), 17: ("EQUIRECTANGULAR", 2)}
+    assert CAMERA_MODELS == documented
 
 
 @pytest.mark.parametrize("model_id, name, n", [(1, "PINHOLE", 4), (4, "OPENCV", 8), (6, "FULL_OPENCV", 12),
-                                               (7, "FOV", 5), (10, "THIN_PRISM_FISHEYE", 12)])
+                                               (7, "FOV", 5), (10, "THIN_PRISM_FISHEYE", 12), (14, "SIMPLE_FISHEYE", 3),
+                                               (17, "EQUIRECTANGULAR", 2)])
 def test_binary_cameras_read_every_model_with_its_documented_parameter_count(tmp_path, model_id, name, n):
     # record: u32 id, i32 model, u64 width, u64 height, n f64 params; two cameras back to back, so a
     # wrong count misplaces the second record
