@@ -256,3 +256,23 @@ def test_pickled_build_on_storage_objects_is_refused(tmp_path, after, what):
         eager_from_archive(dst)
     with pytest.raises(FileFormatError, match=what):
         tensors_from_archive(dst)
+
+
+@pytest.mark.parametrize("glob, named", [(b"ctorch\nload\n", "'torch.load'"), (b"cos\nFloatStorage\n", "'os.FloatStorage'"),
+                                         (b"cos\nLongStorage\n", "'os.LongStorage'"),
+                                         (b"ctorch.nn\nLongStorage\n", "'torch.nn.LongStorage'"),
+                                         (b"ctorch\nTensor\n", "'torch.Tensor'")])
+def test_storage_globals_only_from_the_torch_module(tmp_path, glob, named):
+    """Only ``torch.<Name>Storage`` is a storage type; the same names from another module, and other
+    ``torch`` globals, are refused by name (never looked up in the storage tables)."""
+    src = _trace(nn.Sequential(nn.Linear(3, 2)), tmp_path / "a.pt", 3)
+    with zipfile.ZipFile(src) as z:
+        pkl = z.read("a/data.pkl")
+    dst = tmp_path / "g.pt"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            data = zin.read(info)
+            zout.writestr(info, pkl.replace(b"ctorch\nFloatStorage\n", glob, 1) if info.filename == "a/data.pkl" else data)
+    with pytest.raises(FileFormatError, match=rf"g\.pt: TorchScript archive refused \(nothing in it was run\): a pickled "
+                                              rf"reference to the global {named}, which a decoder never holds"):
+        eager_from_archive(dst)
