@@ -241,6 +241,8 @@ def test_camera_from_scaffold_by_hand():
     assert cam.extra == {"uid": 3} and (cam.width, cam.height) == (80, 40)
     vc.uid = torch.tensor(5)  # a 0-d tensor id is read as its int
     assert Camera.from_scaffold(vc).extra == {"uid": 5} and type(Camera.from_scaffold(vc).extra["uid"]) is int
+    vc.uid = 0  # the first training camera: 0 is a valid id (>= 0)
+    assert Camera.from_scaffold(vc).extra == {"uid": 0}
     vc.uid = None
     assert Camera.from_scaffold(vc).extra == {}
     vc.uid = -1
