@@ -227,3 +227,18 @@ def test_ngp_size_tolerance_is_one_pixel_per_side(tmp_path):
     (tmp_path / "transforms.json").write_text(json.dumps({**meta, "h": 18.2}))
     with pytest.raises(FileFormatError, match="the file says 16 x 18.2 but the image"):
         read_instant_ngp(tmp_path, holdout=0)
+
+
+@pytest.mark.parametrize("w, h", [(0, 8), (16, 0), (-16, 8), (16, -1)])
+def test_ngp_zero_or_negative_size_is_refused(tmp_path, w, h):
+    import json
+
+    from PIL import Image
+
+    from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
+
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "a.png")
+    meta = {"fl_x": 20.0, "w": w, "h": h, "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist()}]}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(FileFormatError, match=rf"w and h must be > 0, got {float(w)} x {float(h)}"):
+        read_instant_ngp(tmp_path, holdout=0)
