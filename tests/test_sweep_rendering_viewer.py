@@ -532,3 +532,13 @@ def test_strengths_of_a_camera_that_sees_no_anchor(small: Any) -> None:
     copy_, cgs = session.adapters["blind"]
     strengths, _ = session._strengths(cgs, copy_, blind_cam, rs)
     assert strengths == {"lens": 1.0, "resample": 1.0, "display": 1.0}
+
+
+def test_no_ss_cache_keeps_the_32_most_recent_renders(small: Any) -> None:
+    session, scene = small
+    plain = ViewerSession(session.model, scene.views("test"), {})  # the two baselines only: cheap renders
+    for az in range(1, 34):  # 33 orbit cameras, one no-SS render each: the first is evicted by the 33rd
+        plain.render(parse_state({"azimuth": float(az), "stages": []}, 1))
+    assert len(plain._small) == 32
+    keys = [k[:3] for k in plain._small]
+    assert (0, 1.0, 0.0) not in keys and (0, 2.0, 0.0) in keys and (0, 33.0, 0.0) in keys
