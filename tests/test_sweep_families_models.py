@@ -405,3 +405,18 @@ def test_saved_cfg_args_holds_scaffold_gs_model_params(tmp_path):
     assert {k: cfg[k] for k in want} == want
     back = load_scaffold_dir(tmp_path / "s")  # and the loader reads its options back from it
     assert (back.voxel_size, back.add_opacity_dist, back.appearance_dim) == (0.01, True, 2)
+
+
+def test_from_points_default_seed_0_and_200_colour_fit_steps():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    cols = torch.tensor([[0.9, 0.1, 0.2], [0.2, 0.7, 0.9]])
+
+    def build(**kw):
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            return NeuralGaussianModel.from_points(pts, cols, voxel_size=0.5, feat_dim=4, n_offsets=1, **kw)
+
+    default = build()
+    assert torch.equal(default._anchor_feat, build(seed=0, color_fit_steps=200)._anchor_feat)
+    assert not torch.equal(default._anchor_feat, build(seed=1)._anchor_feat)
+    assert not torch.equal(default._anchor_feat, build(color_fit_steps=199)._anchor_feat)
