@@ -28,6 +28,7 @@ import re
 import sqlite3
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -96,8 +97,9 @@ def _skipped_ids(tree: ast.AST) -> set[int]:
 
 
 def mutants_of(path: str) -> list[Mutant]:
-    """Every mutant of one source file (repository-relative ``path``) that still compiles."""
-    src = (ROOT / path).read_text()
+    """Every mutant of one source file (repository-relative ``path``, as committed at HEAD: the tests run
+    in a worktree of HEAD) that still compiles."""
+    src = subprocess.run(["git", "show", f"HEAD:{path}"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
     lines = src.splitlines(keepends=True)
     tree = ast.parse(src)
     skip = _skipped_ids(tree)
@@ -274,7 +276,7 @@ def main() -> None:
     ap.add_argument("--max-tests", type=int, default=40, help="tests run first (their whole files for a survivor)")
     ap.add_argument("--also", nargs="*", default=[], help="test files run for every mutant (tests newer than the coverage data)")
     ap.add_argument("--coverage", default=str(ROOT / ".coverage-contexts"), help="coverage data file")
-    ap.add_argument("--worktree", default=f"/tmp/sweep-{int(time.time())}")
+    ap.add_argument("--worktree", help="where the worktree of HEAD goes (default: a new temporary folder)")
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--list", action="store_true", help="only list the chosen mutants")
     ap.add_argument("--json", help="write the results here")
@@ -303,7 +305,7 @@ def main() -> None:
         for m in chosen:
             print(f"{m.path}:{m.line}  {m.what}\n    {m.new.strip()}")
         return
-    worktree = Path(args.worktree)
+    worktree = Path(args.worktree or tempfile.mkdtemp(prefix="sweep-")) / "tree"
     subprocess.run(["git", "worktree", "add", "--detach", str(worktree), "HEAD"], cwd=ROOT, check=True, capture_output=True)
     results = []
     try:
