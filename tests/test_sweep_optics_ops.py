@@ -463,6 +463,7 @@ def test_bench_figure_lines_labels_and_exact_marker():
         notes = [(t.get_text(), tuple(t.xy)) for t in ax.texts]
         assert notes == [("distortion", (0.5, 0.2)), ("tol=0.02", (2.0, 1e-7)), ("distortion", (0.25, 0.3)),
                          ("tol=0.05", (1.0, 0.01))]
+        assert {t.get_fontsize() for t in ax.texts} == {6}
         assert (ax.get_xscale(), ax.get_yscale()) == ("log", "log")
     finally:
         plt.close(fig)
