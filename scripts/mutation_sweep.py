@@ -218,8 +218,11 @@ def _node_id(context: str) -> str | None:
 
 def _tests_for(m: Mutant, by_line: dict[int, set[str]], size: dict[str, int]) -> list[str]:
     """Node ids of the tests that execute the mutated lines, most focused first; for a line executed
-    only at import or in a subprocess (no test's context), the test files that name the module."""
+    only at import, the tests that execute the module; for a module only subprocesses run (no test's
+    context at all), the test files that name it."""
     ctxs = set().union(*(by_line.get(ln, set()) for ln in range(m.line, m.end + 1)))
+    if not any(_node_id(c) for c in ctxs):  # run at import (a default, a constant): the tests that use the module
+        ctxs = set().union(*by_line.values())
     named: dict[str, int] = {}
     for c in ctxs:
         if (t := _node_id(c)) is not None:

@@ -420,3 +420,17 @@ def test_from_points_default_seed_0_and_200_colour_fit_steps():
     assert torch.equal(default._anchor_feat, build(seed=0, color_fit_steps=200)._anchor_feat)
     assert not torch.equal(default._anchor_feat, build(seed=1)._anchor_feat)
     assert not torch.equal(default._anchor_feat, build(color_fit_steps=199)._anchor_feat)
+
+
+def test_offset_jitter_depends_on_the_seed_only_and_spans_the_voxel():
+    """The K offsets of each anchor start uniform over its voxel, [-0.5, 0.5) in voxel units, drawn from
+    the seed alone: the same with model options that draw other random numbers before them (a feature
+    bank, appearance codes), different with another seed."""
+    images, cams, pts = _tiny_scene()
+    kw = dict(feat_dim=4, n_offsets=8, max_anchors=30, iterations=0, progress=False)
+    plain = train_reference_model(images, cams, pts, seed=5, **kw)._offset
+    extra = train_reference_model(images, cams, pts, seed=5, use_feat_bank=True, appearance_dim=3, **kw)._offset
+    other = train_reference_model(images, cams, pts, seed=6, **kw)._offset
+    assert torch.equal(plain, extra) and not torch.equal(plain, other)
+    assert float(plain.min()) >= -0.5 and float(plain.max()) < 0.5
+    assert float(plain.min()) < -0.45 and float(plain.max()) > 0.45 and abs(float(plain.mean())) < 0.05
