@@ -428,9 +428,9 @@ def test_offset_jitter_depends_on_the_seed_only_and_spans_the_voxel():
     bank, appearance codes), different with another seed."""
     images, cams, pts = _tiny_scene()
     kw = dict(feat_dim=4, n_offsets=8, max_anchors=30, iterations=0, progress=False)
-    plain = train_reference_model(images, cams, pts, seed=5, **kw)._offset
-    extra = train_reference_model(images, cams, pts, seed=5, use_feat_bank=True, appearance_dim=3, **kw)._offset
-    other = train_reference_model(images, cams, pts, seed=6, **kw)._offset
+    plain = train_reference_model(images, cams, pts, seed=5, **kw)._offset.detach()
+    extra = train_reference_model(images, cams, pts, seed=5, use_feat_bank=True, appearance_dim=3, **kw)._offset.detach()
+    other = train_reference_model(images, cams, pts, seed=6, **kw)._offset.detach()
     assert torch.equal(plain, extra) and not torch.equal(plain, other)
     assert float(plain.min()) >= -0.5 and float(plain.max()) < 0.5
     assert float(plain.min()) < -0.45 and float(plain.max()) > 0.45 and abs(float(plain.mean())) < 0.05
