@@ -368,12 +368,14 @@ def test_train_refusals_before_any_loading(capsys, tmp_path, monkeypatch):
     assert _err(capsys, "train") == "give both --model MODEL_DIR and --data DATA_DIR (or neither, for the built-in scene)"
 
 
-def test_scene_export_writes_every_view(tmp_path, capsys):
+def test_scene_export_writes_every_view(tmp_path, capsys, monkeypatch):
     import matplotlib.image
 
     from controlgs_adapter.scene import load_builtin_scene
 
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # the export renders through the scene cache
     assert cli.main(["scene", "export", "--resolution", "16", "--out", str(tmp_path)]) == 0
+    assert len(list((tmp_path / "cache" / "controlgs-adapter" / "scene").iterdir())) == 1
     scene = load_builtin_scene("ar", 16, cache=True)
     n_train, n_test = len(scene.train_images), len(scene.test_images)
     assert capsys.readouterr().out.strip().endswith(f"{n_train} train and {n_test} test views written to {tmp_path}")
