@@ -41,7 +41,7 @@ class LossWeights:
 
 def image_loss(pred: torch.Tensor, target: torch.Tensor, weights: LossWeights = LossWeights()) -> torch.Tensor:
     """Scalar loss between sRGB images ``pred, target`` ``[..., 3, H, W]`` (averaged over the batch)."""
-    check_image_pair(pred, target)
+    check_image_pair(pred, target, names=("pred", "target"))
     diff = pred - target
     loss = weights.l1 * diff.abs().mean() + weights.mse * diff.square().mean()
     if weights.ssim:

@@ -25,11 +25,12 @@ __all__ = ["psnr", "ssim", "flip", "FLIP_PPD", "gaussian_window", "check_image_p
 FLIP_PPD = 0.7 * (3840 / 0.7) * math.pi / 180.0
 
 
-def check_image_pair(x: torch.Tensor, y: torch.Tensor) -> None:
-    check_image("x", x)
-    check_image("y", y)
+def check_image_pair(x: torch.Tensor, y: torch.Tensor, names: tuple[str, str] = ("x", "y")) -> None:
+    """Two images ``[..., 3, H, W]`` of one shape; errors name them ``names``."""
+    check_image(names[0], x)
+    check_image(names[1], y)
     if x.shape != y.shape:
-        raise ShapeError(f"x and y must have the same shape, got {list(x.shape)} and {list(y.shape)}")
+        raise ShapeError(f"{names[0]} and {names[1]} must have the same shape, got {list(x.shape)} and {list(y.shape)}")
 
 
 def psnr(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0) -> torch.Tensor:

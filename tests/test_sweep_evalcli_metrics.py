@@ -348,3 +348,13 @@ def test_load_lpips_merges_files_and_finds_the_package_head(tmp_path: Path):
     assert not torch.equal(alone.lin0, net.lin0)
     # a file with a head keeps its own head
     assert torch.equal(load_lpips([tmp_path / "head.safetensors", tmp_path / "alex.pth"]).lin3, w["lin3"])
+
+
+def test_image_loss_checks_name_pred_and_target_in_order():
+    from controlgs_adapter.errors import ShapeError as _ShapeError
+    from controlgs_adapter.losses import image_loss
+
+    with pytest.raises(_ShapeError, match=r"pred and target must have the same shape, got \[3, 4, 4\] and \[3, 4, 5\]"):
+        image_loss(torch.rand(3, 4, 4), torch.rand(3, 4, 5))
+    with pytest.raises(_ShapeError, match="target"):
+        image_loss(torch.rand(3, 4, 4), torch.rand(2, 4, 4))
