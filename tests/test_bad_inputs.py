@@ -478,6 +478,8 @@ CKPT_CASES = [
     ("param_groups []", {"header": {"param_groups": []}}, "param_groups"),
     ("param_groups wrong params", {"header": {"param_groups": [{"params": [7, 8], "lr": 0.003}]}}, "param_groups"),
     ("param_groups a string", {"header": {"param_groups": "x"}}, "param_groups"),
+    ("param_groups of numbers", {"header": {"param_groups": [1]}}, "param_groups"),
+    ("param_groups without params", {"header": {"param_groups": [{"lr": 0.003}]}}, "param_groups"),
     ("iteration 'x'", {"header": {"iteration": "x"}}, "iteration"),
     ("iteration -1", {"header": {"iteration": -1}}, "iteration"),
     ("iteration missing", {"drop": ("iteration",)}, "iteration"),

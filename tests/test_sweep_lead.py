@@ -49,3 +49,13 @@ def test_scene_help_names_its_actions(capsys):
     assert e.value.code == 0
     usage = capsys.readouterr().out.split("\n\n")[0]
     assert usage.split() == ["usage:", "controlgs", "scene", "[-h]", "ACTION", "..."]
+
+
+def test_yaml_scalars_survive_bytes_that_are_not_utf8(tmp_path):
+    """Octree-AnyGS configs are read as text with undecodable bytes replaced (a Latin-1 comment or
+    path), not refused with a UnicodeDecodeError."""
+    from controlgs_adapter.formats.backbone import read_yaml_scalars
+
+    path = tmp_path / "config.yaml"
+    path.write_bytes(b"# caf\xe9 scene\nmodel:\n  voxel_size: 0.01  # m\xe9tres\n  name: sc\xe8ne\n")
+    assert read_yaml_scalars(path) == {"voxel_size": [0.01], "name": ["sc\ufffdne"]}
