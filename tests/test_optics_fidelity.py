@@ -15,6 +15,7 @@ from controlgs_adapter.downstream.optics.operators import psf_distortion, psf_ex
 from controlgs_adapter.downstream.optics.stage import PSFOptics, psf_optics
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.state import RuntimeState
+from _pupil import aim_rays
 
 D64 = torch.float64
 OPS = {"distortion": psf_distortion, "exact": psf_exact, "fast": lambda x, rb: psf_fast(x, rb, tol=0.05, zone=5)}
@@ -259,7 +260,7 @@ def test_bank_psf_centroid_matches_a_trace_aimed_uniformly_over_the_pupil():
     mean crossing of the virtual image plane relative to the chief ray. Uniform launch slopes gave
     1.20 px at 1024 px; the pupil-uniform value is 0.94 px."""
     from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
-    from controlgs_adapter.downstream.optics.raytrace import chief_ray, real_magnification, trace
+    from controlgs_adapter.downstream.optics.raytrace import chief_ray, real_magnification
 
     bank = PSFBank.default()
     rx = Prescription(CARDBOARD)
@@ -273,17 +274,7 @@ def test_bank_psf_centroid_matches_a_trace_aimed_uniformly_over_the_pupil():
     PX, PY = np.meshgrid(g, g)
     inside = PX ** 2 + PY ** 2 <= 1
     tx, ty = PX[inside] * rx.pupil_radius, PY[inside] * rx.pupil_radius
-    u, v = np.zeros_like(tx), np.full_like(tx, v0[0])
-    eps = 1e-7
-    for _ in range(8):                                                         # Newton per pupil point
-        xp, yp, _, _, _ = trace(rx, lam, 0.0, r, u, v)
-        xu, yu, _, _, _ = trace(rx, lam, 0.0, r, u + eps, v)
-        xv, yv, _, _, _ = trace(rx, lam, 0.0, r, u, v + eps)
-        a, b, c, d = (xu - xp) / eps, (xv - xp) / eps, (yu - yp) / eps, (yv - yp) / eps
-        ex, ey = tx - xp, ty - yp
-        det = a * d - b * c
-        u, v = u + (d * ex - b * ey) / det, v + (a * ey - c * ex) / det
-    xp, yp, _, Y, ok = trace(rx, lam, 0.0, r, u, v)
+    xp, yp, _, Y, ok = aim_rays(rx, lam, r, v0[0], tx, ty, 8)                 # Newton per pupil point
     assert ok.all() and np.abs(xp - tx).max() < 1e-9 and np.abs(yp - ty).max() < 1e-9
     px_per_mm = 1024 / 24
     want = (Y - Y0[0]).mean() / real_magnification(rx, rx.reference_wavelength) * px_per_mm   # radial, px at 1024

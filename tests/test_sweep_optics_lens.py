@@ -12,6 +12,7 @@ from controlgs_adapter.downstream.optics.generate import build_bank, lens_figure
 from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription, cauchy_index
 from controlgs_adapter.downstream.optics.raytrace import chief_ray, paraxial, real_magnification, trace
 from controlgs_adapter.errors import InputValueError
+from _pupil import aim_rays
 
 D64 = torch.float64
 
@@ -292,17 +293,7 @@ def test_small_bank_psf_orientation_and_coma_centroid(small_bank):
     PX, PY = np.meshgrid(g, g)
     inside = PX ** 2 + PY ** 2 <= 1
     tx, ty = PX[inside] * 2.0, PY[inside] * 2.0
-    u, v = np.zeros_like(tx), np.full_like(tx, v0[0])
-    eps = 1e-7
-    for _ in range(8):
-        xp, yp, _, _, _ = trace(rx, lam, 0.0, r, u, v)
-        xu, yu, _, _, _ = trace(rx, lam, 0.0, r, u + eps, v)
-        xv, yv, _, _, _ = trace(rx, lam, 0.0, r, u, v + eps)
-        a, bb, c, d = (xu - xp) / eps, (xv - xp) / eps, (yu - yp) / eps, (yv - yp) / eps
-        ex, ey = tx - xp, ty - yp
-        det = a * d - bb * c
-        u, v = u + (d * ex - bb * ey) / det, v + (a * ey - c * ex) / det
-    _, _, X, Y, ok = trace(rx, lam, 0.0, r, u, v)
+    _, _, X, Y, ok = aim_rays(rx, lam, r, v0[0], tx, ty, 8)
     assert ok.all()
     m = real_magnification(rx, 550.0)
     want = (Y - Y0[0]).mean() / m                                              # display-equivalent mm, radial
@@ -365,17 +356,7 @@ def _aimed_at_pupil_grid(rx, lam, r, n=64):
     PX, PY = np.meshgrid(g, g)
     inside = PX ** 2 + PY ** 2 <= 1
     tx, ty = PX[inside] * rx.pupil_radius, PY[inside] * rx.pupil_radius
-    u, v = np.zeros_like(tx), np.full_like(tx, v0[0])
-    eps = 1e-7
-    for _ in range(10):
-        xp, yp, _, _, _ = trace(rx, lam, 0.0, r, u, v)
-        xu, yu, _, _, _ = trace(rx, lam, 0.0, r, u + eps, v)
-        xv, yv, _, _, _ = trace(rx, lam, 0.0, r, u, v + eps)
-        a, bb, c, d = (xu - xp) / eps, (xv - xp) / eps, (yu - yp) / eps, (yv - yp) / eps
-        ex, ey = tx - xp, ty - yp
-        det = a * d - bb * c
-        u, v = u + (d * ex - bb * ey) / det, v + (a * ey - c * ex) / det
-    xp, yp, X, Y, ok = trace(rx, lam, 0.0, r, u, v)
+    xp, yp, X, Y, ok = aim_rays(rx, lam, r, v0[0], tx, ty, 10)
     assert np.abs(xp - tx).max() < 1e-9 and np.abs(yp - ty).max() < 1e-9
     return X, Y, ok
 

@@ -16,7 +16,6 @@ from typing import Any
 import pytest
 import torch
 
-from controlgs_adapter import ControlGS
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.state import Camera
 from controlgs_adapter.viewer import STAGES, OPTICS_MODES, ViewerSession, ViewState, make_server, parse_state
@@ -24,6 +23,7 @@ from controlgs_adapter.viewer import server as vs_server
 from controlgs_adapter.viewer import session as vs
 from controlgs_adapter.viewer.server import LOOPBACK, MAX_BODY, STATIC_FILES
 from controlgs_adapter.viewer.session import _Cache, _shared_copy, heat_overlay, orbit_camera, scene_centre
+from test_viewer import random_adapter
 
 SIZE = 16
 
@@ -238,16 +238,6 @@ def test_shared_copy_shares_tensors_not_modules() -> None:
 
 
 # ---------------------------------------------------------------- the session
-def _random_adapter(model: Any, path: Any, **kw: Any) -> Any:
-    cgs = ControlGS.wrap(model, **kw)
-    g = torch.Generator().manual_seed(3)
-    with torch.no_grad():
-        cgs.injector.conditions.copy_(torch.randn(cgs.injector.conditions.shape, generator=g) * 0.5)
-    cgs.save(path)
-    cgs.unwrap()
-    return path
-
-
 @pytest.fixture(scope="module")
 def small(tmp_path_factory: pytest.TempPathFactory) -> Any:
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene, render_planes
@@ -255,9 +245,9 @@ def small(tmp_path_factory: pytest.TempPathFactory) -> Any:
     scene = load_builtin_scene("ar", SIZE, views=4, test_every=4, samples=1)
     model = load_builtin_backbone("ar")
     d = tmp_path_factory.mktemp("viewer-sweep")
-    adapters = {"controlgs": _random_adapter(model, d / "a.controlgs.safetensors"),
-                "blind": _random_adapter(model, d / "b.controlgs.safetensors", state_blind=True),
-                "fov": _random_adapter(model, d / "f.controlgs.safetensors", modules=("foveation", "display"))}
+    adapters = {"controlgs": random_adapter(model, d / "a.controlgs.safetensors", 3),
+                "blind": random_adapter(model, d / "b.controlgs.safetensors", 3, state_blind=True),
+                "fov": random_adapter(model, d / "f.controlgs.safetensors", 3, modules=("foveation", "display"))}
     session = ViewerSession(model, scene.views("test"), adapters, name="tiny",
                             truth=lambda cam: render_planes(scene.planes, cam, samples=1)[0].float())
     return session, scene

@@ -24,9 +24,10 @@ from controlgs_adapter.viewer.session import orbit_camera, scene_centre
 SIZE = 48
 
 
-def random_adapter(model: Any, path: Any, seed: int = 0) -> Any:
-    """An adapter with random conditions (ControlGS then differs from the SS-backbone)."""
-    cgs = ControlGS.wrap(model)
+def random_adapter(model: Any, path: Any, seed: int = 0, **wrap: Any) -> Any:
+    """An adapter with random conditions (ControlGS then differs from the SS-backbone); ``wrap``:
+    :meth:`ControlGS.wrap`'s options."""
+    cgs = ControlGS.wrap(model, **wrap)
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         cgs.injector.conditions.copy_(torch.randn(cgs.injector.conditions.shape, generator=g) * 0.5)
