@@ -278,12 +278,20 @@ def _sources(targets: list[str]) -> list[str]:
     return list(files)
 
 
+def _line_range(text: str) -> tuple[int, int]:
+    """``A-B`` -> ``(A, B)`` (argparse type: a malformed range is a usage error)."""
+    a, sep, b = text.partition("-")
+    if not (sep and a.isdigit() and b.isdigit() and int(a) <= int(b)):
+        raise argparse.ArgumentTypeError(f"expected A-B with A <= B, got {text!r}")
+    return int(a), int(b)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("targets", nargs="+", help="source files or folders (repository-relative)")
     ap.add_argument("--sample", type=int, default=20, help="lines sampled over all targets (one mutant each)")
     ap.add_argument("--all", action="store_true", help="every mutant of every line instead of a sample")
-    ap.add_argument("--lines", help="only lines A-B (one target file)")
+    ap.add_argument("--lines", type=_line_range, help="only lines A-B (one target file)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-tests", type=int, default=40, help="tests run first (their whole files for a survivor)")
     ap.add_argument("--also", nargs="*", default=[], help="test files run for every mutant (tests newer than the coverage data)")
@@ -302,7 +310,7 @@ def main() -> None:
         by_line_of[path] = cov.tests_by_line(path)
         for m in mutants_of(path):
             if args.lines:
-                a, b = map(int, args.lines.split("-"))
+                a, b = args.lines
                 if not a <= m.line <= b:
                     continue
             pool.setdefault((m.path, m.line), []).append(m)

@@ -107,3 +107,9 @@ def test_resample_to_names_the_device_as_tensors_report_it():
     assert rb is bank.resample_to(12, 12, device="cpu", dtype=torch.float64)
     x = torch.rand(bank.num_wavelengths, 12, 12, dtype=torch.float64)
     torch.testing.assert_close(psf_exact(x, rb), psf_exact(x, bank.resample_to(12, 12, dtype=torch.float64)))
+
+
+@pytest.mark.parametrize("device", ["banana", 3.5])
+def test_resample_to_refuses_a_device_that_is_not_one(device):
+    with pytest.raises(InputValueError, match=rf"resample_to: device {device!r} is not a usable torch device here"):
+        tiny_bank().resample_to(12, 12, device=device)

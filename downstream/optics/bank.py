@@ -218,7 +218,10 @@ class PSFBank:
         if radiometry not in RADIOMETRIES:
             raise InputValueError(f"radiometry must be one of {RADIOMETRIES}, got {radiometry!r}")
         region = image_region(height, width, self.display_mm, placement)
-        device = torch.empty(0, device=device).device  # as tensors report it: "cuda" -> cuda:0, "cpu:0" -> cpu
+        try:  # the device as tensors report it: "cuda" -> cuda:0, "cpu:0" -> cpu
+            device = torch.empty(0, device=device).device
+        except (RuntimeError, TypeError, AssertionError) as e:  # unknown name, not a device, not built in
+            raise InputValueError(f"resample_to: device {device!r} is not a usable torch device here ({e})") from None
         key = (height, width, placement, radiometry, str(device), dtype)
         if key not in self._cache:
             self._cache[key] = ResampledBank(self, height, width, region, device=device, dtype=dtype,
