@@ -17,6 +17,11 @@ import or in a subprocess); when there are none it is reported UNCOVERED. Tests 
 (committed code only: commit the tests first), at most ``--max-tests`` of them first and, for a survivor,
 every test file that holds one of them. A run past ``--timeout`` is reported
 ``timeout`` and not counted as caught. The sample's first run is the honest figure (docs/testing.md).
+
+Outside a git checkout (a copy of the tree on another machine) the working tree stands for HEAD and is
+copied instead of checked out; ``--shard I/N`` runs every N-th chosen mutant from the I-th (parallel runs
+of one sample), and ``--deselect FILE`` leaves out the test ids and test files listed in FILE (tests that fail
+there without any mutant, files that do not import there), so that a failure is always the mutant's.
 """
 
 from __future__ import annotations
@@ -24,8 +29,10 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import os
 import random
 import re
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -97,10 +104,15 @@ def _skipped_ids(tree: ast.AST) -> set[int]:
     return skip
 
 
-def mutants_of(path: str) -> list[Mutant]:
-    """Every mutant of one source file (repository-relative ``path``, as committed at HEAD: the tests run
-    in a worktree of HEAD) that still compiles."""
-    src = subprocess.run(["git", "show", f"HEAD:{path}"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
+def _in_git() -> bool:
+    return subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True).returncode == 0
+
+
+def mutants_of(path: str, git: bool = True) -> list[Mutant]:
+    """Every mutant of one source file (repository-relative ``path``, as committed at HEAD, or as in the
+    working tree when ``git`` is false: the tests run in a copy of the same state) that still compiles."""
+    src = (subprocess.run(["git", "show", f"HEAD:{path}"], cwd=ROOT, check=True, capture_output=True,
+                          text=True).stdout if git else (ROOT / path).read_text())
     lines = src.splitlines(keepends=True)
     tree = ast.parse(src)
     skip = _skipped_ids(tree)
@@ -179,31 +191,39 @@ def mutants_of(path: str) -> list[Mutant]:
     return good
 
 
+def _numbits_to_lines(bits: bytes) -> list[int]:
+    """coverage.py's numbits (bit ``k`` of byte ``j``: line ``8 j + k`` ran) as line numbers."""
+    return [8 * j + k for j, byte in enumerate(bits) for k in range(8) if byte >> k & 1]
+
+
 class Coverage:
-    """Tests per executed line, read from a coverage data file recorded with per-test contexts."""
+    """Tests per executed line, read from a coverage data file recorded with per-test contexts (its file
+    paths are taken relative to the folder that held them all, so the data serves a copy of the tree)."""
 
     def __init__(self, data_file: Path) -> None:
         if not data_file.exists():
             raise SystemExit(f"no coverage data at {data_file}: record it first (see this script's docstring)")
         self.db = sqlite3.connect(str(data_file))
         self.contexts = dict(self.db.execute("select id, context from context"))
-        self.files = dict(self.db.execute("select path, id from file"))
-        from coverage.numbits import numbits_to_nums
-
+        recorded = dict(self.db.execute("select path, id from file"))
+        root = os.path.commonpath([str(Path(p).parent) for p in recorded]) if recorded else ""
+        parts = [Path(p).relative_to(root).parts for p in recorded]
+        if parts and all(len(q) > 1 for q in parts) and len({q[0] for q in parts}) == 1 \
+                and not (ROOT / parts[0][0]).is_dir():  # one top folder shared by every recorded file
+            root = os.path.dirname(root)
+        self.files = {str(ROOT / Path(p).relative_to(root)): i for p, i in recorded.items()}
         self.size: dict[str, int] = {}  # lines each test executes: focused (fast) tests are run first
         for ctx, bits in self.db.execute("select context_id, numbits from line_bits"):
             name = self.contexts[ctx]
-            self.size[name] = self.size.get(name, 0) + len(numbits_to_nums(bits))
+            self.size[name] = self.size.get(name, 0) + len(_numbits_to_lines(bits))
 
     def tests_by_line(self, path: str) -> dict[int, set[str]]:
         fid = self.files.get(str(ROOT / path))
         by_line: dict[int, set[str]] = {}
         if fid is None:
             return by_line
-        from coverage.numbits import numbits_to_nums
-
         for ctx, bits in self.db.execute("select context_id, numbits from line_bits where file_id = ?", (fid,)):
-            for ln in numbits_to_nums(bits):
+            for ln in _numbits_to_lines(bits):
                 by_line.setdefault(ln, set()).add(self.contexts[ctx])
         return by_line
 
@@ -236,24 +256,26 @@ def _tests_for(m: Mutant, by_line: dict[int, set[str]], size: dict[str, int]) ->
     return [str(f.relative_to(ROOT)) for f in files[:6]]
 
 
-def _run(worktree: Path, m: Mutant, tests: list[str], timeout: float) -> tuple[str, str]:
+def _run(worktree: Path, m: Mutant, tests: list[str], timeout: float, deselect: list[str]) -> tuple[str, str]:
     """Apply ``m`` in ``worktree``, run ``tests`` (those whose file is in HEAD), restore:
     (``caught`` / ``MISSED`` / ``timeout``, the first failure or pytest's last line)."""
-    tests = [t for t in tests if (worktree / t.split("::")[0]).exists()]
+    tests = [t for t in tests if (worktree / t.split("::")[0]).exists() and t.split("::")[0] not in deselect]
     if not tests:
         return "MISSED", "none of its tests is in HEAD"
     target = worktree / m.path
     original = target.read_text()
     lines = original.splitlines(keepends=True)
     target.write_text("".join(lines[: m.line - 1]) + m.new + "".join(lines[m.end:]))
-    boot = ("import sys, pytest, __editable___controlgs_adapter_0_1_0_finder as f; "
-            f"f.MAPPING.update({{'controlgs_adapter': {str(worktree / 'controlgs_adapter')!r}, "
+    boot = ("import sys, pytest\ntry:\n import __editable___controlgs_adapter_0_1_0_finder as f\n"
+            f" f.MAPPING.update({{'controlgs_adapter': {str(worktree / 'controlgs_adapter')!r}, "
             f"'controlgs_adapter.backends': {str(worktree / 'backends')!r}, "
-            f"'controlgs_adapter.downstream': {str(worktree / 'downstream')!r}}}); "
+            f"'controlgs_adapter.downstream': {str(worktree / 'downstream')!r}}})\n"
+            f"except ImportError:\n sys.path.insert(0, {str(worktree)!r})\n"
             "sys.exit(pytest.main(sys.argv[1:]))")
+    skip = [a for t in deselect if "::" in t for a in ("--deselect", t)]  # whole files: left out above
     try:
         for attempt in (tests, sorted({t.split("::")[0] for t in tests})):
-            proc = subprocess.run([sys.executable, "-c", boot, "-x", "-q", "-rf", "-p", "no:cacheprovider", *attempt],
+            proc = subprocess.run([sys.executable, "-c", boot, "-x", "-q", "-rf", "-p", "no:cacheprovider", *skip, *attempt],
                                   cwd=worktree, capture_output=True, text=True, timeout=timeout)
             if proc.returncode != 4:  # 4: a node id renamed since the coverage record: run whole files
                 break
@@ -286,6 +308,14 @@ def _line_range(text: str) -> tuple[int, int]:
     return int(a), int(b)
 
 
+def _shard(text: str) -> tuple[int, int]:
+    """``I/N`` -> ``(I, N)`` with 0 <= I < N (argparse type)."""
+    i, sep, n = text.partition("/")
+    if not (sep and i.isdigit() and n.isdigit() and int(i) < int(n)):
+        raise argparse.ArgumentTypeError(f"expected I/N with 0 <= I < N, got {text!r}")
+    return int(i), int(n)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("targets", nargs="+", help="source files or folders (repository-relative)")
@@ -299,8 +329,12 @@ def main() -> None:
     ap.add_argument("--worktree", help="where the worktree of HEAD goes (default: a new temporary folder)")
     ap.add_argument("--timeout", type=float, default=600.0)
     ap.add_argument("--list", action="store_true", help="only list the chosen mutants")
-    ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--json", help="write the results here (rewritten after every mutant)")
+    ap.add_argument("--shard", type=_shard, default=(0, 1), help="I/N: every N-th chosen mutant from the I-th")
+    ap.add_argument("--deselect", help="a file of test ids or test files (one a line) left out of every run")
     args = ap.parse_args()
+    git = _in_git()
+    deselect = Path(args.deselect).read_text().split() if args.deselect else []
     cov = Coverage(Path(args.coverage))
     rng = random.Random(args.seed)
     chosen: list[Mutant] = []
@@ -308,7 +342,7 @@ def main() -> None:
     pool: dict[tuple[str, int], list[Mutant]] = {}
     for path in _sources(args.targets):
         by_line_of[path] = cov.tests_by_line(path)
-        for m in mutants_of(path):
+        for m in mutants_of(path, git):
             if args.lines:
                 a, b = args.lines
                 if not a <= m.line <= b:
@@ -320,13 +354,17 @@ def main() -> None:
         keys = sorted(pool)
         for key in rng.sample(keys, min(args.sample, len(keys))):
             chosen.append(rng.choice(pool[key]))
-    chosen.sort(key=lambda m: (m.path, m.line))
+    chosen = chosen[args.shard[0]::args.shard[1]]  # in the sample's random order: a partial run is a sample too
     if args.list:
-        for m in chosen:
+        for m in sorted(chosen, key=lambda m: (m.path, m.line)):
             print(f"{m.path}:{m.line}  {m.what}\n    {m.new.strip()}")
         return
     worktree = Path(args.worktree or tempfile.mkdtemp(prefix="sweep-")) / "tree"
-    subprocess.run(["git", "worktree", "add", "--detach", str(worktree), "HEAD"], cwd=ROOT, check=True, capture_output=True)
+    if git:
+        subprocess.run(["git", "worktree", "add", "--detach", str(worktree), "HEAD"], cwd=ROOT, check=True,
+                       capture_output=True)
+    else:
+        shutil.copytree(ROOT, worktree, symlinks=True, ignore=shutil.ignore_patterns(".venv", ".git", "__pycache__"))
     results = []
     try:
         for m in chosen:
@@ -335,19 +373,22 @@ def main() -> None:
             if not tests:
                 verdict, tail = "UNCOVERED", "no test executes this line"
             else:
-                verdict, tail = _run(worktree, m, tests[: args.max_tests], args.timeout)
+                verdict, tail = _run(worktree, m, tests[: args.max_tests], args.timeout, deselect)
                 if verdict == "MISSED":  # whole files: fixtures' lines are recorded under a neighbouring test's name
-                    verdict, tail = _run(worktree, m, sorted({t.split("::")[0] for t in tests}), args.timeout)
+                    verdict, tail = _run(worktree, m, sorted({t.split("::")[0] for t in tests}), args.timeout, deselect)
             results.append({**asdict(m), "verdict": verdict, "tests": len(tests), "by": tail})
             print(f"{verdict:9s} {time.perf_counter() - t0:6.1f}s {m.path}:{m.line}  {m.what}  [{tail}]\n"
                   f"          {m.new.strip()}", flush=True)
+            if args.json:
+                Path(args.json).write_text(json.dumps(results, indent=1))
     finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, check=False)
+        if git:
+            subprocess.run(["git", "worktree", "remove", "--force", str(worktree)], cwd=ROOT, check=False)
+        else:
+            shutil.rmtree(worktree.parent, ignore_errors=True)
     n = sum(r["verdict"] == "caught" for r in results)
     slow = sum(r["verdict"] == "timeout" for r in results)
     print(f"caught {n}/{len(results)}" + (f" ({slow} without a verdict in {args.timeout:g} s)" if slow else ""))
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1))
 
 
 if __name__ == "__main__":
