@@ -279,7 +279,9 @@ def test_zero_opacity_adds_nothing(seed: int, n: int, extra: int) -> None:
     ghosts[3] = torch.zeros_like(ghosts[3])
     both = [torch.cat([a, b]) for a, b in zip(scene, ghosts)]
     bg = torch.tensor([0.3, 0.6, 0.1], dtype=F64)
-    torch.testing.assert_close(_stack(rasterize(*both, cam, bg)), _stack(rasterize(*scene, cam, bg)), rtol=0, atol=0)
+    # equal up to float64 summation order: other torch builds (2.11 with CUDA, measured on the GPU machine)
+    # vectorise the longer sums differently, 1.3e-15 apart
+    torch.testing.assert_close(_stack(rasterize(*both, cam, bg)), _stack(rasterize(*scene, cam, bg)), rtol=0, atol=1e-13)
 
 
 @settings(max_examples=15, deadline=None)
