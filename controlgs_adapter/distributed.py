@@ -2,8 +2,10 @@
 
 Launch the unchanged ``controlgs train`` command with ``torchrun``; :func:`init_distributed`
 reads torchrun's environment (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR``,
-``MASTER_PORT``) and joins the process group (gloo on CPU, NCCL on GPU) with a timeout, so a
-process that dies makes the others fail with :class:`DistributedError` instead of hanging.
+``MASTER_PORT``) and joins the process group with a timeout, so a process that dies makes the
+others fail with :class:`DistributedError` instead of hanging. The backend follows the training
+device (:func:`default_backend`): NCCL with one GPU per process (``cuda:<LOCAL_RANK>``) for
+``--device cuda``, gloo on the CPU otherwise.
 
 Every process (rank) holds a full replica of the adapter. Per step:
 
@@ -48,8 +50,8 @@ from torch import nn
 
 from .errors import ControlGSError, InputValueError
 
-__all__ = ["DistributedError", "CommStats", "DistContext", "init_distributed", "shard_scenes", "EXCHANGES",
-           "DEFAULT_TIMEOUT_S"]
+__all__ = ["DistributedError", "CommStats", "DistContext", "init_distributed", "default_backend", "shard_scenes",
+           "EXCHANGES", "DEFAULT_TIMEOUT_S"]
 
 T = TypeVar("T")
 
@@ -104,7 +106,8 @@ class DistContext:
     Attributes:
         rank, world_size, local_rank: torchrun's ``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``.
         backend: ``"gloo"`` or ``"nccl"`` (None for a single process).
-        device: where this rank computes (``cuda:<local_rank>`` with NCCL, else CPU).
+        device: where this rank computes: ``cuda:<local_rank>`` with NCCL, the CPU with gloo; in a
+            single process the device :func:`init_distributed` was given (default CPU).
         exchange: how row-sparse gradients travel (one of :data:`EXCHANGES`).
         stats: :class:`CommStats` of the gradient exchanges so far.
         last_checkpoint: ``(path, iteration)`` of the last checkpoint written (by rank 0), for
@@ -339,50 +342,89 @@ class DistContext:
         return float(buf[-1])
 
 
-def init_distributed(backend: str | None = None, *, timeout: float = DEFAULT_TIMEOUT_S, exchange: str = EXCHANGES[0]) -> DistContext:
+def default_backend(device: str | torch.device | None) -> str:
+    """The process-group backend that fits the training ``device``: ``"nccl"`` for a CUDA device,
+    ``"gloo"`` otherwise (CPU, or ``None``: a caller that names no device trains on CPU; whether
+    CUDA is installed does not matter)."""
+    return "nccl" if device is not None and torch.device(device).type == "cuda" else "gloo"
+
+
+def _as_device(device: str | torch.device | None) -> torch.device | None:
+    if device is None or isinstance(device, torch.device):
+        return device
+    try:
+        return torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise InputValueError(f"device {device!r} is not a torch device: {e}") from None
+
+
+def _rank_device(backend: str, device: torch.device | None, local_rank: int) -> torch.device:
+    """Where this rank computes: ``cuda:<local_rank>`` with NCCL, the CPU with gloo; a ``device``
+    of the other kind is refused (NCCL moves CUDA tensors only; gloo ranks train on the CPU)."""
+    if device is not None and (device.type == "cuda") != (backend == "nccl"):
+        fix = ("NCCL moves CUDA tensors only: pass a CUDA device (--device cuda) or use gloo (the default on CPU)"
+               if backend == "nccl" else
+               "gloo ranks train on the CPU: pass --device cpu, or leave the backend to the default (nccl with CUDA)")
+        raise InputValueError(f"backend {backend!r} does not fit device {str(device)!r}: {fix}")
+    return torch.device("cuda", local_rank) if backend == "nccl" else torch.device("cpu")
+
+
+def init_distributed(backend: str | None = None, *, device: str | torch.device | None = None,
+                     timeout: float = DEFAULT_TIMEOUT_S, exchange: str = EXCHANGES[0]) -> DistContext:
     """The :class:`DistContext` of this process, joining torchrun's process group if launched by it.
 
-    Without torchrun's environment (``WORLD_SIZE`` unset or 1) this is a single process and no
-    group is created. Otherwise the group is initialised from the environment (``env://``) with
-    ``backend`` (default: ``"nccl"`` when CUDA is available, else ``"gloo"``; with NCCL this rank
-    uses ``cuda:<LOCAL_RANK>``) and ``timeout`` seconds for every collective.
+    Without torchrun's environment (``WORLD_SIZE`` unset or 1) this is a single process, no group
+    is created and the context's device is ``device`` (the CPU when None). Otherwise the group is
+    initialised from the environment (``env://``) with ``timeout`` seconds for every collective and
+    ``backend`` (default :func:`default_backend` of ``device``: ``"nccl"`` for a CUDA device,
+    ``"gloo"`` for the CPU or ``None``). With NCCL this rank computes on ``cuda:<LOCAL_RANK>``
+    (the index of a ``device`` such as ``cuda:1`` is not used: every process takes its own GPU),
+    with gloo on the CPU. A group that the caller created already is used as it is.
 
     Raises:
-        DistributedError: torchrun's variables are incomplete, or the group cannot be formed.
+        InputValueError: an unknown backend, exchange or device, a timeout <= 0, or a backend that
+            does not fit ``device`` (``"nccl"`` with a CPU device, ``"gloo"`` with a CUDA one).
+        DistributedError: torchrun's variables are incomplete, NCCL finds no GPU of its own for this
+            process (``LOCAL_RANK`` >= the GPUs visible), or the group cannot be formed.
     """
     if exchange not in EXCHANGES:
         raise InputValueError(f"exchange must be one of {EXCHANGES}, got {exchange!r}")
     if not timeout > 0:
         raise InputValueError(f"timeout must be > 0 seconds, got {timeout!r}")
+    want = _as_device(device)
     env = os.environ
     if dist.is_initialized():  # the caller made the group: use it as it is
         rank, world = dist.get_rank(), dist.get_world_size()
         be = dist.get_backend()
         local = int(env.get("LOCAL_RANK", rank))
-        device = torch.device("cuda", local) if be == "nccl" else torch.device("cpu")
-        return DistContext(rank, world, local, be, device, exchange)
+        return DistContext(rank, world, local, be, _rank_device(be, want, local), exchange)
     if int(env.get("WORLD_SIZE", "1")) <= 1:
-        return DistContext(exchange=exchange)
+        return DistContext(device=want if want is not None else torch.device("cpu"), exchange=exchange)
     missing = [k for k in _TORCHRUN_VARS if k not in env]
     if missing:
         raise DistributedError(f"WORLD_SIZE={env['WORLD_SIZE']} but {missing} are not set: launch with torchrun "
                                "(or set every one of RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR, MASTER_PORT)")
     rank, world, local = int(env["RANK"]), int(env["WORLD_SIZE"]), int(env["LOCAL_RANK"])
     if backend is None:
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        backend = default_backend(want)
     if backend not in ("gloo", "nccl"):
         raise InputValueError(f"backend must be 'gloo' or 'nccl', got {backend!r}")
-    device = torch.device("cpu")
+    rank_device = _rank_device(backend, want, local)
     if backend == "nccl":
-        device = torch.device("cuda", local)
-        torch.cuda.set_device(device)
+        gpus = torch.cuda.device_count()
+        if local >= gpus:
+            fewer = f"start at most {gpus} process(es) per node (torchrun --nproc-per-node {gpus}), or " if gpus else ""
+            raise DistributedError(
+                f"rank {rank} of {world}: NCCL needs one GPU per process, but this is process LOCAL_RANK={local} of "
+                f"its node and this machine has {gpus} GPU(s) visible; {fewer}train on the CPU with gloo (--device cpu)")
+        torch.cuda.set_device(rank_device)
     try:
         dist.init_process_group(backend, rank=rank, world_size=world, timeout=timedelta(seconds=float(timeout)),
-                                device_id=device if backend == "nccl" else None)
+                                device_id=rank_device if backend == "nccl" else None)
     except (RuntimeError, ValueError) as e:
         raise DistributedError(f"rank {rank} of {world}: could not join the process group at "
                                f"{env['MASTER_ADDR']}:{env['MASTER_PORT']} ({backend}): {e}") from e
-    return DistContext(rank, world, local, backend, device, exchange, _owns_group=True)
+    return DistContext(rank, world, local, backend, rank_device, exchange, _owns_group=True)
 
 
 def shard_scenes(scenes: Sequence[str], ctx: DistContext) -> list[str]:

@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=60.0)
     p.add_argument("--exchange", default="auto")
     args = p.parse_args(argv)
-    with init_distributed(timeout=args.timeout, exchange=args.exchange) as ctx:
+    with init_distributed(device="cpu", timeout=args.timeout, exchange=args.exchange) as ctx:  # trains on CPU
         trainer = make_trainer(args.fixture, args.iterations, args.batch, args.checkpoint, ctx)
         trainer.resume()
         if args.die_at is not None:

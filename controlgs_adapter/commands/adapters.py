@@ -65,7 +65,7 @@ def add_distributed_arguments(p: argparse.ArgumentParser, scene_choices: Sequenc
                         "the processes (each process trains its scenes alone)"
                         + (f"; one of {', '.join(scene_choices)}" if scene_choices else ""))
     g.add_argument("--dist-backend", choices=("gloo", "nccl"), default=None,
-                   help="process-group backend (default: nccl with CUDA, else gloo)")
+                   help="process-group backend (default: nccl with --device cuda, one GPU per process, else gloo)")
     g.add_argument("--dist-timeout", type=float, default=DEFAULT_TIMEOUT_S,
                    help=f"seconds a collective waits for the other processes before the run fails (default {DEFAULT_TIMEOUT_S:g})")
     g.add_argument("--exchange", choices=EXCHANGES, default=EXCHANGES[0],

@@ -17,7 +17,8 @@ from ..ablations import ABLATIONS
 from ..distributed import DistContext, init_distributed, shard_scenes
 from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters
 from .common import (RUN_FILE, add_data_arguments, add_render_arguments, anchor_positions, cache_bytes, check_line,
-                     check_rasterizer_name, load_user_scene, make_renderer, render_record, user_scene)
+                     check_rasterizer_name, load_user_scene, make_renderer, parse_device, render_record,
+                     user_scene)
 from .demo import add_common, seed_runs
 
 ABLATION_NAMES = tuple(ABLATIONS)
@@ -65,9 +66,10 @@ def _run(args: argparse.Namespace) -> int:
         return _run_user(args, names, out)
     if args.resolution is None:
         args.resolution = DEFAULT_RESOLUTION
-    with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
+    device = parse_device(args.device)
+    with init_distributed(args.dist_backend, device=device, timeout=args.dist_timeout, exchange=args.exchange) as dist:
 
-        def load(variant: str):  # views and backbone on this rank's device (cuda:<LOCAL_RANK> with NCCL)
+        def load(variant: str):  # views and backbone on this rank's device (--device; cuda:<LOCAL_RANK> with NCCL)
             scene = load_builtin_scene(variant, args.resolution, cache=True)
             return scene.views("train"), load_builtin_backbone(variant).to(dist.device)
 
@@ -103,9 +105,9 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
     runs = seed_runs(out, args.seed, args.seeds)
     scene = load_user_scene(args)
     report = check_scene(scene.data, points=anchor_positions(scene.model))
-    with init_distributed(args.dist_backend, timeout=args.dist_timeout, exchange=args.exchange) as dist:
-        if dist.device.type != "cpu":
-            scene.model.to(dist.device)
+    with init_distributed(args.dist_backend, device=scene.device, timeout=args.dist_timeout,
+                          exchange=args.exchange) as dist:
+        scene.model.to(dist.device)  # loaded on --device; under NCCL this rank's own GPU, cuda:<LOCAL_RANK>
         views = scene.data.views("train", resolution=scene.resolution, cache_bytes=cache_bytes(args))
         renderer = make_renderer(args, scene.model)
         if dist.is_main:
