@@ -181,7 +181,7 @@ class NeuralGaussianModel(AnchorModel):
         anchors = (cells * voxel_size).to(torch.float32)  # [A, 3]
         model = cls(anchors.shape[0], feat_dim=feat_dim, n_offsets=n_offsets, voxel_size=voxel_size, **options)
         model._anchor.copy_(anchors)
-        d2 = _knn_sq_dists(anchors.double(), min(3, max(anchors.shape[0] - 1, 1))).mean(1).clamp_min(1e-7)
+        d2 = _knn_sq_dists(anchors.double(), 3).mean(1).clamp_min(1e-7)  # k is capped at A - 1 inside
         if anchors.shape[0] == 1:
             d2 = torch.full_like(d2, voxel_size ** 2)
         model._scaling.copy_(torch.log(torch.sqrt(d2)).float()[:, None].expand(-1, 6))

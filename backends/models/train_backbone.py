@@ -75,6 +75,24 @@ def _lr_at(init: float, final: float, t: float) -> float:
     return math.exp((1.0 - t) * math.log(init) + t * math.log(final)) if final > 0 else init * (1.0 - t)
 
 
+def _param_groups(model: NeuralGaussianModel, extent: float) -> list[tuple[str, list[torch.nn.Parameter], float, float]]:
+    """``(name, parameters, initial lr, final lr)`` of each optimiser group: Scaffold-GS's
+    ``OptimizationParams`` (the offsets' rates scaled by the scene ``extent``, world units)."""
+    groups: list[tuple[str, list[torch.nn.Parameter], float, float]] = [
+        ("offset", [model._offset], 0.01 * extent, 0.0001 * extent),
+        ("feature", [model._anchor_feat], 0.0075, 0.0075),
+        ("scaling", [model._scaling], 0.007, 0.007),
+        ("mlp_opacity", list(model.mlp_opacity.parameters()), 0.002, 0.00002),
+        ("mlp_cov", list(model.mlp_cov.parameters()), 0.004, 0.004),
+        ("mlp_color", list(model.mlp_color.parameters()), 0.008, 0.00005),
+    ]
+    if model.mlp_feature_bank is not None:
+        groups.append(("mlp_featurebank", list(model.mlp_feature_bank.parameters()), 0.01, 0.00001))
+    if model.embedding_appearance is not None:
+        groups.append(("appearance", list(model.embedding_appearance.parameters()), 0.05, 0.0005))
+    return groups
+
+
 def train_reference_model(
     images: torch.Tensor,
     cameras: Sequence[Camera],
@@ -146,18 +164,7 @@ def train_reference_model(
         model._offset.copy_((torch.rand(model._offset.shape, generator=gen) - 0.5).to(device))
     centers = torch.stack([c.center for c in cameras])
     extent = 1.1 * float((centers - centers.mean(0)).norm(dim=1).max().clamp_min(1e-6))  # 3DGS's nerf++ radius
-    groups = [  # name, params, initial lr, final lr (Scaffold-GS OptimizationParams)
-        ("offset", [model._offset], 0.01 * extent, 0.0001 * extent),
-        ("feature", [model._anchor_feat], 0.0075, 0.0075),
-        ("scaling", [model._scaling], 0.007, 0.007),
-        ("mlp_opacity", list(model.mlp_opacity.parameters()), 0.002, 0.00002),
-        ("mlp_cov", list(model.mlp_cov.parameters()), 0.004, 0.004),
-        ("mlp_color", list(model.mlp_color.parameters()), 0.008, 0.00005),
-    ]
-    if model.mlp_feature_bank is not None:
-        groups.append(("mlp_featurebank", list(model.mlp_feature_bank.parameters()), 0.01, 0.00001))
-    if model.embedding_appearance is not None:
-        groups.append(("appearance", list(model.embedding_appearance.parameters()), 0.05, 0.0005))
+    groups = _param_groups(model, extent)
     opt = torch.optim.Adam([{"params": p, "lr": i * lr_scale, "name": n} for n, p, i, _ in groups], eps=1e-15)
     bg = torch.zeros(3, device=device) if background is None else background.to(device, images.dtype)
     model.train()
