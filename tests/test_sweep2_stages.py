@@ -1,0 +1,137 @@
+"""Sweep 2 (issue 15 section 5), downstream stages: behaviours the large mutation sweep found untested.
+
+Frozen ImageRegion, the RadialMap grid cache, the basis= of every LensPrewarp.for_optics path, the PSF
+bank's -1e-3 sign bound at the bound itself, and the chief-ray Newton step clamp (+-0.05 per step)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from controlgs_adapter.downstream.lens import BankMap, LensPrewarp, RadialMap
+from controlgs_adapter.downstream.optics.bank import PSFBank
+from controlgs_adapter.downstream.optics.prescription import Prescription
+from controlgs_adapter.downstream.optics.raytrace import chief_ray
+from controlgs_adapter.downstream.placement import image_region
+from controlgs_adapter.errors import InputValueError
+
+CPU = torch.device("cpu")
+D64 = torch.float64
+
+
+# ----------------------------------------------------------------------------- placement
+
+
+def test_image_region_is_frozen():
+    r = image_region(4, 8)  # fit on the 24 x 24 mm display: the width fills it, half_y = 4 / 8
+    assert (r.half_x, r.half_y) == (1.0, 0.5)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        r.half_x = 0.25  # type: ignore[misc]
+    assert r.half_x == 1.0
+
+
+# ----------------------------------------------------------------------------- RadialMap cache
+
+
+def test_radial_map_caches_fixed_coefficients_and_differentiates_learnable_ones():
+    coef = [[0.1, 0.0], [0.2, 0.0], [0.3, 0.0]]
+    fixed = RadialMap(coef)
+    assert torch.is_grad_enabled()
+    g1, _ = fixed((5, 7), D64, CPU)
+    g2, _ = fixed((5, 7), D64, CPU)
+    assert g1 is g2 and len(fixed._cache) == 1  # fixed coefficients: one grid per key, even with grad on
+    assert g1.grad_fn is None
+    g3, _ = fixed((5, 6), D64, CPU)
+    assert g3 is not g1 and len(fixed._cache) == 1  # another size replaces the entry
+    # grid_c(p) = p (1 + k_c r^2) by hand at the centre-left pixel of a 1 x 3 image: x = -2/3, y = 0
+    # (pixel centres; aspect-corrected r divides x by the larger half-extent 1): R channel 1 + 0.1 * 4/9
+    g, _ = fixed((1, 3), D64, CPU)
+    assert g[0, 0, 0, 0].item() == pytest.approx(-2 / 3 * (1 + 0.1 * 4 / 9), rel=1e-6)
+
+    learned = RadialMap(coef, learnable=True)
+    a, _ = learned((5, 7), D64, CPU)
+    b, _ = learned((5, 7), D64, CPU)
+    assert a is not b and a.grad_fn is not None and not learned._cache  # a graph each call, nothing cached
+    with torch.no_grad():
+        c, _ = learned((5, 7), D64, CPU)
+        d, _ = learned((5, 7), D64, CPU)
+    assert c is d and torch.equal(c, a.detach())  # under no_grad the learnable map caches too
+    with torch.no_grad():
+        learned.coefficients.mul_(2.0)  # an in-place edit bumps the version: a fresh grid
+        e, _ = learned((5, 7), D64, CPU)
+    assert e is not c and not torch.equal(e, c)
+
+
+# ----------------------------------------------------------------------------- for_optics basis
+
+
+class _Optics(torch.nn.Module):
+    def __init__(self, bank: PSFBank, radiometry: str) -> None:
+        super().__init__()
+        self.bank, self.radiometry, self.mode, self.placement = bank, radiometry, "exact", "fit"
+
+
+@pytest.mark.parametrize("basis", ["rgb", "primaries"])
+def test_for_optics_passes_basis_on_every_path(basis):
+    bank = PSFBank.default()
+    optics = _Optics(bank, "no-such-radiometry")  # no shipped LUT for it: the chief-ray fallback
+    with pytest.warns(UserWarning, match="no fitted pre-warp LUT"):
+        fallback = LensPrewarp.for_optics(optics, basis=basis)
+    assert isinstance(fallback.map, BankMap) and fallback.basis == basis
+    chief = LensPrewarp.for_optics(optics, source="chief_rays", basis=basis)
+    assert isinstance(chief.map, BankMap) and chief.basis == basis
+    with pytest.warns(UserWarning, match="no fitted pre-warp LUT"):
+        default = LensPrewarp.for_optics(optics)
+    assert default.basis == "primaries"  # the documented default
+    with pytest.raises(InputValueError, match="basis must be one of .* got 'srgb'"):
+        LensPrewarp.for_optics(optics, source="chief_rays", basis="srgb")  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------- bank sign bound
+
+
+def _bank_args(psf_min: float) -> dict:
+    L, G, K, C = 3, 3, 5, 5
+    g = torch.Generator().manual_seed(0)
+    psf = torch.rand(L, G, G, K, K, dtype=D64, generator=g) + 0.1
+    psf /= psf.sum((-1, -2), keepdim=True)
+    psf[0, 0, 0, 1, 1] += psf[0, 0, 0, 0, 0].item() - psf_min  # the same sum with psf_min at [0, 0]
+    psf[0, 0, 0, 0, 0] = psf_min
+    c = torch.linspace(-1, 1, C, dtype=D64)
+    cy, cx = torch.meshgrid(c, c, indexing="ij")
+    f = -1 + (2 * torch.arange(G, dtype=D64) + 1) / G
+    return dict(psf=psf, psf_pitch_mm=torch.full((L, G, G), 0.1, dtype=D64), field_x=f.clone(), field_y=f.clone(),
+                chief=torch.stack([cx, cy], -1).expand(L, C, C, 2).clone(), chief_x=c.clone(), chief_y=c.clone(),
+                wavelengths_nm=(656.0, 550.0, 486.0), display_mm=(24.0, 24.0))
+
+
+def test_bank_accepts_psf_values_down_to_exactly_minus_1e_3():
+    bank = PSFBank(**_bank_args(-1e-3))  # the bound itself is rounding, accepted
+    assert bank.psf[0, 0, 0, 0, 0].item() == pytest.approx(-1e-3, rel=1e-3)
+    with pytest.raises(InputValueError, match="PSF bank: PSFs must be non-negative, min is -0.0011"):
+        PSFBank(**_bank_args(-1.1e-3))
+
+
+# ----------------------------------------------------------------------------- chief-ray Newton clamp
+
+
+def test_chief_ray_newton_steps_are_clamped_to_0_05():
+    """From the paraxial guess v0 = -h / pupil_z, one Newton step moves the slope by at most 0.05 each
+    way: at h = 16 mm the full step is +0.057 (the converged slope, 40 steps), at h = 30 mm it is
+    negative and larger; one step is then exactly v0 +- 0.05. Near the axis the step is unclamped."""
+    rx = Prescription.cardboard()
+    h = np.array([16.0, 30.0, 2.0])
+    v0 = -h / rx.pupil_z
+    v0_back, _, _ = chief_ray(rx, 550.0, h, iters=0)
+    assert np.array_equal(v0_back, v0)
+    v1, _, _ = chief_ray(rx, 550.0, h, iters=1)
+    assert v1[0] - v0[0] == pytest.approx(0.05, abs=1e-12)
+    assert v1[1] - v0[1] == pytest.approx(-0.05, abs=1e-12)
+    assert 0.0 < v1[2] - v0[2] < 0.01  # 2 mm: 0.0036, far from the clamp
+    v, _, ok = chief_ray(rx, 550.0, h[:1], iters=40)
+    assert ok[0] and v[0] - v0[0] > 0.05  # the clamp only slows the approach, the root is further
+    v2, _, _ = chief_ray(rx, 550.0, h[:1], iters=2)
+    assert v2[0] - v0[0] == pytest.approx((v[0] - v0[0]), abs=1e-3)  # second step: the remaining 0.007
