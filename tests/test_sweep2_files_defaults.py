@@ -1,0 +1,125 @@
+"""Sweep 2 (files area): the documented defaults of the public functions of datasets/, formats/ and
+scene/, each observed through the public API (the default call equals the call with the documented
+value and differs from a call with another value), and the messages that name a default."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from _datasets_synth import marker_image, ring_poses, write_json, write_png
+from controlgs_adapter.datasets import load_dataset
+from controlgs_adapter.datasets.base import working_size
+from controlgs_adapter.datasets.blender import read_blender, resolve_background
+from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
+from controlgs_adapter.errors import FileFormatError, InputValueError, TargetError
+from controlgs_adapter.formats.backbone import parse_cfg_args, write_ply
+from controlgs_adapter.formats.safetensors import as_path
+from controlgs_adapter.formats.torchscript import eager_from_script
+from controlgs_adapter.scene.cameras import arc_cameras
+
+
+# --------------------------------------------------------------------------- datasets
+def _ngp(root, n=10, transforms="transforms.json"):
+    poses = ring_poses(n, phase=0.1)
+    frames = []
+    for i in range(n):
+        write_png(root / "images" / f"img_{i:02d}.png", marker_image(8, 6, [], rgba=False, fill=(10 * i, 0, 0)))
+        frames.append({"file_path": f"images/img_{i:02d}.png", "transform_matrix": poses[i].tolist()})
+    write_json(root / transforms, {"fl_x": 9.0, "fl_y": 9.0, "cx": 4.0, "cy": 3.0, "w": 8.0, "h": 6.0, "frames": frames})
+
+
+def _test_names(data):
+    return [f.name for f in data.splits["test"]]
+
+
+def test_instant_ngp_default_holdout_is_8_and_default_transforms_file(tmp_path):
+    _ngp(tmp_path)
+    # 10 frames named img_00..img_09: every 8th by name from the first -> img_00 and img_08
+    want = ["images/img_00.png", "images/img_08.png"]
+    assert _test_names(read_instant_ngp(tmp_path)) == want
+    assert _test_names(load_dataset(tmp_path)) == want
+    assert _test_names(load_dataset(tmp_path, format="instant_ngp")) == want
+    assert _test_names(read_instant_ngp(tmp_path, holdout=3)) == ["images/img_00.png", "images/img_03.png",
+                                                                  "images/img_06.png", "images/img_09.png"]
+    assert len(read_instant_ngp(tmp_path).splits["train"]) == 8
+    # the transforms file's default name is transforms.json: another name is found only when given
+    other = tmp_path / "other"
+    _ngp(other, n=3, transforms="transforms_x.json")
+    with pytest.raises(FileFormatError, match="transforms.json"):
+        read_instant_ngp(other)
+    assert len(read_instant_ngp(other, transforms="transforms_x.json", holdout=0).splits["train"]) == 3
+
+
+def test_blender_and_resolve_background_default_black(tmp_path):
+    torch.testing.assert_close(resolve_background(None), torch.zeros(3))
+    torch.testing.assert_close(resolve_background(None, True), torch.ones(3))
+    px = np.zeros((6, 8, 4), dtype=np.uint8)  # fully transparent: the image is the background
+    write_png(tmp_path / "train" / "r_0.png", px)
+    write_json(tmp_path / "transforms_train.json",
+               {"camera_angle_x": 0.8, "frames": [{"file_path": "train/r_0", "transform_matrix": ring_poses(1)[0].tolist()}]})
+    assert float(read_blender(tmp_path).views("train").image(0).abs().max()) == 0.0
+    assert float(read_blender(tmp_path, white_background=True).views("train").image(0).min()) == 1.0
+
+
+def test_working_size_defaults_keep_the_size():
+    assert working_size(640, 480) == (640, 480)
+    assert working_size(640, 480, resolution=320) == (320, 240)
+    assert working_size(640, 480, factor=4) == (160, 120)
+
+
+# --------------------------------------------------------------------------- formats
+def test_as_path_default_names_path():
+    with pytest.raises(InputValueError, match=r"^path must be a file path \(str or os.PathLike\), got 5$"):
+        as_path(5)
+    with pytest.raises(InputValueError, match=r"^out must be a file path .*got ''$"):
+        as_path("", "out")
+
+
+def test_parse_cfg_args_default_source_is_cfg_args():
+    with pytest.raises(FileFormatError, match=r"^cfg_args: not a printed argparse Namespace"):
+        parse_cfg_args("Namespace(a=")
+    with pytest.raises(FileFormatError, match=r"^run/cfg: not a printed argparse Namespace"):
+        parse_cfg_args("Namespace(a=", source="run/cfg")
+
+
+def test_eager_from_script_default_name_is_decoder():
+    with pytest.raises(TargetError, match=r"^decoder 'decoder': expected a TorchScript module, got Linear$"):
+        eager_from_script(nn.Linear(2, 2))  # type: ignore[arg-type]
+    with pytest.raises(TargetError, match=r"^decoder 'decoder': the TorchScript module holds no Linear layer$"):
+        eager_from_script(torch.jit.script(nn.Sequential(nn.ReLU())))
+    with pytest.raises(TargetError, match=r"^decoder 'mlp_color': "):
+        eager_from_script(torch.jit.script(nn.Sequential(nn.ReLU())), "mlp_color")
+
+
+def _header(path) -> list[str]:
+    raw = path.read_bytes()
+    return raw[:raw.index(b"end_header\n")].decode("ascii").splitlines()
+
+
+def test_write_ply_default_comments_none_and_keyword_comment(tmp_path):
+    fields = {"x": np.arange(3, dtype=np.float32)}
+    plain = _header(write_ply(tmp_path / "a.ply", fields))
+    assert plain == ["ply", "format binary_little_endian 1.0", "element vertex 3", "property float x"]
+    noted = _header(write_ply(tmp_path / "b.ply", fields, ["made by hand"]))
+    assert noted[2] == "comment made by hand" and len(noted) == 5
+    other = _header(write_ply(tmp_path / "c.ply", fields, ["x"], comment_keyword="obj_info"))
+    assert other[2] == "obj_info x"
+
+
+# --------------------------------------------------------------------------- scene
+def test_arc_cameras_defaults_are_the_documented_numbers():
+    default = arc_cameras(5, size=16)
+    explicit = arc_cameras(5, size=16, fov_deg=50.0, radius=(4.2, 5.2), azimuth_deg=32.0, elevation_deg=(8.0, 24.0),
+                           target=(0.0, 0.35, 0.0))
+    for a, b in zip(default, explicit, strict=True):
+        torch.testing.assert_close(a.world_to_camera, b.world_to_camera, rtol=0, atol=0)
+        torch.testing.assert_close(a.intrinsics, b.intrinsics, rtol=0, atol=0)
+    # by hand: fov 50 deg over 16 px -> fx = 8 / tan(25 deg) = 17.1560...
+    assert float(default[0].intrinsics[0, 0]) == pytest.approx(8 / np.tan(np.radians(25.0)), rel=1e-6)
+    # the camera distance to the target oscillates within the default radius bounds and reaches both
+    target = torch.tensor([0.0, 0.35, 0.0], dtype=default[0].center.dtype)
+    dist = [float((c.center - target).norm()) for c in default]
+    assert min(dist) == pytest.approx(4.2, abs=1e-5) and max(dist) == pytest.approx(5.2, abs=1e-5)
