@@ -135,3 +135,44 @@ def test_chief_ray_newton_steps_are_clamped_to_0_05():
     assert ok[0] and v[0] - v0[0] > 0.05  # the clamp only slows the approach, the root is further
     v2, _, _ = chief_ray(rx, 550.0, h[:1], iters=2)
     assert v2[0] - v0[0] == pytest.approx((v[0] - v0[0]), abs=1e-3)  # second step: the remaining 0.007
+
+
+# ----------------------------------------------------------------------------- pupil grid widening
+
+
+def _first_span_covering(rx, lam, r, v0, n):
+    """Brute force of the documented rule: the first span of (1.02, 1.2, 1.45, 1.75, 2.1) whose launch
+    grid's outline lands outside the pupil, else the widest (an outline ray blocked by an aperture is
+    NaN: not outside); returns (span, covered, m, the grid's image-plane Xs)."""
+    from controlgs_adapter.downstream.optics.raytrace import trace
+
+    pr, eps = rx.pupil_radius, 1e-6
+    xa, ya, _, _, _ = trace(rx, lam, 0.0, r, np.array([0.0, eps, 0.0]), v0 + np.array([0.0, 0.0, eps]))
+    jx, jy = (xa[1] - xa[0]) / eps, (ya[2] - ya[0]) / eps
+    for span in (1.02, 1.2, 1.45, 1.75, 2.1):
+        m = int(round(n * span / 1.02))
+        g = ((np.arange(m) + 0.5) / m * 2 - 1) * span * pr
+        PX, PY = np.meshgrid(g / jx, v0 + g / jy)
+        xp, yp, Xs, _, _ = trace(rx, lam, 0.0, r, PX, PY)
+        edge = np.concatenate([np.hypot(xp[[0, -1]], yp[[0, -1]]).ravel(), np.hypot(xp[:, [0, -1]], yp[:, [0, -1]]).ravel()])
+        if (edge > pr).all():
+            return span, True, m, Xs
+    return span, False, m, Xs
+
+
+@pytest.mark.parametrize("r, want_span, covered", [(0.0, 1.2, True), (15.6, 1.45, True), (16.9, 2.1, False)])
+def test_spot_widens_its_launch_grid_to_the_first_span_covering_the_pupil(r, want_span, covered):
+    """On the Cardboard lens at 550 nm with n = 16 the axis needs span 1.2, 15.6 mm 1.45 and the display
+    corner (16.9 mm) none (vignetted outline: the widest, 2.1); the spot's rays are points of that grid."""
+    from controlgs_adapter.downstream.optics.generate import _spot
+
+    rx, lam, n = Prescription.cardboard(), 550.0, 16
+    v0, Y0, ok = chief_ray(rx, lam, np.array([r]))
+    assert ok[0]
+    span, cov_ok, m, Xs = _first_span_covering(rx, lam, r, v0[0], n)
+    assert (span, cov_ok) == (want_span, covered)
+    sx, sy, w, tr, cov = _spot(rx, lam, r, v0[0], Y0[0], n)
+    assert 0 < len(sx) <= m * m and np.isin(sx, Xs).all()
+    assert (w > 0).all() and 0.0 < tr <= 1.0
+    if covered:
+        assert cov == pytest.approx(1.0, abs=0.02)  # the primary branch covers the whole pupil area
