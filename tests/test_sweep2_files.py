@@ -189,3 +189,15 @@ def test_build_builtin_backbone_writes_indented_json(tmp_path, monkeypatch):
     assert text == json.dumps(info, indent=1)  # one key per line, one space of indent: meant to be read
     assert text.splitlines()[1].startswith(' "variant": "ar"')
 
+
+
+def test_from_points_squared_spacing_is_clamped_at_1e_7_as_scaffold_gs():
+    # Scaffold-GS create_from_pcd: dist2 = clamp_min(distCUDA2(points), 1e-7). Two anchors 1e-4 apart:
+    # d2 = 1e-8 -> 1e-7, scale = log(sqrt(1e-7)) = 0.5 * ln(1e-7) = -8.0590 (unclamped: ln(1e-4) = -9.2103)
+    model = NeuralGaussianModel.from_points(torch.tensor([[0.0, 0, 0], [1e-4, 0, 0]]), feat_dim=4, n_offsets=2,
+                                            voxel_size=1e-4)
+    torch.testing.assert_close(model._scaling.detach(), torch.full((2, 6), 0.5 * math.log(1e-7)), rtol=0, atol=1e-5)
+    # just above the clamp it is the distance: 1e-3 apart -> ln(1e-3)
+    model = NeuralGaussianModel.from_points(torch.tensor([[0.0, 0, 0], [1e-3, 0, 0]]), feat_dim=4, n_offsets=2,
+                                            voxel_size=1e-3)
+    torch.testing.assert_close(model._scaling.detach(), torch.full((2, 6), math.log(1e-3)), rtol=0, atol=1e-5)

@@ -123,3 +123,26 @@ def test_arc_cameras_defaults_are_the_documented_numbers():
     target = torch.tensor([0.0, 0.35, 0.0], dtype=default[0].center.dtype)
     dist = [float((c.center - target).norm()) for c in default]
     assert min(dist) == pytest.approx(4.2, abs=1e-5) and max(dist) == pytest.approx(5.2, abs=1e-5)
+
+
+def test_load_builtin_scene_defaults_32_views_every_8th_tested_4x4_samples_fov_50():
+    from controlgs_adapter.scene.diorama import load_builtin_scene
+    from controlgs_adapter.scene.planes import render_planes
+
+    scene = load_builtin_scene(resolution=16)  # default variant "ar", views 32, test_every 8, samples 4, fov 50
+    assert scene.variant == "ar" and scene.resolution == 16
+    assert len(scene.train_cameras) == 28 and len(scene.test_cameras) == 4  # views 0, 8, 16, 24 are tested
+    cams = arc_cameras(32, size=16, fov_deg=50.0)
+    for got, want in zip(scene.test_cameras, cams[0::8], strict=True):
+        torch.testing.assert_close(got.world_to_camera, want.world_to_camera, rtol=0, atol=0)
+        torch.testing.assert_close(got.intrinsics, want.intrinsics, rtol=0, atol=0)
+    torch.testing.assert_close(scene.train_cameras[0].world_to_camera, cams[1].world_to_camera, rtol=0, atol=0)
+    # the ground truth is rendered with 4 x 4 samples over a black background (render_planes' defaults)
+    img4 = render_planes(scene.planes, cams[8])[0].float()
+    torch.testing.assert_close(scene.test_images[1], img4, rtol=0, atol=1e-6)
+    torch.testing.assert_close(render_planes(scene.planes, cams[8], samples=4, background=(0.0, 0.0, 0.0))[0].float(),
+                               img4, rtol=0, atol=0)
+    assert float((render_planes(scene.planes, cams[8], samples=1)[0].float() - img4).abs().max()) > 1e-3
+    # points(): default spacing 0.05 (a coarser spacing gives fewer points)
+    n_default = scene.points()[0].shape[0]
+    assert n_default == scene.points(0.05)[0].shape[0] > scene.points(0.1)[0].shape[0]
