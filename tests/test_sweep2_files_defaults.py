@@ -11,7 +11,7 @@ from torch import nn
 
 from _datasets_synth import marker_image, ring_poses, write_json, write_png
 from controlgs_adapter.datasets import load_dataset
-from controlgs_adapter.datasets.base import working_size
+from controlgs_adapter.datasets.base import Frame, SceneData, working_size
 from controlgs_adapter.datasets.blender import read_blender, resolve_background
 from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
 from controlgs_adapter.errors import FileFormatError, InputValueError, TargetError
@@ -19,6 +19,7 @@ from controlgs_adapter.formats.backbone import parse_cfg_args, write_ply
 from controlgs_adapter.formats.safetensors import as_path
 from controlgs_adapter.formats.torchscript import eager_from_script
 from controlgs_adapter.scene.cameras import arc_cameras
+from controlgs_adapter.state import Camera
 
 
 # --------------------------------------------------------------------------- datasets
@@ -146,3 +147,34 @@ def test_load_builtin_scene_defaults_32_views_every_8th_tested_4x4_samples_fov_5
     # points(): default spacing 0.05 (a coarser spacing gives fewer points)
     n_default = scene.points()[0].shape[0]
     assert n_default == scene.points(0.05)[0].shape[0] > scene.points(0.1)[0].shape[0]
+
+
+def _two_cameras() -> SceneData:
+    """Two 8 x 6 cameras at the origin (f = 4, centre (4, 3)): v0 looks down +z, v1 down -z."""
+    frames = []
+    for i, flip in enumerate((1.0, -1.0)):
+        w2c = torch.eye(4)
+        w2c[:3, :3] = torch.diag(torch.tensor([1.0, flip, flip]))
+        k = torch.tensor([[4.0, 0, 4], [0, 4.0, 3], [0, 0, 1]])
+        frames.append(Frame(f"v{i}", Camera(w2c, k, 8, 6), torch.zeros(3, 6, 8)))
+    return SceneData({"train": frames}, source="src")
+
+
+def test_check_scene_default_min_in_front_is_5_percent():
+    from controlgs_adapter.datasets.sanity import check_scene
+
+    # 100 points: 5 straight ahead of v0 (5 % -> not blind: the threshold is strict), 4 straight ahead of
+    # v1 (4 % -> blind), 91 far to the side (outside both images or behind)
+    pts = torch.cat([torch.tensor([[0.0, 0, 1]]).repeat(5, 1), torch.tensor([[0.0, 0, -1]]).repeat(4, 1),
+                     torch.tensor([[10.0, 0, 1]]).repeat(91, 1)])
+    data = _two_cameras()
+    with pytest.warns(RuntimeWarning, match=r"^src: 1 of 2 cameras see almost none of the 100 points \(< 5% in front, "
+                                            r"inside the image\): v1$"):
+        rep = check_scene(data, pts)
+    assert rep["in_front"] == pytest.approx({"v0": 0.05, "v1": 0.04}, abs=1e-6) and rep["blind"] == ["v1"]
+    assert check_scene(data, pts, min_in_front=0.04)["blind"] == []
+    with pytest.raises(InputValueError, match=r"^src: 2 of 2 cameras see none of the scene"):
+        check_scene(data, pts, min_in_front=0.051)
+    # default required=("train",): an empty test split passes, an empty train split is refused
+    with pytest.raises(InputValueError, match=r"^src: the 'train' split is empty \(splits: train=0, test=2\)$"):
+        check_scene(SceneData({"train": [], "test": data.splits["train"]}, source="src"))
