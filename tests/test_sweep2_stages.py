@@ -46,6 +46,8 @@ def test_radial_map_caches_fixed_coefficients_and_differentiates_learnable_ones(
     assert g1.grad_fn is None
     g3, _ = fixed((5, 6), D64, CPU)
     assert g3 is not g1 and len(fixed._cache) == 1  # another size replaces the entry
+    g4, _ = fixed((5, 6), torch.float32, CPU)
+    assert g4.dtype == torch.float32 and g4 is not g3 and torch.allclose(g4.double(), g3, atol=1e-6)  # per dtype
     # grid_c(p) = p (1 + k_c r^2) by hand at the centre-left pixel of a 1 x 3 image: x = -2/3, y = 0
     # (pixel centres; aspect-corrected r divides x by the larger half-extent 1): R channel 1 + 0.1 * 4/9
     g, _ = fixed((1, 3), D64, CPU)
@@ -75,7 +77,7 @@ class _Optics(torch.nn.Module):
 
 
 @pytest.mark.parametrize("basis", ["rgb", "primaries"])
-def test_for_optics_passes_basis_on_every_path(basis):
+def test_for_optics_passes_basis_on_every_path(basis, tmp_path):
     bank = PSFBank.default()
     optics = _Optics(bank, "no-such-radiometry")  # no shipped LUT for it: the chief-ray fallback
     with pytest.warns(UserWarning, match="no fitted pre-warp LUT"):
@@ -86,6 +88,16 @@ def test_for_optics_passes_basis_on_every_path(basis):
     with pytest.warns(UserWarning, match="no fitted pre-warp LUT"):
         default = LensPrewarp.for_optics(optics)
     assert default.basis == "primaries"  # the documented default
+    # a fitted LUT file: the same basis
+    from controlgs_adapter.downstream.lens import DisplayLUTMap, bank_fingerprint, pixel_grid
+
+    disp = 0.01 * pixel_grid((5, 4), D64).expand(3, -1, -1, -1).clone()
+    gain = torch.ones(3, 5, 4, dtype=D64)
+    lut = DisplayLUTMap({"exact": (disp, gain)}, meta={"bank": bank_fingerprint(bank), "radiometry": "no-such-radiometry"}
+                        ).save(tmp_path / "fit.safetensors")
+    fitted = LensPrewarp.for_optics(optics, lut=lut, basis=basis)
+    assert isinstance(fitted.map, DisplayLUTMap) and fitted.basis == basis
+    assert LensPrewarp.for_optics(optics, lut=lut).basis == "primaries"
     with pytest.raises(InputValueError, match="basis must be one of .* got 'srgb'"):
         LensPrewarp.for_optics(optics, source="chief_rays", basis="srgb")  # type: ignore[arg-type]
 
@@ -125,9 +137,11 @@ def test_chief_ray_newton_steps_are_clamped_to_0_05():
     rx = Prescription.cardboard()
     h = np.array([16.0, 30.0, 2.0])
     v0 = -h / rx.pupil_z
-    v0_back, _, _ = chief_ray(rx, 550.0, h, iters=0)
+    v0_back, _, ok0 = chief_ray(rx, 550.0, h, iters=0)
+    assert not ok0.any()  # the paraxial guess does not cross the pupil centre within 1e-9 mm
     assert np.array_equal(v0_back, v0)
-    v1, _, _ = chief_ray(rx, 550.0, h, iters=1)
+    v1, _, ok1 = chief_ray(rx, 550.0, h, iters=1)
+    assert not ok1[0]  # clamped short of the root: not converged
     assert v1[0] - v0[0] == pytest.approx(0.05, abs=1e-12)
     assert v1[1] - v0[1] == pytest.approx(-0.05, abs=1e-12)
     assert 0.0 < v1[2] - v0[2] < 0.01  # 2 mm: 0.0036, far from the clamp
@@ -176,3 +190,29 @@ def test_spot_widens_its_launch_grid_to_the_first_span_covering_the_pupil(r, wan
     assert (w > 0).all() and 0.0 < tr <= 1.0
     if covered:
         assert cov == pytest.approx(1.0, abs=0.02)  # the primary branch covers the whole pupil area
+
+
+# ----------------------------------------------------------------------------- Cauchy index
+
+
+@pytest.mark.parametrize("nd, vd", [(1.492, 57.4), (1.5168, 64.17)])  # PMMA (the Cardboard lens), N-BK7
+def test_cauchy_index_honours_the_abbe_number_definition(nd, vd):
+    """n(d line 587.56 nm) = n_d and n_F - n_C = (n_d - 1) / V_d (F 486.13 nm, C 656.27 nm: the Abbe
+    number's definition); between the lines n falls with the wavelength (normal dispersion)."""
+    from controlgs_adapter.downstream.optics.prescription import cauchy_index
+
+    assert cauchy_index(nd, vd, 587.56) == pytest.approx(nd, abs=1e-12)
+    assert cauchy_index(nd, vd, 486.13) - cauchy_index(nd, vd, 656.27) == pytest.approx((nd - 1) / vd, rel=1e-10)
+    # two-term Cauchy n = A + B / lam^2 through those two conditions, solved by hand for N-BK7:
+    # B = 0.5168 / 64.17 / (1/0.48613^2 - 1/0.65627^2) = 0.00421731 um^2, A = 1.5168 - B / 0.58756^2 = 1.504584;
+    # n(550) = A + B / 0.55^2 = 1.518525
+    if nd == 1.5168:
+        assert cauchy_index(nd, vd, 550.0) == pytest.approx(1.518525, abs=1e-6)
+        # against the SCHOTT catalogue's N-BK7 Sellmeier formula (B1..3, C1..3 in um^2): a two-term Cauchy law
+        # is within 5.4e-5 of it from F to C (3e-6 at 550 nm)
+        sellmeier = [(1.03961212, 0.00600069867), (0.231792344, 0.0200179144), (1.01046945, 103.560653)]
+        for lam in (486.13, 550.0, 587.56, 656.27):
+            l2 = (lam * 1e-3) ** 2
+            n_cat = (1 + sum(b * l2 / (l2 - c) for b, c in sellmeier)) ** 0.5
+            assert cauchy_index(nd, vd, lam) == pytest.approx(n_cat, abs=6e-5)
+    assert cauchy_index(nd, vd, 486.0) > cauchy_index(nd, vd, 550.0) > cauchy_index(nd, vd, 656.0)
