@@ -201,3 +201,59 @@ def test_from_points_squared_spacing_is_clamped_at_1e_7_as_scaffold_gs():
     model = NeuralGaussianModel.from_points(torch.tensor([[0.0, 0, 0], [1e-3, 0, 0]]), feat_dim=4, n_offsets=2,
                                             voxel_size=1e-3)
     torch.testing.assert_close(model._scaling.detach(), torch.full((2, 6), math.log(1e-3)), rtol=0, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- backends defaults
+def test_neural_gaussian_model_constructor_defaults_are_scaffold_gs():
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel as M
+
+    m = M()
+    assert m.extra_repr() == ("anchors=0, feat_dim=32, n_offsets=10, voxel_size=0.01, use_feat_bank=False, "
+                              "appearance_dim=0, dist=(opacity=False, cov=False, color=False)")
+    assert (m.opacity_dist_dim, m.cov_dist_dim, m.color_dist_dim) == (0, 0, 0)
+    assert m.mlp_feature_bank is None and m.embedding_appearance is None
+    # decoder widths follow the defaults: opacity MLP in = F + 3 (view dir) + 1 if distance, out = K
+    assert m.mlp_opacity[0].in_features == 32 + 3 and m.mlp_opacity[-2].out_features == 10
+
+
+def test_from_points_defaults_feat_32_offsets_10_median_voxel():
+    pts = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [3.0, 2.0, 0]])
+    m = NeuralGaussianModel.from_points(pts)
+    # nearest-neighbour distances 1, 1, 2, 2 -> torch's median (lower of the two middle values) = 1
+    assert (m.feat_dim, m.n_offsets, m.voxel_size) == (32, 10, 1.0)
+    assert not m._anchor_feat.detach().any() and not m._offset.detach().any()  # no colours: zero features
+
+
+def test_median_spacing_default_samples_4096_strides_rows():
+    from controlgs_adapter.backends.models.reference_model import median_spacing
+
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(8200, 3, generator=g, dtype=torch.float64)
+    # 8200 // 4096 = 2: rows 0, 2, 4, ... (4100 of them), each against all points; median as torch (lower middle)
+    def ref(stride: int) -> float:
+        ds = []
+        for s in range(0, 8200, 1000):
+            idx = torch.arange(s, min(s + 1000, 8200))
+            idx = idx[idx % stride == 0]
+            d = torch.cdist(pts[idx], pts)
+            d[torch.arange(idx.shape[0]), idx] = float("inf")
+            ds.append(d.min(1).values)
+        return float(torch.cat(ds).median())
+    want2, want1 = ref(2), ref(1)
+    assert want1 != want2  # the stride matters for these points
+    assert median_spacing(pts) == pytest.approx(want2, rel=1e-12)
+    assert median_spacing(pts, 8200) == pytest.approx(want1, rel=1e-12)
+    # all points coincident: 1.0 by contract
+    assert median_spacing(torch.zeros(5, 3)) == 1.0
+
+
+def test_as_param_default_frozen_float32():
+    from controlgs_adapter.backends.models.anchor_model import as_param
+
+    p = as_param(np.arange(3, dtype=np.float64))
+    assert p.dtype == torch.float32 and p.requires_grad is False and p.tolist() == [0.0, 1.0, 2.0]
+    assert as_param(np.zeros(2), requires_grad=True).requires_grad is True
+    src = torch.ones(2)
+    q = as_param(src)
+    src[0] = 5.0
+    assert q.tolist() == [1.0, 1.0]  # a copy
