@@ -178,3 +178,19 @@ def test_check_scene_default_min_in_front_is_5_percent():
     # default required=("train",): an empty test split passes, an empty train split is refused
     with pytest.raises(InputValueError, match=r"^src: the 'train' split is empty \(splits: train=0, test=2\)$"):
         check_scene(SceneData({"train": [], "test": data.splits["train"]}, source="src"))
+
+
+def test_load_dataset_passes_holdout_and_refuses_images_for_other_formats(tmp_path):
+    _ngp(tmp_path)
+    assert _test_names(load_dataset(tmp_path, holdout=3)) == ["images/img_00.png", "images/img_03.png",
+                                                              "images/img_06.png", "images/img_09.png"]
+    assert _test_names(load_dataset(tmp_path, format=" Instant-NGP ", holdout=0)) == []
+    with pytest.raises(InputValueError, match=rf"^images='imgs' applies to COLMAP datasets only; {tmp_path} is read as instant_ngp$"):
+        load_dataset(tmp_path, images="imgs")
+    with pytest.raises(InputValueError, match=r"^format must be one of colmap, blender, instant_ngp \(or None to detect it\), got 'nerf'$"):
+        load_dataset(tmp_path, format="nerf")
+    # background overrides white_background through load_dataset too (ngp frames are RGB: check the setting)
+    data = load_dataset(tmp_path, background=torch.tensor([0.2, 0.3, 0.4]), white_background=True)
+    assert data.background.tolist() == pytest.approx([0.2, 0.3, 0.4])
+    assert load_dataset(tmp_path).background.tolist() == [0.0, 0.0, 0.0]
+    assert load_dataset(tmp_path, white_background=True).background.tolist() == [1.0, 1.0, 1.0]
