@@ -194,3 +194,23 @@ def test_load_dataset_passes_holdout_and_refuses_images_for_other_formats(tmp_pa
     assert data.background.tolist() == pytest.approx([0.2, 0.3, 0.4])
     assert load_dataset(tmp_path).background.tolist() == [0.0, 0.0, 0.0]
     assert load_dataset(tmp_path, white_background=True).background.tolist() == [1.0, 1.0, 1.0]
+
+
+def test_colmap_default_holdout_8_and_resolution_through_load_dataset(tmp_path):
+    from _scene_writers import write_colmap
+    from controlgs_adapter.datasets.colmap import read_colmap
+
+    cams = arc_cameras(10, size=16)
+    images = [torch.full((3, 16, 16), i / 10.0) for i in range(10)]
+    root = write_colmap(tmp_path / "c", cams, images)
+    want = ["v00.png", "v08.png"]  # every 8th of v00..v09 by name
+    assert _test_names(read_colmap(root)) == want
+    assert _test_names(load_dataset(root)) == want
+    assert _test_names(load_dataset(root, holdout=4)) == ["v00.png", "v04.png", "v08.png"]
+    # resolution reaches read_colmap: it picks images_2 (8 x 8 files, still >= 8) and the cameras follow
+    from _scene_writers import save_png
+
+    for i in range(10):
+        save_png(root / "images_2" / f"v{i:02d}.png", torch.full((3, 8, 8), i / 10.0))
+    assert load_dataset(root).splits["train"][0].camera.width == 16
+    assert load_dataset(root, resolution=8).splits["train"][0].camera.width == 8
