@@ -1,0 +1,162 @@
+"""Sweep-2 survivors of the command line and its neighbours: the ablation table reaching the
+training config, the sub-command metavar, ``--format``'s choices, ``--dist-timeout`` reaching
+``init_distributed``, the LPIPS missing-weights hints, ``side_by_side``'s (eye, gt) order, the
+gradient exchange's bookkeeping and the explicit backend kept under torchrun."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import pytest
+import torch
+import torch.distributed as dist
+
+from controlgs_adapter import ControlGS, cli
+from controlgs_adapter.commands.adapters import train_config
+from controlgs_adapter.distributed import DistContext, DistributedError, init_distributed
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.perceptual import LPIPS
+
+
+def _parse(*argv: str) -> argparse.Namespace:
+    return cli.build_parser().parse_args(list(argv))
+
+
+# ------------------------------------------------------------------------------ ablations (paper Tbl. 4)
+def test_ablation_configs_follow_the_paper_table():
+    # Tbl. 4: each "w/o X" drops one module and stays state-aware; only "w/o State-Aware" is blind
+    a = _parse("train")
+    want = {"controlgs": (None, False),  # None: the modules the effects call for (TrainConfig's default)
+            "wo_lens": (("resample", "display"), False),
+            "wo_display": (("lens", "resample"), False),
+            "wo_resample": (("lens", "display"), False),
+            "state_blind": (("lens", "resample", "display"), True)}
+    for name, (modules, blind) in want.items():
+        c = train_config(a, name)
+        assert (c.modules, c.state_blind) == (modules, blind), name
+
+
+# ------------------------------------------------------------------------------ parser
+def test_usage_names_the_sub_command_as_COMMAND():
+    usage = cli.build_parser().format_usage()
+    assert "COMMAND" in usage and "{plugins" not in usage, usage
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_unknown_dataset_format_is_refused_by_argparse(command, capsys):
+    from controlgs_adapter.datasets.detect import FORMATS
+
+    with pytest.raises(SystemExit) as e:
+        _parse(command, "--format", "nerfstudio")
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --format: invalid choice: 'nerfstudio'" in err, err
+    for f in FORMATS:
+        assert repr(f) in err, (f, err)
+    first = next(iter(FORMATS))
+    assert _parse(command, "--format", first).format == first
+
+
+@pytest.mark.parametrize("value, shown", [("0", "0.0"), ("-2.5", "-2.5")])
+def test_train_dist_timeout_reaches_init_distributed(value, shown, tmp_path, capsys, monkeypatch):
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    rc = cli.main(["train", "--out", str(tmp_path / "run"), "--dist-timeout", value, "--iterations", "1",
+                   "--no-ablations", "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err == [f"controlgs train: error: timeout must be > 0 seconds, got {shown}"], err
+    assert not (tmp_path / "run" / "controlgs.controlgs.safetensors").exists()
+
+
+# ------------------------------------------------------------------------------ LPIPS hints
+_BACKBONE = "(the AlexNet backbone: torchvision's alexnet-owt-7be5be79.pth)"
+_HEAD = "(the LPIPS head: the lpips package's weights/v0.1/alex.pth; pip install --no-deps lpips)"
+
+
+def test_lpips_missing_hints_name_each_missing_part():
+    from controlgs_adapter.perceptual import _expected
+
+    shapes = _expected()
+    full = {k: torch.zeros(s) for k, s in shapes.items()}
+    # nothing given: both parts missing, both hinted
+    with pytest.raises(InputValueError) as e:
+        LPIPS({}, "w.pth")
+    assert str(e.value).startswith("LPIPS weights w.pth: missing [") and _BACKBONE in str(e.value) \
+        and _HEAD in str(e.value), str(e.value)
+    # only the head missing: the head's hint alone
+    with pytest.raises(InputValueError) as e:
+        LPIPS({k: v for k, v in full.items() if not k.startswith("lin")}, "w.pth")
+    assert _HEAD in str(e.value) and _BACKBONE not in str(e.value), str(e.value)
+    # one backbone tensor and one head tensor missing: both hinted
+    with pytest.raises(InputValueError) as e:
+        LPIPS({k: v for k, v in full.items() if k not in ("conv0.bias", "lin4")}, "w.pth")
+    assert str(e.value).startswith("LPIPS weights w.pth: missing ['conv0.bias', 'lin4']") \
+        and _BACKBONE in str(e.value) and _HEAD in str(e.value), str(e.value)
+
+
+# ------------------------------------------------------------------------------ side_by_side scores (eye, gt)
+def test_side_by_side_scores_against_the_unclamped_ground_truth(tiny, tmp_path):
+    from controlgs_adapter.evaluation import side_by_side
+    from controlgs_adapter.metrics import ssim
+
+    scene, model = tiny
+    views = scene.data.views("train", first=1)
+    cgs = ControlGS.wrap(model, cond_dim=4)
+    path = cgs.save(tmp_path / "a.controlgs.safetensors")
+    cgs.unwrap()
+    cam, gt = views[0]
+    bright = gt + 0.5  # a reference brighter than a display shows: only the eye image is clamped to [0, 1]
+    assert float(bright.max()) > 1.2
+    out = side_by_side(model, path, cam, bright, settings=[(1.0, 0.0)], background=views.background,
+                       effects={"lens": True, "resample": True, "display": True})
+    for method, row in out["rows"].items():
+        _, eye, p, q = row[0]
+        assert float(eye.max()) <= 1.0
+        mse = float((eye.double() - bright.double()).square().mean())  # float64 PSNR against the unclamped gt
+        assert p == pytest.approx(10 * math.log10(1.0 / mse), abs=1e-9), method
+        assert q == pytest.approx(float(ssim(eye.double(), bright.double())), abs=1e-9), method
+        clamped = float((eye.double() - bright.double().clamp(0, 1)).square().mean())
+        assert abs(10 * math.log10(1.0 / clamped) - p) > 0.1  # the clamped reference would score differently
+
+
+# ------------------------------------------------------------------------------ gradient exchange bookkeeping
+def test_dense_exchange_counts_rows_and_bytes_by_hand():
+    # a real gloo group of one process; the context claims 2 ranks: the all-reduce then sums this rank's
+    # buffer with nothing (as if rank 1 had no gradient), which is all the dense exchange needs
+    if dist.is_initialized():
+        pytest.skip("a process group already exists in this test process")
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        ctx = DistContext(rank=0, world_size=2, backend="gloo", exchange="dense")
+        assert ctx.stats.rows_touched == 0 and ctx.stats.steps == 0
+        a = torch.nn.Parameter(torch.zeros(2))
+        t = torch.nn.Parameter(torch.zeros(4, 2))
+        for step in range(2):
+            a.grad = torch.tensor([1.0, 2.0])
+            t.grad = torch.tensor([[0.0, 0.0], [3.0, 0.0], [0.0, 0.0], [0.0, -4.0]])  # rows 1 and 3 touched
+            loss = ctx.sync_gradients([a, t], row_sparse=[t], loss=0.5, step=0)
+            assert loss == 0.5
+            assert torch.equal(a.grad, torch.tensor([1.0, 2.0]))
+            assert torch.equal(t.grad, torch.tensor([[0.0, 0.0], [3.0, 0.0], [0.0, 0.0], [0.0, -4.0]]))
+        # buffer: 2 dense + 2 flags + 1 table x 2 ranks + 2 steps + loss = 9 float64 = 72 bytes; a ring
+        # all-reduce on 2 ranks sends 2 (2 - 1) / 2 n = n bytes; t dense: 8 float32 = 32 bytes;
+        # dense equivalent: (2 + 8) float32 = 40 bytes
+        assert ctx.stats.last == {"bytes_sent": 72 + 32, "dense_bytes": 40, "rows": 2, "exchange": "dense"}
+        assert (ctx.stats.steps, ctx.stats.bytes_sent, ctx.stats.dense_bytes, ctx.stats.rows_touched) == (2, 208, 80, 4)
+    finally:
+        dist.destroy_process_group()
+
+
+# ------------------------------------------------------------------------------ the backend named is kept
+def test_named_backend_is_not_replaced_by_the_default(monkeypatch):
+    # port "not-a-port": a group that tries to form fails at once instead of waiting
+    for k, v in zip(("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"),
+                    ("0", "2", "0", "127.0.0.1", "not-a-port")):
+        monkeypatch.setenv(k, v)
+    if dist.is_initialized():
+        pytest.skip("a process group already exists in this test process")
+    with pytest.raises(InputValueError, match=r"backend 'nccl' does not fit device 'cpu'"):
+        init_distributed("nccl", device="cpu", timeout=2.0)
+    with pytest.raises(DistributedError, match=r"could not join the process group at 127\.0\.0\.1:not-a-port \(gloo\)"):
+        init_distributed(None, device="cpu", timeout=2.0)
