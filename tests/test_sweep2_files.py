@@ -257,3 +257,45 @@ def test_as_param_default_frozen_float32():
     q = as_param(src)
     src[0] = 5.0
     assert q.tolist() == [1.0, 1.0]  # a copy
+
+
+def _octree(seed: int):
+    from torch import nn
+
+    from controlgs_adapter.backends.octree_gs import OctreeGSModel
+
+    rng = np.random.default_rng(seed)
+    a, k, f = 40, 2, 8
+    arr = {"anchor": rng.normal(size=(a, 3)), "level": rng.integers(0, 4, a), "extra": rng.uniform(-0.4, 0.4, a)}
+    torch.manual_seed(seed)
+    model = OctreeGSModel(  # fork, levels, dist2level, voxel_centre left at their defaults
+        anchor=torch.tensor(arr["anchor"], dtype=torch.float32), offset=torch.zeros(a, k, 3),
+        anchor_feat=torch.zeros(a, f), scaling=torch.full((a, 6), -2.0), level=torch.tensor(arr["level"])[:, None],
+        extra_level=torch.tensor(arr["extra"], dtype=torch.float32),
+        mlp_opacity=nn.Sequential(nn.Linear(f + 3, k), nn.Tanh()), mlp_cov=nn.Sequential(nn.Linear(f + 3, 7 * k)),
+        mlp_color=nn.Sequential(nn.Linear(f + 3, 3 * k), nn.Sigmoid()), voxel_size=0.1, standard_dist=3.0)
+    return model, arr
+
+
+def _lod_reference(arr, cam: np.ndarray, scale: float) -> list[bool]:
+    """Octree-GS set_anchor_mask in float64 with fork 2, 'round', voxel centres, levels = 0..max level."""
+    levels = int(arr["level"].max()) + 1
+    out = []
+    for pos, lv, extra in zip(arr["anchor"], arr["level"], arr["extra"]):
+        centre = pos.astype(np.float64) + (0.1 / 2) / 2 ** int(lv)
+        d = float(np.linalg.norm(centre - cam)) * scale
+        pred = math.log2(3.0 / d) / math.log2(2) + float(np.float32(extra))
+        out.append(int(lv) <= min(max(int(np.round(pred)), 0), levels - 1))
+    return out
+
+
+def test_octree_lod_defaults_fork_2_round_voxel_centre_and_resolution_scale_1():
+    model, arr = _octree(4)
+    cam = np.array([0.2, -0.1, 3.0])
+    model.set_anchor_mask(torch.tensor(cam, dtype=torch.float32))  # iteration, resolution_scale defaults
+    want = _lod_reference(arr, cam, 1.0)
+    assert model._anchor_mask.tolist() == want and 0 < sum(want) < len(want)
+    want2 = _lod_reference(arr, cam, 0.25)
+    assert want2 != want  # resolution_scale matters for this view
+    model.set_anchor_mask(torch.tensor(cam, dtype=torch.float32), -1, 0.25)
+    assert model._anchor_mask.tolist() == want2
