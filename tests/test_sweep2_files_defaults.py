@@ -214,3 +214,16 @@ def test_colmap_default_holdout_8_and_resolution_through_load_dataset(tmp_path):
         save_png(root / "images_2" / f"v{i:02d}.png", torch.full((3, 8, 8), i / 10.0))
     assert load_dataset(root).splits["train"][0].camera.width == 16
     assert load_dataset(root, resolution=8).splits["train"][0].camera.width == 8
+
+
+def test_ply_columns_default_count_takes_every_numbered_column():
+    from controlgs_adapter.formats.backbone import ply_columns
+
+    fields = {"f_0": np.array([1.0, 2.0]), "f_2": np.array([5.0, 6.0]), "f_1": np.array([3.0, 4.0]),
+              "f_rest": np.array([9.0, 9.0]), "x": np.zeros(2)}
+    got = ply_columns(fields, "f_", source="a.ply")
+    assert got.dtype == np.float32 and got.tolist() == [[1.0, 3.0, 5.0], [2.0, 4.0, 6.0]]
+    assert ply_columns(fields, "f_", source="a.ply", count=2).tolist() == [[1.0, 3.0], [2.0, 4.0]]
+    del fields["f_1"]
+    with pytest.raises(FileFormatError, match=r"^a.ply: PLY fields f_\* are not numbered 0..n-1 \(missing f_1\)$"):
+        ply_columns(fields, "f_", source="a.ply")
