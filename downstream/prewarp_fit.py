@@ -101,7 +101,7 @@ def fit_prewarp(
             i = int(torch.randint(images.shape[0], (1,), generator=generator))
             eye = pipeline(images[i], state, reference=targets[i])
             loss = image_loss(eye, targets[i], weights)
-            optimizer.zero_grad(set_to_none=True)
+            optimizer.zero_grad()  # set_to_none=True: the default of every torch >= 2.0
             loss.backward()
             optimizer.step()
             losses.append(float(loss.detach()))
