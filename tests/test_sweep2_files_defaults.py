@@ -227,3 +227,17 @@ def test_ply_columns_default_count_takes_every_numbered_column():
     del fields["f_1"]
     with pytest.raises(FileFormatError, match=r"^a.ply: PLY fields f_\* are not numbered 0..n-1 \(missing f_1\)$"):
         ply_columns(fields, "f_", source="a.ply")
+
+
+def test_posed_images_defaults_1_gib_cache_views_name_black_background():
+    from controlgs_adapter.datasets.base import PosedImages
+
+    with pytest.raises(InputValueError, match=r"^views: no frames$"):
+        PosedImages([])
+    data = _two_cameras()
+    p = PosedImages(data.splits["train"])
+    assert p.cache_bytes == 1 << 30 == 1073741824 and p.name == "views" and p.background.tolist() == [0.0, 0.0, 0.0]
+    v = data.views("train")  # SceneData.views: the same cache budget, named source:split, full size
+    assert (v.cache_bytes, v.name, v.camera(0).width) == (1 << 30, "src:train", 8)
+    assert data.views("train", cache_bytes=0).cache_bytes == 0
+    assert len(data.views("train", first=1)) == 1 and len(v) == 2
