@@ -160,3 +160,59 @@ def test_named_backend_is_not_replaced_by_the_default(monkeypatch):
         init_distributed("nccl", device="cpu", timeout=2.0)
     with pytest.raises(DistributedError, match=r"could not join the process group at 127\.0\.0\.1:not-a-port \(gloo\)"):
         init_distributed(None, device="cpu", timeout=2.0)
+
+
+# ------------------------------------------------------------------------------ the progress bar follows the terminal
+@pytest.mark.skipif(not hasattr(__import__("os"), "openpty"), reason="needs a pseudo-terminal (POSIX)")
+def test_training_progress_bar_follows_a_resized_terminal(tiny, monkeypatch):
+    # the bar is drawn on a real pseudo-terminal (stderr): 61 columns when the bar starts, widened to
+    # 101 while training runs; a bar that follows the terminal (dynamic_ncols) draws its last frame
+    # 100 characters wide (tqdm leaves one column: width - 1), a fixed one stays 60 wide
+    import fcntl
+    import os
+    import struct
+    import sys
+    import termios
+
+    from controlgs_adapter.rendering.protocol import ModelRenderer
+    from controlgs_adapter.training import Trainer, TrainConfig
+
+    master, slave = os.openpty()
+
+    def resize(cols: int) -> None:
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 25, cols, 0, 0))
+
+    class Resizing(ModelRenderer):
+        def render(self, model, camera, visible, background):  # type: ignore[no-untyped-def]
+            resize(101)  # the user widens the terminal while a step runs
+            return super().render(model, camera, visible, background)
+
+    scene, model = tiny
+    resize(61)
+    tty = os.fdopen(slave, "w", encoding="utf-8", closefd=False)
+    monkeypatch.setattr(sys, "stderr", tty)
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.0),
+                effects={"lens": True, "resample": True, "display": True}, renderer=Resizing())
+    try:
+        t.train(progress=True)
+        tty.flush()
+        os.set_blocking(master, False)
+        out = b""
+        while True:
+            try:
+                chunk = os.read(master, 65536)
+            except BlockingIOError:
+                break
+            if not chunk:
+                break
+            out += chunk
+    finally:
+        t.cgs.unwrap()
+        monkeypatch.undo()
+        tty.close()
+        os.close(slave)
+        os.close(master)
+    text = out.decode("utf-8").replace("\x1b[A", "")
+    frames = [f for f in text.replace("\n", "\r").split("\r") if "training ControlGS" in f]
+    assert frames and len(frames[0]) == 60, frames  # drawn at the start: 61 - 1
+    assert len(frames[-1]) == 100 and "2/2" in frames[-1], frames
