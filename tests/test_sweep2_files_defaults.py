@@ -13,6 +13,7 @@ from _datasets_synth import marker_image, ring_poses, write_json, write_png
 from controlgs_adapter.datasets import load_dataset
 from controlgs_adapter.datasets.base import Frame, SceneData, working_size
 from controlgs_adapter.datasets.blender import read_blender, resolve_background
+from controlgs_adapter.datasets.images import distort_normalized, undistort_points
 from controlgs_adapter.datasets.instant_ngp import read_instant_ngp
 from controlgs_adapter.errors import FileFormatError, InputValueError, TargetError
 from controlgs_adapter.formats.backbone import parse_cfg_args, write_ply
@@ -241,3 +242,58 @@ def test_posed_images_defaults_1_gib_cache_views_name_black_background():
     assert (v.cache_bytes, v.name, v.camera(0).width) == (1 << 30, "src:train", 8)
     assert data.views("train", cache_bytes=0).cache_bytes == 0
     assert len(data.views("train", first=1)) == 1 and len(v) == 2
+
+
+def test_memory_frames_default_names():
+    from controlgs_adapter.datasets.memory import posed_images, tensor_frames
+
+    cams = [_two_cameras().splits["train"][0].camera] * 2
+    imgs = torch.zeros(2, 3, 6, 8)
+    assert [f.name for f in tensor_frames(imgs, cams)] == ["view/0000", "view/0001"]
+    assert [f.name for f in tensor_frames(imgs, cams, prefix="p")] == ["p/0000", "p/0001"]
+    p = posed_images(imgs, cams)
+    assert p.name == "views" and [f.name for f in p.frames] == ["views/0000", "views/0001"]
+    assert p.background.tolist() == [0.0, 0.0, 0.0]
+
+
+def test_look_at_default_up_is_world_y():
+    from controlgs_adapter.scene.cameras import look_at
+
+    cam = look_at((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), size=16, fov_deg=60.0)
+    # world +y above the target projects above the image centre (v < 8), world +x to the right (u > 8)
+    uv, z = cam.project(torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]))
+    assert float(uv[0, 1]) < 8.0 and float(uv[0, 0]) == pytest.approx(8.0, abs=1e-5)
+    assert float(uv[1, 0]) > 8.0 and float(uv[1, 1]) == pytest.approx(8.0, abs=1e-5)
+    # with up = world x, world +x is the one that appears upward
+    cam_x = look_at((0.0, 0.0, 5.0), (0.0, 0.0, 0.0), size=16, fov_deg=60.0, up=(1.0, 0.0, 0.0))
+    assert float(cam_x.project(torch.tensor([[1.0, 0.0, 0.0]]))[0][0, 1]) < 8.0
+
+
+def test_textured_plane_make_defaults_face_plus_z_once():
+    from controlgs_adapter.scene.planes import TexturedPlane
+
+    p = TexturedPlane.make("p", "brick", (0.0, 0.0, 0.0), 2.0, 1.0)
+    # yaw 0, pitch 0: right = (w/2, 0, 0), down = (0, -h/2, 0); repeat (1, 1)
+    assert p.right.tolist() == [1.0, 0.0, 0.0] and p.down.tolist() == [0.0, -0.5, 0.0]
+    assert tuple(p.repeat) == (1, 1)
+    assert p.normal.abs().tolist() == [0.0, 0.0, 1.0]
+
+
+def test_undistort_points_default_20_iterations_converge():
+    k = torch.tensor([[300.0, 0, 160], [0, 280.0, 120], [0, 0, 1]], dtype=torch.float64)
+    dist = (-0.3, 0.1, 0.002, -0.001, 0.02)
+    uv = torch.tensor([[5.0, 7.0], [310.0, 230.0]], dtype=torch.float64)
+    default = undistort_points(uv, k, dist)
+    assert torch.equal(default, undistort_points(uv, k, dist, iterations=20))
+    assert not torch.allclose(default, undistort_points(uv, k, dist, iterations=1), atol=1e-6)
+    # converged: distorting the result gives back the input
+    xy = torch.stack([(default[:, 0] - 160) / 300, (default[:, 1] - 120) / 280], dim=-1)
+    d = distort_normalized(xy, dist)
+    torch.testing.assert_close(torch.stack([300 * d[:, 0] + 160, 280 * d[:, 1] + 120], dim=-1), uv, rtol=0, atol=1e-9)
+
+
+def test_builtin_backbone_default_variant_is_ar():
+    from controlgs_adapter.scene.backbone import builtin_backbone_dir
+
+    assert builtin_backbone_dir() == builtin_backbone_dir("ar") != builtin_backbone_dir("vr")
+    assert builtin_backbone_dir().name == "ar"
