@@ -299,3 +299,16 @@ def test_octree_lod_defaults_fork_2_round_voxel_centre_and_resolution_scale_1():
     assert want2 != want  # resolution_scale matters for this view
     model.set_anchor_mask(torch.tensor(cam, dtype=torch.float32), -1, 0.25)
     assert model._anchor_mask.tolist() == want2
+
+
+def test_save_scaffold_dir_default_mlp_mode_is_split(tmp_path):
+    from controlgs_adapter.backends.scaffold_io import save_scaffold_dir
+
+    model = NeuralGaussianModel(3, feat_dim=8, n_offsets=2)
+    folder = save_scaffold_dir(model, tmp_path / "a", 10)
+    assert folder == tmp_path / "a" / "point_cloud" / "iteration_10"
+    # Scaffold-GS's save_mlp_checkpoints(mode="split"): one TorchScript file per decoder next to the PLY
+    names = sorted(p.name for p in folder.iterdir())
+    assert names == ["color_mlp.pt", "cov_mlp.pt", "opacity_mlp.pt", "point_cloud.ply"]
+    unite = save_scaffold_dir(model, tmp_path / "b", 10, mlp_mode="unite")
+    assert sorted(p.name for p in unite.iterdir()) == ["checkpoints.pth", "point_cloud.ply"]
