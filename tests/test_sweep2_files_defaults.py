@@ -297,3 +297,17 @@ def test_builtin_backbone_default_variant_is_ar():
 
     assert builtin_backbone_dir() == builtin_backbone_dir("ar") != builtin_backbone_dir("vr")
     assert builtin_backbone_dir().name == "ar"
+
+
+def test_decoders_from_state_dicts_default_nothing_optional():
+    from controlgs_adapter.formats.decoders import decoders_from_state_dicts
+
+    lin = nn.Sequential(nn.Linear(4, 3), nn.ReLU(), nn.Linear(3, 2))
+    sd = {"mlp_opacity": lin.state_dict()}
+    keys = {"mlp_opacity": "mlp_opacity", "mlp_cov": "mlp_cov"}
+    with pytest.raises(FileFormatError, match=r"^ckpt.pth: missing entry 'mlp_cov' \(has \['mlp_opacity'\]\)$"):
+        decoders_from_state_dicts(sd, keys, source="ckpt.pth")
+    out = decoders_from_state_dicts(sd, keys, source="ckpt.pth", optional=("mlp_cov",))
+    assert list(out) == ["mlp_opacity"]
+    x = torch.randn(5, 4)
+    torch.testing.assert_close(out["mlp_opacity"](x), torch.tanh(lin(x)))  # Scaffold-GS: ReLU between, Tanh after
