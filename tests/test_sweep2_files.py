@@ -312,3 +312,19 @@ def test_save_scaffold_dir_default_mlp_mode_is_split(tmp_path):
     assert names == ["color_mlp.pt", "cov_mlp.pt", "opacity_mlp.pt", "point_cloud.ply"]
     unite = save_scaffold_dir(model, tmp_path / "b", 10, mlp_mode="unite")
     assert sorted(p.name for p in unite.iterdir()) == ["checkpoints.pth", "point_cloud.ply"]
+
+
+def test_build_builtin_backbone_cheap_defaults_recorded(tmp_path, monkeypatch, capfd):
+    from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
+    from controlgs_adapter.scene import build_builtin_backbone
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    # resolution / iterations / max_anchors are cut down; variant, n_offsets, feat_dim, point_spacing, seed and
+    # progress keep their documented defaults ("ar", 5, 32, 0.04, 0, a progress bar)
+    out = build_builtin_backbone(out=tmp_path / "bb", resolution=16, iterations=1, max_anchors=20)
+    info = json.loads((out / "build.json").read_text())
+    assert {k: info[k] for k in ("variant", "n_offsets", "feat_dim", "point_spacing", "seed")} == \
+        {"variant": "ar", "n_offsets": 5, "feat_dim": 32, "point_spacing": 0.04, "seed": 0}
+    model = load_scaffold_dir(out)
+    assert (model.n_offsets, model.feat_dim) == (5, 32)
+    assert "training backbone" in capfd.readouterr().err  # the tqdm bar is on by default
