@@ -43,7 +43,7 @@ CARDBOARD: dict[str, Any] = {
 
 def cauchy_index(nd: float, vd: float, wavelength_nm: float) -> float:
     """Refractive index from (n_d, V_d) with the two-term Cauchy law (see module docstring)."""
-    inv2 = lambda lam: 1.0 / (lam * 1e-3) ** 2  # noqa: E731  (1/um^2)
+    inv2 = lambda lam: lam ** -2.0  # noqa: E731  1/nm^2: B's unit absorbs any scale of it, n is unitless
     b = (nd - 1.0) / vd / (inv2(LAMBDA_F) - inv2(LAMBDA_C))
     a = nd - b * inv2(LAMBDA_D)
     return a + b * inv2(wavelength_nm)
