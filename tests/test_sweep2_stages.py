@@ -216,3 +216,28 @@ def test_cauchy_index_honours_the_abbe_number_definition(nd, vd):
             n_cat = (1 + sum(b * l2 / (l2 - c) for b, c in sellmeier)) ** 0.5
             assert cauchy_index(nd, vd, lam) == pytest.approx(n_cat, abs=6e-5)
     assert cauchy_index(nd, vd, 486.0) > cauchy_index(nd, vd, 550.0) > cauchy_index(nd, vd, 656.0)
+
+
+def test_conv_same_is_the_centred_crop_of_the_full_convolution():
+    """A delta at the centre returns the kernel; a delta one sample right/down shifts it by one (by hand:
+    the full (2K-1)^2 convolution cropped at offset K // 2); negative round-off is clipped to 0."""
+    from controlgs_adapter.downstream.optics.generate import _conv_same
+
+    K = 5
+    b = np.arange(1.0, K * K + 1).reshape(K, K)
+    delta = np.zeros((K, K))
+    delta[K // 2, K // 2] = 1.0
+    assert np.allclose(_conv_same(delta, b), b, atol=1e-12)
+    shifted = np.zeros((K, K))
+    shifted[K // 2 + 1, K // 2 + 1] = 1.0
+    want = np.zeros((K, K))
+    want[1:, 1:] = b[:-1, :-1]
+    assert np.allclose(_conv_same(shifted, b), want, atol=1e-12)
+    brute = np.zeros((2 * K - 1, 2 * K - 1))  # float64 brute force on random inputs
+    rng = np.random.default_rng(0)
+    a, c = rng.random((K, K)), rng.random((K, K))
+    for i in range(K):
+        for j in range(K):
+            brute[i:i + K, j:j + K] += a[i, j] * c
+    assert np.allclose(_conv_same(a, c), brute[K // 2:K // 2 + K, K // 2:K // 2 + K], atol=1e-12)
+    assert (_conv_same(-delta, b) == 0).all()  # all-negative result clipped to 0

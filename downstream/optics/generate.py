@@ -127,7 +127,7 @@ def _airy_kernel(pitch: float, r_airy: float, K: int, supersample: int = 5) -> n
 def _conv_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Linear convolution of two square ``K x K`` arrays cropped to the centred ``K x K`` (negative
     FFT round-off clipped to 0)."""
-    K = a.shape[0]
+    K = len(a)
     n = 2 * K - 1
     f = np.fft.irfft2(np.fft.rfft2(a, (n, n)) * np.fft.rfft2(b, (n, n)), (n, n))
     c = K // 2
