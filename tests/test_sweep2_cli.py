@@ -6,6 +6,8 @@ gradient exchange's bookkeeping and the explicit backend kept under torchrun."""
 from __future__ import annotations
 
 import argparse
+import io
+import zipfile
 import math
 
 import pytest
@@ -216,3 +218,34 @@ def test_training_progress_bar_follows_a_resized_terminal(tiny, monkeypatch):
     frames = [f for f in text.replace("\n", "\r").split("\r") if "training ControlGS" in f]
     assert frames and len(frames[0]) == 60, frames  # drawn at the start: 61 - 1
     assert len(frames[-1]) == 100 and "2/2" in frames[-1], frames
+
+
+# ------------------------------------------------------------------------------ LPIPS weights saved on a GPU
+def _as_if_saved_on_cuda(src: bytes) -> bytes:
+    """A torch checkpoint whose storages say ``cuda:0`` (what ``torch.save`` writes for GPU tensors):
+    the pickled location string ``cpu`` rewritten, every other record copied."""
+    zin = zipfile.ZipFile(io.BytesIO(src))
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as zout:
+        for name in zin.namelist():
+            data = zin.read(name)
+            if name.endswith("/data.pkl"):
+                # protocol-2 BINUNICODE: 'X' + 4-byte little-endian length + UTF-8
+                assert b"X\x03\x00\x00\x00cpu" in data
+                data = data.replace(b"X\x03\x00\x00\x00cpu", b"X\x06\x00\x00\x00cuda:0")
+            zout.writestr(name, data)
+    return out.getvalue()
+
+
+def test_lpips_weights_saved_on_a_gpu_load_onto_the_cpu(tmp_path):
+    from controlgs_adapter.perceptual import _read
+
+    weights = {"features.0.weight": torch.arange(6.0).reshape(2, 3), "lin0.model.1.weight": torch.tensor([0.5, -1.0])}
+    buf = io.BytesIO()
+    torch.save(weights, buf)
+    path = tmp_path / "alex.pth"
+    path.write_bytes(_as_if_saved_on_cuda(buf.getvalue()))
+    got = _read(path)  # map_location="cpu": no GPU needed, whether CUDA is installed or not
+    assert sorted(got) == sorted(weights)
+    for k, v in weights.items():
+        assert got[k].device == torch.device("cpu") and torch.equal(got[k], v), k
