@@ -1,7 +1,9 @@
 """Sweep 2 (issue 15 section 5), downstream stages: behaviours the large mutation sweep found untested.
 
 Frozen ImageRegion, the RadialMap grid cache, the basis= of every LensPrewarp.for_optics path, the PSF
-bank's -1e-3 sign bound at the bound itself, and the chief-ray Newton step clamp (+-0.05 per step)."""
+bank's -1e-3 sign bound at the bound itself, the chief-ray Newton step clamp (+-0.05 per step), the Cauchy
+index against the Abbe definition and a catalogue glass, the PSF generator's pupil-grid widening and its
+centred convolution."""
 
 from __future__ import annotations
 
