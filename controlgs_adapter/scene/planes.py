@@ -183,7 +183,7 @@ def render_planes(planes: list[TexturedPlane], camera: Camera, *, samples: int =
         for dd in (du, dv):
             dp = th[:, None] * (dd - (dd @ nrm / dnh)[:, None] * dh)  # [Mh, 3]
             feet.append((_matmul(dp, axes) * scale).norm(dim=-1))
-        lod = torch.log2(torch.maximum(torch.maximum(feet[0], feet[1]), torch.ones_like(th)))
+        lod = torch.log2(torch.stack(feet).amax(dim=0))  # [Mh]; sample() clamps it to the mip range (0 for -inf)
         color[idx] = plane.sample(a, b, lod)
         best_t[idx] = th
     hw = (camera.height, n, camera.width, n)
