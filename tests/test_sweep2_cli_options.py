@@ -261,3 +261,15 @@ def test_table_lists_every_option():
 
     walk(parser, "")
     assert seen == {(c, o) for c, o, *_ in OPTIONS}
+
+
+def test_every_option_is_described_in_the_help():
+    # each option's --help line carries a description (a dropped help= leaves the bare option)
+    for command, option, *_ in OPTIONS:
+        parser = _parser()
+        for name in command.split():
+            parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+        action = next(a for a in parser._actions if option in a.option_strings)
+        described = parser._get_formatter()._expand_help(action) if action.help else ""
+        assert len(described.split()) >= 2, (command, option, action.help)
+        assert " ".join(described.split()[:2]) in _help(command), (command, option)  # printed by --help
