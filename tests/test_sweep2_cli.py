@@ -249,3 +249,33 @@ def test_lpips_weights_saved_on_a_gpu_load_onto_the_cpu(tmp_path):
     assert sorted(got) == sorted(weights)
     for k, v in weights.items():
         assert got[k].device == torch.device("cpu") and torch.equal(got[k], v), k
+
+
+def test_training_progress_bar_only_when_asked_and_only_on_rank_0(tiny, capsys):
+    from controlgs_adapter.training import Trainer, TrainConfig
+
+    scene, model = tiny
+    cheap = {"lens": True, "resample": True, "display": True}
+
+    def bar_shown(progress: bool, dist_ctx: DistContext | None = None) -> bool:
+        config = TrainConfig(iterations=1, checkpoint_every=0, psf_fraction=0.0, batch_size=2)
+        t = Trainer(model, scene.views("train"), config,
+                    effects=cheap, dist=dist_ctx)
+        try:
+            capsys.readouterr()
+            t.train(progress=progress)
+        finally:
+            t.cgs.unwrap()
+        return "training ControlGS" in capsys.readouterr().err
+
+    assert bar_shown(True) and not bar_shown(False)
+    # rank 1 of 2 never draws it: a real gloo group of this one process stands in for the job (its
+    # collectives see only this rank; one iteration keeps every rank's step equal)
+    if dist.is_initialized():
+        pytest.skip("a process group already exists in this test process")
+    dist.init_process_group("gloo", store=dist.HashStore(), rank=0, world_size=1)
+    try:
+        assert not bar_shown(True, DistContext(rank=1, world_size=2, backend="gloo"))
+        assert bar_shown(True, DistContext(rank=0, world_size=2, backend="gloo"))
+    finally:
+        dist.destroy_process_group()
