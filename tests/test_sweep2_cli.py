@@ -279,3 +279,43 @@ def test_training_progress_bar_only_when_asked_and_only_on_rank_0(tiny, capsys):
         assert bar_shown(True, DistContext(rank=0, world_size=2, backend="gloo"))
     finally:
         dist.destroy_process_group()
+
+
+# ------------------------------------------------------------------------------ run.json records how the run was spread
+@pytest.mark.parametrize("exchange", ["dense", "sparse"])
+def test_train_records_the_exchange_that_reached_the_process_group(exchange, tmp_path, monkeypatch):
+    import json
+
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    out = tmp_path / "run"
+    assert cli.main(["train", "--out", str(out), "--iterations", "1", "--no-ablations", "--no-progress",
+                     "--resolution", "16", "--effects", "display", "--exchange", exchange]) == 0
+    record = json.loads((out / "run.json").read_text())
+    # one process: no process group (backend None); the exchange is the one init_distributed was given
+    assert record["distributed"] == {"processes": 1, "backend": None, "exchange": exchange}
+
+
+def test_train_on_your_own_scene_records_the_exchange(tmp_path, monkeypatch, capsys):
+    import json
+
+    pytest.importorskip("skimage")
+    from _scene_writers import write_blender  # tests/ is on the path (rootdir conftest), as for test_cli_own_scene
+
+    from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
+
+    model = builtin_backbone_dir("ar")
+    if not (model / "point_cloud").is_dir():
+        pytest.skip("built-in backbone not baked")
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=1)
+    data = write_blender(tmp_path / "data", scene.test_cameras + scene.train_cameras,
+                         list(torch.cat([scene.test_images, scene.train_images])), test=[0])
+    out = tmp_path / "run"
+    assert cli.main(["train", "--model", str(model), "--data", str(data), "--out", str(out), "--iterations", "1",
+                     "--no-ablations", "--no-progress", "--effects", "display", "--checkpoint-every", "0",
+                     "--exchange", "dense"]) == 0
+    record = json.loads((out / "run.json").read_text())
+    assert record["family"] == "scaffold_gs"
+    assert record["distributed"] == {"processes": 1, "backend": None, "exchange": "dense"}

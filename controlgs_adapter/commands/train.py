@@ -89,7 +89,8 @@ def _run(args: argparse.Namespace) -> int:
         runs = seed_runs(out, args.seed, args.seeds)
         if dist.is_main:
             _write_run(out, {"variant": args.variant, "effects": sorted(effects_from(args.effects)), "iterations": args.iterations,
-                             "seed": args.seed, "seeds": len(runs), "adapters": names, **render_record(args)})
+                             "seed": args.seed, "seeds": len(runs), "adapters": names, **render_record(args),
+                             "distributed": _dist_record(dist)})
         for seed, folder in runs:
             paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed, renderer=renderer)
             if dist.is_main:
@@ -114,7 +115,7 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
             print(check_line(report))
             print(f"model: {scene.family} {args.model}; training views: {views.describe()}")
             record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
-                                  seeds=len(runs), adapters=names, **render_record(args))
+                                  seeds=len(runs), adapters=names, **render_record(args), distributed=_dist_record(dist))
             _write_run(out, record)
         for seed, folder in runs:
             paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed, renderer=renderer)
@@ -122,6 +123,12 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
     return 0
+
+
+def _dist_record(dist: DistContext) -> dict[str, Any]:
+    """How the run was spread for ``run.json``: processes, process-group backend (None: one process),
+    gradient exchange (``--exchange``; it only changes what travels between processes)."""
+    return {"processes": dist.world_size, "backend": dist.backend, "exchange": dist.exchange}
 
 
 def _write_run(out: Path, record: dict[str, Any]) -> None:
