@@ -123,7 +123,7 @@ def eager_from_script(script_module: torch.jit.ScriptModule, name: str = "decode
     fc1 = _first_linear(eager)
     if fc1 is None:
         raise TargetError(f"decoder {name!r}: the TorchScript module holds no Linear layer")
-    gen = torch.Generator().manual_seed(0)  # a CPU generator (its default device, whatever the default device)
+    gen = torch.Generator()  # fresh CPU generator: a fixed initial seed, the same probe every call (any probe does)
     probe = torch.randn(4, fc1.in_features, generator=gen, dtype=fc1.weight.dtype).to(fc1.weight.device)
     with torch.no_grad():
         try:
