@@ -319,3 +319,16 @@ def test_train_on_your_own_scene_records_the_exchange(tmp_path, monkeypatch, cap
     record = json.loads((out / "run.json").read_text())
     assert record["family"] == "scaffold_gs"
     assert record["distributed"] == {"processes": 1, "backend": None, "exchange": "dense"}
+
+
+def test_lpips_weights_never_unpickle_objects_even_when_torch_is_told_to(tmp_path, monkeypatch):
+    # TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD=1 turns torch.load's default to full unpickling (code may run);
+    # the weights are loaded with weights_only=True named, so a file holding an object is still refused
+    from controlgs_adapter.perceptual import _read
+
+    monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+    path = tmp_path / "alex.pth"
+    torch.save({"features.0.weight": torch.ones(2), "extra": argparse.Namespace(x=1)}, path)
+    with pytest.raises(InputValueError, match=r"LPIPS weights .*alex\.pth: refused, not a tensor-only checkpoint "
+                                              r"\(loaded with torch\.load\(weights_only=True\), which never runs code\)"):
+        _read(path)
