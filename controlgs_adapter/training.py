@@ -256,7 +256,7 @@ class Trainer:
             clock.start()
         set_optics_mode(self.pipeline, self.optics_mode(self.iteration))
         batch = [self.sample() for _ in range(self.config.batch_size)]  # the global batch, the same on every rank
-        self.optimizer.zero_grad(set_to_none=True)
+        self.optimizer.zero_grad()  # set_to_none=True: the default since torch 2.0
         value = 0.0
         for view, state in self.dist.shard(batch):  # this process's share
             cam, gt = self.views[view]
