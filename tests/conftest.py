@@ -14,6 +14,20 @@ def _one_intra_op_thread():
     torch.set_num_threads(n)
 
 
+@pytest.fixture(autouse=True)
+def _process_group_count():
+    """A process group that fails to form in this process (tests of refusals) still bumps torch's
+    count of groups, which names the store keys of the next group; a later test whose ranks run in
+    fresh child processes (count 0) would then wait forever on keys nobody writes. Restored after
+    every test."""
+    from torch.distributed import distributed_c10d
+
+    count = distributed_c10d._world.group_count
+    yield
+    if not torch.distributed.is_initialized():
+        distributed_c10d._world.group_count = count
+
+
 @pytest.fixture(scope="module")
 def tiny():
     """The built-in AR scene at 16 px (4 views) and an untrained backbone whose colours match it: enough
