@@ -294,6 +294,8 @@ def _sources(targets: list[str]) -> list[str]:
     files: dict[str, None] = {}
     for t in targets:
         p = ROOT / t
+        if not (p.is_dir() or (p.is_file() and p.suffix == ".py")):
+            raise SystemExit(f"mutation_sweep.py: {t}: not a Python file or folder of this repository")
         for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
             if not f.name.startswith("_version"):
                 files[str(f.resolve().relative_to(ROOT))] = None
@@ -334,6 +336,8 @@ def main() -> None:
     ap.add_argument("--deselect", help="a file of test ids or test files (one a line) left out of every run")
     args = ap.parse_args()
     git = _in_git()
+    if args.deselect and not Path(args.deselect).is_file():
+        ap.error(f"--deselect {args.deselect}: no such file")
     deselect = Path(args.deselect).read_text().split() if args.deselect else []
     cov = Coverage(Path(args.coverage))
     rng = random.Random(args.seed)
