@@ -95,7 +95,8 @@ def test_bench_step_prints_the_table_and_rewrites_only_the_generated_part(tmp_pa
     step = _positive(r["step (s)"])
     assert abs(phases - step) <= 0.005 * 9 + 1e-9  # eight phase cells and the step cell, each rounded to 0.01 s
     assert abs(float(r["it/s"]) - 1 / step) <= 0.005 + 0.005 / step**2  # both cells rounded to 0.01
-    _positive(r["splat"]), _positive(r["backward"])
+    for phase in ("splat", "backward"):  # measured; under 5 ms (an idle machine, this tiny scene) it reads 0.00
+        assert re.fullmatch(r"\d+\.\d\d", r[phase]), r[phase]
     gaussians, visible = re.match(r"(\d+) \((\d+)\)", r["Gaussians (visible)"]).groups()
     assert 0 < int(visible) <= int(gaussians) <= 300 * 10
     if not torch.cuda.is_available():
