@@ -1,5 +1,6 @@
-"""scripts/mutation_sweep.py's own parsing: coverage's numbits decoded as coverage.py does, and the
-usage errors of --shard and --lines."""
+"""scripts/mutation_sweep.py's own parsing: coverage.py's numbits decoded (coverage is not a test
+dependency: the encoding is written here from its documented layout), and the usage errors of --shard
+and --lines."""
 
 import argparse
 import importlib.util
@@ -7,7 +8,6 @@ import sys
 from pathlib import Path
 
 import pytest
-from coverage.numbits import nums_to_numbits
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -18,9 +18,21 @@ sys.modules[_spec.name] = sweep  # its dataclass looks the module up there
 _spec.loader.exec_module(sweep)
 
 
+def _encode(lines: set[int]) -> bytes:
+    """coverage.py's numbits: bit ``k`` of byte ``j`` set when line ``8 j + k`` ran."""
+    out = bytearray((max(lines) // 8 + 1) if lines else 0)
+    for n in lines:
+        out[n // 8] |= 1 << (n % 8)
+    return bytes(out)
+
+
 @given(st.sets(st.integers(1, 5000), max_size=300))
-def test_numbits_decode_as_coverage_encodes(lines):
-    assert sweep._numbits_to_lines(nums_to_numbits(lines)) == sorted(lines)
+def test_numbits_decode(lines):
+    assert sweep._numbits_to_lines(_encode(lines)) == sorted(lines)
+
+
+def test_numbits_by_hand():
+    assert sweep._numbits_to_lines(bytes([0b00000110, 0, 0b10000000])) == [1, 2, 23]
 
 
 def test_shard_and_line_range_parse_and_refuse():
