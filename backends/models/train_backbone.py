@@ -144,7 +144,6 @@ def train_reference_model(
             raise InputValueError(f"cameras[{i}] is {cam.width}x{cam.height}, images are {dims['W']}x{dims['H']}")
     if iterations < 0 or max_anchors < 1:
         raise InputValueError(f"need iterations >= 0 and max_anchors >= 1, got {iterations}, {max_anchors}")
-    torch.manual_seed(seed)
     device = images.device
     if points is None:
         if bounds is None:
@@ -156,9 +155,11 @@ def train_reference_model(
     check_tensor("points", points, ["P", 3], dtypes=(torch.float32, torch.float64), finite=True)
     if voxel_size is None:
         voxel_size = _anchor_voxel(points, max_anchors)
-    model = NeuralGaussianModel.from_points(points.cpu(), None if colors is None else colors.cpu(), feat_dim=feat_dim,
-                                            n_offsets=n_offsets, voxel_size=voxel_size, seed=seed,
-                                            num_cameras=len(cameras), **model_options).to(device)
+    with torch.random.fork_rng(devices=[]):  # the decoders' initialisation follows the seed; the caller's generator is untouched
+        torch.manual_seed(seed)
+        model = NeuralGaussianModel.from_points(points.cpu(), None if colors is None else colors.cpu(), feat_dim=feat_dim,
+                                                n_offsets=n_offsets, voxel_size=voxel_size, seed=seed,
+                                                num_cameras=len(cameras), **model_options).to(device)
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():  # spread the K Gaussians of an anchor over its voxel (Scaffold-GS starts them at 0)
         model._offset.copy_((torch.rand(model._offset.shape, generator=gen) - 0.5).to(device))

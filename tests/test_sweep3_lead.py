@@ -1,0 +1,111 @@
+"""Misses of the fresh sample of 2026-11-23 evening (seed 11230001), each pinned by what the code is for."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.backends.models.train_backbone import train_reference_model
+from controlgs_adapter.downstream.lens import LUTMap
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.scene import load_builtin_scene
+from controlgs_adapter.state import Camera
+from controlgs_adapter.training import TrainConfig, Trainer
+from controlgs_adapter.viewer.session import orbit_camera
+
+
+def _look_at(eye: tuple[float, float, float], size: int = 12) -> Camera:
+    """A pinhole camera at ``eye`` looking at the origin (OpenCV axes: x right, y down, z forward)."""
+    c = torch.tensor(eye, dtype=torch.float32)
+    z = -c / c.norm()
+    up = torch.tensor([0.0, 1.0, 0.0]) if abs(float(z[1])) < 0.9 else torch.tensor([1.0, 0.0, 0.0])
+    x = torch.linalg.cross(up, z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    r = torch.stack([x, y, z])
+    w2c = torch.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = r, -(r @ c)
+    k = torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]])
+    return Camera(w2c, k, size, size)
+
+
+def test_reference_trainer_follows_its_seed_not_the_global_generator():
+    """Two fits with the same ``seed`` are the same model to the bit, whatever the global generator
+    holds (the view order of every epoch is drawn from the seeded generator), and the global generator is
+    left as it was."""
+    cams = [_look_at((0.0, 0.0, -3.0)), _look_at((3.0, 0.0, 0.0)), _look_at((0.0, -3.0, 0.5))]
+    g = torch.Generator().manual_seed(0)
+    images = torch.rand(3, 3, 12, 12, generator=g)
+    pts = torch.rand(30, 3, generator=g) - 0.5
+    kw = dict(iterations=9, feat_dim=4, n_offsets=2, max_anchors=12, progress=False, seed=5)
+    fits = []
+    for global_seed in (1, 2):
+        torch.manual_seed(global_seed)
+        before = torch.get_rng_state()
+        fits.append(dict(train_reference_model(images, cams, pts, **kw).state_dict()))
+        assert torch.equal(torch.get_rng_state(), before)  # the caller's generator is left as it was
+    a, b = fits
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_lut_map_refuses_a_grid_that_is_not_finite():
+    """A LUT grid holding NaN or inf is refused, naming ``grid`` (it would sample NaN everywhere it reaches)."""
+    grid = torch.rand(3, 4, 5, 2)
+    LUTMap(grid)  # finite: accepted
+    for bad in (math.nan, math.inf):
+        g = grid.clone()
+        g[1, 2, 3, 0] = bad
+        with pytest.raises(InputValueError, match="grid"):
+            LUTMap(g)
+
+
+def test_orbit_camera_never_attaches_the_camera_to_its_inputs_graph():
+    """Orbiting is a viewer move: a centre or camera pose that requires grad gives a camera whose pose does
+    not (and the same pose as from detached inputs)."""
+    cam = _look_at((0.0, 0.0, -3.0))
+    centre = torch.tensor([0.1, -0.2, 0.3], requires_grad=True)
+    w2c = cam.world_to_camera.clone().requires_grad_(True)
+    live = Camera(w2c, cam.intrinsics, cam.width, cam.height)
+    out = orbit_camera(live, centre, 30.0, -10.0)
+    want = orbit_camera(cam, centre.detach(), 30.0, -10.0)
+    assert not out.world_to_camera.requires_grad
+    assert torch.equal(out.world_to_camera, want.world_to_camera)
+
+
+def test_a_trainer_starts_in_its_first_iterations_optics_mode():
+    """Before any step the pipeline's optics stage is in iteration 0's mode (``distortion`` while
+    ``psf_fraction`` leaves iterations to it), and the switch to ``psf_mode`` comes at its iteration."""
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    torch.manual_seed(0)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=5)
+    effects = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
+    config = TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.5, psf_mode="exact")
+    t = Trainer(model.eval(), scene.views("train"), config, effects=effects)
+    try:
+        assert [t.optics_mode(i) for i in (0, 1)] == ["distortion", "exact"]
+        assert t.pipeline["optics"].mode == "distortion"
+        t.step()
+        assert t.pipeline["optics"].mode == "distortion"
+        t.step()
+        assert t.pipeline["optics"].mode == "exact"
+    finally:
+        t.cgs.unwrap()
+
+
+def test_optics_bench_reports_the_one_minute_load_average(monkeypatch, capsys):
+    """The bench's header gives the machine's 1-minute load average (what competes with the timings now)."""
+    import os
+
+    from controlgs_adapter.downstream.optics import bench
+
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.3, 5.5, 15.75))
+    rows = bench.run(sizes=["16"], repeat=1, scaling=False, radiometries=bench.RADIOMETRIES[:1], threads=1)
+    assert rows
+    header = capsys.readouterr().out.splitlines()[0]
+    assert "load average 1.3," in header and "1 threads" in header
