@@ -293,7 +293,8 @@ def load_torchscript_tensors(path: str | os.PathLike, *, trust_code: bool = Fals
 
     if not trust_code:
         return tensors_from_archive(path)
-    return {k: v.detach().clone() for k, v in _jit_load_trusted(Path(path)).state_dict().items()}
+    # state_dict() (keep_vars=False) already gives detached tensors; the clone owns its storage
+    return {k: v.clone() for k, v in _jit_load_trusted(Path(path)).state_dict().items()}
 
 
 def _jit_load_trusted(path: Path) -> torch.jit.ScriptModule:
