@@ -123,3 +123,19 @@ def test_from_points_with_colours_starts_features_small_and_random():
     assert abs(float(f.mean())) < 0.01 and 0.095 < float(f.std()) < 0.105 and float(f.abs().max()) < 0.6
     again = NeuralGaussianModel.from_points(pts, cols, feat_dim=8, n_offsets=2, voxel_size=1e-3, color_fit_steps=0, seed=4)
     assert torch.equal(again._anchor_feat, m._anchor_feat)
+
+
+def test_optics_bench_page_names_the_command_line_it_was_given(tmp_path):
+    """Called from Python (``cli.main(argv)``) as from a shell, the written page names the exact command
+    line, quoted for a shell, so that it can be re-run."""
+    import shlex
+
+    from controlgs_adapter.cli import main
+
+    out = tmp_path / "a dir"
+    argv = ["optics", "bench", "--sizes", "16", "--radiometry", "radiance", "--repeat", "1", "--no-scaling",
+            "--threads", "1", "--out", str(out)]
+    assert main(argv) == 0
+    page = (out / "optics_bench.md").read_text()
+    command = page.split("Command: `", 1)[1].split("`", 1)[0]
+    assert shlex.split(command) == ["controlgs", *argv]

@@ -10,7 +10,6 @@ import argparse
 import datetime
 import math
 import shlex
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -57,8 +56,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     result = run_bench(settings, progress=args.progress)
     result.info["date"] = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    argv = sys.argv[1:] if sys.argv[1:2] == ["bench"] else ["bench"]
-    text = format_report(result, "controlgs " + " ".join(shlex.quote(a) for a in argv))
+    text = format_report(result, "controlgs " + " ".join(shlex.quote(a) for a in args.argv))
     text += f"\nTotal time of this run: {math.ceil(time.perf_counter() - t0)} s.\n"
     print(text)
     if args.out is not None:

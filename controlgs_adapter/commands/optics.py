@@ -112,7 +112,6 @@ def run_bench(args: argparse.Namespace) -> int:
     from controlgs_adapter.downstream.optics.bench import run
 
     import shlex
-    import sys
 
     from controlgs_adapter.downstream.optics.bench import parse_size
     from controlgs_adapter.errors import InputValueError
@@ -124,7 +123,7 @@ def run_bench(args: argparse.Namespace) -> int:
             raise InputValueError(f"--sizes: {e}") from None
     run(sizes=args.sizes, tols=args.tols, zone=args.zone, exact_max=args.exact_max, threads=args.threads, out=args.out,
         radiometries=args.radiometry, repeat=args.repeat, scaling=args.scaling,
-        command="controlgs " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
+        command="controlgs " + " ".join(shlex.quote(a) for a in args.argv))
     return 0
 
 
