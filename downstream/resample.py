@@ -82,8 +82,8 @@ def _area_resample_to(image: torch.Tensor, size: tuple[int, int]) -> torch.Tenso
     h, w = image.shape[-2:]
     if (h, w) == tuple(size):
         return image
-    if h % size[0] == 0 and w % size[1] == 0 and h // size[0] == w // size[1]:
-        k = h // size[0]
+    k = h // size[0]
+    if k * size[0] == h and k * size[1] == w:  # an integer factor, the same on both axes
         flat = image.reshape(-1, 3, h, w)
         return F.avg_pool2d(flat, k).reshape(*image.shape[:-2], *size)
     rows = _resample_rows(image, size[0])  # [..., h', W]

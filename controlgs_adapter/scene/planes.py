@@ -112,9 +112,9 @@ def _sample_rays(camera: Camera, samples: int) -> tuple[torch.Tensor, torch.Tens
     parameter is the z-depth), and the direction's derivatives per sub-sample step in u and v ``[3]``."""
     k = camera.intrinsics.to(torch.float64)
     r = camera.world_to_camera[:3, :3].to(torch.float64)
-    offs = (torch.arange(samples, dtype=torch.float64) + 0.5) / samples
-    u = (torch.arange(camera.width, dtype=torch.float64)[:, None] + offs).reshape(-1)  # [W*n]
-    v = (torch.arange(camera.height, dtype=torch.float64)[:, None] + offs).reshape(-1)  # [H*n]
+    offs = (torch.arange(samples, dtype=torch.float64) + 0.5) / samples  # float64: u, v below promote to it
+    u = (torch.arange(camera.width)[:, None] + offs).reshape(-1)  # [W*n]
+    v = (torch.arange(camera.height)[:, None] + offs).reshape(-1)  # [H*n]
     vv, uu = torch.meshgrid(v, u, indexing="ij")
     dc = torch.stack([(uu - k[0, 2]) / k[0, 0], (vv - k[1, 2]) / k[1, 1], torch.ones_like(uu)], dim=-1).reshape(-1, 3)
     d = _matmul(dc, r)  # R^T dc for row vectors, [M, 3]
