@@ -156,7 +156,7 @@ def _split_tensors(path: str | Path, tensors: dict[str, torch.Tensor], own: dict
     state: dict[int, dict[str, Any]] = {}
     for k, v in tensors.items():
         if k.startswith("optimizer."):
-            parts = k.split(".", 2)
+            parts = k.split(".")  # anything but optimizer.<index>.<state> has != 3 parts: refused
             if len(parts) != 3 or not parts[1].isdigit() or int(parts[1]) >= len(param_shapes) or parts[2] not in (
                     ADAM_STATE) or (parts[2] != "step" and v.shape != param_shapes[int(parts[1])]):
                 raise FileFormatError(f"{path}: checkpoint tensor {k!r} ({list(v.shape)}) is not Adam state of "

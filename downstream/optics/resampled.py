@@ -389,7 +389,7 @@ class ResampledBank:
         wts = torch.zeros(L, jy, jx, N, dtype=self.dtype)
         step = max(1, _FOOTPRINT_CHUNK // L)
         for s in range(0, N, step):
-            sl = slice(s, min(s + step, N))
+            sl = slice(s, s + step)  # a slice past the end stops at N
             cjx, cjy = int(ex[:, sl].max()), int(ey[:, sl].max())
             w = quad_overlaps(qx[:, :, sl], qy[:, :, sl], x0[:, sl], y0[:, sl], cjx, cjy).clamp_min(0)   # [cjy, cjx, L, n]
             if self.radiometry == "energy":
