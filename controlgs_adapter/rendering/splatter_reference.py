@@ -97,9 +97,9 @@ def rasterize_reference(
     done = torch.zeros(hw, dtype=torch.bool)
     for i in sorted(range(n), key=lambda j: float(z[j].detach())):  # front to back (stable: ties in input order)
         a = alpha[:, i]
-        skip = ~inside[:, i] | (a.detach() < ALPHA_MIN) | done
+        skip = ~inside[:, i] | (a < ALPHA_MIN) | done
         t_next = t * (1 - a)
-        stop = ~skip & (t_next.detach() < transmittance_min)
+        stop = ~skip & (t_next < transmittance_min)
         done = done | stop
         draw = ~skip & ~stop
         w = torch.where(draw, a * t, torch.zeros_like(a))

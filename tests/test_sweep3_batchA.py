@@ -1,0 +1,76 @@
+"""Misses of the fresh sample of 2026-11-23 evening (seed 11230001): viewer scene centre, bench progress
+output, report figure titles, each pinned by what the code is for."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from controlgs_adapter.state import Camera
+from controlgs_adapter.viewer.session import scene_centre
+
+
+def _look_at(eye: tuple[float, float, float], target: tuple[float, float, float], size: int = 12) -> Camera:
+    """A pinhole camera at ``eye`` looking at ``target`` (OpenCV axes: x right, y down, z forward)."""
+    c, t = torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64)
+    z = (t - c) / (t - c).norm()
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    if abs(float(z[1])) > 0.9:
+        up = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    x = torch.linalg.cross(up, z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    r = torch.stack([x, y, z])
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, :3], w2c[:3, 3] = r, -(r @ c)
+    k = torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]])
+    return Camera(w2c.float(), k, size, size)
+
+
+def test_scene_centre_is_where_the_axes_meet_and_never_joins_the_poses_graph():
+    """Cameras looking at one point: the centre is that point (least squares of the axes, exact here);
+    poses that require grad (a camera being optimised) give a plain tensor, the same as detached poses."""
+    target = (0.3, -0.2, 0.5)
+    cams = [_look_at(e, target) for e in ((0.0, 0.0, -3.0), (3.0, 0.5, 0.0), (-1.0, -2.0, 2.0))]
+    live = [Camera(c.world_to_camera.clone().requires_grad_(True), c.intrinsics, c.width, c.height) for c in cams]
+    got = scene_centre(live, None)
+    assert not got.requires_grad and got.grad_fn is None
+    assert got.dtype == torch.float64 and got.shape == (3,)
+    assert torch.allclose(got, torch.tensor(target, dtype=torch.float64), atol=1e-5)
+    assert torch.equal(got, scene_centre(cams, None))
+
+
+def test_bench_is_quiet_unless_asked_for_progress(capsys):
+    """``run_bench(progress=False)`` (the default, as a library call) writes nothing to stderr or stdout;
+    with ``progress=True`` it names its phases on stderr, starting with the phase timings."""
+    from controlgs_adapter.benchmarking.accuracy_time import BenchSettings, run_bench
+
+    s = BenchSettings(resolution=16, iterations=1, phase_iterations=1, repeats=1, test_views=1,
+                      downsample=(1.0,), power_saving=(0.0,))
+    run_bench(s)
+    quiet = capsys.readouterr()
+    assert (quiet.out, quiet.err) == ("", "")
+    run_bench(s, progress=True)
+    loud = capsys.readouterr()
+    assert loud.out == ""
+    assert loud.err.splitlines()[0] == "training phases"
+
+
+def test_real_magnification_is_the_tiny_field_limit_of_the_chief_ray_height():
+    """``real_magnification`` is ``Y / h`` as the field ``h`` goes to 0 (the ratio the bank's chief rays are
+    normalised by). Barrel/pincushion distortion makes ``Y / h = m0 + k h^2``; ``m0`` is extrapolated
+    here (Richardson) from two small but finite fields, where tracing noise is negligible."""
+    import numpy as np
+
+    from controlgs_adapter.downstream.optics.prescription import Prescription
+    from controlgs_adapter.downstream.optics.raytrace import chief_ray, real_magnification
+
+    rx = Prescription.cardboard()
+    h = np.array([1e-3, 2e-3])
+    for lam in (486.0, 550.0, 656.0):
+        _, y, ok = chief_ray(rx, lam, h)
+        assert ok.all()
+        f1, f2 = y / h
+        m0 = (4.0 * f1 - f2) / 3.0
+        assert abs(f2 - f1) > 1e-10 * abs(m0)  # the distortion term is really there at these fields
+        assert real_magnification(rx, lam) == pytest.approx(m0, rel=6e-12, abs=0)
