@@ -74,3 +74,47 @@ def test_real_magnification_is_the_tiny_field_limit_of_the_chief_ray_height():
         m0 = (4.0 * f1 - f2) / 3.0
         assert abs(f2 - f1) > 1e-10 * abs(m0)  # the distortion term is really there at these fields
         assert real_magnification(rx, lam) == pytest.approx(m0, rel=6e-12, abs=0)
+
+
+def _runs(mask) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each run of True in a 1-D boolean array."""
+    out, start = [], None
+    for i, v in enumerate(list(mask) + [False]):
+        if v and start is None:
+            start = i
+        elif not v and start is not None:
+            out.append((start, i))
+            start = None
+    return out
+
+
+def test_comparison_figure_titles_fit_over_their_panels(tmp_path):
+    """Fig. 1's panel titles (the rows :func:`evaluation.side_by_side` gives, two-line settings, metrics)
+    are set small enough to sit over their own image: in the written PNG, every dark title pixel lies within the columns of the
+    image panel below it, never over the gap or a neighbour's panel."""
+    from matplotlib.image import imread
+
+    from controlgs_adapter.report import plot_comparison
+
+    img = torch.full((3, 32, 32), 0.5)
+    rows = {m: [(img, img, 31.25, 0.912), (img, img, 28.5, 0.88)] for m in ("no_ss", "ss", "controlgs")}
+    path = plot_comparison({"gt": img, "settings": [(2.0, 0.4), (1.0, 0.0)], "rows": rows}, tmp_path / "fig.png")
+    px = torch.from_numpy(imread(str(path))[..., :3].copy()).double()
+    grey = ((px - 0.5).abs() < 0.02).all(-1)
+    dark = px.max(-1).values < 0.35
+    panel_rows = _runs((grey.sum(1) > 0.2 * grey.sum(1).max()).tolist())
+    assert len(panel_rows) == 1 + len(rows)
+    top = 0
+    for y0, y1 in panel_rows:
+        cols = _runs((grey[y0:y1].sum(0) > 0.5 * (y1 - y0)).tolist())
+        assert len(cols) in (1, 4)  # the ground truth alone, then rendered/eye for two settings
+        ys, xs = torch.nonzero(dark[top:y0], as_tuple=True)
+        assert len(xs) > 50, "no title above the panels"
+        for x0, x1 in cols:
+            near = (xs >= x0 - 10) & (xs < x1 + 10)
+            assert near.any(), "a panel without a title"
+        inside = torch.zeros_like(xs, dtype=torch.bool)
+        for x0, x1 in cols:
+            inside |= (xs >= x0) & (xs < x1)
+        assert inside.all(), f"title pixels outside their panel at x={sorted(set(xs[~inside].tolist()))[:5]}"
+        top = y1
