@@ -33,6 +33,7 @@ from .benchmarking.clock import PhaseClock
 from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
+from .downstream.oled import oled_emission
 from .downstream.optics.stage import set_optics_mode
 from .errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
@@ -268,6 +269,8 @@ class Trainer:
                 gt = gt.to(image.device, non_blocking=True)
                 lap("render")
                 eye = self.pipeline(image, state, reference=gt)
+                if eye.shape[-2:] != gt.shape[-2:]:  # oled off: the display's pixels as boxes at S (as the viewer scores them)
+                    eye = oled_emission(eye, (gt.shape[-2], gt.shape[-1]))
                 lap("pipeline")
                 loss = image_loss(eye, gt, self.config.loss) / len(batch)
                 lap("loss")

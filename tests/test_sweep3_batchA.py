@@ -3,6 +3,8 @@ output, report figure titles, each pinned by what the code is for."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -118,3 +120,24 @@ def test_comparison_figure_titles_fit_over_their_panels(tmp_path):
             inside |= (xs >= x0) & (xs < x1)
         assert inside.all(), f"title pixels outside their panel at x={sorted(set(xs[~inside].tolist()))[:5]}"
         top = y1
+
+
+def test_training_with_oled_off_scores_the_display_pixels_as_boxes_at_full_size(tiny):
+    """With the ``oled`` stage off the eye image stays at the display size S/d; the trainer compares it with
+    the ground truth as box pixels at S (how the viewer shows and scores it), so a run with oled off
+    trains exactly like one with oled on when nothing follows the oled stage (it is that box emission).
+    It used to stop with a ShapeError at the first sample with d > 1."""
+    from controlgs_adapter.training import TrainConfig, Trainer
+
+    scene, model = tiny
+    losses = []
+    for oled in (True, False):
+        t = Trainer(model, scene.views("train"), TrainConfig(iterations=4, seed=3, checkpoint_every=0, max_downsample=4.0),
+                    effects={"resample": True, "display": True, "oled": oled})
+        try:
+            losses += [t.step() for _ in range(4)]
+        finally:
+            t.cgs.unwrap()
+    on, off = losses[:4], losses[4:]
+    assert all(math.isfinite(v) for v in on)
+    assert off == pytest.approx(on, rel=1e-6, abs=0)
