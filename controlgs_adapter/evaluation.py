@@ -24,6 +24,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .controlgs import ControlGS
+from .downstream.oled import oled_emission
 from .downstream.optics.stage import set_optics_mode
 from .errors import InputValueError
 from .metrics import optional_metrics, psnr, ssim
@@ -130,7 +131,10 @@ def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "
 
 def scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> dict[str, float]:
     """The grid's metrics of one eye image ``[3, H, W]`` (clamped to [0, 1], as a display holds it) vs
-    the ground truth: PSNR, SSIM and each ``extra`` ``{name: fn(eye, gt)}``."""
+    the ground truth: PSNR, SSIM and each ``extra`` ``{name: fn(eye, gt)}``. An eye image at the display
+    size (the ``oled`` stage off) is scored as the display's pixels shown as boxes at the ground truth's size."""
+    if eye.shape[-2:] != gt.shape[-2:]:
+        eye = oled_emission(eye, (gt.shape[-2], gt.shape[-1]))
     e, g = eye.detach().clamp(0.0, 1.0).double(), gt.double()
     out = {"psnr": float(psnr(e, g)), "ssim": float(ssim(e, g))}
     for name, fn in extra.items():

@@ -141,3 +141,25 @@ def test_training_with_oled_off_scores_the_display_pixels_as_boxes_at_full_size(
     on, off = losses[:4], losses[4:]
     assert all(math.isfinite(v) for v in on)
     assert off == pytest.approx(on, rel=1e-6, abs=0)
+
+
+def test_evaluation_scores_an_oled_off_eye_image_as_box_pixels_at_full_size():
+    """The grid's scores of a pipeline without the ``oled`` stage (eye image at S/d) are those of the same
+    pipeline with it (box emission to S is all that stage does), at every d; they used to stop with a
+    ShapeError for d > 1."""
+    from controlgs_adapter.evaluation import make_pipeline, scores
+    from controlgs_adapter.state import RuntimeState
+
+    g = torch.Generator().manual_seed(5)
+    gt = torch.rand(3, 24, 24, generator=g)
+    image = (gt + 0.1 * torch.randn(3, 24, 24, generator=g)).clamp(0, 1)
+    on = make_pipeline({"resample": True, "display": True, "oled": True}).eval()
+    off = make_pipeline({"resample": True, "display": True, "oled": False}).eval()
+    for d, rho in ((1.0, 0.0), (2.0, 0.4), (3.0, 0.0)):
+        state = RuntimeState(downsample=d, power_saving=rho)
+        with torch.no_grad():
+            e_on, e_off = on(image, state, reference=gt), off(image, state, reference=gt)
+        assert e_off.shape[-1] == round(24 / d)
+        want, got = scores(e_on, gt, {}), scores(e_off, gt, {})
+        assert got == pytest.approx(want, rel=1e-6, abs=0)
+        assert math.isfinite(got["psnr"]) and 0 < got["ssim"] < 1
