@@ -1,5 +1,6 @@
 """Misses of the fresh sample of 2026-11-23 evening (seed 11230001): viewer scene centre, bench progress
-output, report figure titles, each pinned by what the code is for."""
+output, report figure titles, the optics' tiny-field magnification, and training/scoring with the oled
+stage off (a bug found on the way), each pinned by what the code is for."""
 
 from __future__ import annotations
 
