@@ -139,3 +139,19 @@ def test_optics_bench_page_names_the_command_line_it_was_given(tmp_path):
     page = (out / "optics_bench.md").read_text()
     command = page.split("Command: `", 1)[1].split("`", 1)[0]
     assert shlex.split(command) == ["controlgs", *argv]
+
+
+def test_viewer_rotation_is_exact_in_float64():
+    """The viewer's Rodrigues rotation keeps its axis' float64: about z it is the closed form to 1e-15, and
+    about a skew axis orthonormal to 1e-14 with the axis fixed (float32 would leave ~1e-8 errors)."""
+    from controlgs_adapter.viewer.session import _rotation
+
+    t = math.radians(37.0)
+    want = torch.tensor([[math.cos(t), -math.sin(t), 0.0], [math.sin(t), math.cos(t), 0.0], [0.0, 0.0, 1.0]],
+                        dtype=torch.float64)
+    r = _rotation(torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64), 37.0)
+    assert r.dtype == torch.float64 and torch.allclose(r, want, rtol=0, atol=1e-15)
+    axis = torch.tensor([0.3, -0.7, 0.64], dtype=torch.float64)
+    r = _rotation(axis, 123.4)
+    assert torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-14)
+    assert torch.allclose(r @ axis, axis, rtol=0, atol=1e-14)

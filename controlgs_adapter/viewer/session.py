@@ -129,7 +129,7 @@ def parse_state(data: Any, views: int) -> ViewState:
 def _rotation(axis: torch.Tensor, degrees: float) -> torch.Tensor:
     """Rodrigues: ``[3, 3]`` rotation by ``degrees`` about the unit ``axis`` (right-handed)."""
     k = axis / axis.norm()
-    kx = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], dtype=k.dtype)
+    kx = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])  # dtype follows the 0-d entries of k
     t = math.radians(degrees)
     return torch.eye(3, dtype=k.dtype) + math.sin(t) * kx + (1.0 - math.cos(t)) * (kx @ kx)
 
