@@ -479,3 +479,13 @@ def test_octree_folder_with_a_malicious_decoder_fails_cleanly(tmp_path):
     with pytest.raises(FileFormatError, match=r"cov_mlp\.pt.*__setstate__"):
         load_octree_gs_dir(folder)
     assert not target.exists()
+
+
+def test_forward_reading_an_attribute_of_its_input_is_refused(tmp_path):
+    """Only ``self.<name>`` reads a parameter: ``input.weight`` (an attribute of something else) is refused,
+    not taken for ``self.weight``."""
+    src = _plain(tmp_path)
+    name, code = _code_of(src, "Linear")
+    other = code.replace("weight = self.weight", "weight = input.weight")
+    assert other != code
+    _refused(_patched(src, tmp_path / "attr.pt", {name: other.encode()}), "input.weight", "not a plain chain")
