@@ -155,3 +155,12 @@ def test_viewer_rotation_is_exact_in_float64():
     r = _rotation(axis, 123.4)
     assert torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-14)
     assert torch.allclose(r @ axis, axis, rtol=0, atol=1e-14)
+
+
+def test_image_loss_module_names_pred_and_target_in_its_call_order():
+    """``ImageLoss()(pred, target)``: a shape mismatch names ``pred``'s shape first, as the call gave them."""
+    from controlgs_adapter.errors import ShapeError
+    from controlgs_adapter.losses import ImageLoss
+
+    with pytest.raises(ShapeError, match=r"pred and target must have the same shape, got \[3, 16, 16\] and \[3, 12, 12\]"):
+        ImageLoss()(torch.rand(3, 16, 16), torch.rand(3, 12, 12))
