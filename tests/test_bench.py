@@ -2,6 +2,7 @@
 
 import math
 import re
+import time
 
 from controlgs_adapter.benchmarking.accuracy_time import COND_DIMS, MODULE_SETS, PSF_MODES, BenchSettings, run_bench
 from controlgs_adapter.benchmarking.report import PART_DOCS, format_report, write_report
@@ -28,7 +29,11 @@ def _positive(cell: str) -> float:
 def test_bench_report_tiny(tmp_path):
     s = BenchSettings(resolution=16, iterations=2, phase_iterations=1, repeats=1, test_views=1,
                       downsample=(1.0, 2.0), power_saving=(0.0, 0.6))
+    t0 = time.perf_counter()
     r = run_bench(s)
+    wall = time.perf_counter() - t0
+    for k in r.knobs:  # a step's median time: positive, and a small part of the whole run
+        assert 0 < k["s_per_it"] < wall / s.iterations, k
     r.info["date"] = "test"
     text = format_report(r, "controlgs bench --test")
     path = write_report(text, tmp_path / "benchmarks.md")
