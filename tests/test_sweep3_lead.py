@@ -164,3 +164,18 @@ def test_image_loss_module_names_pred_and_target_in_its_call_order():
 
     with pytest.raises(ShapeError, match=r"pred and target must have the same shape, got \[3, 16, 16\] and \[3, 12, 12\]"):
         ImageLoss()(torch.rand(3, 16, 16), torch.rand(3, 12, 12))
+
+
+def test_condition_response_figure_has_a_column_for_the_longest_strip(tmp_path):
+    """Strips of unequal length: the figure has as many columns as the longest (2 in by 120 dpi each), the
+    shorter row's missing panels left blank."""
+    import struct
+
+    pytest.importorskip("matplotlib")
+    from controlgs_adapter.report import plot_condition_response
+
+    img = torch.rand(3, 8, 8, generator=torch.Generator().manual_seed(0))
+    strips = {"resample": [("d=1", img), ("d=2", img)], "display": [("p=0", img), ("p=0.3", img), ("p=0.6", img)]}
+    path = plot_condition_response(strips, tmp_path / "response.png")
+    width, height = struct.unpack(">II", path.read_bytes()[16:24])  # the PNG's IHDR
+    assert (width, height) == (round(2.0 * 3 * 120), round(2.1 * 2 * 120))
