@@ -32,3 +32,13 @@ def test_findings_count_strict_wins_ties_and_worst_cells_by_hand():
     # 20, 20.42; FLIP 0.5, 0.5, 3.1 / 6 = 0.5167
     assert "| Backbone (no SS) | 19.33 | **0.5000** |" in md, md
     assert "| SS-backbone | 20.00 | **0.5000** |" in md and "| ControlGS | **20.42** | 0.5167 |" in md, md
+
+
+def test_difference_tables_appear_with_exactly_the_two_methods():
+    """A result holding only ``ss`` and ``controlgs`` gets the per-setting ControlGS-minus-SS table, its
+    cells the differences by hand, signed."""
+    ss = torch.full((1, 2, 1), 20.0, dtype=torch.float64)
+    cg = ss + torch.tensor([[0.5, -0.25]], dtype=torch.float64)[..., None]
+    md = markdown_tables(GridResult((1.0,), (0.0, 0.4), {"ss": {"psnr": ss}, "controlgs": {"psnr": cg}}))
+    section = md.split("PSNR of ControlGS minus SS-backbone:", 1)[1].split("\n\n", 2)[1]
+    assert "+0.50" in section and "-0.25" in section, section
