@@ -230,3 +230,25 @@ def test_demo_with_two_seeds(tmp_path, monkeypatch, capsys):
     assert info["test_sizes"] == ["16x16"]
     _timings_within(info, ("load_s", "train_s", "eval_s", "figures_s"), wall)
     assert info["train_s"] > 0 and info["eval_s"] > 0
+
+
+@needs_backbone
+def test_train_built_in_with_two_seeds_and_one_ablation(tmp_path, monkeypatch, capsys):
+    """``controlgs train --seeds 2 --seed 5 --ablation wo_lens`` on the built-in scene: ControlGS and only the
+    chosen ablation, per seed in ``seed-<s>/``, each seed its own training; run.json records the run."""
+    from safetensors.torch import load_file
+
+    for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        monkeypatch.delenv(k, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    out = tmp_path / "run"
+    assert cli.main(["train", "--out", str(out), "--iterations", "1", "--resolution", "16", "--effects", "display",
+                     "--checkpoint-every", "0", "--no-progress", "--seeds", "2", "--seed", "5",
+                     "--ablation", "wo_lens"]) == 0
+    want = [out / f"seed-{s}" / f"{n}.controlgs.safetensors" for s in (5, 6) for n in ("controlgs", "wo_lens")]
+    assert capsys.readouterr().out.splitlines()[-4:] == [f"{p.name.split('.')[0]}: {p}" for p in want]
+    record = json.loads((out / "run.json").read_text())
+    assert {k: record[k] for k in ("variant", "effects", "iterations", "seed", "seeds", "adapters")} == \
+        {"variant": "ar", "effects": ["display"], "iterations": 1, "seed": 5, "seeds": 2, "adapters": ["controlgs", "wo_lens"]}
+    a, b = (load_file(out / f"seed-{s}" / "controlgs.controlgs.safetensors") for s in (5, 6))
+    assert any(not torch.equal(a[k], b[k]) for k in a)
