@@ -126,14 +126,17 @@ def _primaries_operator(optics: torch.nn.Module, size: tuple[int, int], dtype: t
 
 def _fill_invalid(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Extend ``values`` ``[C, H, W, D]`` from the ``valid`` ``[C, H, W]`` pixels into the others by
-    repeated 3x3 averaging of valid neighbours (a smooth nearest-valid continuation)."""
+    repeated 3x3 averaging of valid neighbours (a smooth nearest-valid continuation). Refused when a
+    channel has no valid pixel (there is nothing to continue from)."""
     c, h, w, d = values.shape
+    empty = (~valid.reshape(c, -1).any(1)).nonzero().flatten().tolist()
+    if empty:
+        raise InputValueError(f"no display pixel could be measured through the optics (none for primary channel(s) {empty} "
+                              f"of {c}: their light leaves the eye frame everywhere)")
     v = torch.where(valid[..., None], values, torch.zeros_like(values)).permute(0, 3, 1, 2).reshape(1, c * d, h, w)
     m = valid[:, None].expand(c, d, h, w).reshape(1, c * d, h, w).to(values.dtype)
     kernel = torch.ones(c * d, 1, 3, 3, dtype=values.dtype)
-    while not bool(m.all()):
-        if not bool(m.any()):
-            raise InputValueError("no display pixel could be measured through the optics")
+    while not bool(m.all()):  # each channel has a valid pixel: every round grows it
         s = F.conv2d(v, kernel, padding=1, groups=c * d)
         n = F.conv2d(m, kernel, padding=1, groups=c * d)
         grow = (m == 0) & (n > 0)
@@ -202,7 +205,7 @@ def _fit_mode(optics: torch.nn.Module, bank: "PSFBank", size: tuple[int, int], g
             eye = op(gain[None])[0]  # [3, H, W]
             at = F.grid_sample(eye[:, None], target, mode="bilinear", padding_mode="border", align_corners=False)[:, 0]
             update = torch.where(seen, 1.0 / at.clamp(min=1e-6), torch.ones_like(at)).clamp(0.5, 2.0)
-            residual = float((at - 1.0)[seen].abs().max()) if bool(seen.any()) else 0.0
+            residual = float((at - 1.0)[seen].abs().max())  # seen in every channel: it holds the valid pixels
             if _ == gain_iterations:
                 break
             gain = _fill_invalid((gain * update)[..., None], seen)[..., 0]
@@ -228,13 +231,16 @@ def fit_bank_prewarp(
         size: display pixels along the display's shorter side (the tables' resolution; the fit is
             exact for the operator at this pixel pitch).
         modes: optics modes to fit a table for (``"fast"`` uses the ``"exact"`` table).
-        gain_iterations: fixed-point iterations of the gain.
+        gain_iterations: fixed-point iterations of the gain (0: the lens's own fall-off, unit gain).
         pool: the tables are stored at ``size / pool`` (``pool x pool`` averages: the fitted tables
             resampled bilinearly at the coarser pixel centres; 2 places dots within 0.1 px at 128-512 px).
         dtype: working precision.
     Returns:
         A :class:`DisplayLUTMap` over the whole display (``meta`` holds the bank's fingerprint,
         the settings and the residuals); ``.save(path)`` writes it.
+    Raises:
+        InputValueError: a bad argument (named), or an optics through which some primary has no
+            display pixel to measure (its light leaves the eye frame everywhere: nothing to fit).
     """
     from .optics.bank import PSFBank
     from .optics.stage import PSFOptics
@@ -248,6 +254,8 @@ def fit_bank_prewarp(
         raise InputValueError(f"size must be an int >= 8, got {size!r}")
     if not isinstance(pool, int) or pool < 1 or size % pool or size // pool < 4:
         raise InputValueError(f"pool must be an int >= 1 dividing size into >= 4 samples, got {pool!r}")
+    if isinstance(gain_iterations, bool) or not isinstance(gain_iterations, int) or gain_iterations < 0:
+        raise InputValueError(f"gain_iterations must be an int >= 0, got {gain_iterations!r}")
     if not modes or any(m not in ("distortion", "exact", "fast") for m in modes):
         raise InputValueError(f"modes must be a non-empty subset of ('distortion', 'exact', 'fast'), got {modes!r}")
     dw, dh = bank.display_mm

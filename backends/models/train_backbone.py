@@ -126,8 +126,8 @@ def train_reference_model(
             0.5 x the median camera distance around :func:`camera_target`.
         background: ``[3]`` colour behind the scene (default black), as in the images.
         lr_scale: multiplies every learning rate.
-        seed: seeds anchor jitter, initialisation and the view order (training is deterministic
-            for a given seed and thread count).
+        seed: seeds anchor jitter, initialisation and the view order (default 0; training is
+            deterministic for a given seed and thread count).
         progress: show a tqdm bar with the running loss.
         model_options: passed to the model (``use_feat_bank``, ``appearance_dim``, ``add_*_dist``).
 
