@@ -82,8 +82,9 @@ def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_si
 def flip(test: torch.Tensor, reference: torch.Tensor, *, ppd: float = FLIP_PPD) -> float:
     """Mean LDR-FLIP error of ``test`` against ``reference`` (NVIDIA's ``flip-evaluator``; lower is
     better, 0 for identical images): one sRGB image pair ``[3, H, W]`` with values in [0, 1], passed
-    to the package as the ``H x W x 3`` float64 sRGB arrays it expects. Not differentiable."""
-    check_image_pair(test, reference)
+    to the package as the ``H x W x 3`` float64 sRGB arrays it expects. Not differentiable. Every
+    refusal names the argument at fault, ``test`` or ``reference``."""
+    check_image_pair(test, reference, ("test", "reference"))
     if test.dim() != 3:
         raise ShapeError(f"flip takes one image pair [3, H, W], got {list(test.shape)}")
     # the package calls sys.exit() on bad arguments: check them here
