@@ -20,14 +20,14 @@ from controlgs_adapter.errors import InputValueError
 D64 = torch.float64
 
 
-def _bank(L=3, G=4, K=5, pitch_mm=2.0, seed=0):
+def _bank(L=3, G=4, K=5, pitch_mm=2.0, seed=0, pincushion=0.1):
     """Random PSFs on a ``G x G`` field grid, a mild pincushion chief-ray map, a 24 mm display."""
     g = torch.Generator().manual_seed(seed)
     psf = torch.rand(L, G, G, K, K, dtype=D64, generator=g) ** 2
     psf /= psf.sum((-1, -2), keepdim=True)
     c = torch.linspace(-1, 1, 9, dtype=D64)
     cy, cx = torch.meshgrid(c, c, indexing="ij")
-    s = 1 + 0.1 * (cx ** 2 + cy ** 2)
+    s = 1 + pincushion * (cx ** 2 + cy ** 2)
     ch = torch.stack([cx * s, cy * s], -1).expand(L, 9, 9, 2).clone()
     f = -1 + (2 * torch.arange(G, dtype=D64) + 1) / G
     return PSFBank(psf=psf, psf_pitch_mm=torch.full((L, G, G), pitch_mm, dtype=D64), field_x=f, field_y=f, chief=ch,
@@ -77,6 +77,21 @@ def test_black_pixel_skipping_is_exact_for_awkward_sparse_images(monkeypatch, ra
             dense = op(x.clone().requires_grad_(True), rb).detach()
             assert dense.abs().sum() > 0.1, name
             assert torch.allclose(skipped, dense, atol=1e-12, rtol=0), (name, (skipped - dense).abs().max())
+
+
+def test_a_lone_pixel_is_not_skipped_where_it_is_a_groups_only_tap():
+    """Distortion-free lens, one lit pixel between field samples: in the energy operator's per-field
+    groups it is the one active tap of several groups. Skipping black pixels (no gradient) must keep
+    those groups: the result equals the dense path and carries the pixel's light (energy form: the
+    PSFs sum to 1, held as float32, and nothing leaves the 12 x 12 image from its centre)."""
+    rb = _bank(pincushion=0.0).resample_to(12, 12, dtype=D64, radiometry="energy")
+    x = torch.zeros(1, 3, 12, 12, dtype=D64)
+    x[0, 1, 5, 6] = 1.0
+    with torch.no_grad():
+        skipped = psf_exact(x, rb)
+    dense = psf_exact(x.clone().requires_grad_(True), rb).detach()
+    assert dense[0, 1].sum().item() == pytest.approx(1.0, abs=1e-6)          # PSFs held as float32
+    assert torch.allclose(skipped, dense, atol=1e-12, rtol=0)
 
 
 @pytest.mark.parametrize("chunk", [1, 300])
