@@ -134,6 +134,44 @@ def test_evaluate_grid_scores_lpips_with_the_network_it_is_given():
     assert float(r.per_view[IDEAL]["lpips"][0, 1].min()) > 0  # dimmed: a distance, not 0
 
 
+
+class _OnWhite:
+    """The first view of a dataset, its renders to be made on a white background."""
+
+    background = torch.ones(3)
+
+    def __init__(self, views) -> None:
+        self.view = views[0]
+
+    def __len__(self) -> int:
+        return 1
+
+    def __getitem__(self, i: int):
+        return self.view
+
+
+def test_evaluate_grid_renders_on_the_views_background(tiny):
+    """``evaluate_grid`` renders on ``views.background`` (documented: "its background is the renders'"):
+    the SS-backbone's score is that of the render on white, which differs from the model's own black."""
+    from controlgs_adapter.metrics import psnr
+    from controlgs_adapter.rendering.protocol import render_view
+
+    scene, model = tiny
+    views = _OnWhite(scene.data.views("train", first=1))
+    effects = {"display": True}
+    r = evaluate_grid(model, views, {}, effects=effects, downsample=(1.0,), power_saving=(0.0,), baselines=("ss",),
+                      ideal=False, extra_metrics=False, progress=False)
+    cam, gt = views[0]
+    pipe = make_pipeline(effects)
+    with torch.no_grad():
+        scored = {}
+        for name, bg in (("white", torch.ones(3)), ("black", torch.zeros(3))):
+            eye = pipe(render_view(None, model, cam, None, bg), RuntimeState(), reference=gt).clamp(0, 1)
+            scored[name] = float(psnr(eye.double(), gt.double()))
+    assert scored["white"] != pytest.approx(scored["black"], abs=1e-3)  # the background shows in this view
+    assert float(r.per_view["ss"]["psnr"][0, 0, 0]) == pytest.approx(scored["white"], abs=1e-9)
+
+
 # ------------------------------------------------------------------------------ report
 def _cell(v: float) -> torch.Tensor:
     return torch.full((1, 1, 1), v, dtype=torch.float64)
