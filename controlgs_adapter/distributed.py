@@ -24,7 +24,7 @@ Every process (rank) holds a full replica of the adapter. Per step:
      visible in its views, so only rows with a non-zero gradient are sent. Every rank
      all-gathers the (padded to the largest count) row ids ``[k]`` and rows ``[k, M*N]`` and sums
      them with ``index_add`` into a zero gradient, in rank order. With ``exchange="auto"`` the
-     table falls back to a dense all-reduce when the padded gather would move more bytes
+     table falls back to a dense all-reduce when the padded gather would move as many bytes or more
      (most anchors touched by every rank).
 
   Afterwards every rank holds the same summed gradients (``None`` where no rank had one, as in
