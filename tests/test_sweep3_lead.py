@@ -179,3 +179,20 @@ def test_condition_response_figure_has_a_column_for_the_longest_strip(tmp_path):
     path = plot_condition_response(strips, tmp_path / "response.png")
     width, height = struct.unpack(">II", path.read_bytes()[16:24])  # the PNG's IHDR
     assert (width, height) == (round(2.0 * 3 * 120), round(2.1 * 2 * 120))
+
+
+def test_optics_bench_page_names_sys_argv_when_main_is_given_none(tmp_path, monkeypatch):
+    """As the console script calls it (``main()``), the page names the shell's arguments after the
+    program name: ``sys.argv[1:]``."""
+    import shlex
+
+    from controlgs_adapter.cli import main
+
+    out = tmp_path / "b"
+    argv = ["optics", "bench", "--sizes", "16", "--radiometry", "radiance", "--repeat", "1", "--no-scaling",
+            "--threads", "1", "--out", str(out)]
+    monkeypatch.setattr("sys.argv", ["/some/bin/controlgs", *argv])
+    assert main() == 0
+    page = (out / "optics_bench.md").read_text()
+    command = page.split("Command: `", 1)[1].split("`", 1)[0]
+    assert shlex.split(command) == ["controlgs", *argv]
