@@ -71,8 +71,9 @@ def test_optics_bench_and_fit_prewarp_commands(tmp_path: Path, capsys: pytest.Ca
     assert sorted(p.name for p in (tmp_path / "ob").iterdir()) == ["optics_bench.md", "optics_bench.png"]
     assert "16x16 radiance exact" in capsys.readouterr().out
     lut = tmp_path / "lut.safetensors"
-    assert main(["optics", "fit-prewarp", "--size", "8", "--modes", "distortion", "--out", str(lut)]) == 0
+    assert main(["optics", "fit-prewarp", "--size", "8", "--modes", "distortion", "--radiometry", "energy",
+                 "--out", str(lut)]) == 0  # not the default radiometry: the option must reach the fit
     out = capsys.readouterr().out
     meta = json.loads(out[:out.rindex("}") + 1])
-    assert (meta["size"], meta["radiometry"], list(meta["residuals"])) == ([8, 8], "radiance", ["distortion"])
+    assert (meta["size"], meta["radiometry"], list(meta["residuals"])) == ([8, 8], "energy", ["distortion"])
     assert lut.is_file() and out.strip().splitlines()[-1].startswith(f"wrote {lut} (")
