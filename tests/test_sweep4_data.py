@@ -11,11 +11,11 @@ import torch
 from PIL import Image
 
 from controlgs_adapter.datasets import (Frame, PosedImages, SceneData, area_resize, check_scene, read_blender,
-                                       read_colmap, read_instant_ngp,
+                                       read_colmap, read_instant_ngp, undistort_points,
                                        working_size)
 from controlgs_adapter.downstream.display import (PANEL_COEFFICIENTS, display_mapping, display_mapping_with_stats,
                                                   display_power)
-from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.state import Camera
 
 W, H, F = 8, 6, 10.0
@@ -211,16 +211,16 @@ def test_read_blender_refuses_a_non_finite_background(tmp_path):
 # instant-ngp reader (datasets/instant_ngp.py)
 
 
-def _tiny_ngp(root, frame_extra: dict | None = None, missing: int = 0, n: int = 3, **top) -> None:
+def _tiny_ngp(root, frame_extra: dict | None = None, missing: int = 0, n: int = 3, size=(W, H), **top) -> None:
     """``n`` frames with images, then ``missing`` frames whose image is not there."""
     from _datasets_synth import ring_poses, write_json, write_png
 
     frames = []
     for i, c2w in enumerate(ring_poses(n + missing)):
         if i < n:
-            write_png(root / "images" / f"f{i}.png", np.zeros((H, W, 3), dtype=np.uint8))
+            write_png(root / "images" / f"f{i}.png", np.zeros((size[1], size[0], 3), dtype=np.uint8))
         frames.append({"file_path": f"images/f{i}.png", "transform_matrix": c2w.tolist(), **(frame_extra or {})})
-    write_json(root / "transforms.json", {"fl_x": 9.0, "fl_y": 9.0, "w": W, "h": H, **top, "frames": frames})
+    write_json(root / "transforms.json", {"fl_x": 9.0, "fl_y": 9.0, "w": size[0], "h": size[1], **top, "frames": frames})
 
 
 def test_read_instant_ngp_defaults_to_a_black_background_and_records_the_folder(tmp_path):
@@ -290,3 +290,52 @@ def test_read_instant_ngp_holds_out_every_8th_frame_by_default(tmp_path):
     data = read_instant_ngp(tmp_path)
     assert [f.name for f in data.splits["test"]] == ["images/f0.png", "images/f8.png"]
     assert len(data.splits["train"]) == 8
+
+
+@pytest.mark.parametrize("key", ["fl_x", "fl_y"])
+def test_read_instant_ngp_refuses_a_zero_focal_length_naming_the_keys(tmp_path, key):
+    """A focal length of 0 is not usable (the message asks for fl_x / fl_y > 0)."""
+    _tiny_ngp(tmp_path, **{key: 0.0})
+    with pytest.raises(FileFormatError, match=r"no usable focal length \(give fl_x / fl_y > 0"):
+        read_instant_ngp(tmp_path)
+
+
+def test_read_instant_ngp_takes_a_one_pixel_image(tmp_path):
+    """``w, h`` must be > 0: a 1 x 1 capture (w = h = 1) is a valid camera."""
+    _tiny_ngp(tmp_path, size=(1, 1), cx=0.5, cy=0.5)
+    cam = read_instant_ngp(tmp_path, holdout=0).splits["train"][0].camera
+    assert (cam.width, cam.height) == (1, 1)
+    assert cam.intrinsics.tolist() == [[9.0, 0.0, 0.5], [0.0, 9.0, 0.5], [0.0, 0.0, 1.0]]
+
+
+def test_identity_mapping_stats_are_detached():
+    """display_mapping_with_stats: the stats are "each [...], detached", also on the rho = 0 shortcut."""
+    x = torch.full((3, 2, 2), 0.5, dtype=torch.float64, requires_grad=True)
+    out, stats = display_mapping_with_stats(x, 0.0)
+    assert out is x
+    assert not any(v.requires_grad for v in stats.values())
+    assert float(stats["power"]) == pytest.approx(0.5 * sum(PANEL_COEFFICIENTS))
+
+
+# ---------------------------------------------------------------------------------------------
+# undistortion (datasets/images.py)
+
+
+def test_undistort_points_converges_like_newtons_method():
+    """Docstring: the inverse is found "by Newton's method": quadratic convergence, so 4 iterations from
+    the distorted position already land on the pinhole position to float64 precision (a wrong Jacobian
+    term still converges, but only linearly: ~1e-5 px off after 4 steps). Forward model in numpy from
+    the module docstring's formula."""
+    k1, k2, p1, p2, k3 = d = (-0.2, 0.05, 0.02, -0.015, 0.01)
+    g = np.linspace(-0.6, 0.6, 7)
+    x, y = (a.ravel() for a in np.meshgrid(g, g))
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    fx, fy, cx, cy = 100.0, 90.0, 40.5, 30.25
+    k = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    distorted = torch.from_numpy(np.stack([fx * xd + cx, fy * yd + cy], axis=-1))
+    expected = np.stack([fx * x + cx, fy * y + cy], axis=-1)
+    got = undistort_points(distorted, k, d, iterations=4).numpy()
+    assert np.abs(got - expected).max() < 1e-9
