@@ -339,3 +339,12 @@ def test_undistort_points_converges_like_newtons_method():
     expected = np.stack([fx * x + cx, fy * y + cy], axis=-1)
     got = undistort_points(distorted, k, d, iterations=4).numpy()
     assert np.abs(got - expected).max() < 1e-9
+
+
+def test_clipped_fraction_is_per_image_of_a_batch():
+    """Stats are "each [...]": a batch of two images gets one clipped fraction each (by hand: the first
+    has 1 of 12 values above 1 at scale 1, the second none)."""
+    x = torch.full((2, 3, 2, 2), 0.5, dtype=torch.float64)
+    x[0, 0, 0, 0] = 1.5
+    _, stats = display_mapping_with_stats(x, 0.0, reference_power=display_power(x))
+    assert stats["clipped_fraction"].tolist() == [pytest.approx(1 / 12), 0.0]
