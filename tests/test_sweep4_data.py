@@ -116,6 +116,28 @@ def test_area_resize_by_a_non_integer_factor_matches_pillows_bilinear_reduce():
     np.testing.assert_allclose(out.numpy(), ref, atol=1e-5)
 
 
+def test_area_resize_returns_the_input_when_the_size_already_matches():
+    """Docstring: "Returns the input if the size already matches"."""
+    x = torch.rand(3, 5, 7)
+    assert area_resize(x, 5, 7) is x
+
+
+def test_scene_data_default_background_is_black_and_loaded_images_carry_no_graph():
+    """SceneData.background (``[3]``, "the model's background") defaults to black; an RGBA
+    pixel of alpha 0.25 over it keeps a quarter of its colour. A background that requires grad is a
+    constant of the loaded images (no graph reaches them)."""
+    rgba = torch.zeros(4, H, W, dtype=torch.float64)
+    rgba[:3], rgba[3] = 0.8, 0.25
+    data = SceneData({"train": [Frame("a", _camera(), rgba)]})
+    assert torch.equal(data.background, torch.zeros(3))
+    img = data.views("train").image(0)
+    torch.testing.assert_close(img, torch.full((3, H, W), 0.2))
+    bg = torch.tensor([1.0, 0.0, 0.5], requires_grad=True)
+    img = PosedImages(data.splits["train"], background=bg).image(0)
+    assert not img.requires_grad
+    torch.testing.assert_close(img, (0.2 + 0.75 * bg.detach())[:, None, None].expand(3, H, W))
+
+
 def test_cache_holds_an_image_exactly_the_size_of_its_budget():
     """``cache_bytes`` is the budget "of at most": an image of exactly that many bytes is kept."""
     frames = [Frame("a", _camera(), torch.rand(3, H, W, dtype=torch.float64))]
@@ -201,10 +223,17 @@ def test_pixels_exactly_at_the_display_range_ends_are_not_clipped():
     assert float(stats["clipped_fraction"]) == pytest.approx(2 / 12)
 
 
-def test_read_blender_refuses_a_non_finite_background(tmp_path):
+def test_read_blender_background_must_be_a_finite_srgb_colour_and_is_kept_as_a_constant(tmp_path):
+    """Docstring: ``background`` is an sRGB colour in [0, 1] (checked finite); a negative component is
+    refused even when another is positive. The colour kept is detached (no graph through the data)."""
     _tiny_blender(tmp_path)
     with pytest.raises(InputValueError, match="background"):
         read_blender(tmp_path, background=torch.tensor([float("nan"), 0.0, 0.0]))
+    with pytest.raises(InputValueError, match=r"background must be an sRGB colour in \[0, 1\]"):
+        read_blender(tmp_path, background=torch.tensor([-0.25, 0.5, 0.5]))
+    bg = torch.tensor([0.25, 0.5, 0.75], requires_grad=True)
+    kept = read_blender(tmp_path, background=bg).background
+    assert not kept.requires_grad and kept.tolist() == [0.25, 0.5, 0.75]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -302,10 +331,10 @@ def test_read_instant_ngp_refuses_a_zero_focal_length_naming_the_keys(tmp_path, 
 
 def test_read_instant_ngp_takes_a_one_pixel_image(tmp_path):
     """``w, h`` must be > 0: a 1 x 1 capture (w = h = 1) is a valid camera."""
-    _tiny_ngp(tmp_path, size=(1, 1), cx=0.5, cy=0.5)
+    _tiny_ngp(tmp_path, size=(1, 1), cx=0.5, cy=0.5, fl_x=0.75, fl_y=0.5)   # focal lengths > 0, below 1 px
     cam = read_instant_ngp(tmp_path, holdout=0).splits["train"][0].camera
     assert (cam.width, cam.height) == (1, 1)
-    assert cam.intrinsics.tolist() == [[9.0, 0.0, 0.5], [0.0, 9.0, 0.5], [0.0, 0.0, 1.0]]
+    assert cam.intrinsics.tolist() == [[0.75, 0.0, 0.5], [0.0, 0.5, 0.5], [0.0, 0.0, 1.0]]
 
 
 def test_identity_mapping_stats_are_detached():
