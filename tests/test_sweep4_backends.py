@@ -25,6 +25,7 @@ from controlgs_adapter.backends.hac import HACBackend, HACModel, load_hac_dir
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend, OctreeGSModel, load_octree_gs_dir, lod_anchor_ids
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
+from controlgs_adapter.backends.scaffold_io import load_scaffold_dir, save_scaffold_dir
 from controlgs_adapter.errors import FileFormatError, InputValueError
 from controlgs_adapter.formats.backbone import read_ply, write_ply
 from scaffold_oracle import make_raw_model, write_scaffold_dir_by_hand
@@ -400,3 +401,36 @@ def test_octree_loader_refuses_a_truncated_rotation_set(tmp_path):
     _rewrite_ply(ply, rot_3=None)
     with pytest.raises(FileFormatError, match=r"point_cloud.ply: missing PLY field\(s\) \['rot_3'\]"):
         load_octree_gs_dir(tmp_path / "o")
+
+
+# ---------------------------------------------------------------- Scaffold-GS folders
+
+def test_scaffold_loader_refuses_an_octree_anygs_folder_by_its_config_yaml(tmp_path):
+    """Octree-AnyGS writes config.yaml (no cfg_args) next to Scaffold-GS-like files: load_scaffold_dir
+    names it and points to the Octree-GS loader instead of decoding every level at once."""
+    write_scaffold_dir_by_hand(tmp_path / "m", make_raw_model(5, 4, 2, seed=2), iteration=3)
+    (tmp_path / "m" / "config.yaml").write_text("model_params: {\n  feat_dim: 4,\n}\n")
+    with pytest.raises(FileFormatError, match=r"m: an Octree-GS / Octree-AnyGS output folder \(config.yaml\), not a flat"):
+        load_scaffold_dir(tmp_path / "m")
+
+
+def test_save_scaffold_dir_traces_a_colour_decoder_with_the_distance_input(tmp_path):
+    """add_color_dist: the colour decoder takes [feat, view, dist] (F + 4); 'split' mode traces and reloads it."""
+    torch.manual_seed(3)
+    m = NeuralGaussianModel(3, feat_dim=4, n_offsets=2, add_color_dist=True)
+    save_scaffold_dir(m, tmp_path / "s", 1)
+    got = load_scaffold_dir(tmp_path / "s")
+    assert got.add_color_dist and got.mlp_color[0].in_features == 4 + 3 + 1
+    assert torch.equal(got.mlp_color[0].weight, m.mlp_color[0].weight)
+
+
+def test_scaffold_loader_refuses_a_decoder_state_missing_a_parameter(tmp_path):
+    """A 'unite' checkpoints.pth whose colour decoder lacks its last bias does not fit the decoder: refused
+    (not loaded with that bias left at its random initial value)."""
+    write_scaffold_dir_by_hand(tmp_path / "m", make_raw_model(5, 4, 2, seed=1), iteration=3, mode="unite")
+    ck = tmp_path / "m" / "point_cloud" / "iteration_3" / "checkpoints.pth"
+    sd = torch.load(ck, weights_only=True)
+    del sd["color_mlp"]["2.bias"]
+    torch.save(sd, ck)
+    with pytest.raises(FileFormatError, match=r"decoder 'mlp_color' does not fit: .*Missing key\(s\) in state_dict: \"2.bias\""):
+        load_scaffold_dir(tmp_path / "m")
