@@ -60,7 +60,7 @@ class Target:
     fc1: str
     in_features: int
     out_features: int
-    from_torchscript: bool = False
+    from_torchscript: bool
 
     def as_header(self) -> dict[str, Any]:
         return {"decoder": self.decoder, "fc1": self.fc1, "in_features": self.in_features, "out_features": self.out_features}

@@ -519,7 +519,7 @@ def test_value_objects_are_frozen():
     from controlgs_adapter.training import TrainConfig
 
     objs = [(LossWeights(), "l1"), (RuntimeState(), "downsample"), (TrainConfig(), "lr"),
-            (Target("d", "d.0", 3, 4), "fc1"), (PluginInfo("stage", "n", "p", "s", None), "name")]
+            (Target("d", "d.0", 3, 4, False), "fc1"), (PluginInfo("stage", "n", "p", "s", None), "name")]
     for obj, field in objs:
         with pytest.raises(dataclasses.FrozenInstanceError):
             setattr(obj, field, 1)
