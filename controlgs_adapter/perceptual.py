@@ -72,7 +72,7 @@ def _read(path: Path) -> dict[str, torch.Tensor]:
         if path.suffix == ".safetensors":
             from safetensors.torch import load_file
 
-            data = load_file(str(path), device="cpu")
+            data = load_file(str(path))  # on the CPU
         else:
             data = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
