@@ -416,7 +416,9 @@ class DisplayLUTMap(PrewarpMap):
     display-normalised eye position of the display point minus the point (what the pre-warp samples
     there), and ``gain`` ``[3, Hd, Wd]``. For an ``H x W`` image with half-extents
     ``(hx, hy)`` the grid at image point ``u`` is ``(u h + displacement(u h)) / h`` (bilinear in the
-    table, linear extrapolation at its border).
+    table, linear extrapolation at its border). The grid and gain are evaluated once per (size,
+    dtype, device, table in use) and the same tensors returned again; an in-place change of a table
+    is seen at the next call.
 
     Args:
         tables: optics mode (``"distortion"``, ``"exact"``; ``"fast"`` uses ``"exact"``) ->

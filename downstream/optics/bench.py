@@ -16,12 +16,13 @@ import torch
 from .bank import PSFBank
 from .operators import psf_distortion, psf_exact, psf_fast
 from .resampled import RADIOMETRIES, ResampledBank
+from .stage import DEFAULT_TOL
 
 __all__ = ["run", "parse_size", "SIZES"]
 
 #: fast-mode tolerances timed by default: the stage's default only (``--tols 0.1 0.05 0.02 0.01``
 #: gives the error-vs-time curve)
-TOLS = (0.02,)
+TOLS = (DEFAULT_TOL,)
 SIZES = ("256", "512", "1024", "576x1024")
 
 
@@ -64,7 +65,7 @@ def _fwd_bwd(op, x: torch.Tensor, w: torch.Tensor) -> None:
 
 
 def _kernel_scaling(size: int, zone: int) -> list[tuple[int, float]]:
-    """Fast-mode fwd+bwd time for banks of Gaussian PSFs spanning k = 33 and 129 px."""
+    """Fast-mode (the stage's default tol) fwd+bwd time for banks of Gaussian PSFs spanning k = 33 and 129 px."""
     out = []
     for k in (33, 129):
         G, K = 6, 33
@@ -80,7 +81,7 @@ def _kernel_scaling(size: int, zone: int) -> list[tuple[int, float]]:
                        chief_x=c, chief_y=c, wavelengths_nm=(656.0, 550.0, 486.0), display_mm=(24.0, 24.0))
         rb = bank.resample_to(size, size)
         x, w = _image(size), torch.rand(3, size, size)
-        op = lambda a: psf_fast(a, rb, 0.02, zone)  # noqa: E731
+        op = lambda a: psf_fast(a, rb, DEFAULT_TOL, zone)  # noqa: E731
         _fwd_bwd(op, x, w)
         out.append((rb.k, _time(lambda: _fwd_bwd(op, x, w))[1]))
     return out
