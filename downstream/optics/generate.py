@@ -164,7 +164,9 @@ def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, 
                psf_size: int = 33, pupil_samples: int = 192, chief_grid: tuple[int, int] = (65, 65),
                min_pitch_px: float = 0.125, reference_width_px: int = 1024, progress: bool = False) -> PSFBank:
     """Trace a PSF bank. ``min_pitch_px`` is the finest PSF sample pitch, in display pixels at
-    ``reference_width_px`` across the display (1/8 px at 1024 px by default)."""
+    ``reference_width_px`` across the display (1/8 px at 1024 px by default). ``progress=True`` prints
+    one line per traced wavelength to stdout (``controlgs optics build-bank`` turns it on); by default a
+    library call prints nothing."""
     rx = prescription if isinstance(prescription, Prescription) else Prescription(prescription or CARDBOARD)
     _check_int("psf_size", psf_size, 5, odd=True)
     if not isinstance(grid, (tuple, list)) or len(grid) != 2:
