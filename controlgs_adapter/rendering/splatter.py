@@ -448,9 +448,9 @@ def _chunk_passes(
         start = torch.cat([log_after.new_zeros(1), log_after]).index_select(0, crow[:-1]).sub_(log_t_pix)
         log_after.sub_(start.index_select(0, key))
         w = torch.exp((log_after - log_t).to(dtype)).mul_(alpha)
+        drawn_crow = crow
         if terminate:
             stop = log_after < log_t_min  # monotone along a pixel's run: a suffix of it
-            drawn_crow = crow
             if bool(stop.any()):  # a pixel stopped iff its run's last pair did: O(pixels), not O(pairs)
                 assert done is not None
                 done |= stop.index_select(0, (crow[1:] - 1).clamp_(min=0)) & (crow[1:] > crow[:-1])
@@ -458,11 +458,11 @@ def _chunk_passes(
                 key, rec, alpha, frozen, w = (t.index_select(0, drawn) for t in (key, rec, alpha, frozen, w))
                 drawn_crow = torch.zeros_like(crow)
                 torch.cumsum(torch.bincount(key, minlength=n_keys), 0, out=drawn_crow[1:])
-            if hi <= max_rank and log_after.numel():  # each pixel's log T after its last drawn pair
-                n_drawn = drawn_crow[1:] - drawn_crow[:-1]
-                last = log_after.index_select(0, (crow[:-1] + n_drawn - 1).clamp_(min=0))
-                log_t_pix = torch.where(n_drawn > 0, last, log_t_pix)
-            crow = drawn_crow
+        if hi <= max_rank and log_after.numel():  # each pixel's log T after its last drawn pair (the next pass's start)
+            n_drawn = drawn_crow[1:] - drawn_crow[:-1]
+            last = log_after.index_select(0, (crow[:-1] + n_drawn - 1).clamp_(min=0))
+            log_t_pix = torch.where(n_drawn > 0, last, log_t_pix)
+        crow = drawn_crow
         if key.numel():
             passes.append(_Pass(rec, key, alpha, w, frozen, crow.int()))
         if done is not None:

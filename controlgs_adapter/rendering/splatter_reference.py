@@ -75,9 +75,9 @@ def rasterize_reference(
         [fx / zs, zero, -fx * x_over_z / zs, zero, fy / zs, -fy * y_over_z / zs], dim=-1
     ).reshape(n, 2, 3)
     rot = _rotation_matrix(rotations)
-    sigma = rot @ torch.diag_embed(scales * scales) @ rot.transpose(1, 2)  # [N, 3, 3]
+    sigma = rot @ torch.diag_embed(scales * scales) @ rot.mT  # [N, 3, 3]
     jw = jac @ rot_wc
-    cov2d = jw @ sigma @ jw.transpose(1, 2) + LOW_PASS * torch.eye(2, dtype=f64)  # [N, 2, 2]
+    cov2d = jw @ sigma @ jw.mT + LOW_PASS * torch.eye(2, dtype=f64)  # [N, 2, 2]
     precision = torch.linalg.inv(cov2d)
     radius = EXTENT_SIGMAS * torch.sqrt(torch.linalg.eigvalsh(cov2d.detach())[:, -1])  # [N]
 
