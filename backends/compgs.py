@@ -199,7 +199,7 @@ class CompGSModel(AnchorModel):
         reimplemented (as for the features, :meth:`decode`); on the stored values that step can only
         change the visibility of anchors whose footprint touches the image border."""
         p = self.gaussian_params
-        return anchor_visibility(camera, p.means, torch.exp(p.scales_before_exp[:, :3]), p.rotations_before_norm)
+        return anchor_visibility(camera, p.means, torch.exp(p.scales_before_exp), p.rotations_before_norm)
 
     def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None, **options: Any) -> NeuralGaussians:
         """Decode the coupled primitives of the anchors in ``visible_mask`` (``[A]`` bool; None =

@@ -102,7 +102,7 @@ class ContextGSModel(MaskedAnchorModel):
         """``[A]`` bool: ContextGS's ``prefilter_voxel``: anchors as Gaussians as in HAC, but with the
         rotation of its anchor 0 (``rotations[[0], :].repeat(...)``) for every anchor."""
         rot = self.prefilter_rotation.to(self._rotation).expand(self._anchor.shape[0], 4)
-        return anchor_visibility(camera, self.get_anchor, self.get_scaling[:, :3], rot)
+        return anchor_visibility(camera, self.get_anchor, self.get_scaling, rot)  # the first 3 scales are used
 
     @property
     def get_anchor(self) -> torch.Tensor:

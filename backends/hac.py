@@ -157,7 +157,7 @@ class MaskedAnchorModel(AnchorModel):
     @torch.no_grad()
     def visible_anchors(self, camera: Camera) -> torch.Tensor:
         """``[A]`` bool: the family's ``prefilter_voxel`` (anchors as Gaussians; no mask filtering)."""
-        return anchor_visibility(camera, self.get_anchor, self.get_scaling[:, :3], self._rotation)
+        return anchor_visibility(camera, self.get_anchor, self.get_scaling, self._rotation)  # the first 3 scales
 
     def decode(self, camera: Camera, visible_mask: torch.Tensor | None = None, **options: Any) -> NeuralGaussians:
         """Decode the anchors in ``visible_mask`` (``[A]`` bool; None = all) as the family's renderer at

@@ -227,7 +227,7 @@ class OctreeGSModel(AnchorModel):
         the LOD anchors, as Octree-GS's ``prefilter_voxel``)."""
         self.set_anchor_mask(camera.center, -1, resolution_scale)
         lod = self._anchor_mask
-        frustum = anchor_visibility(camera, self._anchor[lod], self.get_scaling[lod, :3], self._rotation[lod])
+        frustum = anchor_visibility(camera, self._anchor[lod], self.get_scaling[lod], self._rotation[lod])
         full = lod.clone()
         full[lod] = frustum
         return full  # the same set as lod_anchor_ids(lod, frustum)
