@@ -131,7 +131,11 @@ class Camera:
         return points @ w2c[:3, :3].transpose(0, 1) + w2c[:3, 3]
 
     def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World points ``[N, 3]`` -> (pixel coords ``[N, 2]``, depth ``[N]``). Depth <= 0 is behind."""
+        """World points ``[N, 3]`` -> (pixel coords ``[N, 2]``, depth ``[N]``). Depth <= 0 is behind.
+
+        The pinhole division by the depth applies on both sides of the camera: a point behind it, at
+        camera coordinates ``(x, y, -z)``, lands where ``(x, y, z)`` does, mirrored through the principal
+        point; only ``|depth| < 1e-12`` is divided as ``1e-12`` (finite pixel coordinates, never inf)."""
         pc = self.to_camera(points)
         z = pc[:, 2]
         k = self.intrinsics.to(points)

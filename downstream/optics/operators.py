@@ -221,8 +221,7 @@ class _GatherFn(torch.autograd.Function):
                 else:
                     for s, (r0, c0, bh, bw, mz) in enumerate(bk.boxes):
                         garr[:, :, s, mz:mz + bh, mz:mz + bw] = gl[:, None, r0:r0 + bh, c0:c0 + bw] * bk.weights[s]
-                spec = torch.fft.rfft2(garr)
-                spec = spec.mul_(bk.kernel_fft.conj()) if R == 1 else spec * bk.kernel_fft.conj()
+                spec = torch.fft.rfft2(garr).mul_(bk.kernel_fft.conj())            # garr already has the R axis
                 G = torch.fft.irfft2(spec.sum(1) if R > 1 else spec[:, 0], s=(fh, fw))   # [B, Z, fh, fw]
                 if tab:
                     gC[:, li].index_add_(1, in_canvas, G.reshape(B, -1)[:, in_slot])
