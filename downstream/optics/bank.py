@@ -182,7 +182,7 @@ class PSFBank:
 
     @property
     def transmission(self) -> torch.Tensor:
-        """``[L, Gy, Gx]`` traced pupil transmission per field sample (fraction of the eye pupil's
+        """``[L, Gy, Gx]`` float64 traced pupil transmission per field sample (fraction of the eye pupil's
         area whose rays pass every lens aperture: ``meta["transmission"]``; ones if the bank has none)."""
         shape = tuple(self.psf.shape[:3])
         t = self.meta.get("transmission")

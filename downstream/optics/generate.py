@@ -166,7 +166,9 @@ def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, 
     """Trace a PSF bank. ``min_pitch_px`` is the finest PSF sample pitch, in display pixels at
     ``reference_width_px`` across the display (1/8 px at 1024 px by default). ``progress=True`` prints
     one line per traced wavelength to stdout (``controlgs optics build-bank`` turns it on); by default a
-    library call prints nothing."""
+    library call prints nothing. ``meta["generator"]["min_pupil_coverage"]`` is the smallest fraction
+    of the eye pupil's area the traced rays cover, over field radii and wavelengths, rounded to 5
+    decimals and at most 1 (a quadrature that sums slightly over the disc's area reads as full coverage)."""
     rx = prescription if isinstance(prescription, Prescription) else Prescription(prescription or CARDBOARD)
     _check_int("psf_size", psf_size, 5, odd=True)
     if not isinstance(grid, (tuple, list)) or len(grid) != 2:
