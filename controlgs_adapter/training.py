@@ -187,7 +187,8 @@ class Trainer:
 
     Attributes: ``cgs`` (the :class:`ControlGS`), ``views``, ``renderer``, ``device`` (the model's), ``pipeline``,
     ``optimizer``, ``generator`` (CPU: view and state sampling stays on the host),
-    ``iteration``, ``history`` (loss of every iteration, kept across resumes), ``seconds``.
+    ``iteration``, ``history`` (loss of every iteration, kept across resumes), ``seconds`` (wall time of the
+    last :meth:`train` call; 0.0 before the first).
     """
 
     def __init__(self, model: Any, views: Views, config: TrainConfig = TrainConfig(),

@@ -98,6 +98,9 @@ def area_resample(image: torch.Tensor, d: float) -> torch.Tensor:
         d: downsampling factor, finite, >= 1 (continuous).
     Returns:
         ``[..., 3, round(H/d), round(W/d)]`` (each at least 1); ``image`` itself when d == 1.
+        At an integer factor k that divides both H and W (a non-square frame included) each output
+        pixel is its k x k block's sum divided by k * k (one average pool): the correctly rounded mean
+        when the block sum is exact (e.g. 8-bit pixel values).
     """
     check_image("image", image, finite=False)
     return _area_resample_to(image, resampled_size((image.shape[-2], image.shape[-1]), d))
