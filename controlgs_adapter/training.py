@@ -38,6 +38,7 @@ from .downstream.optics.stage import set_optics_mode
 from .errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from .losses import LossWeights, image_loss
+from .seeding import seeded
 from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .state import Camera, RuntimeState
 
@@ -213,8 +214,7 @@ class Trainer:
         bg = getattr(views, "background", None)
         self.background = None if bg is None else bg.to(self.device)
         self.data_fingerprint = views_fingerprint(views)
-        with torch.random.fork_rng(devices=[]):  # the projections' initialisation follows the seed, not the global RNG
-            torch.manual_seed(int(config.seed))
+        with seeded(int(config.seed), self.device):  # the projections' initialisation follows the seed, not the global RNG
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind)
         try:  # a failure below leaves the user's model as it was
             self.pipeline = Pipeline.from_config(self.effects).to(self.device)

@@ -31,3 +31,19 @@ def test_plane_points_and_render_warn_nothing():
     # the plane spans x in [-1, 1], y in [-0.5, 0.5] at z = 2: u = 6 x / 2 + 3 in [0, 6], v = 6 y / 2 + 2 in [0.5, 3.5]
     assert torch.equal(coverage[0, 1:3], torch.ones(2, 6, dtype=torch.float64))
     assert torch.equal(coverage[0, [0, 3]], torch.full((2, 6), 0.5, dtype=torch.float64))
+
+
+def test_seeded_draws_follow_the_seed_and_leave_the_callers_generator_alone():
+    """Inside ``seeded(s)`` the global CPU generator draws what a fresh generator seeded with ``s`` draws;
+    after it, the caller's generator goes on exactly where it was."""
+    from controlgs_adapter.seeding import seeded
+
+    torch.manual_seed(123)
+    before = torch.rand(3)
+    expected_next = torch.rand(5)
+    torch.manual_seed(123)
+    torch.rand(3)
+    with seeded(7):
+        inside = torch.rand(4)
+    assert torch.equal(inside, torch.rand(4, generator=torch.Generator().manual_seed(7)))
+    assert torch.equal(torch.rand(5), expected_next) and before.shape == (3,)

@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 from controlgs_adapter.checks import check_image, check_tensor
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.metrics import ssim
+from controlgs_adapter.seeding import seeded
 from controlgs_adapter.state import Camera
 
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel, median_spacing
@@ -155,8 +156,7 @@ def train_reference_model(
     check_tensor("points", points, ["P", 3], dtypes=(torch.float32, torch.float64), finite=True)
     if voxel_size is None:
         voxel_size = _anchor_voxel(points, max_anchors)
-    with torch.random.fork_rng(devices=[]):  # the decoders' initialisation follows the seed; the caller's generator is untouched
-        torch.manual_seed(seed)
+    with seeded(seed):  # the decoders' initialisation (on the CPU) follows the seed; the caller's generators are untouched
         model = NeuralGaussianModel.from_points(points.cpu(), None if colors is None else colors.cpu(), feat_dim=feat_dim,
                                                 n_offsets=n_offsets, voxel_size=voxel_size, seed=seed,
                                                 num_cameras=len(cameras), **model_options).to(device)
