@@ -5,10 +5,7 @@ the hints of a refusal, that LPIPS is frozen, ... (docs/testing.md)."""
 
 from __future__ import annotations
 
-import os
-import socket
 import struct
-import subprocess
 import sys
 from pathlib import Path
 
@@ -21,6 +18,8 @@ from controlgs_adapter.metrics import flip
 from controlgs_adapter.perceptual import LPIPS, _expected
 from controlgs_adapter.report import markdown_tables, plot_heatmaps
 from controlgs_adapter.state import Camera, RuntimeState
+
+from _two_ranks import peer_rank
 
 
 def _lpips_weights(seed: int = 0) -> dict[str, torch.Tensor]:
@@ -240,25 +239,12 @@ def test_sparse_exchange_sends_rows_that_are_only_partly_non_zero(monkeypatch):
     """A row of a row-sparse gradient is "touched" when any of its entries is non-zero: two real gloo ranks
     whose only gradient rows are half zero ([0.5, 0] on rank 0, [0, -1] on rank 1) end with their sum,
     not with a zero gradient, and each rank counts its one row."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = str(sock.getsockname()[1])
-    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
-    child = subprocess.Popen([sys.executable, "-c", _RANK1, port], env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, text=True)
-    for k, v in {"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port}.items():
-        monkeypatch.setenv(k, v)
-    monkeypatch.setenv("GLOO_SOCKET_IFNAME", "lo")
     from controlgs_adapter.distributed import init_distributed
 
-    try:
-        with init_distributed("gloo", timeout=60.0, exchange="sparse") as ctx:
-            t = torch.nn.Parameter(torch.zeros(3, 2))
-            t.grad = torch.tensor([[0.5, 0.0], [0.0, 0.0], [0.0, 0.0]])
-            ctx.sync_gradients([t], row_sparse=[t], step=2)
-            last = dict(ctx.stats.last)
-    finally:
-        log, _ = child.communicate(timeout=120)
-    assert child.returncode == 0, log
+    with peer_rank(monkeypatch, _RANK1), init_distributed("gloo", timeout=60.0, exchange="sparse") as ctx:
+        t = torch.nn.Parameter(torch.zeros(3, 2))
+        t.grad = torch.tensor([[0.5, 0.0], [0.0, 0.0], [0.0, 0.0]])
+        ctx.sync_gradients([t], row_sparse=[t], step=2)
+        last = dict(ctx.stats.last)
     assert torch.equal(t.grad, torch.tensor([[0.5, 0.0], [0.0, 0.0], [0.0, -1.0]]))
     assert last["rows"] == 1 and last["exchange"] == "sparse"

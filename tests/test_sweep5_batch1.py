@@ -6,14 +6,12 @@ dtype on an empty scene, the barrier of a distributed context's normal exit, the
 from __future__ import annotations
 
 import json
-import os
-import socket
-import subprocess
-import sys
 import time
 
 import pytest
 import torch
+
+from _two_ranks import peer_rank
 
 from controlgs_adapter import plugins
 
@@ -104,25 +102,13 @@ def test_leaving_a_dist_context_normally_waits_for_every_rank(monkeypatch):
     """``DistContext.close`` / ``__exit__`` (docs: "after a barrier, so that no rank tears its connections
     down while a peer still uses them"): on a normal exit rank 0 waits for rank 1, which leaves 0.6 s
     later, so rank 0's exit takes about 0.6 s, not an instant."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = str(sock.getsockname()[1])
-    env = {**os.environ, "GLOO_SOCKET_IFNAME": "lo", "OMP_NUM_THREADS": "1", "PYTHONWARNINGS": "ignore"}
-    child = subprocess.Popen([sys.executable, "-c", _LATE_RANK1, port], env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, text=True)
-    for k, v in {"RANK": "0", "WORLD_SIZE": "2", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port}.items():
-        monkeypatch.setenv(k, v)
-    monkeypatch.setenv("GLOO_SOCKET_IFNAME", "lo")
     from controlgs_adapter.distributed import init_distributed
 
-    try:
+    with peer_rank(monkeypatch, _LATE_RANK1):
         with init_distributed("gloo", timeout=60.0) as ctx:
             ctx.barrier()
             start = time.perf_counter()
         waited = time.perf_counter() - start
-    finally:
-        log, _ = child.communicate(timeout=120)
-    assert child.returncode == 0, log
     assert waited >= 0.5, f"rank 0 left after {waited:.3f} s without waiting for rank 1"
 
 
