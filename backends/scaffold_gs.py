@@ -18,7 +18,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from controlgs_adapter.backend import Backend, anchor_ids_from_mask
+from controlgs_adapter.backend import Backend, anchor_ids_from_mask, get_attr_path
 from controlgs_adapter.checks import check_tensor
 
 from controlgs_adapter.formats.decoders import ATTRIBUTE_DECODERS
@@ -57,17 +57,32 @@ class ScaffoldGSBackend(Backend):
     def input_layout(self, model: Any, decoder_path: str) -> list[tuple[str, int]] | None:
         """``[feat F, view 3, (dist 1), (appearance A, colour only)]`` from the model's configuration
         attributes (``feat_dim``, ``add_<x>_dist``, ``appearance_dim``); None for the feature bank or a
-        model without ``feat_dim``."""
+        model without ``feat_dim``.
+
+        A model without the ``add_<x>_dist`` attribute (laid out like Scaffold-GS but not its class)
+        gets the distance input inferred from the width of the decoder's first layer: present when it
+        takes exactly one input more than the layout without it (eager and TorchScript decoders alike).
+        """
         if decoder_path not in ATTRIBUTE_DECODERS or not hasattr(model, "feat_dim"):
             return None
-        layout = [("feat", int(model.feat_dim)), ("view", 3)]
-        if getattr(model, f"add_{decoder_path.removeprefix('mlp_')}_dist", False):
-            layout.append(("dist", 1))
-        layout += self.extra_inputs(model)
+        extra = self.extra_inputs(model)
         app = int(getattr(model, "appearance_dim", 0) or 0)
-        if decoder_path == "mlp_color" and app > 0:
-            layout.append(("appearance", app))
-        return layout
+        tail = [("appearance", app)] if decoder_path == "mlp_color" and app > 0 else []
+        base = [("feat", int(model.feat_dim)), ("view", 3)]
+        flag = f"add_{decoder_path.removeprefix('mlp_')}_dist"
+        if hasattr(model, flag):
+            dist = bool(getattr(model, flag))
+        else:
+            dist = self._first_width(model, decoder_path) == sum(w for _, w in base + extra + tail) + 1
+        return base + ([("dist", 1)] if dist else []) + extra + tail
+
+    def _first_width(self, model: Any, decoder_path: str) -> int | None:
+        """Input width of the decoder's first layer (eager or TorchScript), None if it has none."""
+        try:
+            weight = get_attr_path(model, self.first_linear_path(model, decoder_path)).weight
+        except (AttributeError, IndexError, KeyError, TypeError):
+            return None
+        return int(weight.shape[1]) if isinstance(weight, torch.Tensor) and weight.dim() == 2 else None
 
     def extra_inputs(self, model: Any) -> list[tuple[str, int]]:
         """Inputs a variant adds after ``[feat, view, (dist)]`` (Octree-GS: the level)."""

@@ -119,12 +119,22 @@ class Backend:
             return module
         return None
 
-    def check_decoder(self, model: Any, decoder_path: str) -> nn.Linear | torch.jit.ScriptModule:
-        """Return FC1 of a decoder, or raise :class:`TargetError` saying what is wrong."""
+    def check_decoder(self, model: Any, decoder_path: str,
+                      rebuilt: nn.Module | None = None) -> nn.Linear | torch.jit.ScriptModule:
+        """Return FC1 of a decoder, or raise :class:`TargetError` saying what is wrong (no first
+        Linear, or a width that differs from :meth:`input_layout`'s). ``rebuilt``: the eager rebuild
+        of a TorchScript decoder; FC1 is then taken from it, at the same path inside the decoder, and
+        checked the same way."""
+        fc1_path = self.first_linear_path(model, decoder_path)
         try:
-            fc1 = get_attr_path(model, self.first_linear_path(model, decoder_path))
+            if rebuilt is None:
+                fc1 = get_attr_path(model, fc1_path)
+            elif fc1_path.startswith(decoder_path + "."):
+                fc1 = get_attr_path(rebuilt, fc1_path[len(decoder_path) + 1:])
+            else:
+                raise TargetError(f"{self.name}: FC1 path {fc1_path!r} of TorchScript decoder {decoder_path!r} is not inside it")
         except (AttributeError, IndexError, KeyError, TypeError) as e:
-            raise TargetError(f"{self.name}: decoder {decoder_path!r} has no first layer: {e}") from e
+            raise TargetError(f"{self.name}: decoder {decoder_path!r} has no first layer {fc1_path!r}: {e}") from e
         ok = isinstance(fc1, nn.Linear) or (
             isinstance(fc1, torch.jit.ScriptModule) and getattr(fc1, "original_name", "") == "Linear"
         )
@@ -132,7 +142,7 @@ class Backend:
             raise TargetError(f"{self.name}: first layer of {decoder_path!r} must be a Linear, got {type(fc1).__name__}")
         layout = self.input_layout(model, decoder_path)
         if layout is not None and fc1.weight.shape[1] != sum(w for _, w in layout):
-            where = re.sub(r"\.(\d+)$", r"[\1]", self.first_linear_path(model, decoder_path))
+            where = re.sub(r"\.(\d+)$", r"[\1]", fc1_path)
             raise TargetError(f"{self.name}: {where} takes {fc1.weight.shape[1]} inputs, the model's configuration gives "
                               f"{sum(w for _, w in layout)} ({layout})")
         return fc1

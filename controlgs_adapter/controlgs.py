@@ -120,15 +120,8 @@ def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
     fc1_path = backend.first_linear_path(model, path)
     eager = None
     if isinstance(decoder, torch.jit.ScriptModule):
-        if not fc1_path.startswith(path + "."):
-            raise TargetError(f"{backend.name}: FC1 path {fc1_path!r} of TorchScript decoder {path!r} is not inside it")
         eager = eager_from_script(decoder, name=path)
-        try:
-            fc1 = get_attr_path(eager, fc1_path[len(path) + 1:])
-        except (AttributeError, IndexError, KeyError, TypeError) as e:
-            raise TargetError(f"{backend.name}: decoder {path!r} has no first layer {fc1_path!r}: {e}") from e
-    else:
-        fc1 = backend.check_decoder(model, path)
+    fc1 = backend.check_decoder(model, path, eager)  # one check for eager and TorchScript decoders
     if not isinstance(fc1, nn.Linear):
         raise TargetError(f"{backend.name}: first layer {fc1_path!r} of {path!r} must be an eager nn.Linear, got {type(fc1).__name__}")
     if fc1 in _ATTACHED:
