@@ -15,6 +15,7 @@ import contextlib
 import contextvars
 import math
 import numbers
+import reprlib
 from typing import Iterator, Sequence
 
 import torch
@@ -22,7 +23,7 @@ import torch
 from .errors import InputValueError, ShapeError
 
 __all__ = ["check_tensor", "check_image", "check_finite", "check_same_device", "check_number", "value_checks",
-           "value_checks_enabled"]
+           "value_checks_enabled", "brief"]
 
 _VALUE_CHECKS: contextvars.ContextVar[bool] = contextvars.ContextVar("controlgs_value_checks", default=True)
 
@@ -109,7 +110,8 @@ def check_same_device(**tensors: torch.Tensor) -> None:
 def check_number(name: str, value: object, *, integer: bool = False, low: float | None = None,
                  high: float | None = None, low_open: bool = False, high_open: bool = False) -> float | int:
     """A finite real number (an int if ``integer``) in the given range; bools and strings are
-    refused. Returns it as ``int``/``float``; raises :class:`InputValueError` naming ``name``."""
+    refused. Returns it as ``int``/``float``; raises :class:`InputValueError` naming ``name``
+    (also for ints of any size, NaN and infinities)."""
     kind = "an integer" if integer else "a finite number"
     rng = ""
     if low is not None or high is not None:
@@ -117,11 +119,30 @@ def check_number(name: str, value: object, *, integer: bool = False, low: float 
               ("inf" if high is None else f"{high:g}") + (")" if high_open or high is None else "]")
     v: float | int | None = None  # None: not a number of the wanted kind
     if not isinstance(value, bool):
-        if integer and isinstance(value, numbers.Integral):
-            v = int(value)
-        elif not integer and isinstance(value, numbers.Real):
-            v = float(value)
-    if v is None or not (math.isfinite(v) and (low is None or (v > low if low_open else v >= low))
+        try:
+            if integer and isinstance(value, numbers.Integral):
+                v = int(value)  # any size: compared with the bounds exactly, never converted to float
+            elif not integer and isinstance(value, numbers.Real):
+                v = float(value)
+        except (OverflowError, ValueError, TypeError, ArithmeticError):
+            v = None  # beyond float range (10**400) or a number type that cannot convert
+    if v is None or not ((isinstance(v, int) or math.isfinite(v)) and (low is None or (v > low if low_open else v >= low))
                          and (high is None or (v < high if high_open else v <= high))):
-        raise InputValueError(f"{name} must be {kind}{rng}, got {value!r}")
+        raise InputValueError(f"{name} must be {kind}{rng}, got {brief(value)}")
     return v
+
+
+_BRIEF = reprlib.Repr()
+_BRIEF.maxlevel, _BRIEF.maxstring, _BRIEF.maxother, _BRIEF.maxlong = 3, 60, 60, 40
+_BRIEF.maxlist = _BRIEF.maxtuple = _BRIEF.maxdict = _BRIEF.maxset = 6
+
+
+def brief(value: object) -> str:
+    """``repr(value)`` cut to about 60 characters, for error messages: never raises, whatever the value
+    (an int of any size, a deeply nested list, a failing ``__repr__``)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 128:
+        return f"an int of about {int(value.bit_length() * 0.30103) + 1} digits"
+    try:
+        return _BRIEF.repr(value)
+    except Exception:  # noqa: BLE001 - a message must not fail (RecursionError included)
+        return f"<{type(value).__name__}>"
