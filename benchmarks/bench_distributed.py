@@ -12,7 +12,7 @@ bytes sent per rank and milliseconds. This is the regime of scenes with millions
 
     python benchmarks/bench_distributed.py [--resolution 48] [--iterations 6] [--doc | --out FILE]
 
-Prints the tables; ``--doc`` rewrites them between the markers in ``docs/distributed.md`` (``--out FILE``: another file). Each configuration runs in a
+Prints the tables; ``--doc`` rewrites them between the markers in ``docs/benchmarks/distributed.md`` (``--out FILE``: another file). Each configuration runs in a
 fresh torchrun (OMP_NUM_THREADS=1 per process, so 1 vs 2 processes compares 1 vs 2 cores).
 """
 
@@ -187,8 +187,8 @@ def main() -> None:
     p.add_argument("--sizes", default="100000,1000000", help="anchor counts of the exchange-only part")
     p.add_argument("--fractions", default="0.01,0.1,0.5", help="fractions of rows touched per rank (exchange-only)")
     p.add_argument("--out", type=Path, default=None, help="file whose marked block to rewrite (default: print only)")
-    p.add_argument("--doc", dest="out", action="store_const", const=ROOT / "docs" / "distributed.md",
-                   help="rewrite the block in docs/distributed.md")
+    p.add_argument("--doc", dest="out", action="store_const", const=ROOT / "docs" / "benchmarks" / "distributed.md",
+                   help="rewrite the block in docs/benchmarks/distributed.md")
     a = p.parse_args()
     if a.worker:
         (_worker_train if a.task == "train" else _worker_exchange)(a)

@@ -15,7 +15,7 @@ shared machine from inflating them. Also measured: the full Scaffold-GS decode
 Storage: a real Scaffold-GS output directory (``save_scaffold_dir``: PLY + TorchScript decoders +
 cfg_args) vs the adapter file (``cgs.save``), float32 and float16 conditions.
 
-    python benchmarks/bench_injector.py --doc           # ~1-2 min, writes docs/benchmarks-injector.md (default: print only)
+    python benchmarks/bench_injector.py --doc           # ~1-2 min, writes docs/benchmarks/injector.md (default: print only)
     python benchmarks/bench_injector.py --anchors 10000 --repeats 3 --no-write   # quick look
 """
 
@@ -36,7 +36,7 @@ from controlgs_adapter.backends.scaffold_io import save_scaffold_dir
 
 MODULE_SETS = {1: ("lens",), 2: ("lens", "resample"), 3: ("lens", "resample", "display")}
 STATE = RuntimeState(downsample=4.0, power_saving=0.4)  # every module's strength is > 0
-DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks-injector.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "injector.md"
 
 
 def make_model(num_anchors: int, seed: int = 0) -> tuple[NeuralGaussianModel, Camera, torch.Tensor]:
@@ -244,7 +244,7 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=15, help="bare/wrapped pairs per configuration")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=None, help="write the report to this file (default: print only)")
-    p.add_argument("--doc", dest="out", action="store_const", const=DOC, help="write docs/benchmarks-injector.md")
+    p.add_argument("--doc", dest="out", action="store_const", const=DOC, help="write docs/benchmarks/injector.md")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()

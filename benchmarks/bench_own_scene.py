@@ -8,7 +8,7 @@ number of views grows.
 The capture is made here from the built-in VR diorama (ray cast at half size, bilinearly upsampled to
 the full size, JPEG quality 95) under cameras on an arc, so that the built-in VR backbone is a model
 of it; every command runs in its own process (``python -m controlgs_adapter.cli``) and its wall time
-and peak resident memory (``wait4`` rusage) are recorded. Prints the report; ``--doc`` writes ``docs/benchmarks-own-scene.md``.
+and peak resident memory (``wait4`` rusage) are recorded. Prints the report; ``--doc`` writes ``docs/benchmarks/own-scene.md``.
 """
 
 from __future__ import annotations
@@ -102,7 +102,7 @@ def main() -> None:
     ap.add_argument("--memory-iterations", type=int, default=100, help="iterations of each memory-table run")
     ap.add_argument("--cache-mib", type=int, default=64, help="image cache budget of the memory-table runs")
     ap.add_argument("--work", default=str(Path(os.environ.get("TMPDIR", "/tmp")) / "controlgs-bench-own-scene"))
-    ap.add_argument("--doc", action="store_true", help="write docs/benchmarks-own-scene.md (default: print only)")
+    ap.add_argument("--doc", action="store_true", help="write docs/benchmarks/own-scene.md (default: print only)")
     a = ap.parse_args()
     width, height = (int(v) for v in a.size.lower().split("x"))
     resolution = max(width, height) // a.scale
@@ -152,7 +152,7 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if a.doc:
-        (ROOT / "docs" / "benchmarks-own-scene.md").write_text(text)
+        (ROOT / "docs" / "benchmarks" / "own-scene.md").write_text(text)
 
 
 if __name__ == "__main__":

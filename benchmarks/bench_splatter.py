@@ -15,7 +15,7 @@ log-normal around ``sqrt(50k / N)`` px at 256^2, opacities U(0.05, 0.95), random
    in the same run, each case in a fresh process.
 
 Usage: ``python benchmarks/bench_splatter.py [--quick] [--threads 2] [--baseline FILE] [--dense-only]
-[--doc | --out FILE]`` (prints; ``--doc`` writes docs/benchmarks-splatter.md).
+[--doc | --out FILE]`` (prints; ``--doc`` writes docs/benchmarks/splatter.md).
 """
 
 from __future__ import annotations
@@ -242,8 +242,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     ap.add_argument("--reps", type=int, default=3, help="timed repetitions per case (the fastest is reported)")
     ap.add_argument("--out", type=Path, default=None, help="write the report to this file (default: print only)")
-    ap.add_argument("--doc", dest="out", action="store_const", const=ROOT / "docs" / "benchmarks-splatter.md",
-                    help="write docs/benchmarks-splatter.md")
+    ap.add_argument("--doc", dest="out", action="store_const", const=ROOT / "docs" / "benchmarks" / "splatter.md",
+                    help="write docs/benchmarks/splatter.md")
     ap.add_argument("--baseline", help="splatter module file for the dense scene's baseline rows (same run)")
     ap.add_argument("--dense-only", action="store_true", help="only the dense training scene's table")
     ap.add_argument("--case", nargs=2, type=int, metavar=("N", "SIZE"), help=argparse.SUPPRESS)

@@ -137,8 +137,8 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=10, help="round-robin repeats (the best of them is reported)")
     ap.add_argument("--threads", type=int, default=0, help="CPU intra-op threads (0: torch's default)")
     ap.add_argument("--out", type=Path, default=None, help="write the table to this file (default: print only)")
-    ap.add_argument("--doc", dest="out", action="store_const", const=Path(__file__).resolve().parents[1] / "docs" / "benchmarks-stages.md",
-                    help="write docs/benchmarks-stages.md")
+    ap.add_argument("--doc", dest="out", action="store_const", const=Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "stages.md",
+                    help="write docs/benchmarks/stages.md")
     args = ap.parse_args()
     if args.threads > 0:
         torch.set_num_threads(args.threads)

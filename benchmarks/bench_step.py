@@ -25,7 +25,7 @@ CUDA rows are measured where ``torch.cuda.is_available()``; elsewhere the output
 FILE (e.g. ``git show REV:controlgs_adapter/rendering/splatter.py > /tmp/splatter_before.py``), in
 the same run.
 
-Prints the table; ``--doc`` rewrites docs/benchmarks-step.md, or docs/benchmarks-step-gpu.md when
+Prints the table; ``--doc`` rewrites docs/benchmarks/training-step-cpu.md, or docs/benchmarks/training-step-gpu.md when
 only CUDA rows were measured (the generated part; the page's hand-written section from
 ``## Reading the numbers`` on is kept), so a GPU run does not replace the CPU rows.
 
@@ -63,8 +63,8 @@ from controlgs_adapter.state import Camera
 from controlgs_adapter.training import TrainConfig, Trainer
 
 ROOT = Path(__file__).resolve().parent.parent
-DOC = ROOT / "docs" / "benchmarks-step.md"
-DOC_GPU = ROOT / "docs" / "benchmarks-step-gpu.md"
+DOC = ROOT / "docs" / "benchmarks" / "training-step-cpu.md"
+DOC_GPU = ROOT / "docs" / "benchmarks" / "training-step-gpu.md"
 READING = "## Reading the numbers"
 #: column label -> lap(s) of the step's clock
 PHASES: dict[str, tuple[str, ...]] = {"sample": ("sample",), "decode": ("decode", "render"), "splat": ("splat",),

@@ -7,7 +7,7 @@ image (base64 PNGs) and PSNR / SSIM. The adapter has random conditions: the late
 on what it learned. With ``--screenshot-of URL``: a screenshot of a running viewer through headless
 Chromium instead (``docs/viewer.png`` is ``controlgs view``'s built-in scene with its quick adapter).
 
-    .venv/bin/python benchmarks/bench_viewer.py --doc                 # writes docs/benchmarks-viewer.md (default: print)
+    .venv/bin/python benchmarks/bench_viewer.py --doc                 # writes docs/benchmarks/viewer-latency.md (default: print)
     .venv/bin/python benchmarks/bench_viewer.py --screenshot-of http://127.0.0.1:PORT/ --screenshot docs/viewer.png
 """
 
@@ -114,8 +114,8 @@ def main() -> int:
     p.add_argument("--threads", type=int, nargs="+", default=[2, 1], help="torch intra-op threads (the target: 2 CPU cores)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", default=None, help="write the report to this file (default: print only)")
-    p.add_argument("--doc", dest="out", action="store_const", const=str(ROOT / "docs" / "benchmarks-viewer.md"),
-                   help="write docs/benchmarks-viewer.md")
+    p.add_argument("--doc", dest="out", action="store_const", const=str(ROOT / "docs" / "benchmarks" / "viewer-latency.md"),
+                   help="write docs/benchmarks/viewer-latency.md")
     p.add_argument("--screenshot-of", default=None, metavar="URL", help="only take a screenshot of the viewer at URL")
     p.add_argument("--screenshot", default="viewer.png", help="where --screenshot-of writes (docs/viewer.png: the README's)")
     args = p.parse_args()

@@ -1,6 +1,6 @@
 """Profile one CUDA training step of ``bench_step.py``'s scene: kernel launches, host syncs and copies
 per phase, the ops that synchronise (``torch.cuda.set_sync_debug_mode``), and torch.profiler's top ops.
-The source of the launch and sync counts in docs/benchmarks-step-gpu.md.
+The source of the launch and sync counts in docs/benchmarks/training-step-gpu.md.
 
 Usage: ``python benchmarks/profile_step.py --rasterizer torch --anchors 100000 --width 1024 --optics exact
 --out profile.txt`` (needs a CUDA device).

@@ -8,10 +8,10 @@ from .accuracy_time import BenchResult
 
 #: per-part benchmark docs (linked, not re-run)
 PART_DOCS: tuple[tuple[str, str, str], ...] = (
-    ("benchmarks-injector.md", "condition injector", "python benchmarks/bench_injector.py"),
-    ("benchmarks-splatter.md", "splatter (rasterizer)", "python benchmarks/bench_splatter.py"),
-    ("benchmarks-stages.md", "downstream stages", "python benchmarks/bench_stages.py"),
-    ("optics_bench.md", "PSF operators per size and radiometry: table build times, forward/backward time and error vs exact (design: optics.md)", "controlgs optics bench"),
+    ("injector.md", "condition injector", "python benchmarks/bench_injector.py"),
+    ("splatter.md", "splatter (rasterizer)", "python benchmarks/bench_splatter.py"),
+    ("stages.md", "downstream stages", "python benchmarks/bench_stages.py"),
+    ("optics_bench.md", "PSF operators per size and radiometry: table build times, forward/backward time and error vs exact (design: ../explanation/optics.md)", "controlgs optics bench"),
     ("distributed.md", "data-parallel training", "python benchmarks/bench_distributed.py"),
 )
 

@@ -1,4 +1,4 @@
-"""``controlgs bench``: accuracy vs time on the built-in scene (printed; ``--doc`` writes ``docs/benchmarks.md``).
+"""``controlgs bench``: accuracy vs time on the built-in scene (printed; ``--doc`` writes ``docs/benchmarks/accuracy-time.md``).
 
 The command line only: what is measured is :mod:`controlgs_adapter.benchmarking.accuracy_time`,
 the report :mod:`controlgs_adapter.benchmarking.report`.
@@ -17,14 +17,14 @@ from typing import Any
 from controlgs_adapter.benchmarking.accuracy_time import DEFAULT_ITERATIONS, QUICK_ITERATIONS, BenchSettings, run_bench
 from controlgs_adapter.benchmarking.report import format_report, write_report
 
-DOC_OUT = Path("docs") / "benchmarks.md"
+DOC_OUT = Path("docs") / "benchmarks" / "accuracy-time.md"
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
     from .demo import DEFAULT_RESOLUTION
 
     p = sub.add_parser("bench", help="accuracy vs time on the built-in scene: phases, knobs, overhead (printed; "
-                                      "--doc writes docs/benchmarks.md)")
+                                      "--doc writes docs/benchmarks/accuracy-time.md)")
     p.add_argument("--out", type=Path, default=None, help="Markdown report to write (default: print only)")
     p.add_argument("--doc", dest="out", action="store_const", const=DOC_OUT, help=f"write {DOC_OUT}")
     p.add_argument("--resolution", type=int, default=DEFAULT_RESOLUTION, help="native resolution S (pixels)")

@@ -42,7 +42,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
                    help="largest size where the exact operator is also timed (it is always the reference)")
     c.add_argument("--threads", type=int, default=2, help="torch intra-op threads of the timings (default 2)")
     c.add_argument("--out", type=Path, default=None, help="folder for optics_bench.md / optics_bench.png (default: print only)")
-    c.add_argument("--doc", dest="out", action="store_const", const=Path("docs"), help="write them into ./docs")
+    c.add_argument("--doc", dest="out", action="store_const", const=Path("docs") / "benchmarks", help="write them into ./docs/benchmarks")
     c.set_defaults(func=run_bench)
 
     w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a bank's optics")

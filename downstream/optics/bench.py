@@ -2,7 +2,7 @@
 public-domain photographs) in both radiometries: the per-size table build (first call), forward and
 forward+backward of every operator, their error against :func:`psf_exact` of the same radiometry,
 and the radiance / energy ratios measured in the same run; plus the kernel-size scaling of the fast
-mode. Prints the tables; ``out`` (``--doc``: ``docs/``) writes ``optics_bench.md`` and ``.png``."""
+mode. Prints the tables; ``out`` (``--doc``: ``docs/benchmarks/``) writes ``optics_bench.md`` and ``.png``."""
 
 from __future__ import annotations
 
@@ -192,7 +192,7 @@ def _write(rows: list[dict], ratios: list[dict], scaling, threads: int, repeat: 
     lines = [f"Operators of the shipped Cardboard bank on `skimage.data.astronaut` (3 primaries), float32, {threads} CPU "
              f"threads, best of {repeat} (wall clock, and process CPU time summed over threads). fwd+bwd = forward and "
              f"backward w.r.t. the image; error vs `psf_exact` of the same radiometry. Command: `{command}; "
-             "docs/optics.md, \"Benchmark\".", "",
+             "the operators: docs/explanation/optics.md.", "",
              "Tables, first call for a size (`resample_to`: footprints, field blends; exact / fast: the per-field or "
              "per-group FFT tables of `psf_exact` / `psf_fast`):", "",
              "| size | radiometry | resample_to wall (CPU) s | exact tables wall (CPU) s | fast tables wall (CPU) s |",
