@@ -87,6 +87,16 @@ def view_cameras(views: Views) -> list[Camera]:
     return list(cams) if cams is not None else [views[i][0] for i in range(len(views))]
 
 
+def _view_label(views: Views, i: int) -> str:
+    """``"view 3"``, with the frame's name where the dataset has one (``"view 3 ('train/0003.png')"``)."""
+    frames = getattr(views, "frames", None)
+    try:
+        name = getattr(frames[i], "name", None) if frames is not None else None
+    except (IndexError, KeyError, TypeError):
+        name = None
+    return f"view {i}" if name is None else f"view {i} ({name!r})"
+
+
 def views_fingerprint(views: Views) -> str:
     """``views.fingerprint()`` when it has one, else a hash of the cameras' sizes and matrices."""
     fp = getattr(views, "fingerprint", None)
@@ -184,7 +194,8 @@ class Trainer:
             render function); default the model's own (:func:`~controlgs_adapter.rendering.protocol.renderer_for`).
 
     Everything runs on the model's device; inside a step the per-tensor value checks (NaN/Inf,
-    ranges: host syncs) are off, and the loss and the updated parameters are checked once instead.
+    ranges: host syncs) are off, and the loss and the updated parameters are checked once instead;
+    each view's image is checked for NaN/Inf the first time it is read (:meth:`load_view`).
 
     Attributes: ``cgs`` (the :class:`ControlGS`), ``views``, ``renderer``, ``device`` (the model's), ``pipeline``,
     ``optimizer``, ``generator`` (CPU: view and state sampling stays on the host),
@@ -227,6 +238,7 @@ class Trainer:
             self.cgs.unwrap()
             raise
         self.generator = torch.Generator().manual_seed(int(config.seed))
+        self._checked_views: set[int] = set()  # views whose image passed load_view's check
         self.iteration = 0
         self.history: list[float] = []
         self.seconds = 0.0  # wall time of the last train() call
@@ -241,6 +253,24 @@ class Trainer:
         d = math.exp(float(u[0]) * math.log(c.max_downsample)) if "resample" in self.pipeline else 1.0
         rho = float(u[1]) * c.max_power_saving if "display" in self.pipeline else 0.0
         return view, RuntimeState(downsample=min(d, c.max_downsample), power_saving=rho)
+
+    def load_view(self, i: int) -> tuple[Camera, torch.Tensor]:
+        """``views[i]``; the first time a view is read (a lazily loaded image: when it is first
+        loaded) its image is checked to be a finite tensor (one host sync per view).
+
+        Raises:
+            InputValueError: the image holds NaN or Inf (the message names the view).
+        """
+        cam, gt = self.views[i]
+        if i not in self._checked_views:
+            if not isinstance(gt, torch.Tensor):
+                raise InputValueError(f"{_view_label(self.views, i)}: image must be a torch.Tensor, got {type(gt).__name__}")
+            bad = int((~torch.isfinite(gt)).sum()) if gt.is_floating_point() or gt.is_complex() else 0
+            if bad:
+                raise InputValueError(f"{_view_label(self.views, i)}: image holds {bad} NaN/Inf value(s) of {gt.numel()}; "
+                                      "fix or drop the view before training")
+            self._checked_views.add(i)
+        return cam, gt
 
     def optics_mode(self, iteration: int) -> str:
         """``"distortion"`` for the first ``1 - psf_fraction`` of the iterations, then ``psf_mode``."""
@@ -261,7 +291,7 @@ class Trainer:
         self.optimizer.zero_grad()  # set_to_none=True: the default since torch 2.0
         value = 0.0
         for view, state in self.dist.shard(batch):  # this process's share
-            cam, gt = self.views[view]
+            cam, gt = self.load_view(view)
             lap("sample")
             with value_checks(False):  # no host syncs in the forward; the loss is checked below
                 image = render_view(self.cgs, self.model, cam, state, self.background, renderer=self.renderer)
