@@ -15,35 +15,55 @@ from typing import Any
 
 import torch
 
-from .checks import check_tensor
+from .checks import brief, check_number, check_tensor
 from .errors import InputValueError, StateRangeError
 
 __all__ = ["RuntimeState", "Camera"]
 
 
+#: largest image side in pixels: pixel coordinates stay exact integers in float32 up to 2^24
+MAX_PIXELS = 1 << 24
+#: focal lengths are refused outside [size / FOCAL_RATIO, size * FOCAL_RATIO] pixels (``size`` the image
+#: side): the field of view then lies in [2e-6, pi - 4e-6] rad, representable in float32, and the
+#: projection of a point in view stays far from float32 overflow
+FOCAL_RATIO = 1e6
+
+
 def _real(name: str, value: Any, error: type[InputValueError] = InputValueError) -> float:
     """``value`` as a float if it is a real number (a Python/NumPy number or a 0-d tensor, not a
-    bool or a string), else ``error`` naming ``name``."""
+    bool or a string), else ``error`` naming ``name``. An int beyond float range gives +-inf (the
+    callers' range checks refuse it)."""
     if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.is_complex():
         value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise error(f"{name} must be a real number, got {value!r} ({type(value).__name__})")
-    return float(value)
+        raise error(f"{name} must be a real number, got {brief(value)} ({type(value).__name__})")
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf if value > 0 else -math.inf
+    except (ValueError, TypeError, ArithmeticError):
+        raise error(f"{name} must be a real number, got {brief(value)} ({type(value).__name__})") from None
 
 
 def _positive_int(name: str, value: Any) -> int:
+    """An int in [1, :data:`MAX_PIXELS`] (an image side in pixels), else InputValueError naming ``name``."""
     if isinstance(value, torch.Tensor) and value.numel() == 1:
         value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
-        raise InputValueError(f"{name} must be an int >= 1 (pixels), got {value!r}")
+        raise InputValueError(f"{name} must be an int >= 1 (pixels), got {brief(value)}")
+    if int(value) > MAX_PIXELS:
+        raise InputValueError(f"{name} must be an int <= {MAX_PIXELS} (pixels), got {brief(value)}")
     return int(value)
 
 
 def _nonnegative_int(name: str, value: Any) -> int:
+    """An int in [0, 2^63) (an index), else InputValueError naming ``name``."""
     if isinstance(value, torch.Tensor) and value.numel() == 1:
         value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 0:
-        raise InputValueError(f"{name} must be an int >= 0, got {value!r}")
+        raise InputValueError(f"{name} must be an int >= 0, got {brief(value)}")
+    if int(value) >= 2**63:
+        raise InputValueError(f"{name} must be an int < 2^63 (an int64 index), got {brief(value)}")
     return int(value)
 
 
@@ -64,18 +84,18 @@ class RuntimeState:
     def __post_init__(self) -> None:
         d, rho = _real("downsample", self.downsample, StateRangeError), _real("power_saving", self.power_saving, StateRangeError)
         if not math.isfinite(d) or d < 1.0:
-            raise StateRangeError(f"downsample must be a finite number >= 1 (S / display rate), got {self.downsample!r}")
+            raise StateRangeError(f"downsample must be a finite number >= 1 (S / display rate), got {brief(self.downsample)}")
         if not math.isfinite(rho) or not (0.0 <= rho < 1.0):
-            raise StateRangeError(f"power_saving must be a finite number in [0, 1), got {self.power_saving!r}")
+            raise StateRangeError(f"power_saving must be a finite number in [0, 1), got {brief(self.power_saving)}")
         object.__setattr__(self, "downsample", d)
         object.__setattr__(self, "power_saving", rho)
         if self.gaze is not None:
             gaze = self.gaze.tolist() if isinstance(self.gaze, torch.Tensor) else self.gaze
             if isinstance(gaze, (str, bytes)) or not isinstance(gaze, (tuple, list)) or len(gaze) != 2:
-                raise StateRangeError(f"gaze must be None or a pair (x, y) in [-1, 1]^2, got {self.gaze!r}")
+                raise StateRangeError(f"gaze must be None or a pair (x, y) in [-1, 1]^2, got {brief(self.gaze)}")
             g = tuple(_real("gaze", v, StateRangeError) for v in gaze)
             if not all(math.isfinite(v) and -1.0 <= v <= 1.0 for v in g):
-                raise StateRangeError(f"gaze must be None or (x, y) in [-1, 1]^2, got {self.gaze!r}")
+                raise StateRangeError(f"gaze must be None or (x, y) in [-1, 1]^2, got {brief(self.gaze)}")
             object.__setattr__(self, "gaze", g)
 
 
@@ -102,12 +122,12 @@ class Camera:
         if not self.world_to_camera.is_floating_point() or not self.intrinsics.is_floating_point():
             raise InputValueError(f"world_to_camera and intrinsics must be floating-point, got "
                                   f"{self.world_to_camera.dtype} and {self.intrinsics.dtype}")
-        _check_intrinsics(self.intrinsics.detach().double().cpu())
+        _check_intrinsics(self.intrinsics.detach().double().cpu(), self.width, self.height)
         _check_rigid(self.world_to_camera.detach().double().cpu())
 
     @property
     def fov(self) -> tuple[float, float]:
-        """Horizontal and vertical field of view in radians, each in (0, pi)."""
+        """Horizontal and vertical field of view in radians, each in [2e-6, pi - 4e-6] (:data:`FOCAL_RATIO`)."""
         k = self.intrinsics
         return (2.0 * math.atan(self.width / (2.0 * float(k[0, 0]))), 2.0 * math.atan(self.height / (2.0 * float(k[1, 1]))))
 
@@ -118,7 +138,12 @@ class Camera:
         return -(r.transpose(0, 1) @ t)
 
     def scaled(self, factor: float) -> "Camera":
-        """The same camera at ``round(size / factor)`` pixels (intrinsics rescaled exactly)."""
+        """The same camera at ``round(size / factor)`` pixels (intrinsics rescaled exactly); ``factor``
+        a finite number > 0."""
+        factor = check_number("factor", factor, low=0.0, low_open=True)
+        if not max(self.width, self.height) / factor <= MAX_PIXELS + 0.5:
+            raise InputValueError(f"factor {factor:g} would give an image side over {MAX_PIXELS} pixels "
+                                  f"(from {self.width}x{self.height})")
         w, h = max(1, round(self.width / factor)), max(1, round(self.height / factor))
         k = self.intrinsics.clone()
         k[0] *= w / self.width
@@ -168,17 +193,32 @@ class Camera:
         for name, fov in zip(("FoVx", "FoVy"), fovs):
             if not (math.isfinite(fov) and 0.0 < fov < math.pi):
                 raise InputValueError(f"{name} must be a field of view in (0, pi) radians, got {fov!r}")
-        fx, fy = (n / (2.0 * math.tan(f / 2.0)) for n, f in zip((w, h), fovs))
+        focals = []
+        for name, n, fov in zip(("FoVx", "FoVy"), (w, h), fovs):
+            half = math.tan(fov / 2.0)  # 0 for a subnormal fov
+            f = n / (2.0 * half) if half > 0 else math.inf
+            if not n / FOCAL_RATIO <= f <= n * FOCAL_RATIO:
+                raise InputValueError(f"{name} = {fov!r} rad gives a focal length of {f:g} px for {n} px, outside "
+                                      f"[{n / FOCAL_RATIO:g}, {n * FOCAL_RATIO:g}] (see Camera's intrinsics)")
+            focals.append(f)
+        fx, fy = focals
         k = torch.tensor([[fx, 0.0, w / 2.0], [0.0, fy, h / 2.0], [0.0, 0.0, 1.0]])
         uid = getattr(viewpoint_camera, "uid", None)
         return cls(w2c, k, w, h, {} if uid is None else {"uid": _nonnegative_int("uid", uid)})
 
 
-def _check_intrinsics(k: torch.Tensor) -> None:
-    """A pinhole ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with fx, fy > 0 (float64 CPU copy)."""
+def _check_intrinsics(k: torch.Tensor, width: int, height: int) -> None:
+    """A pinhole ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (float64 CPU copy) with fx in
+    ``[width, width * FOCAL_RATIO^2] / FOCAL_RATIO`` and fy likewise with ``height`` (pixels)."""
     if not (k[0, 0] > 0 and k[1, 1] > 0):
         raise InputValueError(f"intrinsics: focal lengths fx = K[0, 0] and fy = K[1, 1] must be > 0 (pixels), "
                               f"got fx = {float(k[0, 0]):g}, fy = {float(k[1, 1]):g}")
+    for name, f, size, side in (("fx = K[0, 0]", float(k[0, 0]), width, "width"), ("fy = K[1, 1]", float(k[1, 1]), height, "height")):
+        if not size / FOCAL_RATIO <= f <= size * FOCAL_RATIO:
+            raise InputValueError(
+                f"intrinsics: focal length {name} must be in [{size / FOCAL_RATIO:g}, {size * FOCAL_RATIO:g}] pixels "
+                f"({side} {size} / {FOCAL_RATIO:g} to {side} x {FOCAL_RATIO:g}: a field of view in (0, pi) that the "
+                f"projection represents), got {f:g}")
     if abs(float(k[2, 2]) - 1.0) > 1e-6 or bool(k[2, :2].abs().max() > 1e-9) or abs(float(k[1, 0])) > 1e-9:
         raise InputValueError(f"intrinsics must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {k.tolist()}")
 
