@@ -1,7 +1,7 @@
 """Trained output folders of any supported family: which family wrote a folder, told from its file
 names and PLY header alone (nothing is executed, unpickled or fully read), and its loader.
 
-Layouts (``docs/backends.md``), ``<it>`` = ``point_cloud/iteration_<N>``:
+Layouts (``docs/reference/backends.md``), ``<it>`` = ``point_cloud/iteration_<N>``:
 
 | family | tell-tale files |
 |---|---|
@@ -100,7 +100,7 @@ def load_model_dir(path: str | Path, *, family: str | None = None, iteration: in
         family: force a family (a key of :data:`FAMILIES`); None detects it (:func:`detect_family`).
         iteration: which ``point_cloud/iteration_<N>``; None = the largest N.
         allow_unquantized: HAC++/HAC/ContextGS raw checkpoints and CompGS: decode the stored
-            (unquantised) values (see ``docs/backends.md``).
+            (unquantised) values (see ``docs/reference/backends.md``).
         trust_code: Scaffold-GS / Octree-GS TorchScript decoders read with ``torch.jit.load``.
 
     Raises:

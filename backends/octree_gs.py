@@ -262,7 +262,7 @@ def load_octree_gs_dir(path: str | Path, iteration: int | None = None, *, trust_
 
     Raises:
         FileFormatError: naming the file and what is missing or inconsistent, or a TorchScript
-            decoder outside the supported subset (see ``docs/backends.md``).
+            decoder outside the supported subset (see ``docs/reference/backends.md``).
     """
     root = Path(path)
     if (root / "cfg_args").is_file():

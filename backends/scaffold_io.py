@@ -15,7 +15,7 @@ Layout (exactly as Scaffold-GS's ``Scene.save`` / ``train.py`` write it)::
 ``_offset.transpose(1, 2).flatten(1)``). Nothing in the folder is run or unpickled: TorchScript
 archives are read as data (:func:`controlgs_adapter.formats.torchscript.eager_from_archive`; ``torch.jit.load``
 only with ``trust_code=True``), state dicts go through ``torch.load(weights_only=True)``,
-``cfg_args`` through an ``ast`` literal parser. See ``docs/reference-model.md``.
+``cfg_args`` through an ``ast`` literal parser. See ``docs/reference/reference-model.md``.
 """
 
 from __future__ import annotations

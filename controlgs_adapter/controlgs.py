@@ -467,7 +467,7 @@ class ControlGS:
 
         Args:
             dtype: storage dtype of the conditions: None (as trained, float32) or
-                ``torch.float16`` (half the size; see docs/adapter.md for the effect on output).
+                ``torch.float16`` (half the size; see docs/reference/adapter.md for the effect on output).
                 Projections are always stored as trained.
         """
         self._check_live()

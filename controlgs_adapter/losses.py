@@ -1,7 +1,7 @@
 """The training image loss of the paper (Eq. 14): ``a L1 + b (1 - SSIM) + c MSE (+ d LPIPS)``.
 
 LPIPS needs ImageNet-trained AlexNet/VGG weights that no installable package ships and that
-this library never downloads (see docs/demo.md); its weight must therefore stay 0.
+this library never downloads (see docs/reference/training-evaluation.md); its weight must therefore stay 0.
 """
 
 from __future__ import annotations

@@ -113,7 +113,7 @@ def optional_metrics(lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
     image pair ``[3, H, W]`` in [0, 1]: ``"flip"`` (LDR-FLIP, lower is better; always),
     ``"lpips"`` (lower is better) when an LPIPS network is given (:func:`~controlgs_adapter.perceptual.load_lpips`),
     and ``"cvvdp"`` (ColorVideoVDP JOD, higher is better) when the ``cvvdp`` package is installed
-    (``--no-deps``, so that it keeps the CPU torch, see docs/demo.md). Nothing is ever downloaded."""
+    (``--no-deps``, so that it keeps the CPU torch, see docs/reference/training-evaluation.md). Nothing is ever downloaded."""
     found: dict[str, Callable[[torch.Tensor, torch.Tensor], float]] = {"flip": flip}
     if lpips is not None:
         def lpips_metric(eye: torch.Tensor, gt: torch.Tensor) -> float:

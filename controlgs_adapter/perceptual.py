@@ -1,6 +1,6 @@
 """LPIPS (Zhang et al. 2018, v0.1, AlexNet trunk) in plain torch, from weights the user has on disk.
 
-No package ships the AlexNet backbone weights and nothing is ever downloaded (notes/metrics.md), so
+No package ships the AlexNet backbone weights and nothing is ever downloaded, so
 :func:`load_lpips` takes local files: the backbone (torchvision's ``alexnet-owt-7be5be79.pth``,
 keys ``features.{0,3,6,8,10}.{weight,bias}``) and the linear head (the ``lpips`` package's
 ``weights/v0.1/alex.pth``, keys ``lin{0..4}.model.1.weight``), or one file holding both (a saved

@@ -1,6 +1,6 @@
 """Run-time XR state and the pinhole camera used to place anchors on screen.
 
-Conventions (see docs/conventions.md): OpenCV camera axes (x right, y down, z forward); pixel
+Conventions (see docs/reference/conventions.md): OpenCV camera axes (x right, y down, z forward); pixel
 centres at (i + 0.5); normalised screen coordinates in [-1, 1] about the optical centre with the
 pixel-centre convention (``align_corners=False``): ``x_n = 2 * u / W - 1`` for continuous pixel
 coordinate ``u``.

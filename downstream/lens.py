@@ -60,7 +60,7 @@ __all__ = [
 
 #: Radial coefficients k1 per channel (R, G, B) fitted to the Cardboard lens's chief rays (the
 #: display corner of a 1024 px, 24 mm display lands at 606.5 / 611.8 / 617.1 px from the centre
-#: for 656 / 550 / 486 nm, notes/optics.md): ``1 + 2 k1 = landing / 512`` at the corner (r^2 = 2).
+#: for 656 / 550 / 486 nm, docs/explanation/optics.md): ``1 + 2 k1 = landing / 512`` at the corner (r^2 = 2).
 CARDBOARD_RADIAL: tuple[tuple[float], tuple[float], tuple[float]] = (
     (0.5 * (606.5 / 512.0 - 1.0),), (0.5 * (611.8 / 512.0 - 1.0),), (0.5 * (617.1 / 512.0 - 1.0),),
 )

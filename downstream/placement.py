@@ -1,6 +1,6 @@
 """Where an ``H x W`` image sits on the headset display: the one definition used by the optics
 (:meth:`PSFBank.resample_to`), the lens pre-warp built from a bank's chief rays and the per-anchor
-condition strengths (``lens``, ``foveation``). Derivation and figure: ``docs/optics.md``, section
+condition strengths (``lens``, ``foveation``). Derivation and figure: ``docs/explanation/optics.md``, section
 "Images of any aspect on the display".
 
 Placements:

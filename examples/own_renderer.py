@@ -4,7 +4,7 @@
 ``nn.Module``) whose decoders are TorchScript traces, as a Scaffold-GS checkpoint loads them.
 ``my_prefilter`` and ``my_render`` stand for its own renderer (here a few lines of Scaffold-GS's
 decoding that splat with the library's rasterizer; the real one would call its CUDA code). The
-library only sees them through the render protocol (docs/rendering.md) and gives them the same
+library only sees them through the render protocol (docs/how-to/own-renderer.md) and gives them the same
 training loop as its own families: state sampling, the PSF schedule, checkpoints and resume.
 
     python examples/own_renderer.py

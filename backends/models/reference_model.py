@@ -3,7 +3,7 @@
 Anchors ``v`` (position ``x_v``, feature ``f_v``, 6 log-scales, ``K`` learned offsets) emit ``K``
 Gaussians each whose attributes three MLPs decode from ``[f_v, view direction (, distance)]`` at
 render time (paper Eqs. 9-10). The decoding reproduces Scaffold-GS's ``generate_neural_gaussians``
-exactly (``gaussian_renderer/__init__.py``; see ``docs/reference-model.md``):
+exactly (``gaussian_renderer/__init__.py``; see ``docs/reference/reference-model.md``):
 
 * rows of every decoder input are the visible anchors in ascending index order
   (``visible_mask.nonzero()``), so row ``i`` is anchor ``visible_mask.nonzero()[i]``;

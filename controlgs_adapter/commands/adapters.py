@@ -56,7 +56,7 @@ def add_distributed_arguments(p: argparse.ArgumentParser, scene_choices: Sequenc
     from ..training import TrainConfig
 
     batch = TrainConfig().batch_size
-    g = p.add_argument_group("distributed training (launch with torchrun; see docs/distributed.md)")
+    g = p.add_argument_group("distributed training (launch with torchrun; see docs/how-to/distributed.md)")
     g.add_argument("--batch-size", type=int, default=batch,
                    help=f"views per step, the global batch split over the processes (the same batch size gives the "
                         f"same result on any number of processes; default {batch})")

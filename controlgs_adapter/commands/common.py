@@ -35,7 +35,7 @@ def add_data_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--family", choices=tuple(FAMILIES), default=None, help="the model folder's family (default: detected)")
     g.add_argument("--model-iteration", type=int, default=None, help="point_cloud/iteration_<N> to load (default: the last)")
     g.add_argument("--allow-unquantized", action="store_true", default=None,
-                   help="HAC++/HAC/ContextGS raw checkpoints, CompGS: use the stored unquantised values (docs/backends.md)")
+                   help="HAC++/HAC/ContextGS raw checkpoints, CompGS: use the stored unquantised values (docs/reference/backends.md)")
     g.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected)")
     g.add_argument("--images", default=None, help="COLMAP image folder, e.g. images_4 (default: images/ or the "
                                                  "downscaled folder that fits --resolution)")
@@ -151,8 +151,8 @@ def cache_bytes(args: argparse.Namespace) -> int:
 
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
-    """``--rasterizer`` and ``--renderer`` (docs/rendering.md)."""
-    g = p.add_argument_group("rendering (docs/rendering.md; default: a train run's, from RUN/run.json)")
+    """``--rasterizer`` and ``--renderer`` (docs/how-to/own-renderer.md)."""
+    g = p.add_argument_group("rendering (docs/how-to/own-renderer.md; default: a train run's, from RUN/run.json)")
     g.add_argument("--rasterizer", default=None, metavar="NAME",
                    help="rasterizer of the renders: a registered one (torch, gsplat, plug-ins: `controlgs plugins`) or "
                         "auto (default: gsplat on CUDA where installed, else torch)")
@@ -262,7 +262,7 @@ def make_renderer(args: argparse.Namespace, model: Any) -> Any:
     why = plugins.rasterizers()[args.rasterizer].obj.unavailable(device, torch.float32)
     if why is not None:
         hint = ("; it needs --device cuda and the gsplat extra: pip install 'controlgs-adapter[gsplat]' (or pip install "
-                "--no-deps gsplat to keep your torch; docs/rendering.md)") if args.rasterizer == "gsplat" else ""
+                "--no-deps gsplat to keep your torch; docs/how-to/gpu.md)") if args.rasterizer == "gsplat" else ""
         raise InputValueError(f"--rasterizer {args.rasterizer} cannot render on {device}: {why}{hint}")
     return RasterizerRenderer(renderer if renderer is not None else renderer_for(model), args.rasterizer)
 

@@ -3,7 +3,7 @@ backbone: a user's trained model folder and its dataset (``--model`` / ``--data`
 scene's baked backbone (``--variant``). Checkpoints resume exactly after an interruption; adapters
 are saved as safetensors (with ``--seeds K``, one folder ``RUN/seed-<s>`` per seed); ``RUN/run.json``
 records what the run was trained on. Under ``torchrun``
-it trains data-parallel, or with ``--scenes`` one built-in scene per process (docs/distributed.md)."""
+it trains data-parallel, or with ``--scenes`` one built-in scene per process (docs/how-to/distributed.md)."""
 
 from __future__ import annotations
 

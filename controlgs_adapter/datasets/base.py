@@ -1,7 +1,7 @@
 """Posed images: what a dataparser reads (:class:`Frame`, :class:`SceneData`) and what training and
 evaluation consume (:class:`PosedImages`, cameras and lazily loaded images at a working resolution).
 
-Conventions (docs/conventions.md): cameras are pinhole with OpenCV axes (x right, y down, z forward),
+Conventions (docs/reference/conventions.md): cameras are pinhole with OpenCV axes (x right, y down, z forward),
 world-to-camera ``[4, 4]``, intrinsics in pixels with pixel centres at ``i + 0.5``. Images are sRGB
 ``[3, H, W]`` float32 in [0, 1]. A frame's camera holds at the full size of its image file; a
 :class:`PosedImages` rescales both to the working resolution (area downscale, intrinsics scaled

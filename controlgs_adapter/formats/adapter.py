@@ -3,7 +3,7 @@
 Building and checking the header, comparing a model's backbone fingerprint with the file's,
 mapping saved condition rows onto a model's anchors, and reading / writing the tensors.
 ``ControlGS.save`` / ``ControlGS.load`` (:mod:`controlgs_adapter.controlgs`) are the public API;
-the format is described in docs/adapter.md.
+the format is described in docs/reference/adapter-file-format.md.
 """
 
 from __future__ import annotations

@@ -118,7 +118,7 @@ def renderer_for(model: Any) -> Renderer:
         raise InputValueError(
             f"a {type(model).__name__} has no visible_anchors(camera) / render(camera, visible, background) of its "
             "own: pass renderer= (an object with visible(model, camera) and render(model, camera, visible, "
-            "background), or FunctionRenderer(your_render_function)); see docs/rendering.md")
+            "background), or FunctionRenderer(your_render_function)); see docs/how-to/own-renderer.md")
     return found
 
 

@@ -6,9 +6,9 @@ which runs the rasterizer chosen for the tensors' device and dtype (:func:`selec
 * ``torch`` (built-in, the default and the reference): the pure-PyTorch EWA splatter of
   :mod:`controlgs_adapter.rendering.splatter`; any device, float32 or float64.
 * ``gsplat`` (built-in, optional): gsplat's CUDA ``rasterization``; chosen on CUDA devices for
-  float32 when ``gsplat`` imports (``pip install --no-deps gsplat``, docs/rendering.md). It follows
+  float32 when ``gsplat`` imports (``pip install --no-deps gsplat``, docs/how-to/gpu.md). It follows
   the project's conventions where gsplat lets it (near plane, low-pass, the 0.99 alpha clamp);
-  what remains different is documented in docs/rendering.md.
+  what remains different is documented in docs/reference/rasterizers.md.
 
 Third-party rasterizers register through the hook ``controlgs_register_rasterizers`` (a list of
 :class:`Rasterizer` instances); the automatic choice takes the first that can run the tensors,

@@ -1,7 +1,7 @@
 """Photographic textures of the built-in scene: scikit-image's bundled data images.
 
 All seven ship inside the scikit-image wheel (no download) and are public domain or CC0 (see
-``docs/scene.md`` and :data:`TEXTURES`). The three grey-level ones get a fixed colour tint so the
+``docs/reference/builtin-scene.md`` and :data:`TEXTURES`). The three grey-level ones get a fixed colour tint so the
 diorama has colour everywhere.
 """
 

@@ -1,6 +1,6 @@
 """PSF banks: per field sample and wavelength, the chief-ray landing point and a local PSF.
 
-Representation (justified with numbers in ``docs/optics.md``): every PSF is a ``K x K`` array
+Representation (justified with numbers in ``docs/explanation/optics.md``): every PSF is a ``K x K`` array
 (K = 33 by default) whose sample pitch is chosen *per field and wavelength* so that all the light
 fits: pitch = max(min_pitch, extent / 15.5). At the Cardboard centre the PSF is sub-pixel (EE80
 0.6 px at 1024 px) and is stored at 1/8 px; in the corners it spans ~130 px and is stored at ~5 px.

@@ -1,6 +1,6 @@
 """Build a :class:`PSFBank` from a lens prescription with the built-in ray tracer (numpy only).
 
-PSF model per field point and wavelength (documented in ``docs/optics.md``):
+PSF model per field point and wavelength (documented in ``docs/explanation/optics.md``):
 
 1. the chief ray (through the pupil centre) gives the landing point on the virtual image plane;
 2. a ``N x N`` grid of launch slopes (aimed through the chief ray's slope -> pupil Jacobian) is

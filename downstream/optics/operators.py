@@ -18,7 +18,7 @@ radiometry (``rb.radiometry``: ``"radiance"``, the default, or the paper's ``"en
   group (truncated SVD to relative residual ``tol``) as FFT convolutions, their coefficients
   applied per pixel (energy: ``sum_r E_r * S(a_r . x)``; radiance: ``sum_r a_r . (E_r * S x)``).
   Converges to :func:`psf_exact` as ``tol -> 0`` (exact at 0). Its cost grows with the rank and
-  with the group's box plus the kernel margin (docs/optics.md: 2.9x for k = 129 vs 33).
+  with the group's box plus the kernel margin (docs/explanation/optics.md: 2.4x to 3.8x for k = 129 vs 33).
 
 Pixels that are zero in every channel are skipped in the splats when no gradient is needed
 (object scenes on black). With a gradient they cannot be skipped: the gradient there is not zero.

@@ -27,7 +27,7 @@ __all__ = ["PSFOptics", "psf_optics", "set_optics_mode", "MODES", "DEFAULT_TOL",
 Mode = Literal["distortion", "fast", "exact"]
 MODES: tuple[Mode, ...] = get_args(Mode)
 #: accuracy knob of the "fast" mode: relative residual of the truncated eigen-PSF expansion per
-#: group of DEFAULT_ZONE x DEFAULT_ZONE field samples (docs/optics.md, "Benchmark")
+#: group of DEFAULT_ZONE x DEFAULT_ZONE field samples (docs/explanation/optics.md, "The operators")
 DEFAULT_TOL = 0.02
 DEFAULT_ZONE = 5
 
@@ -42,7 +42,7 @@ def psf_optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "e
     :mod:`controlgs_adapter.downstream.placement`. ``radiometry``: ``"radiance"`` (a lossless lens
     conserves radiance: a uniform display stays uniform up to the pupil transmission) or
     ``"energy"`` (the paper's Eq. S3: each display pixel's energy kept; a flat field falls as 1 / area
-    magnification), docs/optics.md "Radiometry"."""
+    magnification), docs/explanation/optics.md "Radiometry"."""
     check_image("image", image)
     if not _is_mode(mode):
         raise InputValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -70,7 +70,7 @@ class PSFOptics(Stage):
         mode: ``"distortion"`` (chief-ray warp only; the paper's first 90 % of training), ``"fast"``
             (eigen-PSF shift-variant blur, see :func:`psf_fast`) or ``"exact"`` (paper Eq. S3 exactly, as
             per-field FFT convolutions; the default: on CPU it measured faster than ``"fast"`` at
-            256-1024 px, docs/optics.md). Settable at any time (``stage.mode = "distortion"``).
+            256-1024 px, docs/benchmarks/optics_bench.md). Settable at any time (``stage.mode = "distortion"``).
         tol, zone: accuracy knobs of ``"fast"`` (``tol=0`` is exact).
         placement: where the image sits on the display: ``"fit"`` (default; square pixels, scaled
             to fit and centred, the rest of the display black) or ``"stretch"`` (the display
