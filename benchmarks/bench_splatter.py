@@ -11,7 +11,7 @@ log-normal around ``sqrt(50k / N)`` px at 256^2, opacities U(0.05, 0.95), random
 4. where the time goes (top operators of one 50k @ 256^2 forward+backward, torch profiler);
 5. the training scene of ``bench_step.py``'s dense preset (100k anchors, ~640k visible Gaussians) at
    288x512 and 576x1024: forward and backward CPU time of the splatter alone, and of the splatter in
-   the file ``--baseline`` (e.g. ``git show 816758c:backends/splatter.py > /tmp/splatter_before.py``)
+   the file ``--baseline`` (e.g. ``git show REV:controlgs_adapter/rendering/splatter.py > /tmp/splatter_before.py``)
    in the same run, each case in a fresh process.
 
 Usage: ``python benchmarks/bench_splatter.py [--quick] [--threads 2] [--baseline FILE] [--dense-only]

@@ -16,7 +16,7 @@ target unless ``brighten=False``), then clipped to the display range [0, 1]. The
 dimming equals the target exactly unless clipping happens (the clipped fraction is reported).
 Gradients flow through ``P(image)``; the reference is a constant. Conventions:
 - with a reference, ``rho == 0`` still maps the image to ``P_ref`` (the paper's equal-power
-  operator is continuous in rho; an earlier "rho = 0 is off" rule made a jump just above 0).
+  operator is continuous in rho; treating rho = 0 as "off" would make a jump just above 0).
 - no reference: ``P_ref = P(image)``, i.e. the image is scaled by ``1 - rho``; at ``rho == 0`` it
   is returned unchanged (not clipped) and the stage costs nothing.
 - ``P(image) == 0`` (a black image): there is nothing to scale; the scale is 1 (no NaN, zero
@@ -196,7 +196,7 @@ class DisplayMapping(Stage):
     with its black corners, resampling), which the pipeline puts in
     ``ctx.displayed_reference``, so a perfect render gets scale 1 at every rho;
     ``p_ref="ground_truth"``: that of the sRGB ground truth at S as given (cached while the same,
-    unmodified tensor comes back; the former rule). Without a reference the image's own power is
+    unmodified tensor comes back; it ignores the pre-warp's black corners). Without a reference the image's own power is
     the reference. Records ``display.scale``, ``display.power_ref``, ``display.power_target``,
     ``display.power`` and ``display.clipped_fraction`` into ``ctx.record``.
 
