@@ -27,6 +27,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import Any, Callable
 
+from ..checks import brief
 from ..errors import InputValueError
 from .session import Superseded, ViewerSession, parse_state
 
@@ -156,6 +157,9 @@ class _Handler(BaseHTTPRequestHandler):
             return json.loads(self.rfile.read(length))
         except (UnicodeDecodeError, ValueError) as e:
             raise InputValueError(f"the request body is not JSON ({e})") from None
+        except RecursionError:  # any nesting depth: a 400, never a 500
+            raise InputValueError("the request body is nested too deeply (a state is a JSON object of numbers, "
+                                  "strings and short lists)") from None
 
     def do_POST(self) -> None:  # noqa: N802
         if not self._host_ok():
@@ -175,7 +179,7 @@ class _Handler(BaseHTTPRequestHandler):
             else:
                 tag = body.get("generation") if isinstance(body, dict) else None
                 if isinstance(tag, bool) or not isinstance(tag, int):
-                    raise InputValueError(f"/api/extra takes {{\"generation\": int}}, got {body!r}")
+                    raise InputValueError(f"/api/extra takes {{\"generation\": int}}, got {brief(body)}")
                 result = {"generation": tag, "metrics": server.run(lambda check: session.extra(tag, check), tag)}
             answer = json.dumps(result, allow_nan=False).encode()  # a NaN is a 500, not a dropped connection
         except Superseded as e:

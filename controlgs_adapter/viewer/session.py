@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, Callable, Hashable, Mapping
 import torch
 import torch.nn.functional as F
 
-from ..checks import check_number
+from ..checks import brief, check_number
 from ..controlgs import ControlGS
 from ..downstream.oled import oled_emission
 from ..downstream.optics.stage import MODES, set_optics_mode
@@ -102,25 +102,25 @@ def parse_state(data: Any, views: int) -> ViewState:
         raise InputValueError(f"the state must be a JSON object with fields {', '.join(_FIELDS)}, got {type(data).__name__}")
     unknown = sorted(str(k) for k in data if k not in _FIELDS)
     if unknown:
-        raise InputValueError(f"unknown state field(s) {unknown}; fields: {', '.join(_FIELDS)}")
+        raise InputValueError(f"unknown state field(s) {brief(unknown)}; fields: {', '.join(_FIELDS)}")
     d = ViewState()
     view = check_number("view", data.get("view", d.view), integer=True, low=0, high=views - 1)
     values = {k: check_number(k, data.get(k, getattr(d, k)), low=lo, high=hi)
               for k, (lo, hi) in (("azimuth", AZIMUTH_RANGE), ("elevation", ELEVATION_RANGE),
                                   ("downsample", DOWNSAMPLE_RANGE), ("power_saving", POWER_SAVING_RANGE))}
     optics = data.get("optics", d.optics)
-    if optics not in OPTICS_MODES:
-        raise InputValueError(f"optics must be one of {', '.join(OPTICS_MODES)}, got {optics!r}")
+    if not isinstance(optics, str) or optics not in OPTICS_MODES:
+        raise InputValueError(f"optics must be one of {', '.join(OPTICS_MODES)}, got {brief(optics)}")
     stages = data.get("stages", list(d.stages))
     if not isinstance(stages, list) or not all(isinstance(s, str) for s in stages):
-        raise InputValueError(f"stages must be a list of stage names among {', '.join(STAGES)}, got {stages!r}")
+        raise InputValueError(f"stages must be a list of stage names among {', '.join(STAGES)}, got {brief(stages)}")
     bad = [s for s in stages if s not in STAGES]
     if bad:
-        raise InputValueError(f"stages: unknown {bad}; stages are {', '.join(STAGES)}")
+        raise InputValueError(f"stages: unknown {brief(bad)}; stages are {', '.join(STAGES)}")
     gaze = data.get("gaze")
     if gaze is not None:
         if not isinstance(gaze, list) or len(gaze) != 2:
-            raise InputValueError(f"gaze must be null or [x, y] in [-1, 1] (normalised image coordinates), got {gaze!r}")
+            raise InputValueError(f"gaze must be null or [x, y] in [-1, 1] (normalised image coordinates), got {brief(gaze)}")
         gaze = (check_number("gaze x", gaze[0], low=-1, high=1), check_number("gaze y", gaze[1], low=-1, high=1))
     return ViewState(int(view), values["azimuth"], values["elevation"], values["downsample"], values["power_saving"],
                      optics, tuple(s for s in STAGES if s in stages), gaze)
