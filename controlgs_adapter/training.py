@@ -29,7 +29,7 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 import torch
 from tqdm.auto import tqdm
 
-from .benchmarking.clock import PhaseClock
+from .clock import PhaseClock
 from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
@@ -280,8 +280,8 @@ class Trainer:
     def step(self, clock: PhaseClock | None = None) -> float:
         """One optimisation step; returns the loss.
 
-        ``clock``: a :class:`~controlgs_adapter.benchmarking.PhaseClock` to time the step's phases
-        (:data:`~controlgs_adapter.benchmarking.STEP_PHASES`); None (default): not timed, no syncs added.
+        ``clock``: a :class:`~controlgs_adapter.clock.PhaseClock` to time the step's phases
+        (:data:`~controlgs_adapter.clock.STEP_PHASES`); None (default): not timed, no syncs added.
         """
         lap = _no_lap if clock is None else clock.lap
         if clock is not None:

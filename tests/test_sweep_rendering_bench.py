@@ -167,7 +167,7 @@ def test_write_report_replaces_the_file(tmp_path: Any) -> None:
 
 # ---------------------------------------------------------------- the phase clock
 def test_phase_clock_laps_use_the_time_between_calls(monkeypatch: pytest.MonkeyPatch) -> None:
-    import controlgs_adapter.benchmarking.clock as clock_mod
+    import controlgs_adapter.clock as clock_mod
 
     now = [10.0]
     monkeypatch.setattr(clock_mod.time, "perf_counter", lambda: now[0])

@@ -1,70 +1,22 @@
-"""A phase clock for one training step: wall-clock laps of named phases.
-
-:meth:`Trainer.step(clock=...) <controlgs_adapter.training.Trainer.step>` calls :meth:`PhaseClock.start`
-and then :meth:`PhaseClock.lap` at the end of each of its phases; without a clock it makes no
-such calls (no timing, no device synchronisation). More lap points plug in from outside:
-:class:`ClockedRasterizer` splits a render into decoding and splatting, :func:`clock_stage` times a
-pipeline stage by forward hooks. Laps of the same name add up (a batch of several views).
+"""The render's lap points for the step clock: :class:`ClockedRasterizer` splits a render into
+decoding and splatting. The clock itself (:class:`PhaseClock`, :func:`clock_stage`,
+:data:`STEP_PHASES`) lives in :mod:`controlgs_adapter.clock`, below the trainer that laps it; it is
+re-exported here.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-import time
-from typing import Any, Iterator
+from typing import Any
 
 import torch
-from torch import nn
 
+from controlgs_adapter.clock import STEP_PHASES, PhaseClock, clock_stage
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.rendering.rasterizers import RASTERIZER_ENV, Rasterizer, select_rasterizer
 from controlgs_adapter.state import Camera
 
 __all__ = ["PhaseClock", "ClockedRasterizer", "clock_stage", "STEP_PHASES"]
-
-#: the laps of :meth:`Trainer.step`, in order: view and state sampling (and reading the view),
-#: the render (prefilter, decode, rasterize), the downstream pipeline, the loss, its backward, and
-#: the update (gradient exchange, Adam step, parameter check)
-STEP_PHASES: tuple[str, ...] = ("sample", "render", "pipeline", "loss", "backward", "optimizer")
-
-
-class PhaseClock:
-    """Seconds per named phase of one step.
-
-    Args:
-        device: the device whose queued work a lap waits for (``torch.cuda.synchronize``) so that
-            a lap times the work of its phase, not its launch; None or a CPU device: no waiting.
-
-    Attributes: ``laps`` (``{phase: seconds}`` since the last :meth:`start`, in first-lap order).
-    """
-
-    def __init__(self, device: torch.device | str | None = None) -> None:
-        self.device = None if device is None else torch.device(device)
-        self.laps: dict[str, float] = {}
-        self._last = time.perf_counter()
-
-    def _sync(self) -> None:
-        if self.device is not None and self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-
-    def start(self) -> None:
-        """Forget the laps and start timing (after the device's queued work)."""
-        self._sync()
-        self.laps = {}
-        self._last = time.perf_counter()
-
-    def lap(self, name: str) -> None:
-        """Add the seconds since the previous lap (or :meth:`start`) to phase ``name``."""
-        self._sync()
-        now = time.perf_counter()
-        self.laps[name] = self.laps.get(name, 0.0) + now - self._last
-        self._last = now
-
-    @property
-    def total(self) -> float:
-        """Seconds from :meth:`start` to the last lap."""
-        return sum(self.laps.values())
 
 
 class ClockedRasterizer(Rasterizer):
@@ -103,15 +55,3 @@ class ClockedRasterizer(Rasterizer):
         self.clock.lap("splat")
         return out
 
-
-@contextlib.contextmanager
-def clock_stage(clock: PhaseClock, stage: nn.Module, name: str, before: str) -> Iterator[None]:
-    """Inside the block, lap ``clock`` as ``before`` when ``stage``'s forward starts and as ``name``
-    when it ends (forward hooks, removed on exit)."""
-    hooks = [stage.register_forward_pre_hook(lambda *_: clock.lap(before)),
-             stage.register_forward_hook(lambda *_: clock.lap(name))]
-    try:
-        yield
-    finally:
-        for h in hooks:
-            h.remove()
