@@ -16,6 +16,8 @@ from torch import nn
 
 from .checks import check_tensor
 from .errors import TargetError
+from .formats.torchscript import eager_from_script
+from .rendering.renderer import Renderer, default_renderer
 
 __all__ = ["Backend", "get_attr_path", "set_attr_path", "has_attrs", "anchor_ids_from_mask"]
 
@@ -111,8 +113,6 @@ class Backend:
         """Make a decoder take hooks (e.g. rebuild a TorchScript decoder as an eager module with
         identical outputs) and install it on the model. Return the original module (to restore on
         unwrap) or None if nothing changed. Called only after every check passed."""
-        from controlgs_adapter.formats.torchscript import eager_from_script  # local: only needed for TorchScript decoders
-
         module = get_attr_path(model, decoder_path)
         if isinstance(module, torch.jit.ScriptModule):
             set_attr_path(model, decoder_path, eager_from_script(module, name=decoder_path))
@@ -147,14 +147,13 @@ class Backend:
                               f"{sum(w for _, w in layout)} ({layout})")
         return fc1
 
-    def renderer(self, model: Any) -> Any:
-        """The :class:`~controlgs_adapter.rendering.protocol.Renderer` of this family for ``model``, or None
-        when the model cannot render itself (the user passes one). Default: a
-        :class:`~controlgs_adapter.rendering.protocol.ModelRenderer` when the model has ``visible_anchors``
-        and ``render`` (every family the library loads)."""
-        from controlgs_adapter.rendering.protocol import ModelRenderer  # local: rendering imports this module's users
-
-        return ModelRenderer() if ModelRenderer.fits(model) else None
+    def renderer(self, model: Any) -> Renderer | None:
+        """The :class:`~controlgs_adapter.rendering.renderer.Renderer` of this family for ``model``, or None
+        when the model cannot render itself (the user passes one). Default:
+        :func:`~controlgs_adapter.rendering.renderer.default_renderer` (a
+        :class:`~controlgs_adapter.rendering.renderer.ModelRenderer` when the model has ``visible_anchors``
+        and ``render``: every family the library loads)."""
+        return default_renderer(model)
 
     def fingerprint(self, model: Any, anchor_ids: torch.Tensor | None = None) -> str:
         """SHA-256 (hex, 16 chars) over anchor positions and every decoder's weights: identifies the

@@ -24,83 +24,18 @@ object with the two methods, or as a function (:class:`FunctionRenderer`)::
 
 from __future__ import annotations
 
-from typing import Any, Callable, Protocol, Sequence, runtime_checkable
+from typing import Any, Callable, Sequence
 
 import torch
-from torch import nn
 
 from controlgs_adapter.controlgs import ControlGS, _select_backend
 from controlgs_adapter.errors import InputValueError, NoMatchingBackendError, ShapeError
 from controlgs_adapter.state import Camera, RuntimeState
 
+from .renderer import FunctionRenderer, ModelRenderer, Renderer, default_renderer, model_device
+
 __all__ = ["Renderer", "ModelRenderer", "FunctionRenderer", "renderer_for", "as_renderer", "render_view",
            "model_device"]
-
-
-@runtime_checkable
-class Renderer(Protocol):
-    """What :class:`~controlgs_adapter.training.Trainer` and
-    :func:`~controlgs_adapter.evaluation.evaluate_grid` render with (module docstring)."""
-
-    def visible(self, model: Any, camera: Camera) -> torch.Tensor | None:
-        """``BoolTensor[A]`` mask, ``LongTensor[R]`` anchor ids in decoder-row order, or None (all)."""
-        ...
-
-    def render(self, model: Any, camera: Camera, visible: torch.Tensor | None,
-               background: torch.Tensor | None) -> torch.Tensor:
-        """sRGB ``[3, camera.height, camera.width]`` of the ``visible`` anchors over ``background``."""
-        ...
-
-
-class ModelRenderer:
-    """Renders models that bring their own ``visible_anchors(camera)`` and ``render(camera,
-    visible, background)`` (returning a ``RasterOutput`` or an image): every family the library loads."""
-
-    @staticmethod
-    def fits(model: Any) -> bool:
-        """True if ``model`` has callable ``visible_anchors`` and ``render``."""
-        return callable(getattr(model, "visible_anchors", None)) and callable(getattr(model, "render", None))
-
-    def visible(self, model: Any, camera: Camera) -> torch.Tensor | None:
-        return model.visible_anchors(camera)
-
-    def render(self, model: Any, camera: Camera, visible: torch.Tensor | None,
-               background: torch.Tensor | None) -> torch.Tensor:
-        out = model.render(camera, visible, background)
-        return getattr(out, "color", out)
-
-    def __repr__(self) -> str:
-        return "ModelRenderer()"
-
-
-class FunctionRenderer:
-    """A render function as a :class:`Renderer`.
-
-    Args:
-        render: ``render(model, camera, visible, background)`` -> sRGB ``[3, H, W]`` (or an object
-            with ``.color``; a dict with ``"render"``, as Scaffold-GS's renderer returns, works too).
-        visible: ``visible(model, camera)`` -> mask / ids / None; None: every anchor is decoded.
-    """
-
-    def __init__(self, render: Callable[..., Any],
-                 visible: Callable[[Any, Camera], torch.Tensor | None] | None = None) -> None:
-        if not callable(render) or (visible is not None and not callable(visible)):
-            raise InputValueError(f"FunctionRenderer takes callables, got render={render!r}, visible={visible!r}")
-        self._render, self._visible = render, visible
-
-    def visible(self, model: Any, camera: Camera) -> torch.Tensor | None:
-        return None if self._visible is None else self._visible(model, camera)
-
-    def render(self, model: Any, camera: Camera, visible: torch.Tensor | None,
-               background: torch.Tensor | None) -> torch.Tensor:
-        out = self._render(model, camera, visible, background)
-        if isinstance(out, dict) and "render" in out:
-            out = out["render"]
-        return getattr(out, "color", out)
-
-    def __repr__(self) -> str:
-        name = getattr(self._render, "__qualname__", repr(self._render))
-        return f"FunctionRenderer({name})"
 
 
 def renderer_for(model: Any) -> Renderer:
@@ -113,7 +48,7 @@ def renderer_for(model: Any) -> Renderer:
     try:
         found = _select_backend(model, None).renderer(model)
     except NoMatchingBackendError:
-        found = ModelRenderer() if ModelRenderer.fits(model) else None
+        found = default_renderer(model)
     if found is None:
         raise InputValueError(
             f"a {type(model).__name__} has no visible_anchors(camera) / render(camera, visible, background) of its "
@@ -133,23 +68,6 @@ def as_renderer(renderer: Renderer | Callable[..., Any] | None, model: Any) -> R
         return FunctionRenderer(renderer)
     raise InputValueError(f"renderer must be None, a Renderer (visible + render) or a render function, "
                           f"got {type(renderer).__name__}")
-
-
-def model_device(model: Any) -> torch.device:
-    """Device of ``model``'s first parameter or buffer; for a plain Python model (Scaffold-GS's
-    ``GaussianModel``) of its first module or tensor attribute; CPU when it has none."""
-    for attr in ("parameters", "buffers"):
-        fn = getattr(model, attr, None)
-        if callable(fn):
-            for t in fn():
-                return t.device
-    for value in getattr(model, "__dict__", {}).values():
-        if isinstance(value, torch.Tensor):
-            return value.device
-        if isinstance(value, nn.Module):
-            for t in value.parameters():
-                return t.device
-    return torch.device("cpu")
 
 
 def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: RuntimeState | None,
