@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from . import plugins
+from .plugins import select_backend
 from .backend import Backend, anchor_ids_from_mask, get_attr_path, set_attr_path
 from .errors import (IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
                      LifecycleError, ShapeError, TargetError)
@@ -80,33 +81,6 @@ class _Adapter:
 class _Plan:
     target: Target
     eager: nn.Module | None  # the eager rebuild of a TorchScript decoder (dry run), else None
-
-
-def _describe(backend: Backend) -> str:
-    """``name: first paragraph of the backend's docstring`` (what the backend looks for)."""
-    para = (type(backend).__doc__ or "").strip().split("\n\n")[0]
-    return f"{backend.name}: {' '.join(para.split()).rstrip('.') or type(backend).__qualname__}"
-
-
-def _select_backend(model: Any, backend: str | Backend | None) -> Backend:
-    if isinstance(backend, Backend):
-        chosen = backend
-    else:
-        registered = {name: info.obj for name, info in plugins.backends().items()}
-        listing = "".join(f"\n  - {_describe(b)}" for b in registered.values()) or " none"
-        if backend is None:
-            for b in registered.values():
-                if b.matches(model):
-                    return b
-            raise NoMatchingBackendError(
-                f"no registered backend recognises a {type(model).__name__}; registered backends (tried in this order):{listing}"
-            )
-        if backend not in registered:
-            raise NoMatchingBackendError(f"backend {backend!r} is not registered; registered backends:{listing}")
-        chosen = registered[backend]
-    if not chosen.matches(model):
-        raise NoMatchingBackendError(f"backend {_describe(chosen)} does not recognise a {type(model).__name__}")
-    return chosen
 
 
 def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
@@ -236,7 +210,7 @@ class ControlGS:
             model has changed.
         """
         _check_name(name)
-        chosen = _select_backend(model, backend)
+        chosen = select_backend(model, backend)
         schedules = _check_modules(modules, cond_dim, endpoints)
         if targets is None:
             targets = chosen.default_targets(model)
@@ -611,7 +585,7 @@ def _read_adapter(path: str | Path, model: Any, *, strict: bool, wrapped: Contro
             backend = None
         elif not backend.matches(model):
             try:
-                other = _select_backend(model, None).name
+                other = select_backend(model, None).name
             except NoMatchingBackendError:
                 other = "no registered backend"
             problems.append((f"backend: the adapter was made for {spec['backend']!r}; this model is recognised by {other}",

@@ -20,11 +20,13 @@ from typing import Any, Callable
 import pluggy
 
 from . import hookspecs
-from .errors import PluginLoadError
+from .backend import Backend
+from .errors import NoMatchingBackendError, PluginLoadError
 
 __all__ = [
     "BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "PluginInfo", "PluginManager", "get_plugin_manager", "register_plugin",
     "unregister_plugin", "backends", "stages", "schedules", "rasterizers", "plugin_report", "load_failures", "reset_plugin_manager",
+    "select_backend",
 ]
 
 ENTRY_POINT_GROUP = "controlgs_adapter"
@@ -194,6 +196,41 @@ def _collect(kind: str, hook_name: str, key: Callable[[Any], str]) -> dict[str, 
 def backends() -> dict[str, PluginInfo]:
     """Registered backends by name, in the order ``ControlGS.wrap`` tries them."""
     return _collect("backend", "controlgs_register_backends", lambda b: b.name)
+
+
+def _describe(backend: Backend) -> str:
+    """``name: first paragraph of the backend's docstring`` (what the backend looks for)."""
+    para = (type(backend).__doc__ or "").strip().split("\n\n")[0]
+    return f"{backend.name}: {' '.join(para.split()).rstrip('.') or type(backend).__qualname__}"
+
+
+def select_backend(model: Any, backend: str | Backend | None = None) -> Backend:
+    """The backend that adapts ``model``: ``backend`` itself (an instance), the registered backend
+    of that name, or (None) the first registered one whose ``matches(model)`` is true, in
+    :func:`backends` order (plug-ins before built-ins).
+
+    Raises:
+        NoMatchingBackendError: no registered backend recognises the model, the named one is not
+            registered, or the chosen one does not recognise the model (listing the registered ones).
+    """
+    if isinstance(backend, Backend):
+        chosen = backend
+    else:
+        registered = {name: info.obj for name, info in backends().items()}
+        listing = "".join(f"\n  - {_describe(b)}" for b in registered.values()) or " none"
+        if backend is None:
+            for b in registered.values():
+                if b.matches(model):
+                    return b
+            raise NoMatchingBackendError(
+                f"no registered backend recognises a {type(model).__name__}; registered backends (tried in this order):{listing}"
+            )
+        if backend not in registered:
+            raise NoMatchingBackendError(f"backend {backend!r} is not registered; registered backends:{listing}")
+        chosen = registered[backend]
+    if not chosen.matches(model):
+        raise NoMatchingBackendError(f"backend {_describe(chosen)} does not recognise a {type(model).__name__}")
+    return chosen
 
 
 def stages() -> dict[str, PluginInfo]:

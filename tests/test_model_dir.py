@@ -100,7 +100,7 @@ def test_iteration_picks_that_folder_for_every_family(tmp_path):
     older one when asked for it, and the newest by default; compared with each iteration loaded alone."""
     import shutil
 
-    from controlgs_adapter.controlgs import _select_backend
+    from controlgs_adapter.plugins import select_backend as _select_backend
 
     names = _family_folders(tmp_path / "new", 0)
     _family_folders(tmp_path / "old", 1)

@@ -13,7 +13,8 @@ from torch import nn
 
 from controlgs_adapter import ControlGS, RuntimeState
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
-from controlgs_adapter.controlgs import DEFAULT_ADAPTER, DEFAULT_MODULES, _backbone_tensors, _describe
+from controlgs_adapter.controlgs import DEFAULT_ADAPTER, DEFAULT_MODULES, _backbone_tensors
+from controlgs_adapter.plugins import _describe
 from controlgs_adapter.errors import (InjectionMissedError, InputValueError, LifecycleError, NoMatchingBackendError,
                                       ShapeError, TargetError)
 from controlgs_adapter.injector import ConditionInjector, InjectionContext

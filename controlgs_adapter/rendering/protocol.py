@@ -28,8 +28,9 @@ from typing import Any, Callable, Sequence
 
 import torch
 
-from controlgs_adapter.controlgs import ControlGS, _select_backend
+from controlgs_adapter.controlgs import ControlGS
 from controlgs_adapter.errors import InputValueError, NoMatchingBackendError, ShapeError
+from controlgs_adapter.plugins import select_backend
 from controlgs_adapter.state import Camera, RuntimeState
 
 from .renderer import FunctionRenderer, ModelRenderer, Renderer, default_renderer, model_device
@@ -46,7 +47,7 @@ def renderer_for(model: Any) -> Renderer:
         InputValueError: the model cannot render itself (pass ``renderer=``).
     """
     try:
-        found = _select_backend(model, None).renderer(model)
+        found = select_backend(model).renderer(model)
     except NoMatchingBackendError:
         found = default_renderer(model)
     if found is None:
