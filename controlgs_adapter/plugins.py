@@ -34,10 +34,10 @@ BUILTIN_DIST = "controlgs-adapter (built-in)"
 
 #: Modules of built-in plug-ins, registered in this order (later ones are called first by pluggy).
 BUILTIN_PLUGINS: tuple[str, ...] = (
-    "controlgs_adapter.schedules",
+    "controlgs_adapter.builtin",
     "controlgs_adapter.backends.builtin",
     "controlgs_adapter.downstream.builtin",
-    "controlgs_adapter.rendering.rasterizers",
+    "controlgs_adapter.rendering.builtin",
 )
 
 

@@ -38,7 +38,6 @@ import torch
 
 from .checks import check_tensor
 from .errors import InputValueError
-from .hookspecs import hookimpl
 from .state import RuntimeState
 
 __all__ = [
@@ -177,9 +176,5 @@ class FoveationSchedule(StrengthSchedule):
         return torch.linalg.vector_norm(screen_xy - gaze, dim=-1)
 
 
+#: the built-in schedules, registered (one instance each) by :mod:`controlgs_adapter.builtin`
 BUILTIN_SCHEDULES: tuple[type[StrengthSchedule], ...] = (LensSchedule, ResampleSchedule, DisplaySchedule, FoveationSchedule)
-
-
-@hookimpl(trylast=True)
-def controlgs_register_schedules() -> list[StrengthSchedule]:
-    return [cls() for cls in BUILTIN_SCHEDULES]

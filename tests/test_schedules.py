@@ -110,5 +110,5 @@ def test_builtin_schedules_are_registered_through_the_hook():
     registered = plugins.schedules()
     for cls in (LensSchedule, ResampleSchedule, DisplaySchedule, FoveationSchedule):
         info = registered[cls.name]
-        assert type(info.obj) is cls and info.plugin == "controlgs_adapter.schedules"
+        assert type(info.obj) is cls and info.plugin == "controlgs_adapter.builtin"
         assert (info.obj.lo, info.obj.hi) == (cls.default_lo, cls.default_hi)

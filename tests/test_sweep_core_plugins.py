@@ -69,8 +69,8 @@ def test_blocked_entry_point_is_not_loaded(fresh, monkeypatch):
 
 def test_builtin_plugin_order_and_sources(fresh, monkeypatch):
     monkeypatch.setenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", "1")
-    assert plugins.BUILTIN_PLUGINS == ("controlgs_adapter.schedules", "controlgs_adapter.backends.builtin",
-                                       "controlgs_adapter.downstream.builtin", "controlgs_adapter.rendering.rasterizers")
+    assert plugins.BUILTIN_PLUGINS == ("controlgs_adapter.builtin", "controlgs_adapter.backends.builtin",
+                                       "controlgs_adapter.downstream.builtin", "controlgs_adapter.rendering.builtin")
     assert plugins.ENTRY_POINT_GROUP == "controlgs_adapter"
     infos = plugins.plugin_report()
     assert {i.source for i in infos} == {"controlgs-adapter (built-in)"}

@@ -21,8 +21,9 @@ from controlgs_adapter.errors import (ControlGSError, FileWriteError, InjectionM
                                       LifecycleError, MissingDependencyError, NonFiniteError, RunLockedError,
                                       ShapeError, StateError, StateRangeError, TargetError)
 from controlgs_adapter.losses import LPIPS_UNAVAILABLE, ImageLoss, LossWeights, image_loss
+from controlgs_adapter.builtin import controlgs_register_schedules
 from controlgs_adapter.schedules import (BUILTIN_SCHEDULES, DisplaySchedule, FoveationSchedule, LensSchedule,
-                                         ResampleSchedule, StrengthSchedule, controlgs_register_schedules)
+                                         ResampleSchedule, StrengthSchedule)
 
 # ---------------------------------------------------------------------------------------------- checks
 

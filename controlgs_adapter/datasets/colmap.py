@@ -21,17 +21,18 @@ from __future__ import annotations
 
 import math
 import mmap
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 
 from ..errors import FileFormatError, InputValueError
-from ..state import Camera
 from .base import Frame, SceneData
+from .guards import dataset_camera, float32_finite, inside
 from .images import image_size
 
 __all__ = ["read_colmap", "qvec_to_rotation", "CAMERA_MODELS"]
@@ -53,6 +54,8 @@ _DOWNSCALED = (8, 4, 2)
 _U64 = struct.Struct("<Q")
 _CAMERA_HEAD = struct.Struct("<IiQQ")      # camera_id, model_id, width, height
 _IMAGE_HEAD = struct.Struct("<I4d3dI")     # image_id, qw qx qy qz, tx ty tz, camera_id
+#: largest finite float32: cameras and points are stored in float32
+_F32_MAX = float(np.finfo(np.float32).max)
 _POINT2D_BYTES = 24                        # x, y (f64), point3D_id (i64)
 _POINT_HEAD_BYTES = 8 + 24 + 3 + 8         # point3D_id, xyz, rgb, error
 _TRACK_ELEMENT_BYTES = 8                   # image_id, point2D_idx (u32 each)
@@ -64,6 +67,7 @@ class _ColmapCamera:
     width: int
     height: int
     params: tuple[float, ...]
+    where: str  # the file and line (text) or record (binary), for messages
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,7 @@ class _ColmapImage:
     tvec: tuple[float, float, float]
     camera_id: int
     name: str
+    where: str  # the file and line (text) or record (binary), for messages
 
 
 # ---------------------------------------------------------------------------------------------
@@ -148,14 +153,18 @@ def _read_cameras_bin(path: Path) -> dict[int, _ColmapCamera]:
     min_params = min(n for _, n in CAMERA_MODELS.values())
     with _BinFile(path) as f:
         n = f.count("cameras", _CAMERA_HEAD.size + 8 * min_params)
-        for _ in range(n):
+        for k in range(n):
+            start = f.off
             cam_id, model_id, width, height = f.unpack(_CAMERA_HEAD, "a camera record")
+            where = f"{path}: camera record {k} (CAMERA_ID {cam_id}, byte {start})"
             if model_id not in CAMERA_MODELS:
-                raise FileFormatError(f"{path}: camera {cam_id} has unknown model id {model_id} "
-                                      f"(known: 0..{max(CAMERA_MODELS)})")
+                raise FileFormatError(f"{path}: camera {cam_id} has unknown model id {model_id} (known: "
+                                      f"0..{max(CAMERA_MODELS)}), in camera record {k} at byte {start}")
+            if cam_id in cams:
+                raise FileFormatError(f"{where}: CAMERA_ID {cam_id} appears twice (first: {cams[cam_id].where})")
             name, n_params = CAMERA_MODELS[model_id]
             params = f.unpack(struct.Struct(f"<{n_params}d"), f"the parameters of camera {cam_id}")
-            cams[cam_id] = _ColmapCamera(name, width, height, params)
+            cams[cam_id] = _ColmapCamera(name, width, height, params, where)
         f.finish()
     return cams
 
@@ -164,12 +173,16 @@ def _read_images_bin(path: Path) -> dict[int, _ColmapImage]:
     images: dict[int, _ColmapImage] = {}
     with _BinFile(path) as f:
         n = f.count("images", _IMAGE_HEAD.size + 1 + 8)
-        for _ in range(n):
+        for k in range(n):
+            start = f.off
             image_id, qw, qx, qy, qz, tx, ty, tz, cam_id = f.unpack(_IMAGE_HEAD, "an image record")
+            where = f"{path}: image record {k} (IMAGE_ID {image_id}, byte {start})"
+            if image_id in images:
+                raise FileFormatError(f"{where}: IMAGE_ID {image_id} appears twice (first: {images[image_id].where})")
             name = f.cstring(f"the name of image {image_id}")
             n2d = f.count(f"2D points of image {image_id}", _POINT2D_BYTES)
             f.skip(n2d * _POINT2D_BYTES, f"the 2D points of image {image_id}")
-            images[image_id] = _ColmapImage((qw, qx, qy, qz), (tx, ty, tz), cam_id, name)
+            images[image_id] = _ColmapImage((qw, qx, qy, qz), (tx, ty, tz), cam_id, name, where)
         f.finish()
     return images
 
@@ -195,9 +208,17 @@ def _read_points_bin(path: Path) -> np.ndarray:
         if n == 0:
             return np.zeros((0, 3))
         raw = np.frombuffer(f.buf, dtype=np.uint8)
-        byte_idx = (np.asarray(starts, dtype=np.int64) + 8)[:, None] + np.arange(24)  # xyz follows the u64 id
+        first = np.asarray(starts, dtype=np.int64)
+        ids = raw[first[:, None] + np.arange(8)].view("<u8").reshape(n)
+        byte_idx = (first + 8)[:, None] + np.arange(24)  # xyz follows the u64 id
         xyz = raw[byte_idx].view("<f8").reshape(n, 3).astype(np.float64)
         del raw  # release the view before the map closes
+        _refuse_duplicate_points(ids, lambda k: f"{path}: 3D point record {k} (byte {starts[k]})")
+        bad = ~(np.isfinite(xyz) & (np.abs(xyz) <= _F32_MAX)).all(axis=1)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise FileFormatError(f"{path}: non-finite 3D point coordinates (or beyond float32) in 3D point record "
+                                  f"{k} (POINT3D_ID {int(ids[k])}, byte {starts[k]}): {xyz[k].tolist()}")
     return xyz
 
 
@@ -205,15 +226,35 @@ def _read_points_bin(path: Path) -> np.ndarray:
 # text files
 
 
-def _text_lines(path: Path) -> list[tuple[int, str]]:
-    """``(line number, line)`` of every line that is not a comment (blank lines kept)."""
+#: the count COLMAP writes in a text file's header (``# Number of images: 8, mean ...``)
+_DECLARED = re.compile(r"#\s*Number of (cameras|images|points)\s*:\s*(\d+)", re.IGNORECASE)
+
+
+def _text_lines(path: Path) -> tuple[list[tuple[int, str]], tuple[int, int] | None]:
+    """``(line number, line)`` of every line that is not a comment (blank lines kept), and
+    ``(line number, count)`` of the header's ``# Number of ...: N`` if it has one."""
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise FileFormatError(f"{path}: not a UTF-8 text file") from None
     except OSError as e:
         raise FileFormatError(f"{path}: cannot read the file ({e})") from None
-    return [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines()) if not ln.lstrip().startswith("#")]
+    lines, declared = [], None
+    for i, ln in enumerate(text.splitlines()):
+        if ln.lstrip().startswith("#"):
+            m = _DECLARED.match(ln.strip())
+            if m and declared is None:
+                declared = (i + 1, int(m.group(2)))
+        else:
+            lines.append((i + 1, ln.strip()))
+    return lines, declared
+
+
+def _check_declared(path: Path, declared: tuple[int, int] | None, found: int, what: str) -> None:
+    """Refuse a file whose header declares another number of records than it holds."""
+    if declared is not None and declared[1] != found:
+        raise FileFormatError(f"{path}:{declared[0]}: the header declares {declared[1]} {what} but the file "
+                              f"holds {found}: truncated or edited")
 
 
 def _bad_line(path: Path, lineno: int, expected: str, line: str) -> FileFormatError:
@@ -224,7 +265,8 @@ def _bad_line(path: Path, lineno: int, expected: str, line: str) -> FileFormatEr
 def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
     cams: dict[int, _ColmapCamera] = {}
     expected = "CAMERA_ID MODEL WIDTH HEIGHT PARAMS..."
-    for lineno, line in _text_lines(path):
+    lines, declared = _text_lines(path)
+    for lineno, line in lines:
         if not line:
             continue
         parts = line.split()
@@ -234,16 +276,38 @@ def _read_cameras_txt(path: Path) -> dict[int, _ColmapCamera]:
         if len(parts) != 4 + n_params:
             raise _bad_line(path, lineno, f"{n_params} parameters for a {parts[1]} camera", line)
         try:
-            cams[int(parts[0])] = _ColmapCamera(parts[1], int(parts[2]), int(parts[3]),
-                                                tuple(float(p) for p in parts[4:]))
+            cam_id = int(parts[0])
+            cam = _ColmapCamera(parts[1], int(parts[2]), int(parts[3]), tuple(float(p) for p in parts[4:]),
+                                f"{path}:{lineno}")
         except ValueError:
             raise _bad_line(path, lineno, expected, line) from None
+        if cam_id in cams:
+            raise FileFormatError(f"{path}:{lineno}: CAMERA_ID {cam_id} appears twice (first: {cams[cam_id].where})")
+        cams[cam_id] = cam
+    _check_declared(path, declared, len(cams), "cameras")
     return cams
 
 
+def _is_points2d(line: str) -> bool:
+    """Whether ``line`` is an image's POINTS2D line: ``X Y POINT3D_ID`` triples (empty: none)."""
+    parts = line.split()
+    if len(parts) % 3:
+        return False
+    try:
+        np.asarray(parts[0::3] + parts[1::3], dtype=np.float64)
+        np.asarray(parts[2::3], dtype=np.int64)
+    except (ValueError, OverflowError):
+        return False
+    return True
+
+
 def _read_images_txt(path: Path) -> dict[int, _ColmapImage]:
+    """Images by IMAGE_ID. Each image is two lines: ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME``
+    and its POINTS2D line (``X Y POINT3D_ID`` triples, possibly empty; may be absent only after the
+    last image). A second line that is not a POINTS2D line, a repeated IMAGE_ID and a count that differs
+    from the header's are refused naming the line."""
     images: dict[int, _ColmapImage] = {}
-    lines = _text_lines(path)
+    lines, declared = _text_lines(path)
     i = 0
     while i < len(lines):
         lineno, line = lines[i]
@@ -257,25 +321,58 @@ def _read_images_txt(path: Path) -> dict[int, _ColmapImage]:
             image_id = int(parts[0])
             q = tuple(float(v) for v in parts[1:5])
             t = tuple(float(v) for v in parts[5:8])
-            images[image_id] = _ColmapImage(q, t, int(parts[8]), parts[9])  # type: ignore[arg-type]
+            image = _ColmapImage(q, t, int(parts[8]), parts[9], f"{path}:{lineno}")  # type: ignore[arg-type]
         except ValueError:
             raise _bad_line(path, lineno, "IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME", line) from None
-        i += 1  # the image's 2D points line (possibly empty) is not needed
+        if image_id in images:
+            raise FileFormatError(f"{path}:{lineno}: IMAGE_ID {image_id} appears twice "
+                                  f"(first: {images[image_id].where})")
+        if i < len(lines):  # the POINTS2D line (its contents are not needed, its place is)
+            points_no, points_line = lines[i]
+            i += 1
+            if not _is_points2d(points_line):
+                raise _bad_line(path, points_no, f"the POINTS2D line (X Y POINT3D_ID ...; empty for none) of "
+                                f"IMAGE_ID {image_id} (line {lineno}): every image takes two lines", points_line)
+        images[image_id] = image
+    _check_declared(path, declared, len(images), "images")
     return images
+
+
+def _refuse_duplicate_points(ids: np.ndarray, where: Callable[[int], str]) -> None:
+    """Refuse a repeated POINT3D_ID; ``where(k)`` describes record ``k`` (its file and byte)."""
+    if ids.size < 2:
+        return
+    order = np.argsort(ids, kind="stable")
+    same = np.flatnonzero(ids[order][1:] == ids[order][:-1])
+    if same.size:
+        first, again = sorted((int(order[same[0]]), int(order[same[0] + 1])))
+        raise FileFormatError(f"{where(again)}: POINT3D_ID {int(ids[again])} appears twice (first: {where(first)})")
 
 
 def _read_points_txt(path: Path) -> np.ndarray:
     xyz: list[tuple[float, float, float]] = []
-    for lineno, line in _text_lines(path):
+    seen: dict[int, int] = {}  # POINT3D_ID -> line
+    lines, declared = _text_lines(path)
+    for lineno, line in lines:
         if not line:
             continue
         parts = line.split()
         try:
-            if len(parts) < 8:
+            if len(parts) < 8 or len(parts) % 2:
                 raise ValueError
-            xyz.append((float(parts[1]), float(parts[2]), float(parts[3])))
+            point_id = int(parts[0])
+            p = (float(parts[1]), float(parts[2]), float(parts[3]))
         except ValueError:
-            raise _bad_line(path, lineno, "POINT3D_ID X Y Z R G B ERROR TRACK...", line) from None
+            raise _bad_line(path, lineno, "POINT3D_ID X Y Z R G B ERROR TRACK... (IMAGE_ID POINT2D_IDX pairs)",
+                            line) from None
+        if not all(abs(v) <= _F32_MAX for v in p):  # False for nan
+            raise FileFormatError(f"{path}: non-finite 3D point coordinates (or beyond float32) at line {lineno}: "
+                                  f"{list(p)}")
+        xyz.append(p)
+        if point_id in seen:
+            raise FileFormatError(f"{path}:{lineno}: POINT3D_ID {point_id} appears twice (first: line {seen[point_id]})")
+        seen[point_id] = lineno
+    _check_declared(path, declared, len(xyz), "points")
     return np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
 
 
@@ -287,17 +384,20 @@ def _model_file(sparse: Path, stem: str) -> Path | None:
     return None
 
 
-def _read_model(sparse: Path) -> tuple[dict[int, _ColmapCamera], dict[int, _ColmapImage], np.ndarray | None, Path]:
+def _read_model(root: Path, sparse: Path) -> tuple[dict[int, _ColmapCamera], dict[int, _ColmapImage],
+                                                   np.ndarray | None, Path]:
+    """The model in ``sparse`` (whose files must lie inside ``root``, symlinks followed)."""
     cams_path, imgs_path = _model_file(sparse, "cameras"), _model_file(sparse, "images")
     if cams_path is None or imgs_path is None:
         missing = [s for s, p in (("cameras", cams_path), ("images", imgs_path)) if p is None]
         raise FileFormatError(f"{sparse}: COLMAP model incomplete: no {' or '.join(m + '.bin/.txt' for m in missing)}")
+    pts_path = _model_file(sparse, "points3D")
+    for p in (cams_path, imgs_path, pts_path):
+        if p is not None:
+            inside(root, str(p.relative_to(root)), str(p), "the model file")
     cams = (_read_cameras_bin if cams_path.suffix == ".bin" else _read_cameras_txt)(cams_path)
     imgs = (_read_images_bin if imgs_path.suffix == ".bin" else _read_images_txt)(imgs_path)
-    pts_path = _model_file(sparse, "points3D")
     pts = None if pts_path is None else (_read_points_bin if pts_path.suffix == ".bin" else _read_points_txt)(pts_path)
-    if pts is not None and not np.isfinite(pts).all():
-        raise FileFormatError(f"{pts_path}: non-finite 3D point coordinates")
     return cams, imgs, pts, cams_path
 
 
@@ -308,8 +408,9 @@ def _read_model(sparse: Path) -> tuple[dict[int, _ColmapCamera], dict[int, _Colm
 def qvec_to_rotation(qvec: Sequence[float]) -> torch.Tensor:
     """Rotation ``[3, 3]`` float64 of a quaternion ``(w, x, y, z)`` (normalised first, as COLMAP does)."""
     q = torch.as_tensor(qvec, dtype=torch.float64)
-    norm = torch.linalg.vector_norm(q)
-    if not torch.isfinite(q).all() or norm < 1e-12:
+    big = q.abs().max()
+    norm = big * torch.linalg.vector_norm(q / big) if torch.isfinite(q).all() and big > 0 else big
+    if not torch.isfinite(q).all() or not norm >= 1e-12:
         raise InputValueError(f"qvec must be a finite non-zero quaternion (w, x, y, z), got {list(qvec)}")
     w, x, y, z = (q / norm).tolist()
     return torch.tensor([
@@ -342,30 +443,37 @@ def _scale_factor_ok(cam_w: int, cam_h: int, w: int, h: int) -> bool:
     return lo <= hi and hi > 0
 
 
-def _frame(name: str, img: _ColmapImage, cam: _ColmapCamera, path: Path, size: tuple[int, int],
-           model_file: Path) -> Frame:
-    """The frame of image ``name``: pinhole camera scaled to the image file's ``size`` ``(w, h)``."""
+def _frame(name: str, img: _ColmapImage, cam: _ColmapCamera, path: Path, size: tuple[int, int]) -> Frame:
+    """The frame of image ``name``: pinhole camera scaled to the image file's ``size`` ``(w, h)``;
+    every refusal names the model file and the line (text) or record (binary) of the image or camera."""
     if not all(math.isfinite(v) for v in cam.params) or cam.width < 1 or cam.height < 1:
-        raise FileFormatError(f"{model_file}: the camera of image {name!r} is invalid: {cam.model} "
+        raise FileFormatError(f"{cam.where}: the camera of image {name!r} is invalid: {cam.model} "
                               f"{cam.width}x{cam.height} {list(cam.params)}")
     (fx, fy, cx, cy), dist = _pinhole(cam)
     if not (fx > 0 and fy > 0):
-        raise FileFormatError(f"{model_file}: the camera of image {name!r} has focal lengths {fx}, {fy} (must be > 0)")
+        raise FileFormatError(f"{cam.where}: the camera of image {name!r} has focal lengths {fx}, {fy} (must be > 0)")
     w, h = size
     if not _scale_factor_ok(cam.width, cam.height, w, h):
         raise FileFormatError(f"{path}: image is {w}x{h}, which is not its camera's {cam.width}x{cam.height} "
-                              f"(in {model_file}) divided by one factor")
+                              f"(in {cam.where}) divided by one factor")
     sx, sy = w / cam.width, h / cam.height
     k = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    if not float32_finite(k):
+        raise FileFormatError(f"{cam.where}: the camera of image {name!r} does not fit float32 (|value| > 3.4e38): "
+                              f"{cam.model} {list(cam.params)}")
     w2c = torch.eye(4, dtype=torch.float64)
     try:
         w2c[:3, :3] = qvec_to_rotation(img.qvec)
     except InputValueError:
-        raise FileFormatError(f"{model_file}: image {name!r} has a bad quaternion {list(img.qvec)}") from None
+        raise FileFormatError(f"{img.where}: image {name!r} has a bad quaternion {list(img.qvec)}") from None
     w2c[:3, 3] = torch.tensor(img.tvec, dtype=torch.float64)
     if not torch.isfinite(w2c).all():
-        raise FileFormatError(f"{model_file}: image {name!r} has a non-finite translation {list(img.tvec)}")
-    return Frame(name, Camera(w2c.float(), k.float(), w, h), path, dist)  # type: ignore[arg-type]
+        raise FileFormatError(f"{img.where}: image {name!r} has a non-finite translation {list(img.tvec)}")
+    if not float32_finite(w2c):
+        raise FileFormatError(f"{img.where}: image {name!r} has a translation beyond float32 (|value| > 3.4e38) "
+                              f"{list(img.tvec)}")
+    camera = dataset_camera(f"{img.where}: image {name!r}", w2c.float(), k, w, h)
+    return Frame(name, camera, path, dist)  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -379,16 +487,27 @@ def _sparse_dir(root: Path) -> Path:
     raise FileFormatError(f"{root}: no COLMAP model: expected sparse/0/cameras.bin|txt (or sparse/cameras.bin|txt)")
 
 
-def _pick_images_dir(root: Path, names: list[str], resolution: int | None) -> Path:
+def _image_paths(root: Path, folder: Path, by_name: dict[str, _ColmapImage]) -> dict[str, Path]:
+    """The file of every image in ``folder``; :class:`FileFormatError` naming the model file's line
+    (or record) for a name that is absolute or leads outside ``root`` (``..``, symlinks), before
+    anything is opened."""
+    return {nm: inside(root, nm, im.where, "image name", base=folder) for nm, im in by_name.items()}
+
+
+def _pick_images_dir(root: Path, by_name: dict[str, _ColmapImage], resolution: int | None) -> Path:
     """``images``, or with ``resolution`` the most downscaled ``images_N`` whose every image exists and
     has a longer side of at least ``resolution`` pixels."""
     if resolution is not None:
         for n in _DOWNSCALED:
             d = root / f"images_{n}"
-            if not d.is_dir() or not all((d / nm).is_file() for nm in names):
+            if not d.is_dir():
+                continue
+            inside(root, d.name, str(root), "the images folder")
+            files = _image_paths(root, d, by_name)
+            if not all(p.is_file() for p in files.values()):
                 continue
             try:
-                if all(max(image_size(d / nm)) >= resolution for nm in names):
+                if all(max(image_size(p)) >= resolution for p in files.values()):
                     return d
             except FileFormatError:
                 continue
@@ -415,9 +534,12 @@ def read_colmap(root: str | Path, *, images: str | None = None, resolution: int 
         or None if the model has no points file. Cameras are at the size of the image files read.
 
     Raises:
-        FileFormatError: a missing, truncated or foreign model file, a camera model that is not
-            pinhole, SIMPLE_RADIAL, RADIAL or OPENCV, missing image files, or an image whose size does
-            not match its camera.
+        FileFormatError: a missing, truncated or foreign model file, a repeated IMAGE_ID,
+            CAMERA_ID or POINT3D_ID, an images file without its POINTS2D lines, a camera model that is
+            not pinhole, SIMPLE_RADIAL, RADIAL or OPENCV, missing image files, an image whose size does
+            not match its camera, values beyond float32, or a path (image name, images folder, model
+            file) that leads outside ``root``, symlinks included; each names the file and its line
+            (text) or record (binary).
         InputValueError: a bad argument.
     """
     root = Path(root)
@@ -425,7 +547,8 @@ def read_colmap(root: str | Path, *, images: str | None = None, resolution: int 
         raise InputValueError(f"holdout must be an int >= 0 (every holdout-th view is a test view), got {holdout!r}")
     if resolution is not None and (isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 2):
         raise InputValueError(f"resolution must be an int >= 2 (longer side in pixels), got {resolution!r}")
-    if images is not None and (not isinstance(images, str) or not images or Path(images).is_absolute()):
+    if images is not None and (not isinstance(images, str) or not images or Path(images).is_absolute()
+                               or ".." in Path(images).parts):
         raise InputValueError(f"images must be the name of a folder under the scene root, got {images!r}")
     bg = torch.zeros(3) if background is None else torch.as_tensor(background, dtype=torch.float32).flatten()
     if bg.numel() != 3 or not torch.isfinite(bg).all():
@@ -434,32 +557,36 @@ def read_colmap(root: str | Path, *, images: str | None = None, resolution: int 
         raise FileFormatError(f"{root}: scene folder not found")
 
     sparse = _sparse_dir(root)
-    cams, imgs, pts, model_file = _read_model(sparse)
+    cams, imgs, pts, model_file = _read_model(root, sparse)
     by_name: dict[str, _ColmapImage] = {}
     for im in imgs.values():
         if im.name in by_name:
-            raise FileFormatError(f"{model_file.parent}: image name {im.name!r} appears twice in the images file")
+            raise FileFormatError(f"{im.where}: image name {im.name!r} appears twice in the images file "
+                                  f"(first: {by_name[im.name].where})")
         by_name[im.name] = im
     names = sorted(by_name)
     for nm in names:
         cam_id = by_name[nm].camera_id
         if cam_id not in cams:
-            raise FileFormatError(f"{model_file}: image {nm!r} refers to camera {cam_id}, which is not in the file")
+            raise FileFormatError(f"{by_name[nm].where}: image {nm!r} refers to camera {cam_id}, which is not in "
+                                  f"the file {model_file}")
         model = cams[cam_id].model
         if model not in _SUPPORTED:
             raise FileFormatError(
-                f"{model_file}: camera {cam_id} (image {nm!r}) uses the {model} model; this reader takes "
+                f"{cams[cam_id].where}: camera {cam_id} (image {nm!r}) uses the {model} model; this reader takes "
                 f"{', '.join(_SUPPORTED)}: run COLMAP's image_undistorter on the scene and read its output")
 
-    img_dir = root / images if images is not None else _pick_images_dir(root, names, resolution)
+    img_dir = root / images if images is not None else _pick_images_dir(root, by_name, resolution)
     if not img_dir.is_dir():
         raise FileFormatError(f"{img_dir}: images folder not found")
-    missing = [nm for nm in names if not (img_dir / nm).is_file()]
+    inside(root, str(img_dir.relative_to(root)), str(root), "the images folder")
+    files = _image_paths(root, img_dir, by_name)
+    missing = [nm for nm in names if not files[nm].is_file()]
     if missing:
         raise FileFormatError(f"{img_dir}: {len(missing)} of the {len(names)} images in {model_file.parent} are "
-                              f"missing (first: {', '.join(missing[:5])})")
+                              f"missing (first: {', '.join(missing[:5])}), the first listed at {by_name[missing[0]].where}")
 
-    frames = [_frame(nm, by_name[nm], cams[by_name[nm].camera_id], img_dir / nm, image_size(img_dir / nm), model_file)
+    frames = [_frame(nm, by_name[nm], cams[by_name[nm].camera_id], files[nm], image_size(files[nm]))
               for nm in names]
     test = [f for i, f in enumerate(frames) if holdout and i % holdout == 0]
     train = [f for i, f in enumerate(frames) if not (holdout and i % holdout == 0)]

@@ -4,7 +4,6 @@ files whose size does not match their camera, and an empty split."""
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -13,6 +12,7 @@ import torch
 from ..checks import check_tensor
 from ..errors import FileFormatError, InputValueError
 from .base import Frame, SceneData
+from .guards import warn_user
 from .images import image_size
 
 __all__ = ["check_scene"]
@@ -92,8 +92,8 @@ def check_scene(data: SceneData, points: torch.Tensor | None = None, *, min_in_f
             f"{min_in_front:.0%} of {pts.shape[0]} points have positive depth inside the image; on average "
             f"{behind:.0%} lie behind the cameras): the camera axes are probably flipped (OpenGL vs OpenCV). "
             f"{data.format or 'this dataset'}: {hint}. (Or the points are in another world frame.)")
-    warnings.warn(f"{where}: {len(blind)} of {len(frames)} cameras see almost none of the {pts.shape[0]} points "
-                  f"(< {min_in_front:.0%} in front, inside the image): {named}", RuntimeWarning, stacklevel=2)
+    warn_user(f"{where}: {len(blind)} of {len(frames)} cameras see almost none of the {pts.shape[0]} points "
+              f"(< {min_in_front:.0%} in front, inside the image): {named}")
     return report
 
 

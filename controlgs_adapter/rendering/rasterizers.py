@@ -1,5 +1,9 @@
 """Rasterizers: the last step of a render, splatting decoded 3D Gaussians into an image. Plug-ins.
 
+This module holds the built-in rasterizers and the choice among the registered ones; the contract
+(:class:`Rasterizer`, re-exported here) is :mod:`controlgs_adapter.rendering.rasterizer`, and the
+built-ins register from :mod:`controlgs_adapter.rendering.builtin`.
+
 Every family of the library decodes its anchors into Gaussians and calls :func:`rasterize_gaussians`,
 which runs the rasterizer chosen for the tensors' device and dtype (:func:`select_rasterizer`):
 
@@ -23,12 +27,14 @@ import functools
 import importlib
 import os
 import re
-from typing import Any, ClassVar, Iterator
+from typing import Any, Iterator
 
 import torch
 
+from controlgs_adapter import plugins
 from controlgs_adapter.errors import InputValueError
-from controlgs_adapter.hookspecs import hookimpl
+from controlgs_adapter.rendering.rasterizer import Rasterizer
+from controlgs_adapter.rendering.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE, RasterOutput, rasterize
 from controlgs_adapter.state import Camera
 
 __all__ = ["Rasterizer", "TorchSplatter", "GsplatRasterizer", "rasterize_gaussians", "select_rasterizer",
@@ -40,30 +46,6 @@ RASTERIZER_ENV = "CONTROLGS_RASTERIZER"
 _CHOICE: contextvars.ContextVar["str | Rasterizer | None"] = contextvars.ContextVar("controlgs_rasterizer", default=None)
 
 
-class Rasterizer:
-    """Base class of rasterizer plug-ins: set :attr:`name`, implement :meth:`unavailable` and
-    :meth:`__call__` with the conventions of :func:`controlgs_adapter.rendering.splatter.rasterize`
-    (OpenCV camera, pixel centres at +0.5, quaternions ``(w, x, y, z)``, linear scales)."""
-
-    name: ClassVar[str] = ""
-
-    def unavailable(self, device: torch.device, dtype: torch.dtype) -> str | None:
-        """None if this rasterizer can render tensors of ``dtype`` on ``device``, else why not (one line)."""
-        raise NotImplementedError
-
-    def __call__(self, means: torch.Tensor, scales: torch.Tensor, rotations: torch.Tensor, opacities: torch.Tensor,
-                 colors: torch.Tensor, camera: Camera, background: torch.Tensor | None = None) -> Any:
-        """Render ``N`` Gaussians: means ``[N, 3]`` (world), scales ``[N, 3]`` (linear std-devs),
-        rotations ``[N, 4]`` ``(w, x, y, z)``, opacities ``[N]`` in [0, 1], colors ``[N, 3]``,
-        background ``[3]`` or None (black). Returns a
-        :class:`~controlgs_adapter.rendering.splatter.RasterOutput` (color ``[3, H, W]``, alpha and
-        depth ``[1, H, W]``, visible ``[N]`` bool)."""
-        raise NotImplementedError
-
-    def __repr__(self) -> str:
-        return f"{type(self).__name__}(name={self.name!r})"
-
-
 class TorchSplatter(Rasterizer):
     """The pure-PyTorch EWA splatter (any device, float32/float64): the default and the reference."""
 
@@ -73,8 +55,6 @@ class TorchSplatter(Rasterizer):
         return None if dtype in (torch.float32, torch.float64) else f"needs float32 or float64, got {dtype}"
 
     def __call__(self, means, scales, rotations, opacities, colors, camera, background=None):  # noqa: D102
-        from controlgs_adapter.rendering.splatter import rasterize
-
         return rasterize(means, scales, rotations, opacities, colors, camera, background)
 
 
@@ -108,8 +88,6 @@ class GsplatRasterizer(Rasterizer):
         return mod if isinstance(mod, str) else None
 
     def __call__(self, means, scales, rotations, opacities, colors, camera, background=None):  # noqa: D102
-        from controlgs_adapter.rendering.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE, RasterOutput
-
         gsplat = _import_gsplat()
         if isinstance(gsplat, str):
             raise InputValueError(f"rasterizer 'gsplat': {gsplat}")
@@ -137,12 +115,6 @@ class GsplatRasterizer(Rasterizer):
                             depth=out[0, :, :, 3:4].permute(2, 0, 1), visible=(radii > 0).all(dim=-1))
 
 
-@hookimpl(trylast=True)
-def controlgs_register_rasterizers() -> list[Rasterizer]:
-    # the automatic choice takes the first that can run the tensors: gsplat where it can, else torch
-    return [GsplatRasterizer(), TorchSplatter()]
-
-
 @contextlib.contextmanager
 def use_rasterizer(rasterizer: "str | Rasterizer | None") -> Iterator[None]:
     """Render with ``rasterizer`` (a registered name, ``"auto"``, an instance, or None = the
@@ -163,8 +135,6 @@ def select_rasterizer(device: torch.device | str, dtype: torch.dtype = torch.flo
     Raises:
         InputValueError: the named rasterizer is not registered or cannot run these tensors (why).
     """
-    from controlgs_adapter import plugins
-
     device = torch.device(device)
     choice = rasterizer if rasterizer is not None else _CHOICE.get()
     if choice is None:

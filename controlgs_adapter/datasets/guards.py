@@ -1,0 +1,82 @@
+"""Checks the dataparsers share: paths a dataset names stay inside its folder, numbers a file gives
+are numbers that fit float32, and warnings point at the caller's line rather than the library's."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import warnings
+from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import Any, Sequence, TypeGuard
+
+import numpy as np
+import torch
+
+from ..errors import FileFormatError, InputValueError
+from ..state import Camera
+
+__all__ = ["inside", "is_number", "float32_finite", "dataset_camera", "warn_user"]
+
+#: the package folder: frames inside it are the library's own, skipped when a warning is attributed
+_PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+#: largest finite float32
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def inside(root: Path, rel: str, where: str, what: str = "path", base: Path | None = None) -> Path:
+    """``base / rel`` (``base`` defaults to ``root``) if it lies inside ``root`` once resolved (``..``
+    and symlinks followed); :class:`FileFormatError` ``"{where}: {what} ... outside ..."`` for an
+    absolute path or one that leads out of ``root``. Only the path is resolved: nothing is opened."""
+    if not rel or "\0" in rel:
+        raise FileFormatError(f"{where}: {what} {rel!r} is not a usable path")
+    if PurePosixPath(rel).is_absolute() or PureWindowsPath(rel).is_absolute() or PureWindowsPath(rel).drive:
+        raise FileFormatError(f"{where}: {what} {rel!r} is absolute; it must be relative to the dataset folder {root}")
+    path = (root if base is None else base) / rel
+    top, target = root.resolve(), path.resolve()
+    if target != top and top not in target.parents:
+        raise FileFormatError(f"{where}: {what} {rel!r} leads outside the dataset folder {root} (to {target}); "
+                              "paths (and symlinks) must stay inside it")
+    return path
+
+
+def is_number(x: Any) -> TypeGuard[float]:
+    """Whether ``x`` is a JSON number (not a bool or string) that is finite as a float."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:  # an integer beyond float64
+        return False
+
+
+def float32_finite(values: Sequence[float] | np.ndarray | torch.Tensor) -> bool:
+    """Whether every value stays finite in float32 (finite float64 values up to ~3.4e38)."""
+    a = np.asarray(values.detach().cpu().double() if isinstance(values, torch.Tensor) else values, dtype=np.float64)
+    return bool(np.isfinite(a).all() and (np.abs(a) <= _F32_MAX).all())
+
+
+def dataset_camera(where: str, world_to_camera: torch.Tensor, intrinsics: torch.Tensor | Sequence[Sequence[float]],
+                   width: int, height: int) -> Camera:
+    """A :class:`Camera` built from a dataset entry, every refusal a :class:`FileFormatError` that starts
+    with ``where`` (the file and frame/line). ``intrinsics`` may be float64; values beyond float32 are refused."""
+    k64 = torch.as_tensor(intrinsics, dtype=torch.float64)
+    if not float32_finite(k64):
+        raise FileFormatError(f"{where}: intrinsics {k64[:2].tolist()} do not fit float32 (|value| > 3.4e38 or "
+                              "not finite)")
+    if not float32_finite(world_to_camera):
+        raise FileFormatError(f"{where}: the pose does not fit float32 (|value| > 3.4e38 or not finite)")
+    try:
+        return Camera(world_to_camera.float(), k64.float(), width, height)
+    except InputValueError as e:
+        raise FileFormatError(f"{where}: {e}") from None
+
+
+def warn_user(message: str, category: type[Warning] = RuntimeWarning) -> None:
+    """``warnings.warn`` attributed to the first caller outside this package (the user's line)."""
+    frame = sys._getframe(1)
+    level = 2
+    while frame.f_back is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE):
+        frame = frame.f_back
+        level += 1
+    warnings.warn(message, category, stacklevel=level)
