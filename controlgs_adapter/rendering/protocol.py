@@ -71,6 +71,23 @@ def as_renderer(renderer: Renderer | Callable[..., Any] | None, model: Any) -> R
                           f"got {type(renderer).__name__}")
 
 
+def _model_float_dtype(model: Any) -> torch.dtype | None:
+    """Dtype of ``model``'s first floating-point parameter or buffer (searched as :func:`model_device`
+    searches), or None when it has none."""
+    for attr in ("parameters", "buffers"):
+        fn = getattr(model, attr, None)
+        if callable(fn):
+            for t in fn():
+                if t.is_floating_point():
+                    return t.dtype
+    for value in getattr(model, "__dict__", {}).values():
+        tensors = value.parameters() if isinstance(value, torch.nn.Module) else (value,) if isinstance(value, torch.Tensor) else ()
+        for t in tensors:
+            if t.is_floating_point():
+                return t.dtype
+    return None
+
+
 def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: RuntimeState | None,
                 background: torch.Tensor | None = None, *, modules: Sequence[str] | None = None,
                 renderer: Renderer | Callable[..., Any] | None = None) -> torch.Tensor:
@@ -81,6 +98,8 @@ def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: Runtim
     Raises:
         InjectionMissedError: a conditioned render never called the wrapped decoders.
         ShapeError: the renderer returned something else than ``[3, H, W]``.
+        InputValueError: the image is not on the model's device (:func:`model_device`) or not of its
+            floating-point dtype (float32 or float64 when the model has no floating-point tensor).
     """
     r = as_renderer(renderer, model)
     visible = r.visible(model, camera)
@@ -93,4 +112,12 @@ def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: Runtim
         got = list(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
         raise ShapeError(f"renderer {r!r} returned {got} for a {camera.width}x{camera.height} camera; "
                          f"expected an sRGB image [3, {camera.height}, {camera.width}]")
+    device, dtype = model_device(model), _model_float_dtype(model)
+    if image.device != device:
+        raise InputValueError(f"renderer {r!r} returned an image on {image.device}; the model is on {device} "
+                              f"(render on the model's device, or move the image there)")
+    wanted = (torch.float32, torch.float64) if dtype is None else (dtype,)
+    if image.dtype not in wanted:
+        raise InputValueError(f"renderer {r!r} returned a {image.dtype} image; expected "
+                              f"{' or '.join(map(str, wanted))} (the model's floating-point dtype)")
     return image
