@@ -81,6 +81,7 @@ class _Adapter:
 class _Plan:
     target: Target
     eager: nn.Module | None  # the eager rebuild of a TorchScript decoder (dry run), else None
+    layer: nn.Module | None = None  # the model's own FC1 object (eager decoders): two targets must not share it
 
 
 def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
@@ -102,7 +103,22 @@ def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
         raise LifecycleError(f"{fc1_path!r} already carries an injector ({_ATTACHED[fc1]!r}): unwrap it first, "
                           "e.g. ControlGS.attached(model).unwrap()")
     target = Target(path, fc1_path, fc1.in_features, fc1.out_features, eager is not None)
-    return _Plan(target, eager)
+    return _Plan(target, eager, fc1 if eager is None else None)
+
+
+def _check_shared_layers(backend: Backend, plans: Sequence[_Plan]) -> None:
+    """Raise TargetError when two targets' first layers are one module object (``mlp_cov[0] is
+    mlp_opacity[0]``, or one decoder under two names): a hook per target would inject into it twice."""
+    seen: dict[int, Target] = {}
+    for plan in plans:
+        if plan.layer is None:  # a TorchScript decoder: each target gets its own eager rebuild
+            continue
+        first = seen.setdefault(id(plan.layer), plan.target)
+        if first is not plan.target:
+            raise TargetError(
+                f"{backend.name}: targets {first.decoder!r} and {plan.target.decoder!r} share one first layer "
+                f"({first.fc1!r} is {plan.target.fc1!r}): its output would get the injection twice; wrap one of "
+                f"them (targets=[{first.decoder!r}, ...] without {plan.target.decoder!r}) or give each decoder its own layer")
 
 
 def _check_modules(modules: Sequence[str], cond_dim: int,
@@ -219,6 +235,7 @@ class ControlGS:
         if len(set(targets)) != len(targets):
             raise TargetError(f"targets lists a decoder more than once: {list(targets)}")
         plans = [_inspect_target(model, chosen, t) for t in targets]
+        _check_shared_layers(chosen, plans)
         positions = chosen.anchor_positions(model)
         num_anchors = chosen.num_anchors(model)
         if num_anchors < 1 or positions.shape[0] != num_anchors:
