@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from ..errors import InputValueError
 
@@ -55,18 +57,88 @@ def user_scene(args: argparse.Namespace) -> bool:
     return args.model is not None
 
 
-def apply_run_defaults(args: argparse.Namespace, run_dir: Path) -> dict[str, Any] | None:
-    """Fill the options left unset from ``run_dir/run.json`` (written by ``controlgs train``); returns it."""
-    path = run_dir / RUN_FILE
-    if not path.is_file():
+#: largest ``run.json`` read (a real one is well under a kilobyte)
+RUN_FILE_MAX_BYTES = 1 << 20
+
+
+def _run_fields() -> dict[str, tuple[str, Callable[[Any], bool]]]:
+    """``run.json`` field -> (what it must hold, test); every field may also be null."""
+    from ..backends.model_dir import FAMILIES
+    from ..datasets.detect import FORMATS
+    from ..training import DEFAULT_EFFECTS
+
+    def whole(low: int, high: int = 2**63 - 1) -> Callable[[Any], bool]:
+        return lambda v: isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
+
+    def text(v: Any) -> bool:
+        return isinstance(v, str) and bool(v) and "\0" not in v
+
+    def words(v: Any) -> bool:
+        return isinstance(v, list) and all(isinstance(x, str) for x in v)
+
+    effects = ", ".join(DEFAULT_EFFECTS)
+    return {
+        "model": ("a folder path (string)", text), "data": ("a folder path (string)", text),
+        "images": ("a folder name (string)", text),
+        "renderer": ("MODULE:ATTR or path/to/file.py:ATTR (string)", text), "rasterizer": ("a rasterizer name", text),
+        "family": (f"one of {', '.join(FAMILIES)}", lambda v: isinstance(v, str) and v in FAMILIES),
+        "format": (f"one of {', '.join(FORMATS)}", lambda v: isinstance(v, str) and v in FORMATS),
+        "variant": ("one of ar, vr", lambda v: isinstance(v, str) and v in ("ar", "vr")),
+        "model_iteration": ("an integer >= 0", whole(0)), "holdout": ("an integer >= 0", whole(0)),
+        "resolution": ("an integer >= 1", whole(1)), "iterations": ("an integer >= 0", whole(0)),
+        "seed": ("an integer >= 0", whole(0)), "seeds": ("an integer >= 1", whole(1)),
+        "allow_unquantized": ("true or false", lambda v: isinstance(v, bool)),
+        "white_background": ("true or false", lambda v: isinstance(v, bool)),
+        "effects": (f"a non-empty list of stage names among {effects}",
+                    lambda v: words(v) and bool(v) and all(x in DEFAULT_EFFECTS for x in v)),
+        "adapters": ("a list of adapter names", words),
+        "distributed": ("an object (processes, backend, exchange)",
+                        lambda v: isinstance(v, dict) and all(isinstance(x, (str, int, type(None))) for x in v.values())),
+    }
+
+
+def read_run(run_dir: Path) -> dict[str, Any] | None:
+    """``run_dir/run.json`` (written by ``controlgs train``), every field it has checked; None when
+    there is none. Refused in one line naming the file and the field: not JSON, not an object, a
+    field of the wrong type or value. Reading it runs nothing."""
+    path = Path(run_dir) / RUN_FILE
+    if not path.exists():
         return None
     try:
-        run = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise InputValueError(f"{path}: not a controlgs run file ({e})") from None
+        if not path.is_file():
+            raise InputValueError(f"{path}: not a controlgs run file (not a file)")
+        if path.stat().st_size > RUN_FILE_MAX_BYTES:
+            raise InputValueError(f"{path}: not a controlgs run file (larger than {RUN_FILE_MAX_BYTES} bytes)")
+        run = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError) as e:
+        raise InputValueError(f"{path}: not a controlgs run file ({type(e).__name__}: {e})") from None
+    if not isinstance(run, dict):
+        raise InputValueError(f"{path}: not a controlgs run file (a JSON {type(run).__name__}, expected an object)")
+    for key, (what, ok) in _run_fields().items():
+        value = run.get(key)
+        if value is not None and not ok(value):
+            shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+            raise InputValueError(f"{path}: field {key!r} must be {what}, got {shown}")
+    return run
+
+
+def apply_run_defaults(args: argparse.Namespace, run_dir: Path) -> dict[str, Any] | None:
+    """Fill the options left unset from ``run_dir/run.json`` (:func:`read_run`); returns it. The run's
+    renderer (code) is taken only with ``--trust-run-renderer``; otherwise a run that names one is
+    refused unless ``--renderer`` is given again."""
+    run = read_run(run_dir)
+    if run is None:
+        return None
     for key in _RUN_DEFAULTS:
-        if getattr(args, key, None) is None and run.get(key) is not None:
+        if key != "renderer" and getattr(args, key, None) is None and run.get(key) is not None:
             setattr(args, key, run[key])
+    spec = run.get("renderer")
+    if spec is not None and getattr(args, "renderer", None) is None:
+        if not getattr(args, "trust_run_renderer", False):
+            raise InputValueError(f"{run_dir / RUN_FILE}: the run was trained with --renderer {spec}; a run folder's "
+                                  f"code is not run unless you say so: give --renderer {spec} again (or "
+                                  "--trust-run-renderer to use the run's)")
+        args.renderer = spec
     return run
 
 
@@ -98,7 +170,73 @@ def parse_device(name: str) -> Any:
         raise InputValueError(f"--device {name!r}: {e}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputValueError(f"--device {name}: CUDA is not available on this machine")
+    if device.type == "meta":
+        raise InputValueError(f"--device {name}: a meta device holds no data; use cpu or cuda")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.zeros(1, device=device).cpu()
+    except Exception as e:  # an unavailable index (cuda:3 on one GPU), a backend this torch lacks
+        why = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
+        raise InputValueError(f"--device {name}: cannot hold tensors on this machine ({why})") from None
     return device
+
+
+#: CLI options checked up front by :func:`check_options`: dest -> check_number limits
+_NUMBER_OPTIONS: dict[str, dict[str, Any]] = {
+    "iterations": dict(integer=True, low=0), "seed": dict(integer=True, low=0, high=2**63 - 1),
+    "seeds": dict(integer=True, low=1), "lr": dict(low=0.0, low_open=True, high=1e3),
+    "psf_fraction": dict(low=0.0, high=1.0), "cond_dim": dict(integer=True, low=1),
+    "checkpoint_every": dict(integer=True, low=0), "batch_size": dict(integer=True, low=1),
+    "dist_timeout": dict(low=0.0, low_open=True), "resolution": dict(integer=True, low=1),
+    "test_views": dict(integer=True, low=1), "holdout": dict(integer=True, low=0),
+    "model_iteration": dict(integer=True, low=0), "cache_mib": dict(integer=True, low=0),
+}
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """Check, before anything is loaded or written, every option of a command that it has: the numbers
+    (one line naming ``--option`` and the value), ``--effects``, ``--device``, ``--rasterizer``."""
+    from ..checks import check_number
+    from .adapters import effects_from
+
+    for dest, limits in _NUMBER_OPTIONS.items():
+        value = getattr(args, dest, None)
+        if value is not None:
+            check_number("--" + dest.replace("_", "-"), value, **limits)
+    if getattr(args, "effects", None) is not None:
+        effects_from(args.effects)
+    if getattr(args, "device", None) is not None:
+        parse_device(args.device)
+    if hasattr(args, "rasterizer"):
+        check_rasterizer_name(args.rasterizer)
+
+
+def check_out_path(path: Any, option: str, *, folder: bool) -> Path:
+    """Refuse, before any work and creating nothing, an output path (``option``'s) that cannot be written:
+    a file where a folder is written (``folder``) or a folder where a file is, a file in the way of
+    its folder, a place this process may not write. Returns it as a :class:`Path`."""
+    from ..errors import FileWriteError
+    from ..formats.safetensors import as_path
+
+    p = as_path(path, option)
+    try:
+        if folder and p.exists() and not p.is_dir():
+            raise InputValueError(f"{option} {p}: is a file; expected a folder to write into")
+        if not folder and p.is_dir():
+            raise InputValueError(f"{option} {p}: is a folder; expected the path of a file to write")
+        above = p if folder else p.parent
+        while not above.exists() and above != above.parent:
+            above = above.parent
+        if not above.is_dir():
+            raise InputValueError(f"{option} {p}: {above} is a file, not a folder")
+        if not os.access(above, os.W_OK | os.X_OK):
+            raise FileWriteError(f"{option} {p}: cannot write into {above} (permission denied)")
+    except (OSError, ValueError) as e:
+        if isinstance(e, (InputValueError, FileWriteError)):
+            raise
+        raise InputValueError(f"{option} {p}: not a usable path ({e})") from None
+    return p
 
 
 def load_user_scene(args: argparse.Namespace) -> UserScene:
@@ -150,8 +288,9 @@ def cache_bytes(args: argparse.Namespace) -> int:
     return mib << 20
 
 
-def add_render_arguments(p: argparse.ArgumentParser) -> None:
-    """``--rasterizer`` and ``--renderer`` (docs/how-to/own-renderer.md)."""
+def add_render_arguments(p: argparse.ArgumentParser, from_run: bool = False) -> None:
+    """``--rasterizer`` and ``--renderer`` (docs/how-to/own-renderer.md); ``from_run``: also
+    ``--trust-run-renderer`` (a command that reads a run folder)."""
     g = p.add_argument_group("rendering (docs/how-to/own-renderer.md; default: a train run's, from RUN/run.json)")
     g.add_argument("--rasterizer", default=None, metavar="NAME",
                    help="rasterizer of the renders: a registered one (torch, gsplat, plug-ins: `controlgs plugins`) or "
@@ -160,6 +299,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="your own renderer: a Renderer object (visible(model, camera), render(model, camera, visible, "
                         "background)) or a render function render(model, camera, visible, background), named as "
                         "MODULE:ATTR (importable, or from the current folder) or path/to/file.py:ATTR")
+    if from_run:
+        g.add_argument("--trust-run-renderer", action="store_true",
+                       help="use the renderer RUN/run.json names (its code runs); without it a run trained with "
+                            "--renderer needs --renderer again")
 
 
 def check_rasterizer_name(name: str | None) -> None:
