@@ -28,8 +28,9 @@ from .backend import Backend, anchor_ids_from_mask, get_attr_path, set_attr_path
 from .errors import (IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
                      LifecycleError, ShapeError, TargetError)
 from .injector import ConditionInjector, InjectionContext
-from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, Problem, build_header, fingerprint_mismatch,
-                           map_conditions, read_spec, read_tensors, row_map, tensor_mismatches, write_adapter)
+from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, AdapterSpec, Problem, build_header, fingerprint_mismatch,
+                           map_conditions, read_spec, read_tensors, row_map, tensor_mismatches, valid_fingerprint,
+                           write_adapter)
 from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
 from controlgs_adapter.formats.torchscript import eager_from_script
@@ -449,9 +450,26 @@ class ControlGS:
         warnings.warn(msg, RuntimeWarning, stacklevel=4)
 
     # ------------------------------------------------------------------ files
+    def adapter_spec(self) -> AdapterSpec:
+        """The active adapter as plain data (backend, modules, schedules' endpoints, targets, anchors,
+        backbone fingerprints): what its file header records."""
+        return AdapterSpec(
+            backend=self.backend.name,
+            modules=list(self.modules),
+            cond_dim=self.injector.cond_dim,
+            schedules={m: {"class": type(s).__qualname__, "per_anchor": s.per_anchor, **s.endpoints()}
+                       for m, s in self.schedules.items()},
+            state_blind=self.state_blind,
+            targets=[t.as_header() for t in self.targets if t.decoder in self.injector.widths],
+            num_anchors=self.num_anchors,
+            rows_per_anchor=self.rows_per_anchor,
+            fingerprint=self.fingerprint,
+            valid_fingerprint=valid_fingerprint(self.model, self.backend),
+        )
+
     def header(self) -> dict[str, Any]:
         """The JSON header :meth:`save` writes (without the fields io adds)."""
-        return build_header(self)
+        return build_header(self.adapter_spec())
 
     def save(self, path: str | Path, dtype: torch.dtype | None = None) -> Path:
         """Write the active adapter to one ``.safetensors`` file (atomically).

@@ -8,8 +8,9 @@ the format is described in docs/reference/adapter-file-format.md.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
@@ -17,10 +18,7 @@ from controlgs_adapter.backend import Backend
 from controlgs_adapter.errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.safetensors import load_tensors, read_header, save_tensors
 
-if TYPE_CHECKING:
-    from controlgs_adapter.controlgs import ControlGS
-
-__all__ = ["ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "Problem", "build_header", "check_header", "read_spec",
+__all__ = ["ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "Problem", "AdapterSpec", "build_header", "check_header", "read_spec",
            "read_tensors", "write_adapter", "valid_fingerprint", "row_map", "map_conditions", "fingerprint_mismatch",
            "tensor_mismatches"]
 
@@ -33,20 +31,48 @@ Skip = frozenset[str] | tuple[str, str] | str | None
 Problem = tuple[str, Skip]
 
 
-def build_header(cgs: ControlGS) -> dict[str, Any]:
-    """The JSON header of ``cgs``'s active adapter (without the fields io adds)."""
+@dataclass(frozen=True)
+class AdapterSpec:
+    """An adapter as plain data: what its file header records (:meth:`ControlGS.adapter_spec
+    <controlgs_adapter.controlgs.ControlGS.adapter_spec>` gives it for the active adapter).
+
+    Attributes:
+        backend: the backend's name.
+        modules: the condition modules, in order.
+        cond_dim: N, size of each per-anchor condition.
+        schedules: ``{module: {"class", "per_anchor", "lo", "hi"}}``.
+        state_blind: the state-blind ablation (strength 1).
+        targets: ``[{"decoder", "fc1", "in_features", "out_features"}]`` of the decoders it injects into.
+        num_anchors, rows_per_anchor: the backbone's anchor count and decoder rows per anchor.
+        fingerprint: the backbone's fingerprint; ``valid_fingerprint``: over its valid anchors only
+            (None for backends without ``valid_anchors``, :func:`valid_fingerprint`).
+    """
+
+    backend: str
+    modules: list[str]
+    cond_dim: int
+    schedules: dict[str, dict[str, Any]]
+    state_blind: bool
+    targets: list[dict[str, Any]]
+    num_anchors: int
+    rows_per_anchor: int
+    fingerprint: str
+    valid_fingerprint: str | None = None
+
+
+def build_header(spec: AdapterSpec) -> dict[str, Any]:
+    """The JSON header of an adapter (without the fields io adds)."""
     return {
-        "backend": cgs.backend.name,
-        "modules": list(cgs.modules),
-        "cond_dim": cgs.injector.cond_dim,
-        "schedules": {m: {"class": type(s).__qualname__, "per_anchor": s.per_anchor, **s.endpoints()}
-                      for m, s in cgs.schedules.items()},
-        "state_blind": cgs.state_blind,
-        "targets": [t.as_header() for t in cgs.targets if t.decoder in cgs.injector.widths],
-        "num_anchors": cgs.num_anchors,
-        "rows_per_anchor": cgs.rows_per_anchor,
-        "fingerprint": cgs.fingerprint,
-        **({} if (fp := valid_fingerprint(cgs.model, cgs.backend)) is None else {"valid_fingerprint": fp}),
+        "backend": spec.backend,
+        "modules": list(spec.modules),
+        "cond_dim": spec.cond_dim,
+        "schedules": {m: dict(s) for m, s in spec.schedules.items()},
+        "state_blind": spec.state_blind,
+        "targets": [dict(t) for t in spec.targets],
+        "num_anchors": spec.num_anchors,
+        "rows_per_anchor": spec.rows_per_anchor,
+        "fingerprint": spec.fingerprint,
+        **({} if spec.valid_fingerprint is None else {"valid_fingerprint": spec.valid_fingerprint}),
     }
 
 
