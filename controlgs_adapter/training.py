@@ -319,8 +319,12 @@ class Trainer:
         finite = torch.stack([torch.isfinite(p).all() for p in params.values()])
         if not bool(finite.all()):  # one sync for all parameters
             bad = [name for name, ok in zip(params, finite.tolist()) if not ok]
+            bad_grads = [name for name, p in params.items() if p.grad is not None and not bool(torch.isfinite(p.grad).all())]
+            cause = (f"(lr {self.config.lr:g})" if not bad_grads else
+                     f"from NaN/Inf gradients of {bad_grads} with a finite loss: not the learning rate, a degenerate "
+                     "input of the render or the pipeline (a NaN/Inf or overflowing value in the model or the views)")
             raise NonFiniteError(f"training diverged at iteration {self.iteration}: parameter(s) {bad} became NaN/Inf "
-                                 f"(lr {self.config.lr:g}); the last good checkpoint was kept, this state not written")
+                                 f"{cause}; the last good checkpoint was kept, this state not written")
         lap("optimizer")
         self.iteration += 1
         self.history.append(value)

@@ -110,11 +110,13 @@ def assemble_gaussians(ids: torch.Tensor, k: int, anchor: torch.Tensor, offsets:
         offsets: ``[R*K, 3]`` offsets in units of ``scaling[:, :3]`` (CompGS: the means decoder's output).
         neural_opacity ``[R*K]``, color ``[R*K, 3]``, scale_rot ``[R*K, 7]``, keep ``[R*K]`` bool.
     Mean = anchor + offset * scaling[:, :3]; scale = scaling[:, 3:] * sigmoid(scale_rot[:, :3]);
-    rotation = normalize(scale_rot[:, 3:7]).
+    rotation = normalize(scale_rot[:, 3:7]). A scaling that overflowed to +inf (``exp`` of a log-scale
+    over 88 in float32) counts as the largest finite one: the scales stay finite, and so do the
+    gradients through ``sigmoid(scale_rot)`` (the splatter saturates such axes).
     """
     flat = keep.nonzero().squeeze(1)  # [G]
     row = flat // k
-    s = scaling[row]
+    s = scaling[row].clamp(max=torch.finfo(scaling.dtype).max)
     return NeuralGaussians(
         means=anchor[row] + offsets[flat] * s[:, :3], scales=s[:, 3:] * torch.sigmoid(scale_rot[flat, :3]),
         rotations=F.normalize(scale_rot[flat, 3:7], dim=-1), opacities=neural_opacity[flat],

@@ -66,6 +66,7 @@ __all__ = [
     "ALPHA_MAX",
     "ALPHA_MIN",
     "TRANSMITTANCE_MIN",
+    "MAX_SPREAD",
 ]
 
 NEAR_PLANE = 0.2  # Gaussians with camera-space z <= this are culled (3DGS ``in_frustum``)
@@ -75,6 +76,12 @@ FRUSTUM_MARGIN = 0.15  # the Jacobian's x/z, y/z are clamped to the image +- thi
 ALPHA_MAX = 0.99  # per-splat alpha clamp
 ALPHA_MIN = 1.0 / 255.0  # splats with alpha below this are skipped
 TRANSMITTANCE_MIN = 1e-4  # default of rasterize's transmittance_min (early termination, as 3DGS)
+# a Gaussian's axis spans at most MAX_SPREAD image sizes (one standard deviation, px) on screen, and at most
+# _MAX_SPREAD_PX pixels: a longer axis is shortened to it. Its alpha already varies by less than 2e-8 across the
+# image there (the forward is saturated), and its 2D covariance, determinant and their gradients stay finite
+# in float32 whatever the scale (1e20 would overflow them and give NaN gradients)
+MAX_SPREAD = 1e4
+_MAX_SPREAD_PX = 1e9
 
 
 
@@ -127,6 +134,8 @@ def project_gaussians(
     ``Sigma_2D = J W R S S^T R^T W^T J^T + 0.3 I`` with ``W`` the camera rotation and ``J`` the
     Jacobian of ``(fx x / z + cx, fy y / z + cy)`` at the mean, whose ``x/z`` and ``y/z`` are clamped
     to the image extent widened by ``FRUSTUM_MARGIN`` of its size on each side (3DGS's 1.3 x FoV).
+    Each of the ``scales`` is capped where its axis's screen extent reaches ``MAX_SPREAD`` image sizes
+    (a saturated forward; finite values and gradients for any finite scale).
     """
     fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
     x, y, z = means_cam.unbind(-1)
@@ -140,6 +149,10 @@ def project_gaussians(
     # rows of J @ rot: J = [[fx / z, 0, -fx tx / z], [0, fy / z, -fy ty / z]] (tx, ty already / z)
     j0 = (fx / z).unsqueeze(-1) * (rot[:, 0, :] - tx.unsqueeze(-1) * rot[:, 2, :])  # [M, 3]
     j1 = (fy / z).unsqueeze(-1) * (rot[:, 1, :] - ty.unsqueeze(-1) * rot[:, 2, :])
+    # cap each local axis's screen std (px per unit length: the column norm of J W R) at the spread limit; the cap
+    # is a constant for autograd (an axis at it is saturated), inf for an axis seen end-on (norm 0)
+    spread = min(MAX_SPREAD * max(width, height), _MAX_SPREAD_PX)
+    scales = torch.minimum(scales, spread / torch.hypot(j0, j1).detach())
     j0, j1 = j0 * scales, j1 * scales  # (J W R S) rows
     a0, c0 = (j0 * j0).sum(-1), (j1 * j1).sum(-1)
     a, b, c = a0 + LOW_PASS, (j0 * j1).sum(-1), c0 + LOW_PASS
