@@ -221,7 +221,7 @@ def render_markdown(args, timing, full, storage, fp16) -> str:
         "is much smaller, and rasterisation (not included) dwarfs both; the paper reports about 20% lower FPS "
         "end to end on a GPU.",
         "- Outside a `conditioned` block the hooks return at once: the wrapped decoders run at the bare speed "
-        "(within noise) and their outputs are bit-identical (tests/test_controlgs.py).",
+        "(within noise) and their outputs are bit-identical (tested).",
         "- Modules that are off, or whose strength is zero for every row (e.g. d = 1 for resample, rho = 0 for "
         "display), are not computed at all; at the neutral state the block costs only the strength evaluation.",
         "- Storage: fp32 conditions add 3 x N x 4 bytes per anchor (30% at N = 8, the paper's figure); fp16 halves "
