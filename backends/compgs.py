@@ -41,7 +41,8 @@ from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.state import Camera
 
 from controlgs_adapter.backends.models.anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians
-from controlgs_adapter.formats.backbone import load_state_dict_file, ply_columns, ply_xyz, read_ply, require_fields
+from controlgs_adapter.formats.backbone import (check_finite_weights, load_state_dict_file, ply_columns, ply_xyz, read_ply,
+                                                 require_fields)
 from controlgs_adapter.formats.layout import iteration_dir
 
 __all__ = ["CompGSBackend", "CompGSModel", "ResidualMLP", "load_compgs_dir", "COMPGS_DECODERS"]
@@ -222,6 +223,7 @@ class CompGSModel(AnchorModel):
 def _load_weights(model: CompGSModel, state: Mapping[str, torch.Tensor], source: str) -> None:
     want = {f"prediction_net.{k}": v for k, v in model.network.prediction_net.state_dict().items()}
     missing = [k for k in want if k not in state]
+    check_finite_weights({k: state[k] for k in want if k in state}, source=source)
     if missing:
         raise FileFormatError(f"{source}: missing prediction-network weights {missing[:4]}{' ...' if len(missing) > 4 else ''}")
     bad = [f"{k} {list(state[k].shape)} != {list(v.shape)}" for k, v in want.items() if tuple(state[k].shape) != tuple(v.shape)]

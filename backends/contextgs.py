@@ -36,7 +36,7 @@ from controlgs_adapter.state import Camera
 
 from controlgs_adapter.backends.models.anchor_model import anchor_visibility, as_param
 from controlgs_adapter.formats.decoders import check_first_width
-from controlgs_adapter.formats.backbone import load_state_dict_file, read_cfg_args
+from controlgs_adapter.formats.backbone import check_finite_weights, load_state_dict_file, read_cfg_args
 from controlgs_adapter.formats.layout import iteration_dir
 from .hac import (CONTEXTGS_MARKERS, HACBackend, MaskedAnchorModel, anchor_tensors, decoders_from_checkpoint,
                   drop_invalid, read_masked_anchor_ply, resolve_decoded)
@@ -143,6 +143,7 @@ def load_contextgs_dir(path: str | Path, iteration: int | None = None, *, decode
     if bound is not None:
         if not (isinstance(bound, (list, tuple)) and len(bound) == 2 and all(torch.is_tensor(b) and b.numel() == 3 for b in bound)):
             raise FileFormatError(f"{ckpt}: entry 'bound' must be [x_bound_min, x_bound_max], two 3-vectors")
+        check_finite_weights({"bound": bound}, source=str(ckpt))
         lo, hi = bound
     elif not is_decoded:
         raise FileFormatError(f"{ckpt}: missing entry 'bound' ([x_bound_min, x_bound_max]) needed to quantise the raw model's anchors")

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from controlgs_adapter.errors import FileFormatError, InputValueError
 
-from controlgs_adapter.formats.layout import bitstreams_only, iteration_dirs
+from controlgs_adapter.formats.layout import bitstreams_only, check_iteration, iteration_dirs
 from controlgs_adapter.formats.backbone import ply_field_names
 
 if TYPE_CHECKING:  # the loaders (and the model base) are imported by load_model_dir when it runs
@@ -46,10 +46,11 @@ def _iteration_folder(root: Path, iteration: int | None) -> Path | None:
     """``point_cloud/iteration_<N>`` (``iteration`` or the largest N); None when there is none."""
     pc = root / "point_cloud"
     found = iteration_dirs(root)
+    iteration = check_iteration(iteration)
     if iteration is not None:
-        if int(iteration) not in found:
-            raise FileFormatError(f"{pc}: no 'iteration_{int(iteration)}' folder (present: {sorted(found)})")
-        return found[int(iteration)]
+        if iteration not in found:
+            raise FileFormatError(f"{pc}: no 'iteration_{iteration}' folder (present: {sorted(found)})")
+        return found[iteration]
     return found[max(found)] if found else None
 
 

@@ -34,7 +34,8 @@ from controlgs_adapter.state import Camera
 
 from controlgs_adapter.backends.models.anchor_model import AnchorModel, NeuralGaussians, anchor_visibility, as_param, assemble_gaussians, feature_bank
 from controlgs_adapter.formats.decoders import Decoders, check_first_width
-from controlgs_adapter.formats.backbone import ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply, read_yaml_scalars, require_fields
+from controlgs_adapter.formats.backbone import (CFG_KEYS, cfg_value, ply_columns, ply_offsets, ply_xyz, read_cfg_args, read_ply,
+                                                 read_yaml_scalars, require_fields)
 from controlgs_adapter.formats.layout import iteration_dir
 from .scaffold_gs import ScaffoldGSBackend
 
@@ -334,7 +335,10 @@ def _load_octree_anygs(root: Path, iteration: int | None, trust_code: bool) -> O
         values = raw.get(key) or [default]
         if len({repr(v) for v in values}) > 1:
             raise FileFormatError(f"{yaml_path}: key {key!r} has several values {values}; cannot tell which is the model's")
-        return values[0]
+        if key not in CFG_KEYS:
+            return values[0]
+        kind, low = CFG_KEYS[key]
+        return cfg_value(values[0], kind, key=key, source=str(yaml_path), low=low)
 
     base = get("base_model", "scaffoldgs")
     if base != "scaffoldgs":

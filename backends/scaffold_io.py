@@ -258,7 +258,7 @@ def load_scaffold_dir(path: str | os.PathLike, iteration: int | None = None, *,
             subset (code beyond a chain of layers, ``__setstate__``, foreign globals, NaN weights).
     """
     root = Path(path)
-    folder = iteration_dir(root, None if iteration is None else int(iteration), family="Scaffold-GS")
+    folder = iteration_dir(root, iteration, family="Scaffold-GS")
     cfg_path = root / "cfg_args"
     cfg = read_cfg_args(cfg_path) if cfg_path.is_file() else {}
     _refuse_octree(root, folder / "point_cloud.ply", cfg)

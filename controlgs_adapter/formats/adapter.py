@@ -8,6 +8,7 @@ the format is described in docs/reference/adapter-file-format.md.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -109,6 +110,8 @@ _HEADER_FIELDS: dict[str, type | tuple[type, ...]] = {
 
 
 def check_header(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
+    """``header`` if every field has its type and each schedule's endpoints are finite and differ;
+    else :class:`FileFormatError` naming ``path`` and the field(s)."""
     bad = [k for k, t in _HEADER_FIELDS.items() if not isinstance(header.get(k), t)]
     if not bad:
         for m in header["modules"]:
@@ -121,6 +124,11 @@ def check_header(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
                 bad.append(f"targets[{i}]")
     if bad:
         raise FileFormatError(f"{path}: adapter header is missing or has malformed field(s) {bad}")
+    for m in header["modules"]:
+        lo, hi = header["schedules"][m]["lo"], header["schedules"][m]["hi"]
+        if not (math.isfinite(lo) and math.isfinite(hi)) or lo == hi:
+            raise FileFormatError(f"{path}: adapter header field schedules.{m}: endpoints lo={lo!r}, hi={hi!r} must be "
+                                  "finite and differ")
     return header
 
 

@@ -21,7 +21,8 @@ from controlgs_adapter.errors import FileFormatError
 
 __all__ = ["read_ply", "ply_field_names", "write_ply", "parse_cfg_args", "read_cfg_args", "load_state_dict_file", "load_torchscript",
            "load_torchscript_tensors", "require_fields",
-           "ply_columns", "ply_offsets", "ply_xyz", "read_yaml_scalars"]
+           "ply_columns", "ply_offsets", "ply_xyz", "read_yaml_scalars", "CFG_KEYS", "cfg_value",
+           "check_finite_weights"]
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
@@ -186,6 +187,54 @@ CFG_MAX_NODES = 100_000
 _CFG_FLOATS = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}  # how repr() prints these floats
 
 
+#: the ``cfg_args`` keys the loaders read: their type and smallest value (checked when the file is parsed)
+CFG_KEYS: dict[str, tuple[type, float | None]] = {
+    "feat_dim": (int, 1), "n_offsets": (int, 1), "appearance_dim": (int, 0), "fork": (int, 1),
+    "voxel_size": (float, None), "use_feat_bank": (bool, None), "add_opacity_dist": (bool, None),
+    "add_cov_dist": (bool, None), "add_color_dist": (bool, None), "add_level": (bool, None), "dist2level": (str, None),
+}
+_BOOL_WORDS = {"true": True, "false": False, "1": True, "0": False}
+
+
+def cfg_value(value: Any, kind: type, *, key: str, source: str, low: float | None = None) -> Any:
+    """``value`` of configuration ``key`` as ``kind``: ``int`` a whole number (``32``, ``32.0``,
+    ``'32'``), ``float`` a finite number, ``bool`` ``True``/``False`` (or 0/1, ``'true'``/``'false'``),
+    ``str`` a string; at least ``low`` where given.
+
+    Raises:
+        FileFormatError: naming ``source`` and ``key`` (e.g. ``voxel_size='abc'``).
+    """
+    def refuse(what: str) -> FileFormatError:
+        return FileFormatError(f"{source}: {key}={value!r} must be {what}")
+
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        word = str(value).strip().lower() if isinstance(value, (int, str)) else None
+        if word not in _BOOL_WORDS:
+            raise refuse("True or False")
+        return _BOOL_WORDS[word]
+    if kind is str:
+        if not isinstance(value, str):
+            raise refuse("a string")
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise refuse("a number")
+    try:
+        number = float(value)
+    except ValueError:
+        raise refuse("a number") from None
+    if not math.isfinite(number):
+        raise refuse("a finite number")
+    if kind is int:
+        if not number.is_integer():
+            raise refuse("a whole number")
+        number = int(number)
+    if low is not None and number < low:
+        raise refuse(f"at least {low:g}")
+    return number
+
+
 def _check_cfg_tree(node: ast.AST, source: str) -> None:
     """Refuse a parse tree deeper than :data:`CFG_MAX_DEPTH` or larger than :data:`CFG_MAX_NODES`
     (iteratively: no recursion on hostile input)."""
@@ -204,7 +253,8 @@ def parse_cfg_args(text: str, *, source: str = "cfg_args") -> dict[str, Any]:
 
     Values must be Python literals (``inf``/``nan`` as ``repr`` prints them included); anything
     else, text over :data:`CFG_MAX_BYTES`, or nesting deeper than :data:`CFG_MAX_DEPTH` raises
-    :class:`FileFormatError` naming ``source`` (and the key)."""
+    :class:`FileFormatError` naming ``source`` (and the key). The keys the loaders read
+    (:data:`CFG_KEYS`) come back as their type (:func:`cfg_value`), or the same error names the key."""
     if len(text) > CFG_MAX_BYTES:
         raise FileFormatError(f"{source}: {len(text)} characters, more than a cfg_args holds (<= {CFG_MAX_BYTES})")
     try:
@@ -229,6 +279,9 @@ def parse_cfg_args(text: str, *, source: str = "cfg_args") -> dict[str, Any]:
         except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError):
             raise FileFormatError(f"{source}: value of {kw.arg!r} must be a Python literal (number, string, bool, "
                                   f"None, list, tuple, dict), got {code[:60]!r}") from None
+    for key, (kind, low) in CFG_KEYS.items():
+        if key in out:
+            out[key] = cfg_value(out[key], kind, key=key, source=source, low=low)
     return out
 
 
@@ -257,6 +310,23 @@ def load_state_dict_file(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise FileFormatError(f"{path}: expected a dict of state dicts, got {type(obj).__name__}")
     return obj
+
+
+def check_finite_weights(tensors: Mapping[str, Any], *, source: str, prefix: str = "") -> None:
+    """Refuse NaN/Inf in the floating-point tensors of ``tensors`` (a state dict, nested dicts and
+    lists walked): :class:`FileFormatError` naming ``source`` and the first such tensor
+    (``prefix`` + its key, e.g. ``'opacity_mlp.0.weight'``)."""
+    stack: list[tuple[str, Any]] = [(prefix.rstrip("."), tensors)]
+    while stack:
+        name, value = stack.pop(0)
+        if isinstance(value, torch.Tensor):
+            if (value.is_floating_point() or value.is_complex()) and not bool(torch.isfinite(value).all()):
+                bad = int((~torch.isfinite(value)).sum())
+                raise FileFormatError(f"{source}: tensor {name!r} holds {bad} NaN/Inf value(s) of {value.numel()}")
+        elif isinstance(value, Mapping):
+            stack.extend((f"{name}.{k}" if name else str(k), v) for k, v in value.items())
+        elif isinstance(value, (list, tuple)):
+            stack.extend((f"{name}.{i}" if name else str(i), v) for i, v in enumerate(value))
 
 
 def load_torchscript(path: str | os.PathLike, *, trust_code: bool = False) -> torch.nn.Module:

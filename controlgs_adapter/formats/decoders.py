@@ -17,7 +17,8 @@ from torch import nn
 
 from controlgs_adapter.errors import FileFormatError
 
-from controlgs_adapter.formats.backbone import load_state_dict_file, load_torchscript, load_torchscript_tensors
+from controlgs_adapter.formats.backbone import (check_finite_weights, load_state_dict_file, load_torchscript,
+                                                 load_torchscript_tensors)
 
 __all__ = ["MLP_FILES", "UNITE_FILE", "ATTRIBUTE_DECODERS", "DECODER_ACTIVATIONS", "Decoders", "build_mlp",
            "decoders_from_state_dicts", "mlp_from_state_dict", "check_first_width"]
@@ -87,13 +88,16 @@ def build_mlp(attr: str, state: Mapping[str, torch.Tensor], *, name: str, source
 def decoders_from_state_dicts(sd: Mapping[str, object], keys: Mapping[str, str], *, source: str,
                               optional: tuple[str, ...] = ()) -> dict[str, nn.Module]:
     """Decoders ``{attr: module}`` from a file of state dicts ``sd`` whose entry ``keys[attr]`` holds
-    decoder ``attr``; an absent entry is an error unless ``attr`` is in ``optional``."""
+    decoder ``attr``; an absent entry is an error unless ``attr`` is in ``optional``, a NaN/Inf
+    weight is an error naming ``source`` and the tensor."""
     out: dict[str, nn.Module] = {}
     for attr, key in keys.items():
         if key not in sd:
             if attr in optional:
                 continue
             raise FileFormatError(f"{source}: missing entry {key!r} (has {sorted(sd)})")
+        if isinstance(sd[key], Mapping):
+            check_finite_weights(sd[key], source=source, prefix=key)  # type: ignore[arg-type]
         out[attr] = build_mlp(attr, sd[key], name=key, source=source)  # type: ignore[arg-type]
     return out
 
@@ -121,7 +125,8 @@ def _describe(module: nn.Module) -> list[tuple[str, tuple[int, int] | None]]:
 class Decoders:
     """The decoders of one Scaffold-GS / Octree-GS iteration folder, in either mode, before any width
     check: ``state`` (attribute -> state dict), ``source`` (attribute -> file [entry]), ``layers``
-    (split mode: the rebuilt layer list, ``[(type, (in, out) | None)]``) and ``mode``."""
+    (split mode: the rebuilt layer list, ``[(type, (in, out) | None)]``) and ``mode``. A NaN/Inf
+    weight is refused (:class:`FileFormatError` naming the file and the tensor)."""
 
     def __init__(self, folder: Path, trust_code: bool = False) -> None:
         split = {n: folder / f for n, (f, _) in MLP_FILES.items()}
@@ -160,6 +165,8 @@ class Decoders:
             missing = [MLP_FILES[n][1] for n in ATTRIBUTE_DECODERS if n not in self.state]
             if missing:
                 raise FileFormatError(f"{unite}: missing MLP entr(y/ies) {missing}")
+        for name, sd in self.state.items():  # either mode, trusted TorchScript included
+            check_finite_weights(sd, source=self.source[name], prefix=MLP_FILES[name][1] if self.mode == "unite" else "")
 
     def weight(self, name: str, key: str) -> torch.Tensor:
         """Tensor ``key`` of decoder ``name``'s state dict, or an error naming the file."""

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numbers
 import re
 from pathlib import Path
 
-from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.errors import FileFormatError, InputValueError
 
-__all__ = ["iteration_dirs", "iteration_dir", "bitstreams_only"]
+__all__ = ["iteration_dirs", "iteration_dir", "check_iteration", "bitstreams_only"]
 
 
 def iteration_dirs(root: str | Path) -> dict[int, Path]:
@@ -28,8 +29,23 @@ def bitstreams_only(root: str | Path) -> str:
             "(with run_codec=True it holds the decoded model)")
 
 
+def check_iteration(iteration: object) -> int | None:
+    """The ``iteration`` argument of the loaders as an int >= 0 (a whole number, also written as a
+    string such as ``'30000'``); None stays None. Anything else: :class:`InputValueError` naming it."""
+    if iteration is None:
+        return None
+    text = str(iteration).strip() if isinstance(iteration, str) else None
+    if text is not None and text.isdigit():
+        return int(text)
+    if isinstance(iteration, bool) or not isinstance(iteration, numbers.Integral) or int(iteration) < 0:
+        raise InputValueError(f"iteration must be a whole number >= 0 (the N of point_cloud/iteration_<N>) or None, "
+                              f"got {iteration!r}")
+    return int(iteration)
+
+
 def iteration_dir(root: str | Path, iteration: int | None, *, family: str) -> Path:
     """``<root>/point_cloud/iteration_<it>``: the given iteration or the highest one present."""
+    iteration = check_iteration(iteration)
     pc = Path(root) / "point_cloud"
     if not pc.is_dir():
         raise FileFormatError(f"{Path(root)}: not a {family} output directory (no 'point_cloud/iteration_<N>' folder)"

@@ -77,7 +77,17 @@ class PSFBank:
 
     # ------------------------------------------------------------------ checks
     def validate(self) -> None:
-        """Raise :class:`InputValueError` naming what is wrong with the bank."""
+        """Raise :class:`InputValueError` naming what is wrong with the bank: every tensor is a real
+        floating-point tensor of the documented shape holding finite values, ``wavelengths_nm`` and
+        ``display_mm`` are finite positive numbers."""
+        for name in ("psf", "psf_pitch_mm", "field_x", "field_y", "chief", "chief_x", "chief_y"):
+            t = getattr(self, name)
+            if not isinstance(t, torch.Tensor) or not t.is_floating_point():
+                what = t.dtype if isinstance(t, torch.Tensor) else type(t).__name__
+                raise InputValueError(f"PSF bank: {name} must be a floating-point torch.Tensor, got {what}")
+        self.wavelengths_nm = _positive_numbers("wavelengths_nm", self.wavelengths_nm, None)
+        width_mm, height_mm = _positive_numbers("display_mm", self.display_mm, 2)
+        self.display_mm = (width_mm, height_mm)
         psf, pitch, chief = self.psf, self.psf_pitch_mm, self.chief
         L = len(self.wavelengths_nm)
         if psf.dim() != 5 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
@@ -121,8 +131,6 @@ class PSFBank:
             want = torch.linspace(-1, 1, n, dtype=torch.float64)
             if n < 2 or (g.double() - want).abs().max() > 1e-6:
                 raise InputValueError(f"PSF bank: {name} must be uniform from -1 to 1 (linspace(-1, 1, {n}))")
-        if len(self.display_mm) != 2 or min(self.display_mm) <= 0:
-            raise InputValueError(f"PSF bank: display_mm must be (width, height) > 0, got {self.display_mm}")
         self.transmission                                     # noqa: B018  (raises on a malformed meta.transmission)
         self.psf = (psf.float() / sums.float()[..., None, None]).contiguous()
         self.psf_pitch_mm = pitch.float()
@@ -230,6 +238,21 @@ class PSFBank:
 
 
 _DEFAULT: PSFBank | None = None
+
+
+def _positive_numbers(name: str, value: Any, count: int | None) -> tuple[float, ...]:
+    """``value`` as a tuple of finite positive floats (``count`` of them if given; an empty tuple is
+    left to the grid check), else :class:`InputValueError` naming the argument (a string or a bool
+    is not a number)."""
+    want = f"{count} finite positive numbers" if count else "finite positive numbers"
+    if isinstance(value, (str, bytes, torch.Tensor)) or not hasattr(value, "__len__") or not hasattr(value, "__iter__"):
+        raise InputValueError(f"PSF bank: {name} must be a sequence of {want}, got {value!r}")
+    items = list(value)
+    ok = (count is None or len(items) == count) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in items)
+    if not ok:
+        raise InputValueError(f"PSF bank: {name} must be {want}, got {value!r}")
+    return tuple(float(v) for v in items)
 
 
 def _header_numbers(path: str | os.PathLike, header: dict[str, Any], key: str, count: int | None) -> tuple[float, ...]:
