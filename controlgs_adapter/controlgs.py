@@ -17,7 +17,7 @@ import warnings
 import weakref
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import torch
 from torch import nn
@@ -34,9 +34,7 @@ from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_K
 from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
 from controlgs_adapter.formats.torchscript import eager_from_script
-
-if TYPE_CHECKING:
-    from .downstream.placement import Placement
+from .downstream.placement import Placement, to_display
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
 
@@ -384,8 +382,6 @@ class ControlGS:
         """Image-normalised anchor positions ``[R, 2]`` and gaze -> display-normalised ones (p_v of the
         lens and foveation schedules): the image placed on the Cardboard display as the optics
         places it, so a strength follows the radial distance on the display (a square image: as is)."""
-        from .downstream.placement import to_display
-
         h, w = camera.height, camera.width
         if state.gaze is not None:
             gaze = to_display(torch.tensor(state.gaze, dtype=torch.float64), h, w, self.placement)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import torch
 from tqdm.auto import tqdm
@@ -26,14 +26,12 @@ from tqdm.auto import tqdm
 from .controlgs import ControlGS
 from .downstream.oled import oled_emission
 from .downstream.optics.stage import set_optics_mode
+from .downstream.pipeline import Pipeline
 from .errors import InputValueError
 from .metrics import optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
 from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .training import DEFAULT_EFFECTS, Views
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .downstream.pipeline import Pipeline
 
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
            "side_by_side", "condition_response", "scores"]
@@ -122,8 +120,6 @@ class GridResult:
 def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "fast") -> Pipeline:
     """The evaluation pipeline E_s from ``effects`` (default :data:`DEFAULT_EFFECTS`) with the
     optics operator ``optics_mode``, in eval mode."""
-    from .downstream.pipeline import Pipeline
-
     pipeline = Pipeline.from_config(dict(DEFAULT_EFFECTS if effects is None else effects))
     set_optics_mode(pipeline, optics_mode)
     return pipeline.eval()

@@ -35,6 +35,7 @@ from .controlgs import ControlGS
 from .distributed import DistContext
 from .downstream.oled import oled_emission
 from .downstream.optics.stage import set_optics_mode
+from .downstream.pipeline import Pipeline
 from .errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
 from .losses import LossWeights, image_loss
@@ -207,8 +208,6 @@ class Trainer:
                  *, effects: Mapping[str, Any] | None = None,
                  checkpoint: str | Path | None = None, dist: DistContext | None = None,
                  renderer: Renderer | Any = None) -> None:
-        from .downstream.pipeline import Pipeline
-
         if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
             raise InputValueError("views must be a non-empty dataset of (camera, image) with a background "
                                   f"(e.g. SceneData.views('train')), got {type(views).__name__}")

@@ -27,11 +27,13 @@ from typing import Any, Iterable, Mapping, Sequence, cast
 import torch
 from torch import nn
 
+from controlgs_adapter import plugins
 from controlgs_adapter.checks import check_finite, check_image, check_same_device
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.state import RuntimeState
 
 from .color import convert_domain
+from .lens import LensPrewarp
 from .stage import Domain, Stage, StageContext
 
 __all__ = ["Pipeline", "PHYSICAL_STAGES"]
@@ -44,8 +46,6 @@ _LENS_FOR_OPTICS = frozenset({"source", "basis", "lut", "gain"})
 
 
 def _registered_stages() -> dict[str, type[Stage]]:
-    from controlgs_adapter import plugins
-
     return {name: info.obj for name, info in plugins.stages().items()}
 
 
@@ -162,8 +162,6 @@ class Pipeline(nn.Module):
                 optics = next(s for s in stages if s.name == "optics")
                 bank = getattr(optics, "bank", None)
                 if bank is not None and hasattr(bank, "chief"):
-                    from .lens import LensPrewarp
-
                     options = dict(value) if isinstance(value, Mapping) else {}  # keys within _LENS_FOR_OPTICS
                     stages.append(LensPrewarp.for_optics(optics, **options))
                     continue

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from ..checks import check_number
 from ..errors import InputValueError
 from ..state import Camera
+from .images import load_frame_image
 
 __all__ = ["Frame", "SceneData", "PosedImages", "DEFAULT_CACHE_BYTES", "working_size", "area_resize"]
 
@@ -163,8 +164,6 @@ class PosedImages(Sequence[tuple[Camera, torch.Tensor]]):
         if hit is not None:
             self._cache.move_to_end(i)
             return hit
-        from .images import load_frame_image
-
         cam = self.cameras[i]
         img = area_resize(load_frame_image(self.frames[i], self.background), cam.height, cam.width).contiguous()
         size = img.numel() * img.element_size()

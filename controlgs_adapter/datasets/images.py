@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
@@ -18,7 +18,9 @@ import torch.nn.functional as F
 
 from ..errors import FileFormatError, InputValueError
 from ..state import Camera
-from .base import Frame
+
+if TYPE_CHECKING:  # pragma: no cover - base imports this module; a frame is only read here
+    from .base import Frame
 
 __all__ = ["read_image", "image_size", "load_frame_image", "distort_normalized", "undistort", "undistort_points"]
 
