@@ -17,7 +17,9 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 import torch
 
-from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.errors import FileFormatError, TargetError
+from controlgs_adapter.formats.safetensors import atomic_write
+from controlgs_adapter.formats.torchscript import eager_from_archive, eager_from_script, tensors_from_archive
 
 __all__ = ["read_ply", "ply_field_names", "write_ply", "parse_cfg_args", "read_cfg_args", "load_state_dict_file", "load_torchscript",
            "load_torchscript_tensors", "require_fields",
@@ -159,8 +161,6 @@ def write_ply(path: str | os.PathLike, fields: Mapping[str, np.ndarray], comment
               *, comment_keyword: str = "comment") -> Path:
     """Write ``fields`` (name -> ``[V]`` array, all the same length) as a binary little-endian PLY
     ``vertex`` element, atomically. Float arrays are stored as float32 unless already float64."""
-    from controlgs_adapter.formats.safetensors import atomic_write
-
     names = list(fields)
     cols = [np.asarray(fields[n]) for n in names]
     if not cols or len({c.shape for c in cols}) != 1 or cols[0].ndim != 1:
@@ -339,9 +339,6 @@ def load_torchscript(path: str | os.PathLike, *, trust_code: bool = False) -> to
     outside that subset: ``torch.jit.load`` (which can run code stored in the archive) and a rebuild
     checked by running the module on a probe batch.
     """
-    from controlgs_adapter.errors import TargetError
-    from controlgs_adapter.formats.torchscript import eager_from_archive, eager_from_script
-
     path = Path(path)
     if not trust_code:
         return eager_from_archive(path)
@@ -359,8 +356,6 @@ def load_torchscript_tensors(path: str | os.PathLike, *, trust_code: bool = Fals
     (:func:`controlgs_adapter.formats.torchscript.tensors_from_archive`); ``trust_code=True`` uses
     ``torch.jit.load`` (which can run code stored in the archive).
     """
-    from controlgs_adapter.formats.torchscript import tensors_from_archive
-
     if not trust_code:
         return tensors_from_archive(path)
     # state_dict() (keep_vars=False) already gives detached tensors; the clone owns its storage
