@@ -189,7 +189,7 @@ def _write(rows: list[dict], ratios: list[dict], scaling, threads: int, repeat: 
     out.mkdir(parents=True, exist_ok=True)
     ops = [r for r in rows if r["op"] != "tables"]
     builds = [r for r in rows if r["op"] == "tables"]
-    lines = [f"Operators of the shipped Cardboard bank on `skimage.data.astronaut` (3 primaries), float32, {threads} CPU "
+    lines = ["# PSF operators: speed and error", "", f"Operators of the shipped Cardboard bank on `skimage.data.astronaut` (3 primaries), float32, {threads} CPU "
              f"threads, best of {repeat} (wall clock, and process CPU time summed over threads). fwd+bwd = forward and "
              f"backward w.r.t. the image; error vs `psf_exact` of the same radiometry. Command: `{command}; "
              "the operators: docs/explanation/optics.md.", "",
@@ -211,6 +211,7 @@ def _write(rows: list[dict], ratios: list[dict], scaling, threads: int, repeat: 
     if scaling:
         lines += ["", "Kernel-size scaling of the fast mode (Gaussian PSF banks, fwd+bwd CPU time): "
                   + ", ".join(f"k = {k}: {t:.3f} s" for k, t in scaling) + f" (ratio {scaling[1][1] / scaling[0][1]:.2f})"]
+    lines += ["", "![error vs fwd+bwd time of the PSF operators](optics_bench.png)"]
     (out / "optics_bench.md").write_text("\n".join(lines) + "\n")
     try:
         import matplotlib
