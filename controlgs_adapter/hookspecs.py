@@ -16,7 +16,7 @@ import pluggy
 
 if TYPE_CHECKING:  # pragma: no cover
     from .backend import Backend
-    from controlgs_adapter.rendering.rasterizers import Rasterizer
+    from controlgs_adapter.rendering.rasterizer import Rasterizer
     from .schedules import StrengthSchedule
     from controlgs_adapter.downstream.stage import Stage
 
@@ -63,5 +63,5 @@ def controlgs_register_rasterizers() -> "list[Rasterizer]":
     ``unavailable(device, dtype)`` is None, unless one is named (``use_rasterizer``,
     ``CONTROLGS_RASTERIZER``).
 
-    :return: a list of :class:`controlgs_adapter.rendering.rasterizers.Rasterizer` instances.
+    :return: a list of :class:`controlgs_adapter.rendering.rasterizer.Rasterizer` instances.
     """
