@@ -227,6 +227,7 @@ def _read_points_bin(path: Path) -> np.ndarray:
 
 
 #: the count COLMAP writes in a text file's header (``# Number of images: 8, mean ...``)
+_INTEGER = re.compile(r"-?[0-9]+\Z")
 _DECLARED = re.compile(r"#\s*Number of (cameras|images|points)\s*:\s*(\d+)", re.IGNORECASE)
 
 
@@ -295,10 +296,9 @@ def _is_points2d(line: str) -> bool:
         return False
     try:
         np.asarray(parts[0::3] + parts[1::3], dtype=np.float64)
-        np.asarray(parts[2::3], dtype=np.int64)
     except (ValueError, OverflowError):
         return False
-    return True
+    return all(_INTEGER.match(p) for p in parts[2::3])
 
 
 def _read_images_txt(path: Path) -> dict[int, _ColmapImage]:

@@ -30,10 +30,13 @@ def inside(root: Path, rel: str, where: str, what: str = "path", base: Path | No
     absolute path or one that leads out of ``root``. Only the path is resolved: nothing is opened."""
     if not rel or "\0" in rel:
         raise FileFormatError(f"{where}: {what} {rel!r} is not a usable path")
-    if PurePosixPath(rel).is_absolute() or PureWindowsPath(rel).is_absolute() or PureWindowsPath(rel).drive:
+    if PurePosixPath(rel).is_absolute() or PureWindowsPath(rel).is_absolute():
         raise FileFormatError(f"{where}: {what} {rel!r} is absolute; it must be relative to the dataset folder {root}")
     path = (root if base is None else base) / rel
-    top, target = root.resolve(), path.resolve()
+    try:
+        top, target = root.resolve(), path.resolve()
+    except (OSError, RuntimeError) as e:  # RuntimeError: a symlink loop
+        raise FileFormatError(f"{where}: {what} {rel!r} cannot be resolved ({e})") from None
     if target != top and top not in target.parents:
         raise FileFormatError(f"{where}: {what} {rel!r} leads outside the dataset folder {root} (to {target}); "
                               "paths (and symlinks) must stay inside it")

@@ -39,6 +39,14 @@ def test_a_symlinked_image_pointing_outside_is_refused_not_skipped(tmp_path):
     assert opened_under(out, opened) == []
 
 
+def test_a_symlink_loop_is_refused_naming_the_frame(tmp_path):
+    root = instant_ngp(_root(tmp_path), [frame("images/a.png"), frame("images/loop.png")], images=["a"])
+    (root / "images" / "loop.png").symlink_to(root / "images" / "loop.png")
+    with pytest.raises(FileFormatError, match=r"transforms\.json: frames\[1\]: file_path 'images/loop\.png' cannot be "
+                                              r"resolved"):
+        read_instant_ngp(root)
+
+
 def test_a_transforms_name_leading_outside_the_folder_is_refused(tmp_path):
     out = outside(tmp_path)
     root = instant_ngp(_root(tmp_path), [frame("images/a.png")])
