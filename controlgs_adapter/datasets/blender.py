@@ -4,7 +4,9 @@ Each file holds ``camera_angle_x`` (horizontal field of view, radians) and ``fra
 ``file_path`` relative to the dataset folder (often without its extension: ``.png`` is appended, as
 3DGS does) and a ``transform_matrix``: camera to world in OpenGL axes (x right, y up, z backward).
 ``transforms_val.json`` is ignored, as by the Scaffold-GS family. The helpers here are shared with
-the instant-ngp reader, which uses the same axes.
+the instant-ngp reader, which uses the same axes and the same checks: every path resolves inside the
+dataset folder (symlinks followed), numbers are JSON numbers (not strings or bools) that fit float32,
+a 4x4 pose ends in ``[0, 0, 0, 1]``, and an image is listed once.
 """
 
 from __future__ import annotations

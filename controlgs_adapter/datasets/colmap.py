@@ -15,6 +15,10 @@ load (:func:`~controlgs_adapter.datasets.images.undistort`).
 
 Every binary parser checks each declared count against the bytes left in the file before reading,
 so a truncated or foreign file raises :class:`~controlgs_adapter.errors.FileFormatError` naming it.
+Text files are read record by record (an image is two lines, the second its POINTS2D line); a missing
+POINTS2D line, a repeated id (text or binary) or a header count that differs from the records is
+refused naming the line or record. Image names, the images folder and the model files must resolve
+inside the scene folder (symlinks followed); nothing outside it is opened.
 """
 
 from __future__ import annotations
