@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 
 from controlgs_adapter.datasets.memory import posed_images
 from controlgs_adapter.errors import InputValueError
@@ -84,5 +85,59 @@ def test_finite_views_train_as_before(tiny):
         t.train(progress=False)
         assert len(t.history) == 2 and all(math.isfinite(v) for v in t.history)
         assert t._checked_views and t._checked_views <= set(range(len(scene.views("train"))))
+    finally:
+        t.cgs.unwrap()
+
+
+class _NanGradient(torch.autograd.Function):
+    """Identity forward; a NaN gradient backward (a render whose backward breaks down at a finite loss)."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        return torch.full_like(grad, math.nan)
+
+
+def test_nan_gradients_at_a_finite_loss_are_named_as_the_cause_not_the_learning_rate(tiny):
+    from controlgs_adapter.errors import NonFiniteError
+    from controlgs_adapter.rendering.protocol import FunctionRenderer
+
+    scene, model = tiny
+
+    def nan_backward(m, camera, visible, background):
+        return _NanGradient.apply(m.render(camera, visible, background).color)
+
+    config = TrainConfig(iterations=2, checkpoint_every=0, seed=0, lr=1e-3)
+    t = Trainer(model, scene.views("train"), config, effects=EFFECTS,
+                renderer=FunctionRenderer(nan_backward, visible=lambda m, c: m.visible_anchors(c)))
+    try:
+        with pytest.raises(NonFiniteError, match=r"training diverged at iteration 0: parameter\(s\) \[.+\] became NaN/Inf "
+                                                 r"from NaN/Inf gradients of \['conditions'.*\] with a finite loss: not the "
+                                                 r"learning rate") as e:
+            t.step()
+        assert "lr 0.001" not in str(e.value)
+    finally:
+        t.cgs.unwrap()
+
+
+def test_a_model_with_a_degenerate_gaussian_trains(tiny):
+    """One anchor's Gaussians with scales of about 1e20 (a float32 2D covariance would overflow): the steps
+    keep every adapter tensor finite."""
+    import copy
+
+    scene, model = tiny
+    model = copy.deepcopy(model)
+    cam = scene.test_cameras[0]
+    with torch.no_grad():
+        g = model.decode(cam, model.visible_anchors(cam))
+        model._scaling[int(g.anchor_of[g.opacities.argmax()]), 3:] = math.log(1e20)
+    t = _trainer(model, scene.views("train"), iterations=3)
+    try:
+        t.train(progress=False)
+        assert len(t.history) == 3 and all(math.isfinite(v) for v in t.history)
+        assert all(bool(torch.isfinite(p).all()) for p in t.cgs.trainable_parameters())
     finally:
         t.cgs.unwrap()
