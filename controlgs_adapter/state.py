@@ -40,7 +40,7 @@ def _real(name: str, value: Any, error: type[InputValueError] = InputValueError)
     try:
         return float(value)
     except OverflowError:
-        return math.inf if value > 0 else -math.inf
+        return -math.inf if value < 0 else math.inf
     except (ValueError, TypeError, ArithmeticError):
         raise error(f"{name} must be a real number, got {brief(value)} ({type(value).__name__})") from None
 
