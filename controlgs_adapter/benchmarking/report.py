@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from controlgs_adapter.formats.safetensors import atomic_write
+
 from .accuracy_time import BenchResult
 
 #: per-part benchmark docs (linked, not re-run)
@@ -123,7 +125,5 @@ def format_report(r: BenchResult, command: str) -> str:
 
 def write_report(text: str, path: str | Path) -> Path:
     """Write ``text`` to ``path`` atomically."""
-    from controlgs_adapter.formats.safetensors import atomic_write
-
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
