@@ -4,15 +4,10 @@ so that the demo loads it and never retrains it."""
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from ..errors import FileFormatError, InputValueError
-from controlgs_adapter.formats.safetensors import atomic_write
 from .diorama import VARIANTS, load_builtin_scene
 
 __all__ = ["builtin_backbone_dir", "load_builtin_backbone", "build_builtin_backbone"]
@@ -44,29 +39,17 @@ def build_builtin_backbone(variant: str = "ar", *, out: str | Path, resolution: 
                            max_anchors: int = 3000, n_offsets: int = 5, feat_dim: int = 32, point_spacing: float = 0.04,
                            seed: int = 0, progress: bool = True) -> Path:
     """Train the reference model on the built-in scene's training views at ``resolution`` and save
-    it with :func:`save_scaffold_dir` to ``out`` (always given: never the installed package; the shipped
-    backbones are ``controlgs_adapter/data/builtin_scene/<variant>`` of a checkout), with a
-    ``build.json`` that records the arguments, time and the test-view PSNR of the bare backbone."""
-    from ..backends.scaffold_io import save_scaffold_dir
-    from controlgs_adapter.backends.models.train_backbone import train_reference_model
-    from ..metrics import psnr, ssim
+    it to ``out`` (always given: never the installed package; the shipped backbones are
+    ``controlgs_adapter/data/builtin_scene/<variant>`` of a checkout, replaced as a whole) with
+    :func:`~controlgs_adapter.backends.models.train_backbone.build_backbone`: a Scaffold-GS folder
+    and a ``build.json`` that records the arguments, time and the test-view PSNR/SSIM of the bare
+    backbone."""
+    from controlgs_adapter.backends.models.train_backbone import build_backbone
 
     scene = load_builtin_scene(variant, resolution, cache=True)
     xyz, rgb = scene.points(point_spacing)
-    t0 = time.perf_counter()
-    model = train_reference_model(scene.train_images, scene.train_cameras, xyz, rgb, iterations=iterations,
-                                  feat_dim=feat_dim, n_offsets=n_offsets, max_anchors=max_anchors,
-                                  background=scene.background, seed=seed, progress=progress)
-    seconds = time.perf_counter() - t0
-    with torch.no_grad():
-        renders = [model.render(c, None, scene.background).color.clamp(0, 1) for c in scene.test_cameras]
-        p = [float(psnr(r, g)) for r, g in zip(renders, scene.test_images)]
-        s = [float(ssim(r, g)) for r, g in zip(renders, scene.test_images)]
-    target = Path(out)
-    save_scaffold_dir(model, target, iteration=iterations)
-    info = {"variant": variant, "resolution": resolution, "iterations": iterations, "max_anchors": max_anchors,
-            "n_offsets": n_offsets, "feat_dim": feat_dim, "point_spacing": point_spacing, "seed": seed,
-            "anchors": model.num_anchors, "train_seconds": round(seconds, 1), "threads": torch.get_num_threads(),
-            "test_psnr": p, "test_ssim": s, "test_psnr_mean": sum(p) / len(p), "test_ssim_mean": sum(s) / len(s)}
-    atomic_write(target / "build.json", lambda tmp: Path(tmp).write_text(json.dumps(info, indent=1)))
-    return target
+    record = {"variant": variant, "resolution": resolution, "point_spacing": point_spacing}
+    built = build_backbone(scene.views("train"), out, test_views=scene.views("test"), points=xyz, colors=rgb,
+                           iterations=iterations, max_anchors=max_anchors, feat_dim=feat_dim, n_offsets=n_offsets,
+                           seed=seed, progress=progress, replace=True, record=record)
+    return built.path
