@@ -4,12 +4,15 @@ with ``add_parser(subparsers)`` (which sets ``func``) and is listed in :data:`CO
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import sys
+import warnings
+from typing import Any, Iterator
 
 from ._version import __version__
 
-COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "train", "eval", "demo", "bench", "view")
+COMMANDS: tuple[str, ...] = ("plugins", "optics", "scene", "backbone", "train", "eval", "demo", "bench", "view")
 
 #: (command, action) -> (extra, import names, what for): optional dependencies checked before the work starts
 REQUIRES: dict[tuple[str, str | None], tuple[str, tuple[str, ...], str]] = {
@@ -32,6 +35,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def warnings_as_lines(command: str) -> Iterator[None]:
+    """Inside the block every warning shown is one line ``controlgs <command>: warning: <message>`` on
+    stderr (no file, line or source line: they would point into the library, not at the user's input),
+    written around any progress bar; the previous ``warnings.showwarning`` and filters come back after."""
+
+    def show(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+        from tqdm import tqdm
+
+        tqdm.write(f"controlgs {command}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        yield
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -44,10 +63,11 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         action = next((v for k, v in vars(args).items() if k.endswith("_command") and isinstance(v, str)), None)
-        need = REQUIRES.get((args.command, action))
-        if need is not None:
-            require(need[0], f"controlgs {args.command}" + (f" {action}" if action else "") + f" ({need[2]})", need[1])
-        return int(args.func(args) or 0)
+        with warnings_as_lines(args.command):
+            need = REQUIRES.get((args.command, action))
+            if need is not None:
+                require(need[0], f"controlgs {args.command}" + (f" {action}" if action else "") + f" ({need[2]})", need[1])
+            return int(args.func(args) or 0)
     except (ControlGSError, OSError) as e:  # bad input, unwritable or full disk: one clear line, not a traceback
         message = " ".join(str(e).split()) if isinstance(e, ControlGSError) else f"{type(e).__name__}: {e}"
         print(f"controlgs {args.command}: error: {message}", file=sys.stderr)
