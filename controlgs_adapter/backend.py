@@ -16,7 +16,7 @@ from torch import nn
 
 from .checks import check_tensor
 from .errors import TargetError
-from .formats.torchscript import eager_from_script
+from .formats.torchscript_live import eager_from_script
 from .rendering.renderer import Renderer, default_renderer
 
 __all__ = ["Backend", "get_attr_path", "set_attr_path", "has_attrs", "anchor_ids_from_mask"]

@@ -33,7 +33,7 @@ from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_K
                            write_adapter)
 from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
-from controlgs_adapter.formats.torchscript import eager_from_script
+from controlgs_adapter.formats.torchscript_live import eager_from_script
 from .downstream.placement import Placement, to_display
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]

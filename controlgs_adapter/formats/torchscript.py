@@ -1,5 +1,9 @@
 """Rebuild TorchScript decoders as eager modules (forward hooks do not work on ScriptModules).
 
+This module reads archive files; the live rebuild is :mod:`.torchscript_live` and the supported
+layers are one table, :data:`~controlgs_adapter.formats.torchscript_layers.SUPPORTED_LAYERS` (both
+re-exported here).
+
 Scaffold-GS and its family save their decoders as ``torch.jit.trace`` archives
 (``opacity_mlp.pt``, ...). Two ways in:
 
@@ -27,117 +31,16 @@ import re
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, cast
+from typing import Any
 
 import torch
 from torch import nn
 
-from controlgs_adapter.errors import FileFormatError, TargetError
+from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.formats.torchscript_layers import SUPPORTED_LAYERS
+from controlgs_adapter.formats.torchscript_live import eager_from_script
 
-__all__ = ["eager_from_script", "eager_from_archive", "tensors_from_archive", "SUPPORTED_LAYERS", "ARCHIVE_LAYERS"]
-
-_NUM = r"-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?"
-
-
-def _setting(sm: torch.jit.ScriptModule, attr: str, fn: str, index: int, name: str) -> float:
-    """A layer setting: the attribute a scripted module keeps (``dim``, ``negative_slope``), else the
-    ``index``-th number after the input in the traced code ``torch.<fn>(x, a0, a1, ...)``."""
-    try:
-        return float(getattr(sm, attr))
-    except (AttributeError, RuntimeError):
-        pass
-    m = re.search(rf"\b{fn}\(\s*[\w.]+\s*((?:,\s*{_NUM}\s*)+)", sm.code)
-    args = re.findall(_NUM, m.group(1)) if m else []
-    if index >= len(args):
-        raise TargetError(f"{name}: cannot read {sm.original_name}.{attr} from its TorchScript code:\n{sm.code}")
-    return float(args[index])
-
-
-def _linear(sm: torch.jit.ScriptModule, name: str) -> nn.Linear:
-    weight = sm.weight  # [out, in]
-    bias = getattr(sm, "bias", None)
-    layer = nn.Linear(weight.shape[1], weight.shape[0], bias=bias is not None, device=weight.device, dtype=weight.dtype)
-    with torch.no_grad():
-        layer.weight.copy_(weight)
-        if bias is not None:
-            layer.bias.copy_(bias)
-    layer.weight.requires_grad_(weight.requires_grad)
-    if bias is not None:
-        layer.bias.requires_grad_(bias.requires_grad)
-    return layer
-
-
-#: ``original_name`` -> builder of the eager layer.
-SUPPORTED_LAYERS: dict[str, Callable[[torch.jit.ScriptModule, str], nn.Module]] = {
-    "Linear": _linear,
-    "ReLU": lambda sm, name: nn.ReLU(),
-    "Tanh": lambda sm, name: nn.Tanh(),
-    "Sigmoid": lambda sm, name: nn.Sigmoid(),
-    "Identity": lambda sm, name: nn.Identity(),
-    "SiLU": lambda sm, name: nn.SiLU(),
-    "Softmax": lambda sm, name: nn.Softmax(dim=int(_setting(sm, "dim", "softmax", 0, name))),
-    "LeakyReLU": lambda sm, name: nn.LeakyReLU(_setting(sm, "negative_slope", "leaky_relu", 0, name)),
-    "Softplus": lambda sm, name: nn.Softplus(
-        beta=_setting(sm, "beta", "softplus", 0, name), threshold=_setting(sm, "threshold", "softplus", 1, name)
-    ),
-}
-
-
-def _rebuild(sm: torch.jit.ScriptModule, name: str) -> nn.Module:
-    kind = getattr(sm, "original_name", type(sm).__name__)
-    if kind == "Sequential":
-        # a ScriptModule's children are ScriptModules; torch's stubs type named_children() as Module
-        return nn.Sequential(*(_rebuild(cast(torch.jit.ScriptModule, child), f"{name}.{key}")
-                               for key, child in sm.named_children()))
-    if kind not in SUPPORTED_LAYERS:
-        raise TargetError(
-            f"decoder {name!r}: TorchScript layer of type {kind!r} cannot be rebuilt as an eager module "
-            f"(supported: Sequential of {', '.join(sorted(SUPPORTED_LAYERS))})"
-        )
-    return SUPPORTED_LAYERS[kind](sm, name)
-
-
-def _first_linear(module: nn.Module) -> nn.Linear | None:
-    return next((m for m in module.modules() if isinstance(m, nn.Linear)), None)
-
-
-def eager_from_script(script_module: torch.jit.ScriptModule, name: str = "decoder") -> nn.Module:
-    """Rebuild a traced or scripted ``Sequential`` (or single layer) as an eager module.
-
-    Args:
-        script_module: e.g. ``torch.jit.load("opacity_mlp.pt")``.
-        name: the decoder's name, used in error messages (e.g. ``"mlp_opacity"``).
-
-    Returns:
-        An ``nn.Sequential`` (or layer) on the same device and dtype, in the same train/eval mode,
-        whose outputs equal the script module's (checked on a random probe batch of 4 rows).
-
-    Raises:
-        TargetError: a layer type is not supported, a setting cannot be read, or the rebuilt
-            module's output differs from the script module's (e.g. a custom ``forward``).
-    """
-    if not isinstance(script_module, torch.jit.ScriptModule):
-        raise TargetError(f"decoder {name!r}: expected a TorchScript module, got {type(script_module).__name__}")
-    eager = _rebuild(script_module, name)
-    eager.train(script_module.training)
-    fc1 = _first_linear(eager)
-    if fc1 is None:
-        raise TargetError(f"decoder {name!r}: the TorchScript module holds no Linear layer")
-    gen = torch.Generator()  # fresh CPU generator: a fixed initial seed, the same probe every call (any probe does)
-    probe = torch.randn(4, fc1.in_features, generator=gen, dtype=fc1.weight.dtype).to(fc1.weight.device)
-    with torch.no_grad():
-        try:
-            want = script_module(probe)
-        except RuntimeError as e:
-            raise TargetError(f"decoder {name!r}: the TorchScript module does not take a [rows, {fc1.in_features}] input: {e}") from e
-        got = eager(probe)
-    if not isinstance(want, torch.Tensor) or want.shape != got.shape or not torch.equal(want, got):
-        raise TargetError(
-            f"decoder {name!r}: the eager rebuild of the TorchScript module does not reproduce its output "
-            f"(its forward is not a plain chain of its layers?):\n{script_module.code}"
-        )
-    return eager
-
+__all__ = ["eager_from_script", "eager_from_archive", "tensors_from_archive", "SUPPORTED_LAYERS"]
 
 # --------------------------------------------------------------------------------------------------
 # Reading an archive file without executing it
@@ -156,16 +59,10 @@ _OTHER_STORAGES = {"LongStorage": torch.int64, "IntStorage": torch.int32, "Short
                    "CharStorage": torch.int8, "ByteStorage": torch.uint8, "BoolStorage": torch.bool,
                    "ComplexFloatStorage": torch.complex64, "ComplexDoubleStorage": torch.complex128}
 
-#: layer kind -> the ops its ``forward`` may call (``torch.<op>`` or ``__torch__.torch.nn.functional.<op>``).
-ARCHIVE_LAYERS: dict[str, frozenset[str]] = {
-    "Sequential": frozenset(), "Linear": frozenset({"linear"}), "Identity": frozenset(),
-    "ReLU": frozenset({"relu", "relu_"}), "Tanh": frozenset({"tanh"}), "Sigmoid": frozenset({"sigmoid"}),
-    "SiLU": frozenset({"silu", "silu_"}), "Softmax": frozenset({"softmax"}),
-    "LeakyReLU": frozenset({"leaky_relu", "leaky_relu_"}), "Softplus": frozenset({"softplus"}),
-}
 # ``torch.<name>`` the archive's code may mention at all (the layer ops and what the scripted
 # ``torch.nn.functional`` helpers of those layers use); anything else is refused.
-_SAFE_TORCH = frozenset().union(*ARCHIVE_LAYERS.values()) | {"__is__", "__isnot__", "warn", "format", "eq", "ne", "dim"}
+_SAFE_TORCH = frozenset(op for kind in SUPPORTED_LAYERS.values() for op in kind.ops) | {
+    "__is__", "__isnot__", "warn", "format", "eq", "ne", "dim"}
 _SAFE_CALLS = frozenset({"getattr", "unchecked_cast", "int", "float", "bool", "str", "isinstance"})
 _QUALNAME = re.compile(r"__torch__\.torch\.nn\.modules\.[a-z_]+(?:\.___torch_mangle_\d+)?\.([A-Za-z]\w*)")
 
@@ -510,9 +407,9 @@ def _layer(node: _Node, code: _Code, where: str) -> nn.Module:
     m = _QUALNAME.fullmatch(node.qualname)
     kind = m.group(1) if m else None
     label = where or "the root module"
-    if kind not in ARCHIVE_LAYERS:
+    if kind not in SUPPORTED_LAYERS:
         raise _Refused(f"{label} of type {node.qualname} (supported: Sequential of "
-                       f"{', '.join(k for k in ARCHIVE_LAYERS if k != 'Sequential')})")
+                       f"{', '.join(k for k in SUPPORTED_LAYERS if k != 'Sequential')})")
     extra_attrs = {k for k, v in node.attrs.items()
                    if k != "training" and not (k.startswith("_") and (v is None or isinstance(v, bool)))}
     extra_attrs -= {"bias"} if kind == "Linear" and node.attrs.get("bias", 0) is None else set()
@@ -538,38 +435,27 @@ def _layer(node: _Node, code: _Code, where: str) -> nn.Module:
         return nn.Identity()
     if not (isinstance(expr, tuple) and expr[0] == "call" and expr[2][:1] == (("input",),)
             and all(a[0] == "const" for a in expr[2][1:])):
-        raise _Refused(f"{label} ({kind}) whose forward is not one call of {sorted(ARCHIVE_LAYERS[kind])} on its input")
+        raise _Refused(f"{label} ({kind}) whose forward is not one call of {sorted(SUPPORTED_LAYERS[kind].ops)} on its input")
     fn, consts = expr[1], [a[1] for a in expr[2][1:]]
     op = fn.rsplit(".", 1)[-1]
-    if fn not in {f"torch.{op}", f"__torch__.torch.nn.functional.{op}"} or op not in ARCHIVE_LAYERS[kind]:
+    if fn not in {f"torch.{op}", f"__torch__.torch.nn.functional.{op}"} or op not in SUPPORTED_LAYERS[kind].ops:
         raise _Refused(f"{label} ({kind}) whose forward calls {fn}")
-    return _activation(kind, op, consts, node.attrs, label)
+    return _activation(kind, op, consts, label)
 
 
-def _activation(kind: str, op: str, consts: list[Any], attrs: dict[str, Any], label: str) -> nn.Module:
+def _activation(kind: str, op: str, consts: list[Any], label: str) -> nn.Module:
     """The eager activation; its settings are the constants of the forward call (as TorchScript inlines them)."""
-    def arg(i: int, types: tuple[type, ...], name: str) -> Any:
+    spec = SUPPORTED_LAYERS[kind]
+    why = spec.refuse_constants(consts, op)
+    if why is not None:
+        raise _Refused(f"{label} ({kind}) {why}")
+    values = []
+    for i, (name, types) in enumerate(spec.settings):
         if i >= len(consts) or type(consts[i]) not in types:
             raise _Refused(f"{label} ({kind}) whose forward does not give {name} as a constant "
                            f"(call arguments {consts})")
-        return consts[i]
-
-    if kind in ("ReLU", "Tanh", "Sigmoid", "SiLU"):
-        if any(type(c) is not bool for c in consts):  # only the functional helper's ``inplace`` flag
-            raise _Refused(f"{label} ({kind}) whose forward passes {consts} to {op}")
-        return {"ReLU": nn.ReLU, "Tanh": nn.Tanh, "Sigmoid": nn.Sigmoid, "SiLU": nn.SiLU}[kind]()
-    if kind == "Softmax":
-        dim = arg(0, (int, type(None)), "dim")
-        if len(consts) > 3 or consts[2:3] not in ([], [None]):
-            raise _Refused(f"{label} (Softmax) with a dtype argument {consts[2]!r}")
-        return nn.Softmax(dim=dim)
-    if kind == "LeakyReLU":
-        if len(consts) > 2:
-            raise _Refused(f"{label} (LeakyReLU) whose forward passes {consts}")
-        return nn.LeakyReLU(float(arg(0, (int, float), "negative_slope")))
-    if len(consts) != 2:  # Softplus(beta, threshold)
-        raise _Refused(f"{label} (Softplus) whose forward passes {consts}")
-    return nn.Softplus(beta=float(arg(0, (int, float), "beta")), threshold=float(arg(1, (int, float), "threshold")))
+        values.append(consts[i])
+    return spec.build(values)
 
 
 def _build_linear(node: _Node, label: str, expr: Any) -> nn.Linear:
@@ -649,7 +535,7 @@ def eager_from_archive(path: str | Path) -> nn.Module:
     """Read a TorchScript decoder file as data and rebuild it as an eager module; nothing in it runs.
 
     The archive must hold a traced or scripted ``nn.Sequential`` (possibly nested) of the layers in
-    :data:`ARCHIVE_LAYERS` (or one such layer), with floating-point, finite weights and code that
+    :data:`SUPPORTED_LAYERS` (or one such layer), with floating-point, finite weights and code that
     only chains those layers. The result is in eval/train mode as stored, on CPU, in the stored dtype.
 
     Raises:

@@ -26,7 +26,8 @@ ROOT = Path(controlgs_adapter.__file__).resolve().parent
 LAYERS: dict[int, tuple[str, ...]] = {
     # 1. foundation: errors, checks, states, file readers that know no model, the splatter, the clock
     1: ("_version", "errors", "checks", "state", "seeding", "lock", "extras", "clock", "injector", "metrics", "losses",
-        "formats.safetensors", "formats.torchscript", "formats.backbone", "formats.decoders", "formats.layout",
+        "formats.safetensors", "formats.torchscript_layers", "formats.torchscript_live", "formats.torchscript",
+        "formats.backbone", "formats.decoders", "formats.layout",
         "rendering.splatter"),
     # 2. contracts: import no registry, register nothing
     2: ("backend", "schedules", "rendering.rasterizer", "rendering.renderer", "downstream.stage"),
