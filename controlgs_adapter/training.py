@@ -43,7 +43,7 @@ from .seeding import seeded
 from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .state import Camera, RuntimeState
 
-__all__ = ["TrainConfig", "Trainer", "Views", "DEFAULT_EFFECTS", "modules_for", "views_fingerprint"]
+__all__ = ["TrainConfig", "Trainer", "TrainingJob", "Views", "DEFAULT_EFFECTS", "modules_for", "views_fingerprint"]
 
 #: the downstream path of the paper's evaluation: lens pre-warp, area resampling, uniform
 #: dimming, OLED box pixels and the Cardboard PSF optics
@@ -329,20 +329,34 @@ class Trainer:
         self.history.append(value)
         return value
 
-    def train(self, *, until: int | None = None, progress: bool = True) -> ControlGS:
+    def train(self, *, until: int | None = None, progress: bool = True, desc: str | None = None,
+              job: "TrainingJob | None" = None) -> ControlGS:
         """Run steps up to iteration ``until`` (default ``config.iterations``), writing checkpoints
-        every ``config.checkpoint_every`` iterations and at the end when a path was given."""
+        every ``config.checkpoint_every`` iterations and at the end when a path was given.
+
+        ``desc``: the progress bar's title (default ``"training ControlGS"``). ``job``: the
+        :class:`TrainingJob` this training is one of; the bar is then titled ``[k/N] <desc>`` and
+        shows the estimated time left for the whole job."""
         end = self.config.iterations if until is None else min(int(until), self.config.iterations)
-        bar = tqdm(total=self.config.iterations, initial=self.iteration, desc="training ControlGS",
+        title = "training ControlGS" if desc is None else desc
+        if job is not None:
+            title = job.start(title, self.iteration)
+        bar = tqdm(total=self.config.iterations, initial=self.iteration, desc=title,
                    disable=not progress or not self.dist.is_main,
                    dynamic_ncols=True)
         every = self.config.checkpoint_every
         t0 = time.perf_counter()
         try:
             while self.iteration < end:
+                t_step = time.perf_counter()
                 loss = self.step()
+                if job is not None:
+                    job.step(time.perf_counter() - t_step)
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss:.4f}", optics=self.optics_mode(self.iteration - 1), refresh=False)
+                postfix = {"loss": f"{loss:.4f}", "optics": self.optics_mode(self.iteration - 1)}
+                if job is not None:
+                    postfix["total left"] = job.remaining_text()
+                bar.set_postfix(postfix, refresh=False)
                 if self.checkpoint_path is not None and every and self.iteration % every == 0:
                     self.save_checkpoint(self.checkpoint_path)
         finally:
@@ -392,3 +406,57 @@ class Trainer:
             self.load_checkpoint(self.checkpoint_path)
             return True
         return False
+
+
+def _duration(seconds: float) -> str:
+    """``"45s"``, ``"4m10s"``, ``"2h05m"``."""
+    s = int(round(seconds))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
+class TrainingJob:
+    """Progress of a job of several trainings (``controlgs train`` / ``demo``: ControlGS and the
+    ablations, times ``--seeds``): each :meth:`Trainer.train` given the job titles its bar
+    ``[k/N] <what>`` (``[3/10] training w/o Lens, seed 1``) and shows an estimate of the time the whole job has left, the
+    iterations left in it times the mean time of the iterations run so far (a resumed checkpoint's
+    iterations count as done and are not timed).
+
+    Args:
+        trainings: N, the number of trainings in the job.
+        iterations: iterations of each training.
+    """
+
+    def __init__(self, trainings: int, iterations: int) -> None:
+        self.trainings = int(check_number("trainings", trainings, integer=True, low=1))
+        self.iterations = int(check_number("iterations", iterations, integer=True, low=0))
+        self.index = 0  # trainings started
+        self.done = 0  # iterations of the job done (run or resumed)
+        self.ran = 0  # iterations run by this process
+        self.seconds = 0.0  # their wall time
+
+    def start(self, what: str, already: int = 0) -> str:
+        """Begin the next training (``already``: iterations a checkpoint brought); returns its bar title."""
+        self.index = min(self.index + 1, self.trainings)
+        self.done = (self.index - 1) * self.iterations + min(int(already), self.iterations)
+        return f"[{self.index}/{self.trainings}] {what}"
+
+    def step(self, seconds: float) -> None:
+        """One iteration ran, in ``seconds``."""
+        self.done += 1
+        self.ran += 1
+        self.seconds += float(seconds)
+
+    def remaining(self) -> float | None:
+        """Estimated seconds left for the whole job (None before an iteration ran)."""
+        if not self.ran:
+            return None
+        return max(0, self.trainings * self.iterations - self.done) * self.seconds / self.ran
+
+    def remaining_text(self) -> str:
+        """:meth:`remaining` for a progress bar: ``"~4m10s"`` (``"?"`` before an iteration ran)."""
+        left = self.remaining()
+        return "?" if left is None else "~" + _duration(left)

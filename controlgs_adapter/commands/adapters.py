@@ -89,17 +89,30 @@ def train_config(args: argparse.Namespace, name: str, seed: int | None = None) -
                        batch_size=getattr(args, "batch_size", base.batch_size))
 
 
+def training_job(args: argparse.Namespace, names: Sequence[str], seeds: int = 1) -> Any:
+    """The :class:`~controlgs_adapter.training.TrainingJob` of training ``names`` for ``seeds`` seeds:
+    its bars say which training of how many runs and the time the whole job has left (seeds x
+    adapters trainings of ``--iterations`` each)."""
+    from ..training import TrainingJob
+
+    return TrainingJob(max(1, len(names) * seeds), args.iterations)
+
+
 def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
                    dist: Any = None, trained: dict[str, int] | None = None, seed: int | None = None,
-                   renderer: Any = None) -> dict[str, Path]:
+                   renderer: Any = None, job: Any = None) -> dict[str, Path]:
     """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
     names) on the training ``views`` (a :class:`~controlgs_adapter.training.Views` dataset); returns ``{name: adapter
     file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this process's
     :class:`~controlgs_adapter.distributed.DistContext` in a data-parallel run (rank 0 writes the files). ``trained``, if
     given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked).
-    ``seed``: the training seed (default ``args.seed``). ``renderer``: the :class:`Trainer`'s (None: the model's own)."""
+    ``seed``: the training seed (default ``args.seed``). ``renderer``: the :class:`Trainer`'s (None: the model's own).
+    ``job``: the :func:`training_job` these trainings belong to (None: one of ``names``); each bar reads
+    ``[k/N] training <method>, seed <s>`` with the job's estimated time left."""
+    from ..report import METHOD_LABELS
     from ..training import Trainer
 
+    job = training_job(args, names) if job is None else job
     paths = {}
     for name in names:
         config = train_config(args, name, seed)
@@ -114,7 +127,8 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
             print(f"{name}: the checkpoint is already at iteration {trainer.iteration} > --iterations "
                   f"{config.iterations}; keeping what was trained")
         try:
-            trainer.train(progress=args.progress)
+            trainer.train(progress=args.progress, desc=f"training {METHOD_LABELS.get(name, name)}, seed {config.seed}",
+                          job=job)
             if main:
                 trainer.cgs.save(target)
         finally:

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .adapters import add_training, effects_from, train_adapters
+from .adapters import add_training, effects_from, train_adapters, training_job
 
 DEFAULT_RESOLUTION = 96
 
@@ -121,7 +121,8 @@ def _run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     names = ["controlgs", *(ABLATIONS if args.ablations else [])]
     trained: dict[str, int] = {}
-    adapters = {s: train_adapters(scene.views("train"), model, folder, args, names, trained=trained, seed=s)
+    job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
+    adapters = {s: train_adapters(scene.views("train"), model, folder, args, names, trained=trained, seed=s, job=job)
                 for s, folder in runs}
     timings["train_s"] = time.perf_counter() - t
 

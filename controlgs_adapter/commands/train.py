@@ -15,7 +15,7 @@ from typing import Any
 
 from ..ablations import ABLATIONS
 from ..distributed import DistContext, init_distributed, shard_scenes
-from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters
+from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters, training_job
 from .common import (RUN_FILE, add_data_arguments, add_render_arguments, anchor_positions, cache_bytes, check_line,
                      check_rasterizer_name, load_user_scene, make_renderer, parse_device, render_record,
                      user_scene)
@@ -78,9 +78,11 @@ def _run(args: argparse.Namespace) -> int:
                 with run_lock(out / variant):
                     views, model = load(variant)
                     renderer = make_renderer(args, model)
-                    for seed, folder in seed_runs(out / variant, args.seed, args.seeds):
+                    scene_runs = seed_runs(out / variant, args.seed, args.seeds)
+                    job = training_job(args, names, len(scene_runs))
+                    for seed, folder in scene_runs:
                         paths = train_adapters(views, model, folder, args, names, dist=DistContext(), seed=seed,
-                                               renderer=renderer)
+                                               renderer=renderer, job=job)
                         for name, path in paths.items():
                             print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
@@ -91,8 +93,9 @@ def _run(args: argparse.Namespace) -> int:
             _write_run(out, {"variant": args.variant, "effects": sorted(effects_from(args.effects)), "iterations": args.iterations,
                              "seed": args.seed, "seeds": len(runs), "adapters": names, **render_record(args),
                              "distributed": _dist_record(dist)})
+        job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
         for seed, folder in runs:
-            paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed, renderer=renderer)
+            paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed, renderer=renderer, job=job)
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
@@ -117,8 +120,10 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
             record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
                                   seeds=len(runs), adapters=names, **render_record(args), distributed=_dist_record(dist))
             _write_run(out, record)
+        job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
         for seed, folder in runs:
-            paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed, renderer=renderer)
+            paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed, renderer=renderer,
+                                   job=job)
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
