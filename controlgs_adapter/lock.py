@@ -3,7 +3,9 @@
 ``with run_lock(folder):`` takes a non-blocking ``flock`` on ``<folder>/.lock`` and records the
 holder (pid, host, start time, command line) in it; a second holder gets :class:`RunLockedError`
 naming the first. The kernel drops the lock when its process dies (even on SIGKILL), so a stale
-``.lock`` file never blocks a later run. POSIX only; elsewhere the lock is not taken.
+``.lock`` file never blocks a later run. A folder the lock created is removed again when the block
+fails having written nothing else there (a refused run leaves nothing). POSIX only; elsewhere the
+lock is not taken.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ def run_lock(folder: str | os.PathLike) -> Iterator[Path]:
         return
     folder = as_path(folder, "run folder")
     path = folder / LOCK_NAME
+    created = _missing_folders(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, file_mode())
@@ -72,7 +75,33 @@ def run_lock(folder: str | os.PathLike) -> Iterator[Path]:
         os.pwrite(fd, json.dumps(me).encode(), 0)
         try:
             yield path
+        except BaseException:
+            _remove_if_unused(created, path)
+            raise
         finally:
             os.ftruncate(fd, 0)
     finally:
         os.close(fd)  # releases the flock
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """The folders, innermost first, that creating ``folder`` would create."""
+    missing = []
+    try:
+        while not folder.exists() and folder != folder.parent:
+            missing.append(folder)
+            folder = folder.parent
+    except OSError:
+        return []
+    return missing
+
+
+def _remove_if_unused(created: list[Path], lock: Path) -> None:
+    """Remove ``lock`` and the ``created`` folders (innermost first) while they hold nothing else."""
+    if not created:
+        return
+    with contextlib.suppress(OSError):
+        if [p.name for p in created[0].iterdir()] == [lock.name]:
+            lock.unlink()
+        for f in created:
+            f.rmdir()  # fails (and stops) at the first folder something else was written into

@@ -2,7 +2,8 @@
 scene: a renderer module written by the user renders every training and evaluation view (it logs
 its calls), the rasterizer choice takes effect (``$CONTROLGS_RASTERIZER`` names one that cannot run
 here, so a run that ignored ``--rasterizer torch`` would fail), both are recorded in ``run.json`` and
-``eval`` takes them from there; bad names fail in one line naming what is available."""
+``eval`` takes them from there (the renderer with ``--trust-run-renderer``); bad names fail in one
+line naming what is available."""
 
 from __future__ import annotations
 
@@ -86,7 +87,10 @@ def test_user_renderer_and_rasterizer_train_and_evaluate(tmp_path, data, monkeyp
     trained = _calls(log)
     assert trained.count("render") == 3 and trained.count("visible") == 3  # one render per training step
 
-    assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress"]) == 0
+    assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress"]) == 2
+    assert _calls(log) == trained  # the run's renderer is not run without the user's say
+    assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress",
+                 "--trust-run-renderer"]) == 0
     evaluated = _calls(log)[len(trained):]
     assert evaluated.count("render") > 20  # the grid's renders (4 x 5 states, baselines) went through it
     info = json.loads((report / "results.json").read_text())["info"]
@@ -94,7 +98,8 @@ def test_user_renderer_and_rasterizer_train_and_evaluate(tmp_path, data, monkeyp
 
     # without the recorded choice the environment's gsplat applies, and cannot render on the CPU
     (run / "run.json").write_text(json.dumps({**record, "rasterizer": "auto"}))
-    assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress"]) == 2
+    assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress",
+                 "--trust-run-renderer"]) == 2
 
 
 def test_a_render_function_from_the_current_folder(tmp_path, data, monkeypatch, capsys):

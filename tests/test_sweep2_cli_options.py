@@ -107,6 +107,7 @@ OPTIONS: list[tuple[str, str, str, str, str, list[str] | None, Any, Any, Any, bo
     ('eval', '--device', 'device', 'store', 'str', None, 'cpu', None, None, False),
     ('eval', '--rasterizer', 'rasterizer', 'store', 'str', None, None, 'NAME', None, False),
     ('eval', '--renderer', 'renderer', 'store', 'str', None, None, 'MODULE:ATTR', None, False),
+    ('eval', '--trust-run-renderer', 'trust_run_renderer', 'true', 'str', None, False, None, 0, False),
     ('eval', '--effects', 'effects', 'store', 'str', None, None, None, None, False),
     ('eval', '--lpips-weights', 'lpips_weights', 'store', 'str', None, None, 'PATH', '+', False),
     ('demo', '--out', 'out', 'store', 'str', None, 'report', None, None, False),
@@ -154,6 +155,7 @@ OPTIONS: list[tuple[str, str, str, str, str, list[str] | None, Any, Any, Any, bo
     ('view', '--device', 'device', 'store', 'str', None, 'cpu', None, None, False),
     ('view', '--rasterizer', 'rasterizer', 'store', 'str', None, None, 'NAME', None, False),
     ('view', '--renderer', 'renderer', 'store', 'str', None, None, 'MODULE:ATTR', None, False),
+    ('view', '--trust-run-renderer', 'trust_run_renderer', 'true', 'str', None, False, None, 0, False),
 ]
 
 #: the value a flag stores

@@ -52,6 +52,11 @@ def settings_from_args(args: argparse.Namespace) -> BenchSettings:
 
 def run(args: argparse.Namespace) -> int:
     """Measure, print the report, write it to ``--out`` / ``--doc`` if given."""
+    from .common import check_options, check_out_path
+
+    check_options(args)
+    if args.out is not None:
+        check_out_path(args.out, "--out", folder=False)  # before the measurements
     settings = settings_from_args(args)
     t0 = time.perf_counter()
     result = run_bench(settings, progress=args.progress)

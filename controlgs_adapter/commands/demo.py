@@ -95,7 +95,14 @@ def run(args: argparse.Namespace) -> int:
     """The demo, holding the lock of the report folder (a second run into it is refused)."""
     from controlgs_adapter.lock import run_lock
 
-    with run_lock(Path(args.out)):
+    from .adapters import train_config
+    from .common import check_options, check_out_path
+
+    check_options(args)  # before the lock: a refused demo creates nothing
+    out = check_out_path(args.out, "--out", folder=True)
+    for seed, _ in seed_runs(out, args.seed, args.seeds):
+        train_config(args, "controlgs", seed)
+    with run_lock(out):
         return _run(args)
 
 

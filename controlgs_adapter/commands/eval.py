@@ -11,8 +11,8 @@ import argparse
 import time
 from pathlib import Path
 
-from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_rasterizer_name,
-                     make_renderer, render_record, user_scene)
+from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_options,
+                     check_out_path, check_rasterizer_name, make_renderer, render_record, user_scene)
 from .adapters import effects_from
 from .demo import add_common, add_lpips, evaluate_seeds, load_lpips_arg, report_figures, seed_runs
 
@@ -24,7 +24,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--out", default=None, help="report folder (default: the run folder)")
     add_common(p)
     add_data_arguments(p)
-    add_render_arguments(p)
+    add_render_arguments(p, from_run=True)
     p.add_argument("--effects", default=None, help="downstream stages, comma-separated (default: the run's, else all)")
     add_lpips(p)
     p.set_defaults(func=run)
@@ -37,7 +37,10 @@ def run(args: argparse.Namespace) -> int:
     from controlgs_adapter.ablations import ABLATIONS
     from controlgs_adapter.report import write_report
 
+    check_options(args)  # every option, the report folder and the run file before any work
     run_dir = Path(args.run)
+    out = check_out_path(args.out, "--out", folder=True) if args.out else check_out_path(run_dir, "--run", folder=True)
+    recorded = apply_run_defaults(args, run_dir)
     adapters = {seed: {n: folder / f"{n}.controlgs.safetensors" for n in ("controlgs", *ABLATIONS)
                        if (folder / f"{n}.controlgs.safetensors").is_file()}
                 for seed, folder in seed_folders(run_dir, args.seed, args.seeds)}
@@ -50,7 +53,6 @@ def run(args: argparse.Namespace) -> int:
                               + "; ".join(f"seed-{s}: {', '.join(found)}" for s, found in adapters.items())
                               + "); train every seed with the same ablations")
     lpips = load_lpips_arg(args)
-    recorded = apply_run_defaults(args, run_dir)
     check_rasterizer_name(args.rasterizer)  # before loading anything
     t = time.perf_counter()
     if user_scene(args):
@@ -86,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
             "load_s": round(load_s, 1), "eval_s": round(eval_s, 1),
             **({"lpips_weights": lpips.source} if lpips is not None else {}),
             **({"iterations": recorded.get("iterations"), "seed": recorded.get("seed")} if recorded else {})}
-    for p in write_report(Path(args.out) if args.out else run_dir, results, info=info, comparison=comparison,
+    for p in write_report(out, results, info=info, comparison=comparison,
                           response=response):
         print(p)
     return 0

@@ -7,6 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
+from .common import check_out_path
+
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
     p = sub.add_parser("optics", help="PSF banks from lens prescriptions; optics operator benchmark")
@@ -90,8 +92,7 @@ def run_build(args: argparse.Namespace) -> int:
         raise InputValueError(f"--pupil-samples must be >= 4, got {args.pupil_samples}")
     if not (args.min_pitch_px > 0 and args.min_pitch_px < float("inf")):
         raise InputValueError(f"--min-pitch-px must be a finite number > 0, got {args.min_pitch_px}")
-    if args.out.is_dir():
-        raise InputValueError(f"--out {args.out}: is a folder; expected the path of the .safetensors file to write")
+    check_out_path(args.out, "--out", folder=False)
     rx = _prescription(args.prescription)
     t0 = time.perf_counter()
     bank = build_bank(rx, grid=tuple(args.grid), psf_size=args.psf_size, pupil_samples=args.pupil_samples,
@@ -116,6 +117,8 @@ def run_bench(args: argparse.Namespace) -> int:
     from controlgs_adapter.downstream.optics.bench import parse_size
     from controlgs_adapter.errors import InputValueError
 
+    if args.out is not None:
+        check_out_path(args.out, "--out", folder=True)
     for s in args.sizes:
         try:
             parse_size(s)
@@ -134,8 +137,7 @@ def run_fit_prewarp(args: argparse.Namespace) -> int:
     from controlgs_adapter.downstream.prewarp_fit import fit_bank_prewarp
     from controlgs_adapter.errors import InputValueError
 
-    if args.out.is_dir():
-        raise InputValueError(f"--out {args.out}: is a folder; expected the path of the .safetensors file to write")
+    check_out_path(args.out, "--out", folder=False)
     if args.size < 8 or args.size % 2:
         raise InputValueError(f"--size must be an even integer >= 8, got {args.size}")
     lut = fit_bank_prewarp(PSFOptics(args.bank, radiometry=args.radiometry), args.size, modes=tuple(args.modes))

@@ -27,8 +27,16 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
 
 def run_build(args: argparse.Namespace) -> int:
+    from controlgs_adapter.checks import check_number
     from controlgs_adapter.scene import build_builtin_backbone
 
+    from .common import check_out_path
+
+    for option, value in (("--resolution", args.resolution), ("--iterations", args.iterations),
+                          ("--max-anchors", args.max_anchors), ("--n-offsets", args.n_offsets)):
+        check_number(option, value, integer=True, low=1)
+    check_number("--seed", args.seed, integer=True, low=0, high=2**63 - 1)
+    check_out_path(args.out, "--out", folder=True)  # before the training
     path = build_builtin_backbone(args.variant, resolution=args.resolution, iterations=args.iterations,
                                   max_anchors=args.max_anchors, n_offsets=args.n_offsets, out=args.out, seed=args.seed)
     print(f"backbone written to {path} (see build.json there)")
@@ -36,15 +44,19 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     import matplotlib.image
 
+    from controlgs_adapter.checks import check_number
     from controlgs_adapter.formats.safetensors import atomic_write
     from controlgs_adapter.scene import load_builtin_scene
 
+    from .common import check_out_path
+
+    check_number("--resolution", args.resolution, integer=True, low=1)
+    out = check_out_path(args.out, "--out", folder=True)
+    for split in ("train", "test"):
+        check_out_path(out / split, "--out", folder=True)
     scene = load_builtin_scene(args.variant, args.resolution, cache=True)
-    out = Path(args.out)
     for split, images in (("train", scene.train_images), ("test", scene.test_images)):
         for i, img in enumerate(images):
             arr = img.permute(1, 2, 0).numpy()

@@ -2,7 +2,8 @@
 backbone: a user's trained model folder and its dataset (``--model`` / ``--data``), or the built-in
 scene's baked backbone (``--variant``). Checkpoints resume exactly after an interruption; adapters
 are saved as safetensors (with ``--seeds K``, one folder ``RUN/seed-<s>`` per seed); ``RUN/run.json``
-records what the run was trained on. Under ``torchrun``
+records what the run was trained on (written once its adapters are saved; a folder trained on another
+scene is refused). Under ``torchrun``
 it trains data-parallel, or with ``--scenes`` one built-in scene per process (docs/how-to/distributed.md)."""
 
 from __future__ import annotations
@@ -15,10 +16,10 @@ from typing import Any
 
 from ..ablations import ABLATIONS
 from ..distributed import DistContext, init_distributed, shard_scenes
-from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters, training_job
+from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters, train_config, training_job
 from .common import (RUN_FILE, add_data_arguments, add_render_arguments, anchor_positions, cache_bytes, check_line,
-                     check_rasterizer_name, load_user_scene, make_renderer, parse_device, render_record,
-                     user_scene)
+                     check_options, check_out_path, check_rasterizer_name, load_user_scene, make_renderer, parse_device,
+                     read_run, render_record, user_scene)
 from .demo import add_common, seed_runs
 
 ABLATION_NAMES = tuple(ABLATIONS)
@@ -44,10 +45,43 @@ def run(args: argparse.Namespace) -> int:
     rank 0 holds it for the job; with ``--scenes`` each process locks its scenes' folders)."""
     from controlgs_adapter.lock import run_lock
 
+    _check(args)  # every option and --out before the lock (a refused run creates nothing)
     if args.scenes or os.environ.get("RANK", "0") != "0":
         return _run(args)
     with run_lock(Path(args.out)):
         return _run(args)
+
+
+def _check(args: argparse.Namespace) -> None:
+    """Refuse a run whose options cannot train (one line naming the option) before anything is written."""
+    from controlgs_adapter.errors import InputValueError
+
+    if args.scenes and user_scene(args):
+        raise InputValueError("--scenes trains built-in scenes; it does not combine with --model/--data")
+    check_options(args)
+    writes = args.scenes or os.environ.get("RANK", "0") == "0"  # another rank of a data-parallel run writes nothing
+    out = check_out_path(args.out, "--out", folder=True) if writes else Path(args.out)
+    for seed, _ in seed_runs(out, args.seed, args.seeds):
+        for name in ["controlgs", *(args.ablation or (ABLATION_NAMES if args.ablations else ()))]:
+            train_config(args, name, seed)
+
+
+#: run.json fields naming what a run folder's adapters were trained on: a later train into the folder must agree
+SCENE_FIELDS = ("variant", "model", "data", "family", "model_iteration", "allow_unquantized", "format", "images",
+                "holdout", "white_background", "resolution", "effects")
+
+
+def check_same_scene(out: Path, record: dict[str, Any]) -> None:
+    """Refuse training into ``out`` when its ``run.json`` records another scene (model, data, how it is
+    read, effects) than ``record``: its adapters and record would no longer agree."""
+    from controlgs_adapter.errors import InputValueError
+
+    old = read_run(out)
+    for key in SCENE_FIELDS if old is not None else ():
+        if key in old and old[key] != record.get(key):
+            raise InputValueError(f"--out {out}: the run there was trained with {key} {old[key]!r}, this command gives "
+                                  f"--{key.replace('_', '-')} {record.get(key)!r}; a run folder holds the adapters of one "
+                                  "scene: choose another --out")
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -89,21 +123,23 @@ def _run(args: argparse.Namespace) -> int:
         views, model = load(args.variant)
         renderer = make_renderer(args, model)
         runs = seed_runs(out, args.seed, args.seeds)
-        if dist.is_main:
-            _write_run(out, {"variant": args.variant, "effects": sorted(effects_from(args.effects)), "iterations": args.iterations,
-                             "seed": args.seed, "seeds": len(runs), "adapters": names, **render_record(args),
-                             "distributed": _dist_record(dist)})
+        record = {"variant": args.variant, "effects": sorted(effects_from(args.effects)), "iterations": args.iterations,
+                  "seed": args.seed, "seeds": len(runs), "adapters": names, **render_record(args),
+                  "distributed": _dist_record(dist)}
+        check_same_scene(out, record)
         job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
         for seed, folder in runs:
             paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed, renderer=renderer, job=job)
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
+        if dist.is_main:  # once the adapters it describes are saved
+            _write_run(out, record)
     return 0
 
 
 def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
-    """Train on ``--model`` / ``--data``: load, check the scene, record ``run.json``, train."""
+    """Train on ``--model`` / ``--data``: load, check the scene, train, then record ``run.json``."""
     from controlgs_adapter.datasets.sanity import check_scene
 
     runs = seed_runs(out, args.seed, args.seeds)
@@ -114,12 +150,12 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
         scene.model.to(dist.device)  # loaded on --device; under NCCL this rank's own GPU, cuda:<LOCAL_RANK>
         views = scene.data.views("train", resolution=scene.resolution, cache_bytes=cache_bytes(args))
         renderer = make_renderer(args, scene.model)
+        record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
+                              seeds=len(runs), adapters=names, **render_record(args), distributed=_dist_record(dist))
+        check_same_scene(out, record)
         if dist.is_main:
             print(check_line(report))
             print(f"model: {scene.family} {args.model}; training views: {views.describe()}")
-            record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
-                                  seeds=len(runs), adapters=names, **render_record(args), distributed=_dist_record(dist))
-            _write_run(out, record)
         job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
         for seed, folder in runs:
             paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed, renderer=renderer,
@@ -127,6 +163,8 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
+        if dist.is_main:  # once the adapters it describes are saved
+            _write_run(out, record)
     return 0
 
 

@@ -10,8 +10,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
-from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_rasterizer_name,
-                     make_renderer, parse_device, user_scene)
+from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_options,
+                     check_rasterizer_name, make_renderer, parse_device, user_scene)
 
 #: the built-in scene's default resolution in the viewer (the latency benchmark's 128 px)
 VIEW_RESOLUTION = 128
@@ -38,7 +38,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--threads", type=int, default=None,
                    help="torch intra-op threads on the CPU (default: torch's; 1 can be faster on a busy machine)")
     add_data_arguments(p)
-    add_render_arguments(p)
+    add_render_arguments(p, from_run=True)
     p.set_defaults(func=run)
 
 
@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from controlgs_adapter.viewer import ViewerSession, make_server
 
     check_number("--port", args.port, integer=True, low=0, high=65535)
+    check_options(args)
     if args.threads is not None:
         torch.set_num_threads(int(check_number("--threads", args.threads, integer=True, low=1)))
     run_dir = None if args.run is None else Path(args.run)

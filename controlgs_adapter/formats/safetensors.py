@@ -85,7 +85,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], object]) -> Pat
     The file gets the umask's mode (as ``open`` would give it); the temporary sibling is named
     ``.<name>.<pid>.<random>.tmp`` so that one left by a killed writer is removed by the next write
     to ``path``. Raises :class:`InputValueError` for a path that is not one or names a folder, and
-    :class:`FileWriteError` (an ``OSError``) naming ``path`` when the write fails."""
+    :class:`FileWriteError` (an ``OSError``) naming ``path`` when the write fails (a full disk, a file
+    size limit, safetensors' own error from the same causes); the temporary file is removed and a
+    file already at ``path`` is left as it was."""
     path = as_path(path)
     if path.is_dir():
         raise InputValueError(f"{path}: is a folder; expected the path of a file to write")
@@ -102,10 +104,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], object]) -> Pat
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except OSError as e:
+    except (OSError, SafetensorError) as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
-        raise FileWriteError(f"{path}: write failed: {e.strerror or e}") from e
+        why = (e.strerror if isinstance(e, OSError) else None) or " ".join(str(e).split()) or type(e).__name__
+        raise FileWriteError(f"{path}: write failed: {why}") from e
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
