@@ -96,9 +96,21 @@ def seed_summary(results: GridResult | Sequence[GridResult]) -> dict[str, dict[s
     return out
 
 
+def seed_independent(runs: Sequence[GridResult]) -> set[str]:
+    """The methods whose every per-view value is the same in each seed's result: they do not depend on
+    the seed (the backbone without and with supersampling and the ideal render are evaluated once and
+    shared by the seeds). With one seed: none (no spread was measured)."""
+    if len(runs) < 2:
+        return set()
+    first = runs[0]
+    return {m for m in first.methods
+            if all(torch.equal(r.per_view[m][k], first.per_view[m][k]) for r in runs[1:] for k in first.metrics)}
+
+
 def _table(summary: Mapping[str, Mapping[str, Mapping[str, Any]]], methods: Sequence[str], metrics: Sequence[str],
-           seeds: int) -> list[str]:
-    """Rows ``method | metric...``: the mean (± std over seeds when several); the best non-ideal mean in bold."""
+           seeds: int, fixed: set[str] | frozenset[str] = frozenset()) -> list[str]:
+    """Rows ``method | metric...``: the mean (± std over seeds when several, but for the ``fixed``
+    methods, which do not depend on the seed); the best non-ideal mean in bold."""
     lines = ["| Method | " + " | ".join(f"{m.upper()}{_arrow(m)}" for m in metrics) + " |",
              "|---|" + "---:|" * len(metrics)]
     best = {}
@@ -110,7 +122,7 @@ def _table(summary: Mapping[str, Mapping[str, Mapping[str, Any]]], methods: Sequ
         for k in metrics:
             fmt = _FMT.get(k, "{:.4f}")
             v = summary[m][k]["mean"]
-            s = fmt.format(v) + (f" ± {fmt.format(summary[m][k]['std'])}" if seeds > 1 else "")
+            s = fmt.format(v) + (f" ± {fmt.format(summary[m][k]['std'])}" if seeds > 1 and m not in fixed else "")
             cells.append(f"**{s}**" if m != IDEAL and v == best[k] else s)
         lines.append(f"| {_label(m)} | " + " | ".join(cells) + " |")
     return lines
@@ -185,6 +197,7 @@ def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[st
     result = _pooled(runs)
     summary = seed_summary(runs)
     seeds, metrics = len(runs), result.metrics
+    fixed = seed_independent(runs)
     main = [m for m in ("no_ss", "ss", "controlgs") if m in result.methods]
     lines = ["# ControlGS evaluation report", ""]
     if info:
@@ -194,8 +207,11 @@ def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[st
               f"{result.per_view[result.methods[0]][metrics[0]].shape[-1]} test views and the "
               f"{len(result.downsample) * len(result.power_saving)} run-time settings{over} (paper Tbl. 1); the last row "
               "is the ideal-render bound, the ground truth itself through the same pipeline:", ""]
-    lines += _table(summary, main + ([IDEAL] if IDEAL in result.methods else []), metrics, seeds) + [""]
+    lines += _table(summary, main + ([IDEAL] if IDEAL in result.methods else []), metrics, seeds, fixed) + [""]
     notes = []
+    if fixed:
+        notes.append(f"Rows without ± ({', '.join(_label(m) for m in result.methods if m in fixed)}) do not depend on the "
+                     "seed: they are the same in every seed's evaluation.")
     if "flip" in metrics:
         notes.append(f"FLIP is NVIDIA's LDR-FLIP (flip-evaluator) at {FLIP_PPD:.2f} pixels per degree (its default observer), mean error per image.")
     notes.append(f"LPIPS (AlexNet) from {info['lpips_weights']}." if info and info.get("lpips_weights") and "lpips" in metrics
@@ -204,7 +220,8 @@ def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[st
     ablations = [a for a in ABLATIONS if a in result.methods]
     if ablations:
         lines += ["Ablations (paper Tbl. 4):", ""]
-        lines += _table(summary, ["controlgs", *ablations, *(["ss"] if "ss" in result.methods else [])], metrics, seeds) + [""]
+        lines += _table(summary, ["controlgs", *ablations, *(["ss"] if "ss" in result.methods else [])], metrics, seeds,
+                        fixed) + [""]
     spread = _spread(summary, metrics, result.methods, seeds)
     if spread:
         lines += ["## Differences against the seed spread", "",
