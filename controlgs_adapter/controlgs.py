@@ -13,7 +13,6 @@ before it changes anything on the model, and ``unwrap`` puts back exactly what w
 from __future__ import annotations
 
 import contextlib
-import warnings
 import weakref
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -26,7 +25,7 @@ from . import plugins
 from .plugins import select_backend
 from .backend import Backend, anchor_ids_from_mask, get_attr_path, set_attr_path
 from .errors import (IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
-                     LifecycleError, ShapeError, TargetError)
+                     LifecycleError, ShapeError, TargetError, warn_user)
 from .injector import ConditionInjector, InjectionContext
 from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, AdapterSpec, Problem, build_header, fingerprint_mismatch,
                            map_conditions, read_spec, read_tensors, row_map, tensor_mismatches, valid_fingerprint,
@@ -443,7 +442,7 @@ class ControlGS:
                + (f"; the TorchScript decoders {rebuilt} were replaced there by eager copies" if rebuilt else ""))
         if on_miss == "raise":
             raise InjectionMissedError(msg)
-        warnings.warn(msg, RuntimeWarning, stacklevel=4)
+        warn_user(msg, RuntimeWarning)
 
     # ------------------------------------------------------------------ files
     def adapter_spec(self) -> AdapterSpec:
@@ -638,9 +637,8 @@ def _read_adapter(path: str | Path, model: Any, *, strict: bool, wrapped: Contro
     assert backend is not None
     skipped = [m for m, s in problems if s is not None]
     if problems:
-        warnings.warn(f"{path}: non-strict load skipped what does not fit this model:\n  - "
-                      + "\n  - ".join(m if s is not None else m + " (loaded anyway)" for m, s in problems),
-                      RuntimeWarning, stacklevel=3)
+        warn_user(f"{path}: non-strict load skipped what does not fit this model:\n  - "
+                  + "\n  - ".join(m if s is not None else m + " (loaded anyway)" for m, s in problems), RuntimeWarning)
     for _, s in problems:
         if isinstance(s, (set, frozenset)):
             for k in s:

@@ -1,6 +1,41 @@
-"""Exception taxonomy. Every error subclasses a built-in so existing ``except`` clauses keep working."""
+"""Exception taxonomy. Every error subclasses a built-in so existing ``except`` clauses keep working.
+:func:`warn_user` issues the library's warnings, attributed to the caller's line."""
 
 from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import warnings
+
+#: folders of the library's own code (the package, and the real folders its linked subpackages live in)
+_OWN = tuple(sorted({os.path.join(d, "") for base in (os.path.dirname(os.path.abspath(__file__)),)
+                     for d in (base, os.path.realpath(base), os.path.realpath(os.path.join(base, "backends")),
+                               os.path.realpath(os.path.join(base, "downstream")))}))
+_CONTEXTLIB = os.path.abspath(contextlib.__file__)
+
+
+def _between(filename: str) -> bool:
+    """True for a frame between the user and the warning: the library's own code, ``contextlib`` (the
+    exit of a ``with`` block) and torch (an ``nn.Module`` call into the library)."""
+    path = os.path.abspath(filename)
+    if path.startswith(_OWN) or path == _CONTEXTLIB:
+        return True
+    torch = sys.modules.get("torch")
+    where = getattr(torch, "__file__", None)
+    return where is not None and path.startswith(os.path.join(os.path.dirname(os.path.abspath(where)), ""))
+
+
+def warn_user(message: str, category: type[Warning] = RuntimeWarning) -> None:
+    """``warnings.warn`` attributed to the first caller outside the library (the user's line, so that
+    Python's ``file:line`` points at their code and the warning filters see their module), skipping
+    the library's frames and the ``contextlib`` / torch frames between them and the user."""
+    frame = sys._getframe(1)
+    level = 2
+    while frame.f_back is not None and _between(frame.f_code.co_filename):
+        frame = frame.f_back
+        level += 1
+    warnings.warn(message, category, stacklevel=level)
 
 
 class ControlGSError(Exception):

@@ -13,7 +13,6 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import os
-import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -21,7 +20,7 @@ import pluggy
 
 from . import hookspecs
 from .backend import Backend
-from .errors import NoMatchingBackendError, PluginLoadError
+from .errors import NoMatchingBackendError, PluginLoadError, warn_user
 
 __all__ = [
     "BUILTIN_PLUGINS", "ENTRY_POINT_GROUP", "PluginInfo", "PluginManager", "get_plugin_manager", "register_plugin",
@@ -124,7 +123,7 @@ def _load_entry_points(pm: pluggy.PluginManager, strict: bool) -> None:
                 if pm.get_plugin(ep.name) is not None:
                     pm.unregister(name=ep.name)
                 _failures.append(msg)
-                warnings.warn(msg + " (skipped; CONTROLGS_STRICT_PLUGINS=1 makes this fatal)", RuntimeWarning, stacklevel=3)
+                warn_user(msg + " (skipped; CONTROLGS_STRICT_PLUGINS=1 makes this fatal)", RuntimeWarning)
                 continue
             _sources[ep.name] = dist_name
 
@@ -182,8 +181,7 @@ def _collect(kind: str, hook_name: str, key: Callable[[Any], str]) -> dict[str, 
             prev = out.get(name)
             if prev is not None:
                 if source == BUILTIN_DIST and prev.source != BUILTIN_DIST:
-                    warnings.warn(f"{kind} {name!r} from {prev.plugin} ({prev.source}) replaces the built-in",
-                                  UserWarning, stacklevel=3)
+                    warn_user(f"{kind} {name!r} from {prev.plugin} ({prev.source}) replaces the built-in", UserWarning)
                     continue
                 raise PluginLoadError(
                     f"{kind} {name!r} is registered twice: by {prev.plugin} ({prev.source}) and {plugin_name} ({source})"

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import warnings
 import weakref
 from importlib import resources
 from pathlib import Path
@@ -42,7 +41,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from controlgs_adapter.checks import check_image, check_same_device, check_tensor
-from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError
+from controlgs_adapter.errors import FileFormatError, InputValueError, ShapeError, warn_user
 from controlgs_adapter.formats.safetensors import load_tensors, save_tensors
 from controlgs_adapter.state import RuntimeState
 
@@ -651,9 +650,9 @@ class LensPrewarp(Stage):
             radiometry = getattr(optics, "radiometry", None)
             if fitted is None or fitted.meta.get("bank") != bank_fingerprint(bank) or fitted.meta.get("radiometry") != radiometry:
                 fallback: Literal["jacobian"] | None = "jacobian" if radiometry == "energy" else None
-                warnings.warn(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
-                              f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "
-                              "and pass it as {'lens': {'lut': LUT}}", stacklevel=2)
+                warn_user(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
+                          f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "
+                          "and pass it as {'lens': {'lut': LUT}}", UserWarning)
                 return cls(BankMap(bank, placement, fallback), basis=basis)
         else:
             fitted = DisplayLUTMap.load(lut, placement)

@@ -4,22 +4,17 @@ are numbers that fit float32, and warnings point at the caller's line rather tha
 from __future__ import annotations
 
 import math
-import os
-import sys
-import warnings
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, Sequence, TypeGuard
 
 import numpy as np
 import torch
 
-from ..errors import FileFormatError, InputValueError
+from ..errors import FileFormatError, InputValueError, warn_user
 from ..state import Camera
 
 __all__ = ["inside", "is_number", "float32_finite", "dataset_camera", "warn_user"]
 
-#: the package folder: frames inside it are the library's own, skipped when a warning is attributed
-_PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
 #: largest finite float32
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -73,13 +68,3 @@ def dataset_camera(where: str, world_to_camera: torch.Tensor, intrinsics: torch.
         return Camera(world_to_camera.float(), k64.float(), width, height)
     except InputValueError as e:
         raise FileFormatError(f"{where}: {e}") from None
-
-
-def warn_user(message: str, category: type[Warning] = RuntimeWarning) -> None:
-    """``warnings.warn`` attributed to the first caller outside this package (the user's line)."""
-    frame = sys._getframe(1)
-    level = 2
-    while frame.f_back is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE):
-        frame = frame.f_back
-        level += 1
-    warnings.warn(message, category, stacklevel=level)

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import os
-import warnings
 from typing import TYPE_CHECKING, Literal, TypeGuard, get_args
 
 import torch
 
 from controlgs_adapter.checks import check_image
-from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.errors import InputValueError, warn_user
 from controlgs_adapter.state import RuntimeState
 
 from ..color import primaries_to_rgb, rgb_to_primaries
@@ -96,8 +95,7 @@ class PSFOptics(Stage):
         if not isinstance(zone, int) or zone < 1:
             raise InputValueError(f"zone must be an int >= 1, got {zone!r}")
         if stretch is not None:
-            warnings.warn('PSFOptics(stretch=...) is deprecated; use placement="stretch" or "fit"',
-                          DeprecationWarning, stacklevel=2)
+            warn_user('PSFOptics(stretch=...) is deprecated; use placement="stretch" or "fit"', DeprecationWarning)
             placement = "stretch" if stretch else "fit"
         if placement not in PLACEMENTS:
             raise InputValueError(f"placement must be one of {PLACEMENTS}, got {placement!r}")
