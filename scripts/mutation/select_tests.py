@@ -29,6 +29,7 @@ from coverage import CoverageData
 
 WORK = Path(os.environ.get("MUTATION_WORK", "..")).resolve()
 TREE = Path.cwd().resolve()
+PACKAGES = ("controlgs_adapter", "backends", "downstream")  # module-path of cosmic-ray.toml
 
 
 def _data() -> CoverageData:
@@ -52,8 +53,8 @@ def build_index() -> None:
 
 def changed_lines() -> dict[str, set[int]]:
     """{path relative to the tree: line numbers of the unmutated file that the mutation touched}."""
-    diff = subprocess.run(["git", "diff", "-U0", "--no-color", "--no-ext-diff"], capture_output=True, text=True,
-                          check=True, cwd=TREE).stdout
+    diff = subprocess.run(["git", "diff", "-U0", "--no-color", "--no-ext-diff", "--", *PACKAGES], capture_output=True,
+                          text=True, check=True, cwd=TREE).stdout
     out: dict[str, set[int]] = {}
     path = None
     for line in diff.splitlines():
