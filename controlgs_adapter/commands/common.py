@@ -188,7 +188,7 @@ _NUMBER_OPTIONS: dict[str, dict[str, Any]] = {
     "seeds": dict(integer=True, low=1), "lr": dict(low=0.0, low_open=True, high=1e3),
     "psf_fraction": dict(low=0.0, high=1.0), "cond_dim": dict(integer=True, low=1),
     "checkpoint_every": dict(integer=True, low=0), "batch_size": dict(integer=True, low=1),
-    "dist_timeout": dict(low=0.0, low_open=True), "resolution": dict(integer=True, low=1),
+    "resolution": dict(integer=True, low=1),
     "test_views": dict(integer=True, low=1), "holdout": dict(integer=True, low=0),
     "model_iteration": dict(integer=True, low=0), "cache_mib": dict(integer=True, low=0),
 }

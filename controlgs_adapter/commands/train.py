@@ -61,6 +61,10 @@ def _check(args: argparse.Namespace) -> None:
     check_options(args)
     writes = args.scenes or os.environ.get("RANK", "0") == "0"  # another rank of a data-parallel run writes nothing
     out = check_out_path(args.out, "--out", folder=True) if writes else Path(args.out)
+    if writes and not args.scenes:  # the scene's paths now; how it is read once it is loaded
+        scene = ({"model": str(Path(args.model).resolve()), "data": str(Path(args.data).resolve())} if user_scene(args)
+                 else {"variant": args.variant, "model": None})
+        check_same_scene(out, scene, keys=tuple(scene))
     for seed, _ in seed_runs(out, args.seed, args.seeds):
         for name in ["controlgs", *(args.ablation or (ABLATION_NAMES if args.ablations else ()))]:
             train_config(args, name, seed)
@@ -71,13 +75,13 @@ SCENE_FIELDS = ("variant", "model", "data", "family", "model_iteration", "allow_
                 "holdout", "white_background", "resolution", "effects")
 
 
-def check_same_scene(out: Path, record: dict[str, Any]) -> None:
+def check_same_scene(out: Path, record: dict[str, Any], keys: tuple[str, ...] = SCENE_FIELDS) -> None:
     """Refuse training into ``out`` when its ``run.json`` records another scene (model, data, how it is
-    read, effects) than ``record``: its adapters and record would no longer agree."""
+    read, effects: the fields ``keys``) than ``record``: its adapters and record would no longer agree."""
     from controlgs_adapter.errors import InputValueError
 
     old = read_run(out)
-    for key in SCENE_FIELDS if old is not None else ():
+    for key in keys if old is not None else ():
         if key in old and old[key] != record.get(key):
             raise InputValueError(f"--out {out}: the run there was trained with {key} {old[key]!r}, this command gives "
                                   f"--{key.replace('_', '-')} {record.get(key)!r}; a run folder holds the adapters of one "
