@@ -13,8 +13,7 @@ before it changes anything on the model, and ``unwrap`` puts back exactly what w
 from __future__ import annotations
 
 import contextlib
-import weakref
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
@@ -24,45 +23,22 @@ from torch import nn
 from . import plugins
 from .plugins import select_backend
 from .backend import Backend, anchor_ids_from_mask, get_attr_path, set_attr_path
-from .errors import (IncompatibleAdapterError, InjectionMissedError, InputValueError, NoMatchingBackendError,
-                     LifecycleError, ShapeError, TargetError, warn_user)
+from .errors import InjectionMissedError, InputValueError, LifecycleError, ShapeError, TargetError, warn_user
 from .injector import ConditionInjector, InjectionContext
-from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, AdapterSpec, Problem, build_header, fingerprint_mismatch,
-                           map_conditions, read_spec, read_tensors, row_map, tensor_mismatches, valid_fingerprint,
-                           write_adapter)
+from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, AdapterSpec, build_header,
+                                               valid_fingerprint, write_adapter)
+from .load_plan import load_into, plan_load, spec_endpoints
 from .schedules import StrengthSchedule
 from .state import Camera, RuntimeState
-from controlgs_adapter.formats.torchscript_live import eager_from_script
-from .downstream.placement import Placement, to_display
+from .strengths import check_modules, module_strengths
+from .targets import ATTACHED, Target, check_shared_layers, inspect_target
+from .downstream.placement import Placement
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
 
 DEFAULT_MODULES = ("lens", "resample", "display")
 DEFAULT_ADAPTER = "default"
 
-# FC1 modules that carry a live injector hook -> the ControlGS that owns it (wrapping twice is an error)
-_ATTACHED: "weakref.WeakKeyDictionary[nn.Module, ControlGS]" = weakref.WeakKeyDictionary()
-
-
-@dataclass(frozen=True)
-class Target:
-    """One decoder that receives the injection.
-
-    Attributes:
-        decoder: dotted path of the decoder on the model (``"mlp_opacity"``).
-        fc1: dotted path of its first Linear (``"mlp_opacity.0"``).
-        in_features, out_features: FC1's widths (``out_features`` = D1).
-        from_torchscript: the decoder was a TorchScript module, rebuilt as an eager one.
-    """
-
-    decoder: str
-    fc1: str
-    in_features: int
-    out_features: int
-    from_torchscript: bool
-
-    def as_header(self) -> dict[str, Any]:
-        return {"decoder": self.decoder, "fc1": self.fc1, "in_features": self.in_features, "out_features": self.out_features}
 
 
 @dataclass
@@ -73,84 +49,6 @@ class _Adapter:
     schedules: dict[str, StrengthSchedule]
     state_blind: bool
     skipped: list[str]
-
-
-@dataclass
-class _Plan:
-    target: Target
-    eager: nn.Module | None  # the eager rebuild of a TorchScript decoder (dry run), else None
-    layer: nn.Module | None = None  # the model's own FC1 object (eager decoders): two targets must not share it
-
-
-def _inspect_target(model: Any, backend: Backend, path: str) -> _Plan:
-    """Resolve one target without changing the model; raise TargetError saying what is wrong."""
-    try:
-        decoder = get_attr_path(model, path)
-    except (AttributeError, IndexError, KeyError, TypeError):
-        raise TargetError(
-            f"{backend.name}: the model has no decoder {path!r}; its decoders: {backend.decoder_paths(model)}"
-        ) from None
-    fc1_path = backend.first_linear_path(model, path)
-    eager = None
-    if isinstance(decoder, torch.jit.ScriptModule):
-        eager = eager_from_script(decoder, name=path)
-    fc1 = backend.check_decoder(model, path, eager)  # one check for eager and TorchScript decoders
-    if not isinstance(fc1, nn.Linear):
-        raise TargetError(f"{backend.name}: first layer {fc1_path!r} of {path!r} must be an eager nn.Linear, got {type(fc1).__name__}")
-    if fc1 in _ATTACHED:
-        raise LifecycleError(f"{fc1_path!r} already carries an injector ({_ATTACHED[fc1]!r}): unwrap it first, "
-                          "e.g. ControlGS.attached(model).unwrap()")
-    target = Target(path, fc1_path, fc1.in_features, fc1.out_features, eager is not None)
-    return _Plan(target, eager, fc1 if eager is None else None)
-
-
-def _check_shared_layers(backend: Backend, plans: Sequence[_Plan]) -> None:
-    """Raise TargetError when two targets' first layers are one module object (``mlp_cov[0] is
-    mlp_opacity[0]``, or one decoder under two names): a hook per target would inject into it twice."""
-    seen: dict[int, Target] = {}
-    for plan in plans:
-        if plan.layer is None:  # a TorchScript decoder: each target gets its own eager rebuild
-            continue
-        first = seen.setdefault(id(plan.layer), plan.target)
-        if first is not plan.target:
-            raise TargetError(
-                f"{backend.name}: targets {first.decoder!r} and {plan.target.decoder!r} share one first layer "
-                f"({first.fc1!r} is {plan.target.fc1!r}): its output would get the injection twice; wrap one of "
-                f"them (targets=[{first.decoder!r}, ...] without {plan.target.decoder!r}) or give each decoder its own layer")
-
-
-def _check_modules(modules: Sequence[str], cond_dim: int,
-                   endpoints: Mapping[str, Sequence[float] | Mapping[str, Any]] | None) -> dict[str, StrengthSchedule]:
-    """The schedules of ``modules``: the registered ones, with ``endpoints[m]`` (``(lo, hi)`` or a
-    header's ``{"lo", "hi", ...}``) where given."""
-    if isinstance(modules, str) or not isinstance(modules, Sequence):
-        raise InputValueError(f"modules must be a sequence of module names, got {modules!r}")
-    registered = {name: info.obj for name, info in plugins.schedules().items()}
-    if not modules:
-        raise InputValueError(f"modules must name at least one condition module; registered: {sorted(registered)}")
-    dupes = sorted({m for m in modules if list(modules).count(m) > 1})
-    if dupes:
-        raise InputValueError(f"modules lists {dupes} more than once")
-    unknown = [m for m in modules if m not in registered]
-    if unknown:
-        raise InputValueError(f"unknown condition module(s) {unknown}; registered schedules: {sorted(registered)}")
-    if isinstance(cond_dim, bool) or not isinstance(cond_dim, int) or cond_dim <= 0:
-        raise InputValueError(f"cond_dim must be a positive int, got {cond_dim!r}")
-    endpoints = dict(endpoints or {})
-    stray = sorted(set(endpoints) - set(modules))
-    if stray:
-        raise InputValueError(f"endpoints given for {stray}, which are not among modules {list(modules)}")
-    schedules = {}
-    for m in modules:
-        lo_hi = endpoints.get(m)
-        if lo_hi is None:
-            schedules[m] = registered[m]
-            continue
-        pair = (lo_hi.get("lo"), lo_hi.get("hi")) if isinstance(lo_hi, Mapping) else lo_hi
-        if len(pair) != 2:
-            raise InputValueError(f"endpoints[{m!r}] must be (lo, hi), got {lo_hi!r}")
-        schedules[m] = registered[m].with_endpoints(*pair)
-    return schedules
 
 
 def _backbone_tensors(model: Any) -> list[torch.Tensor]:
@@ -225,15 +123,15 @@ class ControlGS:
         """
         _check_name(name)
         chosen = select_backend(model, backend)
-        schedules = _check_modules(modules, cond_dim, endpoints)
+        schedules = check_modules(modules, cond_dim, endpoints)
         if targets is None:
             targets = chosen.default_targets(model)
         if isinstance(targets, str) or not isinstance(targets, Sequence) or not targets:
             raise TargetError(f"targets must be a non-empty sequence of decoder paths, got {targets!r}")
         if len(set(targets)) != len(targets):
             raise TargetError(f"targets lists a decoder more than once: {list(targets)}")
-        plans = [_inspect_target(model, chosen, t) for t in targets]
-        _check_shared_layers(chosen, plans)
+        plans = [inspect_target(model, chosen, t) for t in targets]
+        check_shared_layers(chosen, plans)
         positions = chosen.anchor_positions(model)
         num_anchors = chosen.num_anchors(model)
         if num_anchors < 1 or positions.shape[0] != num_anchors:
@@ -270,7 +168,7 @@ class ControlGS:
                   originals, grad_flags, name)
         for p, fc1 in zip(plans, fc1s):
             injector.attach(p.target.decoder, fc1)
-            _ATTACHED[fc1] = cgs
+            ATTACHED[fc1] = cgs
         return cgs
 
     def unwrap(self) -> Any:
@@ -278,7 +176,7 @@ class ControlGS:
         ``requires_grad`` flags. Returns the model; this wrapper cannot be used afterwards."""
         self._check_live()
         for t in self.targets:
-            _ATTACHED.pop(get_attr_path(self.model, t.fc1), None)
+            ATTACHED.pop(get_attr_path(self.model, t.fc1), None)
         self.injector.detach()
         for path, original in self._originals.items():
             set_attr_path(self.model, path, original)
@@ -299,8 +197,8 @@ class ControlGS:
                     fc1 = get_attr_path(model, backend.first_linear_path(model, path))
                 except (AttributeError, IndexError, KeyError, TypeError):
                     continue
-                if isinstance(fc1, nn.Module) and fc1 in _ATTACHED:
-                    return _ATTACHED[fc1]
+                if isinstance(fc1, nn.Module) and fc1 in ATTACHED:
+                    return ATTACHED[fc1]
         return None
 
     def _check_live(self) -> None:
@@ -350,42 +248,9 @@ class ControlGS:
 
     def _strengths(self, state: RuntimeState, camera: Camera | None, ids: torch.Tensor, modules: Sequence[str],
                    *, skip_zero: bool) -> dict[str, torch.Tensor | float]:
-        if not isinstance(state, RuntimeState):
-            raise InputValueError(f"state must be a RuntimeState, got {type(state).__name__}")
-        if self.state_blind:
-            return {m: 1.0 for m in modules}
-        screen = None
-        out: dict[str, torch.Tensor | float] = {}
-        for m in modules:
-            schedule = self.schedules[m]
-            if not schedule.per_anchor:
-                lam = schedule.scalar_strength(float(schedule.control(state, None)))
-                if lam != 0.0 or not skip_zero:
-                    out[m] = lam
-                continue
-            if screen is None:
-                if not isinstance(camera, Camera):
-                    raise InputValueError(
-                        f"module {m!r} needs each anchor's screen position: pass camera=Camera(...) "
-                        f"(Camera.from_scaffold converts a Scaffold-GS camera), got {type(camera).__name__}"
-                    )
-                positions = self.backend.anchor_positions(self.model).detach()
-                screen, display_state = self._display_positions(
-                    camera, camera.normalized_screen(positions.index_select(0, ids.to(positions.device))), state)
-            # per-anchor strengths stay even where all zero (they add exact zeros): testing would sync the device
-            out[m] = schedule.strength(display_state, screen, dtype=self.injector.dtype, device=ids.device)
-        return out
-
-    def _display_positions(self, camera: Camera, screen: torch.Tensor,
-                           state: RuntimeState) -> tuple[torch.Tensor, RuntimeState]:
-        """Image-normalised anchor positions ``[R, 2]`` and gaze -> display-normalised ones (p_v of the
-        lens and foveation schedules): the image placed on the Cardboard display as the optics
-        places it, so a strength follows the radial distance on the display (a square image: as is)."""
-        h, w = camera.height, camera.width
-        if state.gaze is not None:
-            gaze = to_display(torch.tensor(state.gaze, dtype=torch.float64), h, w, self.placement)
-            state = replace(state, gaze=tuple(gaze.tolist()))
-        return to_display(screen, h, w, self.placement), state
+        return module_strengths(self.schedules, state, camera, ids, modules, state_blind=self.state_blind,
+                                anchor_positions=lambda: self.backend.anchor_positions(self.model),
+                                placement=self.placement, dtype=self.injector.dtype, skip_zero=skip_zero)
 
     @contextlib.contextmanager
     def conditioned(self, state: RuntimeState, camera: Camera | None = None, anchor_ids: torch.Tensor | None = None,
@@ -496,12 +361,12 @@ class ControlGS:
                 decoder widths, backbone fingerprint, tensors).
         """
         _check_name(name)
-        plan = _read_adapter(path, model, strict=strict)
+        plan = plan_load(path, model, strict=strict)
         spec = plan.spec
         cgs = cls.wrap(model, modules=spec["modules"], cond_dim=spec["cond_dim"], backend=plan.backend,
-                       targets=plan.targets, endpoints=_spec_endpoints(spec), state_blind=spec["state_blind"],
+                       targets=plan.targets, endpoints=spec_endpoints(spec), state_blind=spec["state_blind"],
                        name=name)
-        _load_into(cgs.injector, plan.tensors)
+        load_into(cgs.injector, plan.tensors)
         cgs._adapters[name].skipped = plan.skipped
         return cgs
 
@@ -513,13 +378,13 @@ class ControlGS:
         _check_name(name)
         if name in self._adapters:
             raise InputValueError(f"an adapter named {name!r} is already loaded; loaded adapters: {list(self._adapters)}")
-        plan = _read_adapter(path, self.model, strict=strict, wrapped=self)
+        plan = plan_load(path, self.model, strict=strict, wrapped=self)
         spec = plan.spec
-        schedules = _check_modules(spec["modules"], spec["cond_dim"], _spec_endpoints(spec))
+        schedules = check_modules(spec["modules"], spec["cond_dim"], spec_endpoints(spec))
         widths = {t.decoder: t.out_features for t in self.targets if t.decoder in plan.targets}
         injector = ConditionInjector(self.num_anchors, spec["modules"], spec["cond_dim"], widths,
                                      device=self.injector.conditions.device, dtype=self.injector.dtype)
-        _load_into(injector, plan.tensors)
+        load_into(injector, plan.tensors)
         self._adapters[name] = _Adapter(injector, schedules, bool(spec["state_blind"]), plan.skipped)
         return list(plan.skipped)
 
@@ -582,109 +447,3 @@ class ControlGS:
 def _check_name(name: str) -> None:
     if not isinstance(name, str) or not name:
         raise InputValueError(f"an adapter name must be a non-empty str, got {name!r}")
-
-
-def _spec_endpoints(spec: dict[str, Any]) -> dict[str, tuple[float, float]]:
-    return {m: (s["lo"], s["hi"]) for m, s in spec["schedules"].items()}
-
-
-@dataclass
-class _LoadPlan:
-    spec: dict[str, Any]
-    backend: Backend
-    targets: list[str]  # decoders that get this adapter
-    tensors: dict[str, torch.Tensor]  # what loads (conditions already mapped onto the model's anchors)
-    skipped: list[str]
-
-
-def _read_adapter(path: str | Path, model: Any, *, strict: bool, wrapped: ControlGS | None = None) -> _LoadPlan:
-    """Read and check the adapter at ``path`` against ``model`` (or the live ``wrapped``) without
-    changing anything; strict: raise on any mismatch, else say what is left out."""
-    spec = read_spec(path)
-    problems: list[Problem] = []
-    registered = plugins.backends()
-    backend = None
-    if spec["backend"] not in registered:
-        problems.append((f"backend: the adapter was made for {spec['backend']!r}, which is not registered "
-                         f"(registered: {sorted(registered)})", "fatal"))
-    else:
-        backend = registered[spec["backend"]].obj
-        if wrapped is not None and wrapped.backend.name != spec["backend"]:
-            problems.append((f"backend: the adapter was made for {spec['backend']!r}; this model is wrapped with "
-                             f"{wrapped.backend.name}", "fatal"))
-            backend = None
-        elif not backend.matches(model):
-            try:
-                other = select_backend(model, None).name
-            except NoMatchingBackendError:
-                other = "no registered backend"
-            problems.append((f"backend: the adapter was made for {spec['backend']!r}; this model is recognised by {other}",
-                             "fatal"))
-            backend = None
-    rows = None
-    if backend is not None:
-        rows = row_map(model, backend, spec)
-        problems += _model_mismatches(model, backend, spec, mapped=rows is not None, wrapped=wrapped)
-    tensors = read_tensors(path)
-    problems += tensor_mismatches(tensors, spec)
-    skip_targets = {s[1] for _, s in problems if isinstance(s, tuple)}
-    targets = [t["decoder"] for t in spec["targets"] if t["decoder"] not in skip_targets]
-    if backend is not None and not targets:
-        problems.append(("targets: none of the adapter's targets fits this model", "fatal"))
-    if problems and (strict or any(s == "fatal" for _, s in problems)):
-        raise IncompatibleAdapterError(f"{path}: the adapter does not fit this model:\n  - "
-                                       + "\n  - ".join(m for m, _ in problems))
-    assert backend is not None
-    skipped = [m for m, s in problems if s is not None]
-    if problems:
-        warn_user(f"{path}: non-strict load skipped what does not fit this model:\n  - "
-                  + "\n  - ".join(m if s is not None else m + " (loaded anyway)" for m, s in problems), RuntimeWarning)
-    for _, s in problems:
-        if isinstance(s, (set, frozenset)):
-            for k in s:
-                tensors.pop(k, None)
-        elif s == "conditions":
-            tensors.pop("conditions", None)
-    if rows is not None and "conditions" in tensors:
-        tensors["conditions"] = map_conditions(tensors["conditions"], rows, backend.num_anchors(model))
-    return _LoadPlan(spec, backend, targets, tensors, skipped)
-
-
-def _load_into(injector: ConditionInjector, tensors: Mapping[str, torch.Tensor]) -> None:
-    """Copy the loadable ``tensors`` into ``injector`` (the others keep their initial values)."""
-    state = injector.state_dict()
-    injector.load_state_dict({**state, **{k: v.to(state[k].dtype) for k, v in tensors.items() if k in state}})
-
-
-def _model_mismatches(model: Any, backend: Backend, spec: dict[str, Any], *, mapped: bool = False,
-                      wrapped: ControlGS | None = None) -> list[Problem]:
-    """What does not fit, with what a non-strict load skips for each; ``mapped``: the anchors were
-    matched by :func:`~controlgs_adapter.formats.adapter.row_map` (count and fingerprint already checked over the valid anchors);
-    ``wrapped``: check against this live wrapper's targets (:meth:`ControlGS.load_adapter`)."""
-    problems: list[Problem] = []
-    a = backend.num_anchors(model)
-    if a != spec["num_anchors"] and not mapped:
-        problems.append((f"anchor count: the adapter has {spec['num_anchors']} anchors, the model {a}", "conditions"))
-    rpa = backend.rows_per_anchor(model)
-    if rpa != spec["rows_per_anchor"]:
-        problems.append((f"rows per anchor: the adapter expects {spec['rows_per_anchor']}, the model has {rpa}", None))
-    have = {t.decoder: t for t in wrapped.targets} if wrapped is not None else {}
-    for t in spec["targets"]:
-        skip = ("target", t["decoder"])
-        if wrapped is not None:
-            if t["decoder"] not in have:
-                problems.append((f"target {t['decoder']!r}: not wrapped (wrapped: {list(have)})", skip))
-                continue
-            got = have[t["decoder"]]
-        else:
-            try:
-                got = _inspect_target(model, backend, t["decoder"]).target
-            except TargetError as e:
-                problems.append((f"target {t['decoder']!r}: {e}", skip))
-                continue
-        if (got.in_features, got.out_features) != (t["in_features"], t["out_features"]):
-            problems.append((f"target {t['decoder']!r}: the adapter was made for Linear({t['in_features']} -> "
-                             f"{t['out_features']}), the model has Linear({got.in_features} -> {got.out_features})", skip))
-    if not mapped:
-        problems += fingerprint_mismatch(spec, wrapped.fingerprint if wrapped is not None else backend.fingerprint(model))
-    return problems
