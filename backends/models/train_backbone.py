@@ -50,6 +50,10 @@ from controlgs_adapter.rendering.splatter import rasterize
 __all__ = ["train_reference_model", "build_backbone", "BackboneBuild", "grid_points", "camera_target"]
 
 
+#: the SSIM window of the loss: every training view must be at least this large on each side
+_SSIM_WINDOW = 11
+
+
 def camera_target(cameras: Sequence[Camera]) -> torch.Tensor:
     """``[3]`` the point closest (least squares) to every camera's optical axis."""
     a = torch.zeros(3, 3, dtype=torch.float64)
@@ -196,6 +200,11 @@ def train_reference_model(
     cameras = _view_cameras(views)
     if iterations < 0 or max_anchors < 1:
         raise InputValueError(f"need iterations >= 0 and max_anchors >= 1, got {iterations}, {max_anchors}")
+    small = next((i for i, c in enumerate(cameras) if min(c.width, c.height) < _SSIM_WINDOW), None)
+    if small is not None and iterations:
+        c = cameras[small]
+        raise InputValueError(f"view {small} is {c.width}x{c.height} pixels; the loss's SSIM needs at least "
+                              f"{_SSIM_WINDOW} on each side: train at a higher resolution")
     if isinstance(points, torch.Tensor) and points.dim() == 2 and points.shape[0] == 0:
         points, colors = None, None  # a dataset with an empty point file: the grid, as without one
     if points is None:
