@@ -81,7 +81,9 @@ def check_same_scene(out: Path, record: dict[str, Any], keys: tuple[str, ...] = 
     from controlgs_adapter.errors import InputValueError
 
     old = read_run(out)
-    for key in keys if old is not None else ():
+    if old is None:
+        return
+    for key in keys:
         if key in old and old[key] != record.get(key):
             raise InputValueError(f"--out {out}: the run there was trained with {key} {old[key]!r}, this command gives "
                                   f"--{key.replace('_', '-')} {record.get(key)!r}; a run folder holds the adapters of one "
