@@ -132,6 +132,11 @@ def apply_run_defaults(args: argparse.Namespace, run_dir: Path) -> dict[str, Any
     for key in _RUN_DEFAULTS:
         if key != "renderer" and getattr(args, key, None) is None and run.get(key) is not None:
             setattr(args, key, run[key])
+            if key == "rasterizer":
+                try:
+                    check_rasterizer_name(run[key])
+                except InputValueError as e:
+                    raise InputValueError(f"{run_dir / RUN_FILE}: field 'rasterizer': {e} (give --rasterizer NAME)") from None
     spec = run.get("renderer")
     if spec is not None and getattr(args, "renderer", None) is None:
         if not getattr(args, "trust_run_renderer", False):

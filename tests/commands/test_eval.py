@@ -96,6 +96,7 @@ DEEP = "[" * 100_000 + "]" * 100_000
     (json.dumps({**RECORD, "format": "ply"}), "'format'", "got 'ply'"),
     (json.dumps({**RECORD, "renderer": 7}), "'renderer'", "got 7"),
     (json.dumps({**RECORD, "rasterizer": {"name": "torch"}}), "'rasterizer'", "got {'name': 'torch'}"),
+    (json.dumps({**RECORD, "rasterizer": "nvdiffrast"}), "'rasterizer'", "'nvdiffrast' is not registered"),
     (json.dumps({**RECORD, "seeds": 0}), "'seeds'", "got 0"),
     (json.dumps({**RECORD, "distributed": [1]}), "'distributed'", "got [1]"),
     (json.dumps({**RECORD, "white_background": "yes"}), "'white_background'", "got 'yes'"),
