@@ -40,10 +40,11 @@ from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.losses import LossWeights, image_loss
 from controlgs_adapter.state import RuntimeState
 
+from .bank_maps import DisplayLUTMap, _optics_bank, _optics_placement, bank_fingerprint
 from .color import primaries_to_rgb_matrix, rgb_to_primaries_matrix
-from .lens import DisplayLUTMap, _interp_regular, _optics_bank, _optics_placement, bank_fingerprint, chief_ray_grid, pixel_grid
 from .pipeline import Pipeline
 from .stage import StageContext
+from .warp import _interp_regular, chief_ray_grid, pixel_grid
 
 if TYPE_CHECKING:  # pragma: no cover
     from .optics.bank import PSFBank
