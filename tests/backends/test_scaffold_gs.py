@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import pytest
 import torch
+from helpers.scaffold_standin import ScaffoldStandIn, script_decoders
 from torch import nn
 
 from controlgs_adapter import ControlGS
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.errors import TargetError
-from scaffold_standin import ScaffoldStandIn, script_decoders
 
 DECODERS = ("mlp_opacity", "mlp_cov", "mlp_color")
 
@@ -58,3 +58,37 @@ def test_an_explicit_configuration_wins_over_the_width(scripted):
 def test_no_distance_input_when_the_width_is_the_plain_layout():
     model = _with_first_width(35, scripted=False)
     assert ScaffoldGSBackend().input_layout(model, "mlp_cov") == [("feat", 32), ("view", 3)]
+
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from controlgs_adapter.errors import InputValueError
+
+
+def make_model(kind: str, **kw) -> ScaffoldStandIn:
+    model = ScaffoldStandIn(**kw)
+    return script_decoders(model) if kind == "script" else model
+
+
+def test_backend_positions_and_visible_rows():
+    model = make_model("eager", num_anchors=8)
+    backend = ScaffoldGSBackend()
+    assert backend.matches(model) and backend.anchor_positions(model) is model._anchor
+    mask = torch.tensor([0, 1, 1, 0, 0, 1, 0, 1], dtype=torch.bool)
+    assert backend.visible_rows_to_anchor_ids(mask).tolist() == [1, 2, 5, 7]
+    with pytest.raises(InputValueError, match="bool"):
+        backend.visible_rows_to_anchor_ids(mask.long())
+
+
+def test_scaffold_anchor_positions_refuse_a_non_tensor_attribute():
+    """A ``get_anchor`` that is neither a tensor nor callable (here an array) is refused as not a tensor,
+    not called."""
+    decs = dict(mlp_opacity=nn.Linear(1, 1), mlp_cov=nn.Linear(1, 1), mlp_color=nn.Linear(1, 1))
+    model = SimpleNamespace(get_anchor=np.zeros((2, 3), np.float32), **decs)
+    with pytest.raises(InputValueError, match="get_anchor must be a torch.Tensor, got ndarray"):
+        ScaffoldGSBackend().anchor_positions(model)
+
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")

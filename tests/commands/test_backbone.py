@@ -10,9 +10,9 @@ import math
 import pytest
 import torch
 
+from controlgs_adapter.backends.model_dir import load_model_dir
 from controlgs_adapter.backends.models import train_backbone
 from controlgs_adapter.backends.models.train_backbone import build_backbone, train_reference_model
-from controlgs_adapter.backends.model_dir import load_model_dir
 from controlgs_adapter.cli import main
 from controlgs_adapter.datasets import load_dataset
 from controlgs_adapter.datasets.memory import posed_images

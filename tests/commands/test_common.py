@@ -114,3 +114,282 @@ def test_check_out_path_refuses_a_read_only_folder(tmp_path: Path) -> None:
             check_out_path(locked / "run", "--out", folder=True)
     finally:
         locked.chmod(0o700)
+
+
+import sys
+import textwrap
+
+import torch
+
+from controlgs_adapter import ControlGS
+from controlgs_adapter.commands.common import cache_bytes, check_rasterizer_name, load_renderer, render_record, user_scene
+from controlgs_adapter.rendering.protocol import FunctionRenderer, render_view
+
+
+def _ns_2(**kw: Any) -> argparse.Namespace:
+    return argparse.Namespace(**kw)
+
+
+# ---------------------------------------------------------------- --model / --data
+def test_user_scene_needs_both_or_neither() -> None:
+    assert user_scene(_ns_2(model=None, data=None)) is False
+    assert user_scene(_ns_2(model="m", data="d")) is True
+    for model, data in (("m", None), (None, "d")):
+        with pytest.raises(InputValueError, match="give both --model MODEL_DIR and --data DATA_DIR"):
+            user_scene(_ns_2(model=model, data=data))
+
+
+# ---------------------------------------------------------------- run.json defaults
+def test_run_defaults_fill_only_unset_listed_options(tmp_path: Path) -> None:
+    assert apply_run_defaults(_ns_2(model=None), tmp_path) is None  # no run.json: nothing filled
+    run = {"model": "/m", "data": "/d", "holdout": 4, "resolution": 32, "format": None, "iterations": 7,
+           "rasterizer": "torch"}
+    (tmp_path / "run.json").write_text(json.dumps(run))
+    args = _ns_2(model=None, data="/mine", holdout=None, resolution=None, format="colmap", iterations=None, rasterizer=None)
+    assert apply_run_defaults(args, tmp_path) == run
+    assert (args.model, args.data, args.holdout, args.resolution) == ("/m", "/mine", 4, 32)
+    assert args.format == "colmap"  # set by the user: kept; a null in run.json never overrides
+    assert args.iterations is None  # not an eval option: run.json does not set it
+    assert args.rasterizer == "torch"
+    (tmp_path / "run.json").write_text("{not json")
+    with pytest.raises(InputValueError, match=r"run\.json: not a controlgs run file"):
+        apply_run_defaults(_ns_2(model=None), tmp_path)
+
+
+# ---------------------------------------------------------------- --device, --cache-mib, --effects, --rasterizer
+def test_parse_device() -> None:
+    assert parse_device("cpu") == torch.device("cpu")
+    with pytest.raises(InputValueError, match="--device 'gpu0'"):
+        parse_device("gpu0")
+    if not torch.cuda.is_available():
+        with pytest.raises(InputValueError, match="--device cuda:1: CUDA is not available"):
+            parse_device("cuda:1")
+
+
+def test_cache_bytes_is_mib_times_2_to_the_20() -> None:
+    assert cache_bytes(_ns_2(cache_mib=3)) == 3 * 1024 * 1024
+    assert cache_bytes(_ns_2(cache_mib=0)) == 0
+    for bad in (-1, 1.5, "8"):
+        with pytest.raises(InputValueError, match=r"--cache-mib must be an int >= 0 \(MiB\), got"):
+            cache_bytes(_ns_2(cache_mib=bad))
+
+
+def test_rasterizer_names() -> None:
+    for ok in (None, "auto", "torch"):
+        check_rasterizer_name(ok)
+    with pytest.raises(InputValueError, match=r"--rasterizer 'nope' is not registered; available: .*torch.*, auto"):
+        check_rasterizer_name("nope")
+
+
+def test_render_record(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert render_record(_ns_2(rasterizer=None, renderer=None)) == {"rasterizer": "auto", "renderer": None}
+    assert render_record(_ns_2(rasterizer="torch", renderer="pkg.mod:fn")) == {"rasterizer": "torch", "renderer": "pkg.mod:fn"}
+    rec = render_record(_ns_2(rasterizer=None, renderer="sub/r.py:fn"))
+    assert rec["renderer"] == f"{tmp_path.resolve() / 'sub' / 'r.py'}:fn"
+
+
+def test_load_renderer_from_files_and_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from controlgs_adapter.commands.common import load_renderer
+
+    (tmp_path / "r.py").write_text(
+        "def fn(model, camera, visible, background):\n    return 'image'\n\n"
+        "class Obj:\n    def visible(self, model, camera):\n        return 'mask'\n\n"
+        "    def render(self, model, camera, visible, background):\n        return 'obj image'\n\nobj = Obj()\n")
+    (tmp_path / "inner_fail.py").write_text("import xyz_missing_pkg_for_test\n")
+    r = load_renderer(f"{tmp_path / 'r.py'}:fn")
+    assert isinstance(r, FunctionRenderer) and r.render(None, None, None, None) == "image" and r.visible(None, None) is None
+    o = load_renderer(f"{tmp_path / 'r.py'}:obj")
+    assert (o.visible(None, None), o.render(None, None, None, None)) == ("mask", "obj image")
+    monkeypatch.chdir(tmp_path)
+    assert load_renderer("r:obj").render(None, None, None, None) == "obj image"  # a module of the current folder
+    with pytest.raises(ModuleNotFoundError) as e:  # a module the renderer's module imports: not hidden
+        load_renderer("inner_fail:render")
+    assert e.value.name == "xyz_missing_pkg_for_test"
+    for spec, message in ((":fn", "must be MODULE:ATTR"), ("r.py:1fn", "must be MODULE:ATTR"),
+                          ("r.py:nope", "r.py has no attribute 'nope'")):
+        with pytest.raises(InputValueError, match=message):
+            load_renderer(spec)
+
+
+# ------------------------------------------------------------------------------ --renderer MODULE:ATTR
+_RENDERER_MODULE = textwrap.dedent('''
+    class _R:
+        origin = {origin!r}
+
+        def visible(self, model, camera):
+            return None
+
+        def render(self, model, camera, visible, background):
+            return None
+
+
+    renderer = _R()
+''')
+
+
+def test_load_renderer_finds_the_current_folders_module_first_and_leaves_sys_path_as_it_was(tmp_path, monkeypatch):
+    """``--renderer MODULE:ATTR`` looks in the current folder first, as ``python -m`` would: a module of
+    the same name elsewhere on the path (even first on it) does not shadow it; and the lookup leaves
+    ``sys.path`` as it found it, however often it runs."""
+    name = "cgs_sweep4_user_renderer"
+    here, elsewhere = tmp_path / "here", tmp_path / "elsewhere"
+    for folder in (here, elsewhere):
+        folder.mkdir()
+        (folder / f"{name}.py").write_text(_RENDERER_MODULE.format(origin=folder.name))
+    monkeypatch.syspath_prepend(str(elsewhere))  # first on the path (monkeypatch restores sys.path)
+    monkeypatch.chdir(here)
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    before = list(sys.path)
+    try:
+        first = load_renderer(f"{name}:renderer")
+        assert first.origin == "here"
+        assert sys.path == before
+        load_renderer(f"{name}:renderer")
+        assert sys.path == before  # no growth on a second lookup
+    finally:
+        sys.modules.pop(name, None)
+
+
+def test_load_renderer_refusals(tmp_path, monkeypatch):
+    from controlgs_adapter.commands.common import RasterizerRenderer, load_renderer
+
+    (tmp_path / "rr.py").write_text(
+        "class K:\n    pass\n\nnumber = 3\n\ndef few(model):\n    return None\n\n"
+        "class BadVisible:\n    def visible(self, model):\n        return None\n\n"
+        "    def render(self, model, camera, visible, background):\n        return None\n\n"
+        "bad_visible = BadVisible()\nbuiltin = max\n")
+    f = tmp_path / "rr.py"
+    for attr, message in (("K", "K is a class; name an instance of it or a function"),
+                          ("number", r"number does not fit the render protocol \(a int\)"),
+                          ("few", "few does not fit the render protocol"),
+                          ("bad_visible", "bad_visible does not fit the render protocol")):
+        with pytest.raises(InputValueError, match=message):
+            load_renderer(f"{f}:{attr}")
+    assert load_renderer(f"{f}:builtin") is not None  # no signature to inspect: accepted
+    with pytest.raises(InputValueError, match=f"no such file {tmp_path / 'none.py'}"):
+        load_renderer(f"{tmp_path / 'none.py'}:fn")
+    with pytest.raises(InputValueError, match="must be MODULE:ATTR"):
+        load_renderer("nocolon")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(InputValueError, match=r"no module named 'no_such_mod_xyz' .*path/to/file.py:fn\)"):
+        load_renderer("no_such_mod_xyz:fn")
+    with pytest.raises(InputValueError, match="no module named 'no_such_pkg_xyz'"):
+        load_renderer("no_such_pkg_xyz.sub:fn")
+    assert str(tmp_path) not in sys.path  # the current folder is taken off the path again
+    r = RasterizerRenderer(load_renderer("rr:builtin"), "torch")
+    assert repr(r).endswith(" with rasterizer 'torch'")
+
+
+def test_apply_run_defaults_refuses_a_broken_run_file(tmp_path):
+    from controlgs_adapter.commands.common import apply_run_defaults
+
+    ns: Any = argparse.Namespace(model=None, data="mine", holdout=None, resolution=None)
+    assert apply_run_defaults(ns, tmp_path) is None and ns.model is None
+    (tmp_path / "run.json").write_text('{"model": "m", "data": "d", "holdout": 4, "resolution": null, "seed": 3}')
+    assert apply_run_defaults(ns, tmp_path) == {"model": "m", "data": "d", "holdout": 4, "resolution": None, "seed": 3}
+    assert (ns.model, ns.data, ns.holdout, ns.resolution) == ("m", "mine", 4, None)
+    assert not hasattr(ns, "seed")
+    (tmp_path / "run.json").write_text("{oops")
+    with pytest.raises(InputValueError, match=f"{tmp_path / 'run.json'}: not a controlgs run file"):
+        apply_run_defaults(ns, tmp_path)
+
+
+@pytest.fixture(scope="module")
+def setup(tiny, tmp_path_factory):
+    """The tiny scene's first two training views and an adapter file with random (non-zero) conditions."""
+    scene, model = tiny
+    views = scene.data.views("train", first=2)
+    cgs = ControlGS.wrap(model, cond_dim=4)
+    with torch.no_grad(), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(3)
+        for p in cgs.trainable_parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    path = cgs.save(tmp_path_factory.mktemp("adapter") / "a.controlgs.safetensors")
+    cgs.unwrap()
+    return model, views, path
+
+
+def test_make_renderer_of_the_options(setup):
+    import argparse
+
+    from controlgs_adapter.commands.common import RasterizerRenderer, make_renderer
+
+    model, views, _ = setup
+    ns = lambda **kw: argparse.Namespace(**{"rasterizer": None, "renderer": None, **kw})  # noqa: E731
+    assert make_renderer(ns(), model) is None and make_renderer(ns(rasterizer="auto"), model) is None
+    r = make_renderer(ns(rasterizer="torch"), model)
+    assert isinstance(r, RasterizerRenderer) and r.rasterizer == "torch"
+    cam, _ = views[0]
+    with torch.no_grad():
+        assert torch.equal(render_view(None, model, cam, None, views.background, renderer=r),
+                           render_view(None, model, cam, None, views.background))
+    with pytest.raises(InputValueError, match=r"--rasterizer gsplat cannot render on cpu: .*; it needs --device cuda "
+                                              r"and the gsplat extra: pip install 'controlgs-adapter\[gsplat\]'"):
+        make_renderer(ns(rasterizer="gsplat"), model)
+    with pytest.raises(InputValueError, match="--rasterizer 'nope' is not registered; available: gsplat, torch, auto"):
+        make_renderer(ns(rasterizer="nope"), model)
+
+
+def test_anchor_positions_are_plain_cpu_values(setup):
+    from controlgs_adapter.commands.common import anchor_positions
+
+    model, _, _ = setup
+    pos = anchor_positions(model)
+    assert pos.dtype == torch.float32 and pos.device.type == "cpu" and pos.shape[1] == 3
+    assert not pos.requires_grad and pos.grad_fn is None  # no autograd graph back into the model
+    assert anchor_positions(object()) is None  # no backend recognises it
+
+
+_RENDERER_FILE = '''
+from controlgs_adapter.rendering.rasterizers import _CHOICE
+
+class Recorder:
+    def __init__(self):
+        self.seen = []
+
+    def visible(self, model, camera):
+        self.seen.append(("visible", _CHOICE.get()))
+        return "VIS"
+
+    def render(self, model, camera, visible, background):
+        self.seen.append(("render", _CHOICE.get(), visible))
+        return "IMG"
+
+recorder = Recorder()
+'''
+
+
+def test_make_renderer_wraps_the_chosen_rasterizer(tmp_path):
+    from argparse import Namespace
+
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.commands.common import RasterizerRenderer, make_renderer
+    from controlgs_adapter.errors import InputValueError
+    from controlgs_adapter.rendering.protocol import renderer_for
+
+    model = NeuralGaussianModel(6, feat_dim=8, n_offsets=2)
+    assert make_renderer(Namespace(rasterizer=None, renderer=None), model) is None  # the model's own
+    assert make_renderer(Namespace(rasterizer="auto", renderer=None), model) is None
+    plain = make_renderer(Namespace(rasterizer="torch", renderer=None), model)
+    assert isinstance(plain, RasterizerRenderer) and plain.rasterizer == "torch"
+    assert type(plain.renderer) is type(renderer_for(model))
+
+    (tmp_path / "rec.py").write_text(_RENDERER_FILE)
+    wrapped = make_renderer(Namespace(rasterizer="torch", renderer=f"{tmp_path / 'rec.py'}:recorder"), model)
+    assert isinstance(wrapped, RasterizerRenderer) and wrapped.rasterizer == "torch"
+    assert wrapped.visible(model, None) == "VIS" and wrapped.render(model, None, "VIS", None) == "IMG"
+    # the user's object itself is wrapped; the rasterizer is chosen around render only, for that call
+    assert wrapped.renderer.seen == [("visible", None), ("render", "torch", "VIS")]
+    from controlgs_adapter.rendering.rasterizers import _CHOICE
+    assert _CHOICE.get() is None
+
+    with pytest.raises(InputValueError, match=r"--rasterizer 'nope' is not registered; available: .*torch.*, auto"):
+        make_renderer(Namespace(rasterizer="nope", renderer=None), model)
+    with pytest.raises(InputValueError) as info:
+        make_renderer(Namespace(rasterizer="gsplat", renderer=None), model)
+    msg = str(info.value)
+    assert msg.startswith("--rasterizer gsplat cannot render on cpu: ") and "pip install 'controlgs-adapter[gsplat]'" in msg
+
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")

@@ -11,10 +11,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.cli_runs import MARKER_MODULE, error_line, needs_backbone, snapshot, untrained_run
 
 import controlgs_adapter.commands.eval as eval_command
 from controlgs_adapter.cli import main
-from helpers.cli_runs import MARKER_MODULE, error_line, needs_backbone, snapshot, untrained_run
 
 pytestmark = needs_backbone
 #: a built-in AR run trained through the display stage alone
@@ -151,3 +151,190 @@ def test_a_device_that_cannot_hold_data_is_one_line(base_run: Path, tmp_path: Pa
     assert main(["eval", "--run", str(run), "--out", str(report), *FAST, "--device", device]) == 2
     assert error_line(capsys, "eval").startswith(f"--device {device}: ")
     assert not report.exists()
+
+
+import time
+import types
+
+import torch
+
+from controlgs_adapter import ControlGS, cli
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_backbone
+
+pytest.importorskip("matplotlib")
+
+pytest.importorskip("skimage")
+
+
+
+def _eval_run(tmp_path: Path, seeds: dict[str, tuple[str, ...]]) -> Path:
+    run = tmp_path / "run"
+    for folder, names in seeds.items():
+        (run / folder).mkdir(parents=True, exist_ok=True)
+        for n in names:
+            (run / folder / f"{n}.controlgs.safetensors").write_text("")  # checked for presence before any load
+    return run
+
+
+def test_eval_seed_folders(tmp_path: Path) -> None:
+    from controlgs_adapter.commands.eval import seed_folders
+
+    assert seed_folders(tmp_path, 5, None) == [(5, tmp_path)]  # no seed folders: the run folder itself
+    for name in ("seed-2", "seed--1", "seed-10", "seed-x", "seed-"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "seed-7").write_text("")  # a file, not a folder
+    assert seed_folders(tmp_path, 0, None) == [(-1, tmp_path / "seed--1"), (2, tmp_path / "seed-2"),
+                                               (10, tmp_path / "seed-10")]
+    assert seed_folders(tmp_path, 2, 1) == [(2, tmp_path)]
+    assert seed_folders(tmp_path, -1, 2) == [(-1, tmp_path / "seed--1"), (0, tmp_path / "seed-0")]
+
+
+def test_eval_refuses_seed_folders_with_different_adapters(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    run = _eval_run(tmp_path, {"seed-1": ("controlgs",), "seed-2": ("controlgs", "wo_lens")})
+    assert cli.main(["eval", "--run", str(run)]) == 2
+    assert (f"{run}: the seed folders hold different adapters (seed-1: controlgs; seed-2: controlgs, wo_lens)"
+            in capsys.readouterr().err)
+    run = _eval_run(tmp_path / "one", {".": ()})
+    assert cli.main(["eval", "--run", str(run)]) == 2  # one seed: the run folder itself is named
+    assert f"controlgs eval: error: {run}: no controlgs.controlgs.safetensors" in capsys.readouterr().err
+
+
+needs_backbone_2 = pytest.mark.skipif(not (builtin_backbone_dir("ar") / "point_cloud").is_dir(),
+                                    reason="built-in backbone not baked")
+
+
+# ------------------------------------------------------------------------------ eval / demo timings
+def _timings_within(info: dict[str, Any], keys: tuple[str, ...], wall: float) -> None:
+    """The reported durations (seconds, one decimal) are each >= 0 and together at most the command's
+    wall time (measured around it here), allowing for the rounding of each."""
+    got = [info[k] for k in keys]
+    assert all(isinstance(v, float) and v >= 0 for v in got), info
+    assert sum(got) <= wall + 0.05 * len(keys), (got, wall)
+
+
+@needs_backbone_2
+def test_eval_reported_times_are_parts_of_its_run(tmp_path, monkeypatch, capsys):
+    """``controlgs eval`` reports ``load_s`` / ``eval_s`` in results.json's info: the time of loading
+    and of the grid evaluation, both within the command's own time."""
+    pytest.importorskip("matplotlib")
+    from controlgs_adapter import ControlGS
+    from controlgs_adapter.scene import load_builtin_backbone
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    run = tmp_path / "run"
+    run.mkdir()
+    cgs = ControlGS.wrap(load_builtin_backbone("ar"), cond_dim=2)
+    cgs.save(run / "controlgs.controlgs.safetensors")
+    cgs.unwrap()
+    t0 = time.perf_counter()
+    assert cli.main(["eval", "--run", str(run), "--resolution", "16", "--test-views", "1", "--effects", "display",
+                     "--no-progress"]) == 0
+    wall = time.perf_counter() - t0
+    info = json.loads((run / "results.json").read_text())["info"]
+    _timings_within(info, ("load_s", "eval_s"), wall)
+    assert info["eval_s"] > 0 and (info["test_views"], info["effects"]) == (1, ["display"])
+
+
+def _err(capsys: pytest.CaptureFixture[str], command: str) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"controlgs {command}: error: "), err
+    return err[0][len(f"controlgs {command}: error: "):]
+
+
+def test_commands_that_do_not_need_the_missing_extra(capsys, monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "skimage", types.ModuleType("skimage"))
+    # eval needs matplotlib only: it goes on to its own check of the run folder
+    assert cli.main(["eval", "--run", str(tmp_path)]) == 2
+    assert _err(capsys, "eval") == (f"{tmp_path}: no controlgs.controlgs.safetensors (train one with "
+                                    f"`controlgs train --out {tmp_path}`)")
+    # optics figures needs neither
+    assert cli.main(["optics", "figures", "--prescription", str(tmp_path / "none.json")]) == 2
+    assert _err(capsys, "optics") == f"--prescription {tmp_path / 'none.json'}: no such file"
+    monkeypatch.setitem(sys.modules, "matplotlib", types.ModuleType("matplotlib"))
+    assert cli.main(["eval", "--run", str(tmp_path)]) == 2
+    assert _err(capsys, "eval").startswith("controlgs eval (the report's plots) needs matplotlib")
+
+
+# ------------------------------------------------------------------------------ helpers
+def test_seed_folders(tmp_path):
+    from controlgs_adapter.commands.eval import seed_folders
+
+    assert seed_folders(tmp_path, 4, None) == [(4, tmp_path)]
+    for name in ("seed-3", "seed-12", "seed--1", "seed-x"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "seed-7").write_text("")  # a file, not a seed folder
+    assert seed_folders(tmp_path, 0, None) == [(-1, tmp_path / "seed--1"), (3, tmp_path / "seed-3"),
+                                               (12, tmp_path / "seed-12")]
+    assert seed_folders(tmp_path, 3, 2) == [(3, tmp_path / "seed-3"), (4, tmp_path / "seed-4")]
+    assert seed_folders(tmp_path, 3, 1) == [(3, tmp_path)]
+    for bad in (0, -2, True, 1.5):
+        with pytest.raises(InputValueError, match="--seeds must be an int >= 1"):
+            seed_folders(tmp_path, 0, bad)  # type: ignore[arg-type]
+
+
+def test_eval_of_a_built_in_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    cgs = ControlGS.wrap(load_builtin_backbone("ar"), cond_dim=2)  # an untrained (zero) adapter: the backbone
+    cgs.save(run / "controlgs.controlgs.safetensors")
+    cgs.unwrap()
+    (run / "run.json").write_text(json.dumps({"variant": "ar", "effects": ["display"], "iterations": 7, "seed": 3,
+                                              "seeds": 1, "adapters": ["controlgs"], "rasterizer": "auto",
+                                              "renderer": None}))
+    out = tmp_path / "report"
+    assert main(["eval", "--run", str(run), "--out", str(out), "--resolution", "16", "--test-views", "2",
+                 "--no-progress"]) == 0
+    printed = capsys.readouterr().out.split()
+    assert printed == [str(out / f) for f in ("results.json", "heatmap.png", "comparison.png",
+                                              "condition_response.png", "report.md")]
+    data = json.loads((out / "results.json").read_text())
+    info = data["info"]
+    assert (info["resolution"], info["test_views"], info["seeds"], info["adapters"], info["effects"]) == \
+        (16, 2, 1, ["controlgs"], ["display"])  # the effects of run.json
+    assert (info["optics"], info["device"], info["rasterizer"], info["renderer"]) == ("fast", "cpu", "auto", None)
+    assert (info["iterations"], info["seed"], info["test_sizes"]) == (7, 3, ["16x16"])
+    assert "lpips_weights" not in info and info["load_s"] >= 0 and info["eval_s"] > 0
+    assert set(data["methods"]) == {"no_ss", "ss", "ideal", "controlgs"}
+    ss = torch.tensor(data["methods"]["ss"]["psnr"]["per_view"])
+    assert ss.shape == (4, 5, 2)  # the paper's grid, the first 2 test views
+    # a zero adapter renders the backbone: the same numbers as the SS-backbone
+    assert data["methods"]["controlgs"]["psnr"]["per_view"] == data["methods"]["ss"]["psnr"]["per_view"]
+    md = (out / "report.md").read_text()
+    assert "averaged over the 2 test views and the 20 run-time settings" in md
+    assert "Run: test_views = 2, seed = 3, scene = builtin-ar, resolution = 16, optics = fast" in md
+
+
+def test_cli_eval_needs_matplotlib_only(tmp_path, monkeypatch, capsys):
+    """eval's table entry names matplotlib alone: without scikit-image it goes on (to its own error)."""
+    from controlgs_adapter.cli import main
+
+    monkeypatch.setitem(sys.modules, "skimage", None)
+    assert main(["eval", "--run", str(tmp_path / "no-run"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("controlgs eval: error: ") and "scikit-image" not in err and "no-run" in err, err
+
+
+def test_cli_import_errors_outside_the_table_are_one_line(tmp_path, monkeypatch, capsys):
+    """A package missing at the command's own import (not in REQUIRES) and a broken install (a name
+    missing from a module) each end in one line and exit code 2, never a traceback."""
+    import controlgs_adapter.report as report
+    from controlgs_adapter.cli import main
+
+    pytest.importorskip("matplotlib")
+    argv = ["eval", "--run", str(tmp_path / "run"), "--out", str(tmp_path / "out")]
+    with monkeypatch.context() as mp:
+        mp.setitem(sys.modules, "controlgs_adapter.report", None)
+        assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == ("controlgs eval: error: needs the Python package 'controlgs_adapter.report', which is not installed "
+                   "(pip install 'controlgs-adapter[demo]' installs the optional ones)\n"), err
+    monkeypatch.delattr(report, "write_report")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("controlgs eval: error: cannot import name 'write_report' from 'controlgs_adapter.report'"), err
+    assert err.endswith(" (pip install 'controlgs-adapter[demo]' installs the optional ones)\n") and err.count("\n") == 1
+
+
+pytestmark = [pytest.mark.skipif(not (builtin_backbone_dir("ar") / "point_cloud").is_dir(),
+                                reason="built-in backbone not baked"), pytest.mark.filterwarnings("ignore::DeprecationWarning")]

@@ -10,10 +10,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.cli_runs import MARKER_MODULE, error_line, needs_backbone, snapshot, untrained_run
 
 from controlgs_adapter.cli import main
 from controlgs_adapter.viewer.server import ViewerServer
-from helpers.cli_runs import MARKER_MODULE, error_line, needs_backbone, snapshot, untrained_run
 
 pytestmark = needs_backbone
 RECORD = {"variant": "ar", "effects": ["display"], "iterations": 7, "seed": 0, "seeds": 1, "adapters": ["controlgs"],
@@ -87,3 +87,249 @@ def test_a_bad_option_is_one_line_before_loading(tmp_path: Path, served: list[An
     line = error_line(capsys, "view")
     assert line.startswith(f"{option} ") and value in line, line
     assert served == []
+
+
+import base64
+import io
+
+import torch
+from helpers.adapters import random_adapter
+
+from controlgs_adapter import ControlGS, cli
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.evaluation import evaluate_grid
+from controlgs_adapter.scene import builtin_backbone_dir
+from controlgs_adapter.viewer import Superseded, ViewerSession
+from controlgs_adapter.viewer.session import parse_state
+
+
+def _eval_run(tmp_path: Path, seeds: dict[str, tuple[str, ...]]) -> Path:
+    run = tmp_path / "run"
+    for folder, names in seeds.items():
+        (run / folder).mkdir(parents=True, exist_ok=True)
+        for n in names:
+            (run / folder / f"{n}.controlgs.safetensors").write_text("")  # checked for presence before any load
+    return run
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["view", "--threads", "0"], "--threads must be an integer in [1, "),
+    (["view", "--model", "m", "--data", "d"], "--model/--data need --run RUN"),
+    (["view", "--rasterizer", "nope"], "--rasterizer 'nope' is not registered"),
+    (["optics", "fit-prewarp", "--size", "9", "--out", "{d}/lut.safetensors"], "--size must be an even integer >= 8, got 9"),
+    (["optics", "fit-prewarp", "--size", "6", "--out", "{d}/lut.safetensors"], "--size must be an even integer >= 8, got 6"),
+    (["optics", "fit-prewarp", "--out", "{d}"], "--out {d}: is a folder"),
+    (["optics", "build-bank", "--out", "{d}"], "--out {d}: is a folder"),
+    (["optics", "build-bank", "--prescription", "{d}/big.json", "--out", "{d}/b.safetensors"], "big.json: 1048577 bytes, too large"),
+    (["optics", "bench", "--sizes", "256", "1x4"], "--sizes: size must be N or HxW with N, H, W >= 2, got '1x4'"),
+    (["eval", "--run", "{d}/run"], "seed-2: no controlgs.controlgs.safetensors"),
+])
+def test_command_refusals_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+                                       message: str) -> None:
+    (tmp_path / "big.json").write_bytes(b" " * ((1 << 20) + 1))
+    _eval_run(tmp_path, {"seed-1": ("controlgs",), "seed-2": ("wo_lens",)})
+    d = str(tmp_path)
+    assert cli.main([a.replace("{d}", d) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"controlgs {argv[0]}: error: ") and message.replace("{d}", d) in err[0], err
+
+
+needs_backbone_2 = pytest.mark.skipif(not (builtin_backbone_dir("ar") / "point_cloud").is_dir(),
+                                    reason="built-in backbone not baked")
+
+
+def _err(capsys: pytest.CaptureFixture[str], command: str) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"controlgs {command}: error: "), err
+    return err[0][len(f"controlgs {command}: error: "):]
+
+
+# ------------------------------------------------------------------------------ view
+@needs_backbone_2
+def test_view_of_the_built_in_scene_with_a_run(tmp_path, monkeypatch, capsys):
+    """``controlgs view --run RUN`` on the built-in scene (RUN has no run.json): ``--resolution`` and
+    ``--test-views`` reach the session, which carries the scene's name and the exact ground truth of any
+    camera (an orbit view has one too, unlike a user's data); the server's loop is replaced by two renders."""
+    from controlgs_adapter.scene import load_builtin_backbone
+    from controlgs_adapter.viewer import parse_state
+    from controlgs_adapter.viewer.server import ViewerServer
+
+    run = tmp_path / "run"
+    run.mkdir()
+    cgs = ControlGS.wrap(load_builtin_backbone("ar"), cond_dim=2)  # zero conditions: renders as the backbone
+    cgs.save(run / "controlgs.controlgs.safetensors")
+    cgs.unwrap()
+    seen: list[Any] = []
+
+    def two_renders(self: ViewerServer, poll_interval: float = 0.5) -> None:
+        n = len(self.session.cameras)
+        seen.append((self.session, self.session.render(parse_state({}, n)),
+                     self.session.render(parse_state({"azimuth": 15.0}, n))))
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(ViewerServer, "serve_forever", two_renders)
+    assert cli.main(["view", "--run", str(run), "--resolution", "16", "--test-views", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "controlgs view: builtin-ar, methods no_ss, ss, controlgs on cpu" in out
+    (session, dataset, orbit), = seen
+    assert len(session.cameras) == 1 and session.info()["name"] == "builtin-ar"
+    assert dataset["size"] == [16, 16] and orbit["size"] == [16, 16]
+    assert dataset["has_truth"] and orbit["has_truth"]  # the built-in scene: ray-cast truth of any camera
+    psnr = {m["name"] if "name" in m else i: m["metrics"]["psnr"] for i, m in enumerate(orbit["methods"])}
+    assert all(v is not None and v > 5 for v in psnr.values()), orbit["methods"]
+
+
+def test_view_exact_truth_is_the_dataset_image():
+    """``_exact_truth``: "the built-in scene's exact ground truth of any camera (ray cast, as its
+    dataset's images)": a test camera's truth is its test image (float32, [3, H, W])."""
+    from controlgs_adapter.commands.view import _exact_truth
+    from controlgs_adapter.scene import load_builtin_scene
+
+    for variant in ("ar", "vr"):
+        builtin = load_builtin_scene(variant, 16, views=4, test_every=4)
+        truth = _exact_truth(builtin)
+        got = truth(builtin.test_cameras[0])
+        assert got.dtype == torch.float32 and torch.equal(got, builtin.test_images[0]), variant
+
+
+def test_view_refuses_zero_quick_iterations(tmp_path, monkeypatch, capsys):
+    """Without ``--run`` the built-in scene's quick adapter needs ``--iterations`` >= 1: refused on one
+    line before any training (the server is never started)."""
+    from controlgs_adapter.viewer.server import ViewerServer
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(ViewerServer, "serve_forever", lambda self, poll_interval=0.5: None)
+    assert cli.main(["view", "--resolution", "16", "--iterations", "0"]) == 2
+    assert _err(capsys, "view").startswith("--iterations must be an integer in [1, ")
+
+
+def test_view_adapters_of_a_run_folder(tmp_path):
+    from controlgs_adapter.commands.view import QUICK_ITERATIONS, VIEW_RESOLUTION, _adapters
+
+    assert (QUICK_ITERATIONS, VIEW_RESOLUTION) == (150, 128)
+    with pytest.raises(InputValueError, match=f"{tmp_path}: no controlgs.controlgs.safetensors"):
+        _adapters(tmp_path)
+    for n in ("controlgs", "state_blind", "other"):
+        (tmp_path / f"{n}.controlgs.safetensors").write_text("")
+    assert _adapters(tmp_path) == {"controlgs": tmp_path / "controlgs.controlgs.safetensors",
+                                   "state_blind": tmp_path / "state_blind.controlgs.safetensors"}
+
+
+def test_view_refusals(capsys, tmp_path):
+    assert cli.main(["view", "--port", "65536"]) == 2
+    assert "--port" in _err(capsys, "view")
+    assert cli.main(["view", "--port", "-1"]) == 2
+    assert "--port" in _err(capsys, "view")
+    assert cli.main(["view", "--run", str(tmp_path / "none")]) == 2
+    assert _err(capsys, "view") == f"--run {tmp_path / 'none'}: no such folder"
+    assert cli.main(["view", "--run", str(tmp_path)]) == 2
+    assert "no controlgs.controlgs.safetensors" in _err(capsys, "view")
+
+
+SIZE = 48
+
+
+@pytest.fixture(scope="module")
+def scene() -> Any:
+    from controlgs_adapter.scene import load_builtin_scene
+
+    return load_builtin_scene("ar", SIZE, views=8, test_every=4, samples=1)
+
+
+@pytest.fixture(scope="module")
+def session(scene: Any, tmp_path_factory: pytest.TempPathFactory) -> ViewerSession:
+    from controlgs_adapter.scene import load_builtin_backbone, render_planes
+
+    model = load_builtin_backbone("ar")
+    adapter = random_adapter(model, tmp_path_factory.mktemp("viewer") / "controlgs.controlgs.safetensors")
+    return ViewerSession(model, scene.views("test"), {"controlgs": adapter}, name="test scene",
+                         truth=lambda cam: render_planes(scene.planes, cam, samples=1)[0].float())
+
+
+def decode(b64: str) -> torch.Tensor:
+    import numpy as np
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(base64.b64decode(b64))), dtype=np.float32)
+    return torch.from_numpy(img).view(img.shape[0], img.shape[1], -1)
+
+
+# ---------------------------------------------------------------- the session
+def test_render_matches_evaluate_grid(session: ViewerSession, scene: Any) -> None:
+    state = parse_state({"view": 1, "downsample": 2.6, "power_saving": 0.3}, 2)
+    out = session.render(state, tag=7)
+    assert [m["name"] for m in out["methods"]] == ["no_ss", "ss", "controlgs"] and out["has_truth"]
+    grid = evaluate_grid(session.model, session.views, session.adapter_files, downsample=[2.6], power_saving=[0.3],
+                         ideal=False, progress=False)
+    extra = session.extra(7)
+    for m in out["methods"]:
+        for k in ("psnr", "ssim"):
+            assert m["metrics"][k] == pytest.approx(float(grid.per_view[m["name"]][k][0, 0, 1]), abs=1e-9)
+        for k, v in extra[m["name"]].items():
+            assert v == pytest.approx(float(grid.per_view[m["name"]][k][0, 0, 1]), abs=1e-9)
+        assert decode(m["eye"]).shape == (SIZE, SIZE, 3) and decode(m["diff"]).shape == (SIZE, SIZE, 3)
+    no_ss, _, cgs = out["methods"]
+    assert decode(no_ss["rendered"]).shape == (round(SIZE / 2.6), round(SIZE / 2.6), 3)
+    assert cgs["strengths"]["resample"] == pytest.approx(torch.log2(torch.tensor(2.6)).item() / 3, abs=1e-6)
+    assert cgs["strengths"]["display"] == pytest.approx(0.3 / 0.8, abs=1e-6)
+    assert 0.0 <= cgs["strengths"]["lens"]["min"] <= cgs["strengths"]["lens"]["mean"] <= cgs["strengths"]["lens"]["max"] <= 1
+    overlay = decode(cgs["overlay"])
+    assert overlay.shape == (SIZE, SIZE, 4) and overlay[..., 3].max() > 0
+    with pytest.raises(Superseded):
+        session.extra(6)
+
+
+def test_cli_view_registered() -> None:
+    from controlgs_adapter.cli import build_parser
+
+    args = build_parser().parse_args(["view", "--port", "0", "--run", "somewhere"])
+    assert args.command == "view" and args.port == 0 and args.run == "somewhere"
+
+
+def test_cli_view_user_errors(tmp_path: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    from controlgs_adapter.cli import main
+
+    assert main(["view", "--run", str(tmp_path / "nope")]) == 2
+    assert "--run" in capsys.readouterr().err
+    assert main(["view", "--run", str(tmp_path), "--test-views", "1"]) == 2
+    assert "no controlgs.controlgs.safetensors" in capsys.readouterr().err
+    assert main(["view", "--port", "70000"]) == 2
+    assert "--port must be an integer in [0, 65535]" in capsys.readouterr().err
+
+
+def test_cli_view_on_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``controlgs view --run RUN`` on a COLMAP capture of non-square views and the built-in backbone's
+    Scaffold-GS folder (model and data from RUN/run.json); the server's loop is replaced by two renders."""
+    from helpers.scene_writers import write_colmap
+
+    from controlgs_adapter.backends import load_model_dir
+    from controlgs_adapter.cli import main
+    from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
+    from controlgs_adapter.state import Camera
+    from controlgs_adapter.viewer.server import ViewerServer
+
+    scene = load_builtin_scene("ar", 32, views=8, test_every=8, samples=1)
+    cams, images = [], []
+    for c, img in zip(scene.test_cameras + scene.train_cameras, torch.cat([scene.test_images, scene.train_images])):
+        k = c.intrinsics.clone()
+        k[1, 2] -= 4
+        cams.append(Camera(c.world_to_camera, k, 32, 24))
+        images.append(img[:, 4:28].contiguous())
+    data, run, model_dir = write_colmap(tmp_path / "colmap", cams, images), tmp_path / "run", builtin_backbone_dir("ar")
+    run.mkdir()
+    random_adapter(load_model_dir(model_dir), run / "controlgs.controlgs.safetensors")
+    (run / "run.json").write_text(json.dumps({"model": str(model_dir), "data": str(data), "resolution": 32}))
+    seen: list[dict[str, Any]] = []
+
+    def two_renders(self: ViewerServer, poll_interval: float = 0.5) -> None:
+        seen.append(self.session.render(parse_state({"downsample": 2.0}, len(self.session.cameras))))
+        seen.append(self.session.render(parse_state({"azimuth": 15.0}, len(self.session.cameras))))
+
+    monkeypatch.setattr(ViewerServer, "serve_forever", two_renders)
+    assert main(["view", "--run", str(run), "--threads", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "serving on http://127.0.0.1:" in out and "methods no_ss, ss, controlgs" in out
+    dataset, orbit = seen
+    assert dataset["size"] == [32, 24] and dataset["has_truth"] and dataset["methods"][2]["metrics"]["psnr"] > 10
+    assert decode(dataset["methods"][2]["eye"]).shape == (24, 32, 3)
+    assert not orbit["has_truth"] and orbit["methods"][2]["metrics"] is None  # your data: no ground truth off the views

@@ -41,3 +41,107 @@ def test_brief_never_raises_and_stays_short() -> None:
             raise RuntimeError("no repr")
 
     assert brief(Broken()).startswith("<Broken")
+
+
+import torch
+
+from controlgs_adapter import checks
+from controlgs_adapter.errors import ShapeError
+
+
+@pytest.mark.parametrize("kw, value, ok, words", [
+    (dict(low=0.0), 0.0, True, None),  # closed lower bound takes the bound itself
+    (dict(low=0.0, low_open=True), 0.0, False, "in (0, inf)"),
+    (dict(low=0.0, low_open=True), 1e-300, True, None),
+    (dict(high=1.0), 1.0, True, None),
+    (dict(low=0.0, high=1.0, high_open=True), 1.0, False, "in [0, 1)"),
+    (dict(low=0.0, high=1.0, high_open=True), 0.999, True, None),
+    (dict(low=-2.0), -2.5, False, "in [-2, inf)"),
+    (dict(high=3.0), 3.5, False, "in [-inf, 3]"),
+    (dict(), float("nan"), False, "a finite number, got nan"),
+    (dict(), float("inf"), False, "a finite number, got inf"),
+    (dict(), True, False, "got True"),  # a bool is not a number here
+    (dict(), "1", False, "got '1'"),
+    (dict(integer=True, low=1), 1, True, None),
+    (dict(integer=True, low=1), 0, False, "an integer in [1, inf)"),
+    (dict(integer=True), 2.0, False, "an integer, got 2.0"),  # a float is not an integer, even 2.0
+])
+def test_check_number_bounds_and_messages(kw, value, ok, words):
+    if ok:
+        got = checks.check_number("x", value, **kw)
+        assert got == value and type(got) is (int if kw.get("integer") else float)
+    else:
+        with pytest.raises(InputValueError) as e:
+            checks.check_number("x", value, **kw)
+        assert str(e.value).startswith("x must be ") and words in str(e.value)
+
+
+def test_check_number_converts_numpy_and_int_values():
+    np = pytest.importorskip("numpy")
+    assert type(checks.check_number("x", np.int64(3), integer=True)) is int
+    assert checks.check_number("x", 3) == 3.0 and type(checks.check_number("x", 3)) is float
+
+
+def test_check_tensor_shapes_star_symbols_dtypes_and_bound_sizes():
+    x = torch.zeros(2, 5, 3)
+    assert checks.check_tensor("x", x, ["*", "H", 3]) == {"H": 5}
+    assert checks.check_tensor("x", torch.zeros(5, 3), ["*", "H", 3]) == {"H": 5}  # "*" may be no dim at all
+    assert checks.check_tensor("x", x, None) == {}
+    assert checks.check_tensor("x", x, ["B", "H", 3], dims={"H": 5}) == {"B": 2, "H": 5}
+    with pytest.raises(InputValueError, match="x must be a torch.Tensor, got list"):
+        checks.check_tensor("x", [1.0])
+    with pytest.raises(ShapeError, match=r"x must have shape \[\.\.\., H, 3\], got \[3\]"):
+        checks.check_tensor("x", torch.zeros(3), ["*", "H", 3])
+    with pytest.raises(ShapeError, match=r"x must have shape \[R, 2\], got \[2, 5, 3\]"):
+        checks.check_tensor("x", x, ["R", 2])
+    with pytest.raises(ShapeError, match=r"x must have size 4 in dim -1 \(shape \['\*', 'H', 4\]\), got \[2, 5, 3\]"):
+        checks.check_tensor("x", x, ["*", "H", 4])
+    with pytest.raises(ShapeError, match=r"x must have size 3 in dim -3"):
+        checks.check_tensor("x", x, [3, 5, 3])
+    with pytest.raises(ShapeError, match="dim 'H' must be 4, got 5"):
+        checks.check_tensor("x", x, ["B", "H", 3], dims={"H": 4})
+    with pytest.raises(ShapeError, match="dim 'S' must be 2, got 5"):  # one symbol twice: sizes must agree
+        checks.check_tensor("x", x, ["S", "S", 3])
+    with pytest.raises(InputValueError, match=r"x must have dtype in \['torch.float64'\], got torch.float32"):
+        checks.check_tensor("x", x, dtypes=(torch.float64,))
+    checks.check_tensor("x", x.double(), dtypes=(torch.float64,))
+
+
+def test_check_finite_counts_and_value_checks_switch():
+    x = torch.tensor([1.0, float("nan"), float("inf"), 2.0])
+    with pytest.raises(InputValueError, match=r"^x contains 2 non-finite value\(s\) \(NaN/Inf\) out of 4$"):
+        checks.check_finite("x", x)
+    with pytest.raises(InputValueError, match="non-finite"):
+        checks.check_tensor("x", x, finite=True)
+    checks.check_tensor("x", x)  # finite=False (default): no value check
+    checks.check_finite("i", torch.tensor([1, 2]))  # integer tensors hold no NaN
+    assert checks.value_checks_enabled() is True  # the default
+    with checks.value_checks(False):
+        assert checks.value_checks_enabled() is False
+        checks.check_finite("x", x)  # skipped
+        with checks.value_checks(True):
+            with pytest.raises(InputValueError):
+                checks.check_finite("x", x)
+        assert checks.value_checks_enabled() is False
+    assert checks.value_checks_enabled() is True
+    with pytest.raises(RuntimeError), checks.value_checks(False):  # restored even when the block raises
+        raise RuntimeError
+    assert checks.value_checks_enabled() is True
+
+
+def test_check_image_and_same_device():
+    assert checks.check_image("img", torch.zeros(2, 3, 4, 5)) == {"H": 4, "W": 5}
+    with pytest.raises(ShapeError, match="img must have H, W >= 1, got H=0, W=5"):
+        checks.check_image("img", torch.zeros(3, 0, 5))
+    with pytest.raises(ShapeError, match="img must have H, W >= 1, got H=4, W=0"):
+        checks.check_image("img", torch.zeros(3, 4, 0))
+    with pytest.raises(InputValueError, match="dtype"):
+        checks.check_image("img", torch.zeros(3, 4, 5, dtype=torch.float16))
+    bad = torch.zeros(3, 2, 2)
+    bad[0, 0, 0] = float("nan")
+    with pytest.raises(InputValueError, match="img contains 1 non-finite"):
+        checks.check_image("img", bad)  # finite by default
+    checks.check_image("img", bad, finite=False)
+    checks.check_same_device(a=torch.zeros(1), b=torch.zeros(2), c=None)
+    with pytest.raises(InputValueError, match="tensors must be on one device, got a=cpu, b=meta"):
+        checks.check_same_device(a=torch.zeros(1), b=torch.zeros(1, device="meta"))

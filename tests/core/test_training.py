@@ -126,7 +126,6 @@ def test_nan_gradients_at_a_finite_loss_are_named_as_the_cause_not_the_learning_
 def test_a_model_with_a_degenerate_gaussian_trains(tiny):
     """One anchor's Gaussians with scales of about 1e20 (a float32 2D covariance would overflow): the steps
     keep every adapter tensor finite."""
-    import copy
 
     scene, model = tiny
     model = copy.deepcopy(model)
@@ -141,3 +140,878 @@ def test_a_model_with_a_degenerate_gaussian_trains(tiny):
         assert all(bool(torch.isfinite(p).all()) for p in t.cgs.trainable_parameters())
     finally:
         t.cgs.unwrap()
+
+
+import collections
+import copy
+import os
+import sys
+import traceback
+from pathlib import Path
+from typing import Any, Callable
+
+from helpers.rawfiles import write_raw
+from torch.utils._python_dispatch import TorchDispatchMode
+
+import controlgs_adapter
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.controlgs import ControlGS
+from controlgs_adapter.downstream.stage import Stage, StageContext
+from controlgs_adapter.errors import ControlGSError, FileFormatError, NonFiniteError
+from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND
+from controlgs_adapter.formats.safetensors import load_tensors
+from controlgs_adapter.losses import LossWeights, image_loss
+from controlgs_adapter.rendering.protocol import FunctionRenderer, ModelRenderer, render_view
+from controlgs_adapter.scene import load_builtin_scene
+from controlgs_adapter.state import Camera, RuntimeState
+from controlgs_adapter.training import DEFAULT_EFFECTS, modules_for, view_cameras, views_fingerprint
+
+pytest.importorskip("skimage")
+
+
+
+def _raises(fn: Callable[[], Any], error: type[BaseException] | tuple[type[BaseException], ...], *names: str) -> str:
+    """Call ``fn``; it must raise ``error`` (a ControlGSError) whose message holds every one of ``names``."""
+    with pytest.raises(error) as info:
+        fn()
+    assert isinstance(info.value, ControlGSError), type(info.value)
+    msg = str(info.value)
+    for n in names:
+        assert n in msg, f"{n!r} not in {msg!r}"
+    return msg
+
+
+# ============================================================================ API: training configuration
+CONFIG_CASES = [
+    ("lr", math.inf), ("lr", math.nan), ("lr", 0.0), ("lr", -1e-3), ("lr", "fast"), ("lr", None),
+    ("iterations", -1), ("iterations", 1.5), ("iterations", "10"), ("iterations", True),
+    ("cond_dim", 0), ("cond_dim", 8.0), ("max_downsample", 0.5), ("max_downsample", math.inf),
+    ("max_power_saving", 1.0), ("max_power_saving", -0.1), ("psf_fraction", 2.0), ("psf_fraction", math.nan),
+    ("psf_mode", "slow"), ("batch_size", 0), ("checkpoint_every", -1), ("seed", -1), ("seed", 2.5),
+    ("state_blind", "yes"), ("loss", {"l1": 1.0}), ("modules", [1, 2]), ("modules", 7),
+]
+
+
+# ============================================================================ files: training checkpoints
+@pytest.fixture(scope="module")
+def ckpt_setup(tmp_path_factory):
+    pytest.importorskip("skimage")
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.scene import load_builtin_scene
+
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=5).eval()
+    return scene, model, tmp_path_factory.mktemp("ckpt")
+
+
+def _trainer_2(setup: Any, path: Path, **cfg: Any):
+    from controlgs_adapter.training import Trainer
+
+    scene, model, _ = setup
+    config = TrainConfig(**{"iterations": 2, "checkpoint_every": 0, "psf_fraction": 0.0, **cfg})
+    effects = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
+    return Trainer(model, scene.views("train"), config, effects=effects, checkpoint=path)
+
+
+def _damage(path: Path, header: dict[str, Any] | None = None, tensors: dict[str, Any] | None = None,
+            drop: tuple[str, ...] = (), nan: str | None = None) -> None:
+
+    t, h = load_tensors(path, kind=CHECKPOINT_KIND, max_version=1)
+    if nan is not None:
+        t[nan] = t[nan].clone()
+        t[nan].view(-1)[0] = math.nan
+    h = {k: v for k, v in h.items() if k not in ("kind", "format_version", "library_version")}
+    h.update(header or {})
+    t.update(tensors or {})
+    for k in drop:
+        h.pop(k, None)
+        t.pop(k, None)
+    write_raw(path, t, h, kind=CHECKPOINT_KIND)
+
+
+CKPT_CASES = [
+    ("rng missing", {"drop": ("rng",)}, "rng"),
+    ("rng float", {"tensors": {"rng": torch.zeros(5056)}}, "rng"),
+    ("rng short", {"tensors": {"rng": torch.zeros(3, dtype=torch.uint8)}}, "rng"),
+    ("param_groups missing", {"drop": ("param_groups",)}, "param_groups"),
+    ("param_groups []", {"header": {"param_groups": []}}, "param_groups"),
+    ("param_groups wrong params", {"header": {"param_groups": [{"params": [7, 8], "lr": 0.003}]}}, "param_groups"),
+    ("param_groups a string", {"header": {"param_groups": "x"}}, "param_groups"),
+    ("param_groups of numbers", {"header": {"param_groups": [1]}}, "param_groups"),
+    ("param_groups without params", {"header": {"param_groups": [{"lr": 0.003}]}}, "param_groups"),
+    ("iteration 'x'", {"header": {"iteration": "x"}}, "iteration"),
+    ("iteration -1", {"header": {"iteration": -1}}, "iteration"),
+    ("iteration missing", {"drop": ("iteration",)}, "iteration"),
+    ("history [nan]", {"header": {"history": [None]}}, "history"),
+    ("config a list", {"header": {"config": [1]}}, "config"),
+    ("NaN condition", {"nan": "adapter.conditions"}, "NaN"),
+    ("NaN Adam state", {"nan": "optimizer.0.exp_avg"}, "NaN"),
+    ("adapter tensor missing", {"drop": ("adapter.conditions",)}, "adapter"),
+    ("unexpected tensor", {"tensors": {"extra": torch.zeros(1)}}, "extra"),
+    ("optimizer key malformed", {"tensors": {"optimizer.x": torch.zeros(1)}}, "optimizer.x"),
+    ("optimizer shape", {"tensors": {"optimizer.0.exp_avg": torch.zeros(1)}}, "optimizer.0.exp_avg"),
+]
+
+
+@pytest.mark.parametrize("name, value", CONFIG_CASES, ids=[f"{n}={v!r}" for n, v in CONFIG_CASES])
+def test_train_config(name, value):
+    _raises(lambda: TrainConfig(**{name: value}), InputValueError, name)
+
+
+def test_train_config_takes_one_module_name_as_one_module():
+    assert TrainConfig(modules="lens").modules == ("lens",)
+
+
+@pytest.mark.parametrize("damage, name", [c[1:] for c in CKPT_CASES], ids=[c[0] for c in CKPT_CASES])
+def test_damaged_checkpoint(ckpt_setup, tmp_path, damage, name):
+    path = tmp_path / "run.ckpt.safetensors"
+    t = _trainer_2(ckpt_setup, path)
+    try:
+        t.train(until=1, progress=False)
+    finally:
+        t.cgs.unwrap()
+    _damage(path, **damage)
+    fresh = _trainer_2(ckpt_setup, path)
+    try:
+        _raises(fresh.resume, FileFormatError, "run.ckpt.safetensors", name)
+        assert fresh.iteration == 0
+    finally:
+        fresh.cgs.unwrap()
+
+
+def test_training_stops_at_the_first_non_finite_loss_keeping_the_last_checkpoint(ckpt_setup, tmp_path, monkeypatch):
+    path = tmp_path / "run.ckpt.safetensors"
+    t = _trainer_2(ckpt_setup, path, iterations=4, checkpoint_every=2)
+    try:
+        t.train(until=2, progress=False)
+        good = path.read_bytes()
+        monkeypatch.setattr("controlgs_adapter.training.image_loss", lambda *a, **k: torch.tensor(math.nan, requires_grad=True))
+        msg = _raises(lambda: t.train(progress=False), NonFiniteError, "iteration 2")
+        assert "loss" in msg
+        assert path.read_bytes() == good, "the bad state must not be written"
+        assert all(bool(torch.isfinite(p).all()) for p in t.cgs.trainable_parameters())
+    finally:
+        t.cgs.unwrap()
+
+
+def test_trainer_constructor_failure_leaves_the_model_unwrapped(ckpt_setup):
+    from controlgs_adapter.training import Trainer
+
+    scene, model, _ = ckpt_setup
+    with pytest.raises(ControlGSError):
+        Trainer(model, scene.views("train"), TrainConfig(iterations=1), effects={"lens": True, "resample": {"bogus": 1}, "display": True})
+    assert ControlGS.attached(model) is None
+
+
+EFFECTS_2 = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
+
+
+def _trainer_3(tiny, path, effects=EFFECTS_2):
+    scene, model = tiny
+    config = TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.0)
+    return Trainer(model, scene.views("train"), config, effects=effects, checkpoint=path)
+
+
+def test_checkpoint_through_other_stages_is_refused(tiny, tmp_path):
+    path = tmp_path / "run.ckpt.safetensors"
+    t = _trainer_3(tiny, path)
+    try:
+        t.train(until=1, progress=False)
+    finally:
+        t.cgs.unwrap()
+    # same condition modules, but the OLED stage is off: the run differs
+    other = _trainer_3(tiny, path, effects={k: v for k, v in EFFECTS_2.items() if k != "oled"})
+    try:
+        with pytest.raises(FileFormatError, match=r"run\.ckpt\.safetensors.*stages .*'oled'"):
+            other.resume()
+        assert other.iteration == 0 and other.history == []
+    finally:
+        other.cgs.unwrap()
+
+
+F64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def tiny_2():
+    pytest.importorskip("skimage")
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.scene import load_builtin_scene
+
+    scene = load_builtin_scene("ar", 16, views=2, test_every=2, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=5)
+    return scene, model.eval()
+
+
+class _RecordingTrainer(Trainer):
+    """The real trainer, recording the iteration at which each checkpoint is written."""
+
+    def save_checkpoint(self, path):
+        self.saved_at = [*getattr(self, "saved_at", []), self.iteration]
+        return super().save_checkpoint(path)
+
+
+def test_psf_mode_other_than_fast_or_exact_is_refused():
+    for mode in ("distortion", "slow"):
+        with pytest.raises(InputValueError, match="psf_mode"):
+            TrainConfig(psf_mode=mode)
+
+
+def test_checkpoint_cadence_and_until_past_the_end(tiny_2, tmp_path):
+    scene, model = tiny_2
+    config = TrainConfig(iterations=5, checkpoint_every=2)
+    t = _RecordingTrainer(model, scene.views("train"), config, effects={"resample": True},
+                          checkpoint=tmp_path / "c.safetensors")
+    try:
+        t.train(until=50, progress=False)  # until beyond iterations stops at iterations
+        assert t.iteration == 5 and len(t.history) == 5
+        assert t.saved_at == [2, 4, 5]  # every 2nd iteration, then at the end
+        # without a display stage every state has rho = 0; d = max_d ** u0 from the same draws
+        g = torch.Generator().manual_seed(config.seed)
+        t.generator.manual_seed(config.seed)
+        for _ in range(20):
+            view = int(torch.randint(len(t.views), (1,), generator=g))
+            u = torch.rand(2, generator=g, dtype=F64)
+            got_view, state = t.sample()
+            assert got_view == view and state.power_saving == 0.0
+            assert state.downsample == pytest.approx(config.max_downsample ** float(u[0]), rel=1e-12)
+    finally:
+        t.cgs.unwrap()
+
+
+def test_batch_loss_is_the_mean_of_its_samples():
+    """batch_size=2: the first step's loss is the mean of the losses of the first two (view, state) draws,
+    each measured by a batch_size=1 trainer with the same seed (its first two steps; lr 1e-12 so that its
+    first update leaves the second loss as at initialisation)."""
+    pytest.importorskip("skimage")
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.scene import load_builtin_scene
+    from controlgs_adapter.training import TrainConfig, Trainer
+
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=2).eval()
+    effects = {"resample": True, "display": True}
+    losses = {}
+    for batch, iterations in ((2, 1), (1, 2)):
+        t = Trainer(model, scene.views("train"), TrainConfig(iterations=iterations, checkpoint_every=0, lr=1e-12, seed=3,
+                                                             batch_size=batch), effects=effects)
+        try:
+            t.train(progress=False)
+            losses[batch] = list(t.history)
+        finally:
+            t.cgs.unwrap()
+    assert losses[1][0] != pytest.approx(losses[1][1], rel=1e-3)  # two different draws
+    assert losses[2][0] == pytest.approx((losses[1][0] + losses[1][1]) / 2, rel=1e-5)
+
+
+def test_every_public_name_resolves() -> None:
+    for name in controlgs_adapter.__all__:
+        assert getattr(controlgs_adapter, name) is not None, name
+    from controlgs_adapter.evaluation import GridResult
+    from controlgs_adapter.training import Trainer
+
+    assert controlgs_adapter.Trainer is Trainer and controlgs_adapter.GridResult is GridResult
+    assert issubclass(controlgs_adapter.StateRangeError, controlgs_adapter.StateError)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU available in this run: a training step on CUDA not run")
+def test_a_training_step_runs_on_cuda():
+    pytest.importorskip("skimage")
+    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+    from controlgs_adapter.scene import load_builtin_scene
+    from controlgs_adapter.training import TrainConfig, Trainer
+
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35,
+                                            color_fit_steps=20).to("cuda")
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0))
+    assert t.device.type == "cuda" and t.cgs.injector.conditions.is_cuda
+    t.train(progress=False)
+    assert all(torch.isfinite(torch.tensor(t.history)))
+    t.cgs.unwrap()
+
+
+EFFECTS_3 = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
+
+
+@pytest.fixture(scope="module")
+def tiny_3():
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    torch.manual_seed(0)  # from_points draws from the global generator: the same model whatever ran before
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=20)
+    return scene, model.eval()
+
+
+def _config(**kw):
+    return TrainConfig(**{"iterations": 3, "checkpoint_every": 0, "psf_fraction": 0.34, **kw})
+
+
+class _HostSyncs(TorchDispatchMode):
+    """Counts ``aten._local_scalar_dense`` (a tensor value read on the host: ``.item()``,
+    ``float(t)``, ``bool(t)``), each with the library frames that asked for it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls: list[list[str]] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if func.overloadpacket is torch.ops.aten._local_scalar_dense:
+            frames = [f for f in traceback.extract_stack()[:-1] if "site-packages" not in f.filename]
+            self.calls.append([f"{f.filename}:{f.name}: {f.line}" for f in frames])
+        return func(*args, **(kwargs or {}))
+
+
+def test_a_user_renderer_gets_the_same_training(tiny_3):
+    """A function renderer doing what the model's own does trains to the same adapter, bit for bit."""
+    scene, model = tiny_3
+    views = scene.views("train")
+    own = FunctionRenderer(lambda m, c, v, bg: m.render(c, v, bg), visible=lambda m, c: m.visible_anchors(c))
+
+    class Obj:  # an object following the protocol
+        def visible(self, m, c):
+            return m.visible_anchors(c)
+
+        def render(self, m, c, v, bg):
+            return m.render(c, v, bg).color
+
+    runs = []
+    for renderer in (None, own, Obj()):
+        t = Trainer(model, views, _config(), effects=EFFECTS_3, renderer=renderer)
+        t.train(progress=False)
+        runs.append((list(t.history), {k: v.clone() for k, v in t.cgs.injector.state_dict().items()}))
+        t.cgs.unwrap()
+    for history, state in runs[1:]:
+        assert history == runs[0][0]
+        assert all(torch.equal(state[k], runs[0][1][k]) for k in state)
+
+
+def test_training_step_host_syncs(tiny_3):
+    """Host syncs of one training step outside the loss log: the view/state sampling (a CPU
+    generator) and Adam's step counters are host tensors on any device; the pure-torch splatter's
+    own input checks are the rasterizer's (gsplat has none). Everything else: at most 2 (now 1:
+    the parameter check)."""
+    scene, model = tiny_3
+    t = Trainer(model, scene.views("train"), _config(), effects=EFFECTS_3)
+    try:
+        t.step()
+        with _HostSyncs() as mode:
+            t.step()
+    finally:
+        t.cgs.unwrap()
+    kinds = collections.Counter()
+    for stack in mode.calls:
+        where = " ".join(stack)
+        kind = ("sampling" if ":sample:" in where else "optimizer" if "optimizer.step()" in where else
+                "rasterizer" if "controlgs_adapter/rendering/splatter.py" in where else
+                "loss log" if stack[-1].endswith("value += float(loss.detach())  # the loss log: the step's one device "
+                                                 "sync besides the check below") else "step")
+        kinds[kind] += 1
+    print("host syncs of one training step:", dict(kinds))
+    assert kinds["loss log"] == 1 and kinds["step"] <= 2, dict(kinds)
+
+
+# ------------------------------------------------------------------------------ the progress bar follows the terminal
+@pytest.mark.skipif(not hasattr(__import__("os"), "openpty"), reason="needs a pseudo-terminal (POSIX)")
+def test_training_progress_bar_follows_a_resized_terminal(tiny, monkeypatch):
+    # the bar is drawn on a real pseudo-terminal (stderr): 61 columns when the bar starts, widened to
+    # 101 while training runs; a bar that follows the terminal (dynamic_ncols) draws its last frame
+    # 100 characters wide (tqdm leaves one column: width - 1), a fixed one stays 60 wide
+    import fcntl
+    import struct
+    import termios
+
+    from controlgs_adapter.training import TrainConfig, Trainer
+
+    master, slave = os.openpty()
+
+    def resize(cols: int) -> None:
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 25, cols, 0, 0))
+
+    class Resizing(ModelRenderer):
+        def render(self, model, camera, visible, background):  # type: ignore[no-untyped-def]
+            resize(101)  # the user widens the terminal while a step runs
+            return super().render(model, camera, visible, background)
+
+    scene, model = tiny
+    resize(61)
+    tty = os.fdopen(slave, "w", encoding="utf-8", closefd=False)
+    monkeypatch.setattr(sys, "stderr", tty)
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.0),
+                effects={"lens": True, "resample": True, "display": True}, renderer=Resizing())
+    try:
+        t.train(progress=True)
+        tty.flush()
+        os.set_blocking(master, False)
+        out = b""
+        while True:
+            try:
+                chunk = os.read(master, 65536)
+            except BlockingIOError:
+                break
+            if not chunk:
+                break
+            out += chunk
+    finally:
+        t.cgs.unwrap()
+        monkeypatch.undo()
+        tty.close()
+        os.close(slave)
+        os.close(master)
+    text = out.decode("utf-8").replace("\x1b[A", "")
+    frames = [f for f in text.replace("\n", "\r").split("\r") if "training ControlGS" in f]
+    assert frames and len(frames[0]) == 60, frames  # drawn at the start: 61 - 1
+    assert len(frames[-1]) == 100 and "2/2" in frames[-1], frames
+
+
+def test_training_with_oled_off_scores_the_display_pixels_as_boxes_at_full_size(tiny):
+    """With the ``oled`` stage off the eye image stays at the display size S/d; the trainer compares it with
+    the ground truth as box pixels at S (how the viewer shows and scores it), so a run with oled off
+    trains exactly like one with oled on when nothing follows the oled stage (it is that box emission).
+    It used to stop with a ShapeError at the first sample with d > 1."""
+    from controlgs_adapter.training import TrainConfig, Trainer
+
+    scene, model = tiny
+    losses = []
+    for oled in (True, False):
+        t = Trainer(model, scene.views("train"), TrainConfig(iterations=4, seed=3, checkpoint_every=0, max_downsample=4.0),
+                    effects={"resample": True, "display": True, "oled": oled})
+        try:
+            losses += [t.step() for _ in range(4)]
+        finally:
+            t.cgs.unwrap()
+    on, off = losses[:4], losses[4:]
+    assert all(math.isfinite(v) for v in on)
+    assert off == pytest.approx(on, rel=1e-6, abs=0)
+
+
+FAST = {"resample": True, "display": True}  # no lens/optics: the cheapest pipeline that trains two modules
+
+
+class _Views(list):
+    """(camera, image) pairs with a background."""
+
+    background = None
+
+
+def _cam(w=8, h=6, tx=0.0):
+    w2c = torch.eye(4)
+    w2c[0, 3] = tx
+    return Camera(w2c, torch.tensor([[10.0, 0, w / 2], [0, 10.0, h / 2], [0, 0, 1]]), w, h)
+
+
+@pytest.fixture
+def trainer(tiny):
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=10, psf_fraction=0.25, checkpoint_every=2, seed=3),
+                effects=FAST)
+    yield t
+    t.cgs.unwrap()
+
+
+def test_train_config_defaults_are_the_papers():
+    c = TrainConfig()
+    assert (c.iterations, c.lr, c.modules, c.cond_dim, c.state_blind) == (10_000, 3e-3, None, 8, False)
+    assert (c.max_downsample, c.max_power_saving, c.psf_fraction, c.psf_mode) == (8.0, 0.8, 0.1, "fast")
+    assert (c.checkpoint_every, c.seed, c.batch_size) == (500, 0, 1) and c.loss == LossWeights()
+    assert c.as_header() == {"iterations": 10_000, "lr": 3e-3, "modules": None, "cond_dim": 8, "state_blind": False,
+                             "max_downsample": 8.0, "max_power_saving": 0.8, "psf_fraction": 0.1, "psf_mode": "fast",
+                             "loss": {"l1": 0.8, "ssim": 0.2, "mse": 10.0, "lpips": 0.0}, "checkpoint_every": 500,
+                             "seed": 0, "batch_size": 1}
+    h = TrainConfig(modules=["lens", "display"]).as_header()
+    assert h["modules"] == ["lens", "display"] and TrainConfig(modules=["lens"]).modules == ("lens",)
+
+
+@pytest.mark.parametrize("name, value", [("iterations", 0), ("lr", 1e3), ("lr", 1e-12), ("cond_dim", 1),
+                                         ("max_downsample", 1.0), ("max_downsample", 1e4), ("max_power_saving", 0.0),
+                                         ("max_power_saving", 0.999), ("psf_fraction", 0.0), ("psf_fraction", 1.0),
+                                         ("checkpoint_every", 0), ("seed", 2**63 - 1), ("batch_size", 1),
+                                         ("psf_mode", "exact"), ("state_blind", True)])
+def test_train_config_accepts_its_bounds(name, value):
+    assert getattr(TrainConfig(**{name: value}), name) == value
+
+
+@pytest.mark.parametrize("name, value, words", [
+    ("lr", 1001.0, "TrainConfig.lr must be a finite number in (0, 1000], got 1001.0"),
+    ("max_downsample", 10001.0, "TrainConfig.max_downsample must be a finite number in [1, 10000], got 10001.0"),
+    ("seed", 2**63, "TrainConfig.seed must be an integer in [0, 9.22337e+18]"),
+    ("batch_size", 0, "TrainConfig.batch_size must be an integer in [1, inf), got 0"),
+    ("cond_dim", 0, "TrainConfig.cond_dim must be an integer in [1, inf), got 0"),
+    ("max_power_saving", 1.0, "TrainConfig.max_power_saving must be a finite number in [0, 1), got 1.0"),
+    ("psf_fraction", 1.5, "TrainConfig.psf_fraction must be a finite number in [0, 1], got 1.5"),
+    ("iterations", -1, "TrainConfig.iterations must be an integer in [0, inf), got -1"),
+    ("state_blind", 1, "TrainConfig.state_blind must be a bool, got 1"),
+    ("psf_mode", "distortion", "TrainConfig.psf_mode must be 'fast' or 'exact', got 'distortion'"),
+    ("loss", None, "TrainConfig.loss must be a LossWeights, got NoneType"),
+    ("modules", ("lens", 2), "TrainConfig.modules must be None or a sequence of module names, got ('lens', 2)"),
+    ("modules", {"lens"}, "TrainConfig.modules must be None or a sequence of module names"),
+])
+def test_train_config_refusals_by_message(name, value, words):
+    with pytest.raises(InputValueError) as e:
+        TrainConfig(**{name: value})
+    assert str(e.value).startswith(words)
+
+
+def test_effects_to_modules():
+    assert DEFAULT_EFFECTS == {"lens": True, "resample": True, "display": True, "oled": True, "optics": True}
+    assert modules_for(DEFAULT_EFFECTS) == ("lens", "resample", "display")
+    assert modules_for({"optics": {"mode": "fast"}}) == ("lens",)  # an options dict switches a stage on
+    assert modules_for({"lens": True, "optics": False}) == ("lens",)
+    assert modules_for({"lens": None, "optics": None, "resample": False, "display": 0.5}) == ("display",)
+    assert modules_for({"display": True, "resample": True}) == ("resample", "display")  # the library's order
+    assert modules_for({"oled": True, "foveation": True}) == ()
+
+
+def test_views_fingerprint_and_cameras():
+    views = _Views([(_cam(), None), (_cam(tx=0.5), None)])
+    assert [c.world_to_camera[0, 3].item() for c in view_cameras(views)] == [0.0, 0.5]
+    fp = views_fingerprint(views)
+    assert len(fp) == 16 and int(fp, 16) >= 0
+    assert views_fingerprint(_Views([(_cam(), None), (_cam(tx=0.5 + 1e-8), None)])) == fp  # rounded to 6 decimals
+    assert views_fingerprint(_Views([(_cam(), None), (_cam(tx=0.5 + 1e-5), None)])) != fp
+    assert views_fingerprint(_Views([(_cam(), None), (_cam(w=10, tx=0.5), None)])) != fp  # sizes count
+    shifted = _cam(tx=0.5)
+    shifted.intrinsics[0, 0] += 1e-6  # intrinsics are rounded to 4 decimals
+    assert views_fingerprint(_Views([(_cam(), None), (shifted, None)])) == fp
+    shifted.intrinsics[0, 0] += 1e-3
+    assert views_fingerprint(_Views([(_cam(), None), (shifted, None)])) != fp
+    assert views_fingerprint(_Views([(_cam(tx=0.5), None), (_cam(), None)])) != fp  # and the order
+    views.cameras = [_cam(tx=0.5)]  # a listed camera set is read instead of the views
+    assert view_cameras(views)[0].world_to_camera[0, 3].item() == 0.5 and views_fingerprint(views) != fp
+    views.fingerprint = lambda: 12345  # the dataset's own identity wins
+    assert views_fingerprint(views) == "12345"
+
+
+def test_trainer_setup_and_sampling_branches(trainer, tiny):
+    scene, model = tiny
+    assert trainer.cgs.modules == ("resample", "display") and trainer.cgs.injector.cond_dim == 8
+    assert trainer.iteration == 0 and trainer.history == [] and trainer.checkpoint_path is None
+    assert trainer.optimizer.param_groups[0]["lr"] == 3e-3
+    assert torch.equal(trainer.background, scene.background.to(trainer.device))
+    # round(10 * (1 - 0.25)) = round(7.5) = 8: iterations 0..7 distortion-only, 8 and 9 with the PSF
+    assert [trainer.optics_mode(i) for i in (0, 7, 8, 9)] == ["distortion", "distortion", "fast", "fast"]
+    draws = [trainer.sample()[1] for _ in range(50)]
+    assert all(1.0 <= s.downsample <= 8.0 and 0.0 <= s.power_saving <= 0.8 for s in draws)
+    assert max(s.downsample for s in draws) > 4.0 and max(s.power_saving for s in draws) > 0.6
+    # the same seed draws the same sequence from a fresh generator: (view, state) from torch's CPU generator
+    g = torch.Generator().manual_seed(3)
+    view = int(torch.randint(len(trainer.views), (1,), generator=g))
+    u = torch.rand(2, generator=g, dtype=torch.float64)
+    trainer.generator.manual_seed(3)
+    v, s = trainer.sample()
+    assert v == view and s.downsample == math.exp(float(u[0]) * math.log(8.0)) and s.power_saving == float(u[1]) * 0.8
+
+
+@pytest.mark.parametrize("effects, fixed", [({"resample": True}, "power_saving"), ({"display": True}, "downsample")])
+def test_states_of_stages_that_are_off_stay_neutral(tiny, effects, fixed):
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=1, checkpoint_every=0), effects=effects)
+    try:
+        states = [t.sample()[1] for _ in range(20)]
+        neutral = {"power_saving": 0.0, "downsample": 1.0}[fixed]
+        assert all(getattr(s, fixed) == neutral for s in states)
+        other = "downsample" if fixed == "power_saving" else "power_saving"
+        assert len({getattr(s, other) for s in states}) == 20
+    finally:
+        t.cgs.unwrap()
+
+
+@pytest.mark.parametrize("fraction, want", [(0.0, ["distortion"] * 4), (1.0, ["exact"] * 4),
+                                            (0.5, ["distortion", "distortion", "exact", "exact"])])
+def test_optics_phase_switch_ends(tiny, fraction, want):
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=4, psf_fraction=fraction, psf_mode="exact",
+                                                         checkpoint_every=0), effects=FAST)
+    try:
+        assert [t.optics_mode(i) for i in range(4)] == want
+    finally:
+        t.cgs.unwrap()
+
+
+def test_trainer_refusals_leave_the_model_unwrapped(tiny):
+    scene, model = tiny
+    views = scene.views("train")
+    t = Trainer(model, views, TrainConfig(cond_dim=3, lr=0.25, state_blind=True, modules="display"), effects=FAST)
+    try:  # the config reaches the wrap and the optimizer
+        assert t.cgs.injector.cond_dim == 3 and t.cgs.state_blind and t.cgs.modules == ("display",)
+        assert t.optimizer.param_groups[0]["lr"] == 0.25
+        assert {id(p) for p in t.optimizer.param_groups[0]["params"]} == {id(p) for p in t.cgs.trainable_parameters()}
+    finally:
+        t.cgs.unwrap()
+    for args, kw, words in [((views, {"iterations": 1}), {}, "config must be a TrainConfig, got dict"),
+                            ((views, TrainConfig()), {"effects": {"oled": True}},
+                             "no condition module to train: the effects ['oled'] call for none"),
+                            ((_Views(), TrainConfig()), {}, "views must be a non-empty dataset"),
+                            ((torch.zeros(2, 3, 4, 4), TrainConfig()), {}, "got Tensor")]:
+        with pytest.raises(InputValueError) as e:
+            Trainer(model, *args, **kw)
+        assert words in str(e.value)
+        assert ControlGS.attached(model) is None
+
+
+def test_train_loop_checkpoint_cadence_until_and_state(trainer, tmp_path, monkeypatch):
+    written = []
+    save = trainer.save_checkpoint
+
+    def recording(path):
+        written.append(trainer.iteration)
+        return save(path)
+
+    monkeypatch.setattr(trainer, "save_checkpoint", recording)
+    trainer.checkpoint_path = tmp_path / "c.safetensors"
+    trainer.generator.manual_seed(3)
+    trainer.train(until=5, progress=False)
+    assert trainer.iteration == 5 and written == [2, 4, 5]  # every 2 iterations, and at the end
+    assert len(trainer.history) == 5 and all(math.isfinite(v) and v > 0 for v in trainer.history)
+    assert trainer.seconds > 0
+    trainer.train(until=100, progress=False)  # clamped to config.iterations
+    assert trainer.iteration == 10 and written == [2, 4, 5, 6, 8, 10, 10]
+    state = trainer.checkpoint_state()
+    assert state.iteration == 10 and state.modules == ["resample", "display"] and state.effects == ["display", "resample"]
+    assert state.fingerprint == trainer.cgs.fingerprint and state.data == trainer.data_fingerprint
+    assert state.history == trainer.history
+    trainer.checkpoint_path = None
+    trainer.train(progress=False)  # nothing left to do, nothing written
+    assert written[-1] == 10 and len(written) == 7
+
+
+def test_a_batch_step_is_the_mean_of_its_samples_losses(tiny, tmp_path):
+    """step() with batch_size 2: the loss is (l_a + l_b) / 2 over the two sampled (view, state) pairs, each
+    rendered, passed through the pipeline and compared with its own ground truth (computed here sample by
+    sample from the same generator state, before the adapter moves)."""
+
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, batch_size=2, checkpoint_every=0, seed=5),
+                effects=FAST, checkpoint=tmp_path / "none.safetensors")
+    try:
+        rng = t.generator.get_state()
+        pairs = [t.sample() for _ in range(2)]
+        assert pairs[0] != pairs[1]
+        losses = []
+        with torch.no_grad():
+            for view, state in pairs:
+                cam, gt = t.views[view]
+                image = render_view(t.cgs, model, cam, state, t.background, renderer=t.renderer)
+                losses.append(float(image_loss(t.pipeline(image, state, reference=gt), gt, t.config.loss)))
+        t.generator.set_state(rng)
+        got = t.step()
+        assert math.isclose(got, sum(losses) / 2, rel_tol=1e-5) and t.history == [got] and t.iteration == 1
+        assert bool(t.cgs.injector.conditions.detach().any())  # the optimizer moved the adapter
+        from controlgs_adapter.distributed import DistContext
+
+        t.dist = DistContext(rank=1, world_size=2)  # a replica: remembers the checkpoint, rank 0 writes it
+        assert t.save_checkpoint(tmp_path / "r1.safetensors") == tmp_path / "r1.safetensors"
+        assert not (tmp_path / "r1.safetensors").exists() and t.dist.last_checkpoint == (str(tmp_path / "r1.safetensors"), 1)
+        assert t.resume() is False  # no file at checkpoint_path yet
+        t.checkpoint_path = None
+        assert t.resume() is False
+    finally:
+        t.cgs.unwrap()
+
+
+def test_projection_init_follows_the_seed_not_the_global_generator(tiny):
+    scene, model = tiny
+    views = scene.views("train")
+    inits = []
+    for seed in (4, 4, 5):
+        torch.manual_seed(100 + len(inits))  # the global generator differs every time
+        before = torch.random.get_rng_state()
+        t = Trainer(model, views, TrainConfig(iterations=1, seed=seed, modules="display"),
+                    effects={**FAST, "oled": False, "lens": None})
+        assert torch.equal(torch.random.get_rng_state(), before)  # and is left as it was
+        inits.append({k: v.clone() for k, v in t.cgs.injector.state_dict().items()})
+        assert t.checkpoint_state().effects == ["display", "resample"]  # stages switched on, sorted
+        t.cgs.unwrap()
+    assert all(torch.equal(inits[0][k], inits[1][k]) for k in inits[0])
+    assert not torch.equal(inits[0]["projections.display.d8.weight"], inits[2]["projections.display.d8.weight"])
+
+
+def test_step_refuses_a_view_whose_image_size_differs_from_its_camera(tiny):
+    scene, model = tiny
+    cam, image = scene.views("train")[0]
+
+    class Views(list):
+        background = scene.background
+
+    t = Trainer(model, Views([(cam, image[:, :8, :8])]), TrainConfig(iterations=1, checkpoint_every=0), effects=FAST)
+    try:
+        with pytest.raises(InputValueError, match=rf"view 0: image is \[3, 8, 8\], its camera renders "
+                                                  rf"\[3, {cam.height}, {cam.width}\]"):
+            t.step()
+    finally:
+        t.cgs.unwrap()
+
+
+def test_a_parameter_that_becomes_non_finite_stops_training(tiny):
+    """rho is always 0 (max_power_saving 0): the display strength is 0, its projection gets no gradient and
+    Adam leaves it as it is; an Inf planted there passes the loss check and is caught by the parameter check."""
+    from controlgs_adapter.errors import NonFiniteError
+
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0, modules="display",
+                                                         max_power_saving=0.0, lr=0.02), effects=FAST)
+    try:
+        with torch.no_grad():
+            t.cgs.injector.projections["display"]["d8"].weight[0, 0] = float("inf")
+        with pytest.raises(NonFiniteError) as e:
+            t.step()
+        assert str(e.value) == ("training diverged at iteration 0: parameter(s) ['projections.display.d8.weight'] became "
+                                "NaN/Inf (lr 0.02); the last good checkpoint was kept, this state not written")
+        assert t.iteration == 0 and t.history == []
+    finally:
+        t.cgs.unwrap()
+
+
+def test_a_module_never_active_in_the_sampled_states_trains_without_error(tiny):
+    """max_downsample 1: d = 1 always, log2 d = 0, the resample strength is 0 in every state: the loss has no
+    gradient (it raised torch's 'does not require grad' before); steps record the loss, the adapter stays."""
+    scene, model = tiny
+    t = Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0, modules="resample",
+                                                         max_downsample=1.0), effects=FAST)
+    try:
+        before = {k: v.clone() for k, v in t.cgs.injector.state_dict().items()}
+        t.train(progress=False)
+        assert t.iteration == 2 and len(t.history) == 2 and all(math.isfinite(v) and v > 0 for v in t.history)
+        assert all(torch.equal(before[k], v) for k, v in t.cgs.injector.state_dict().items())
+    finally:
+        t.cgs.unwrap()
+
+
+EFFECTS_4 = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
+
+
+def _trainer_4(tiny, tmp_path=None, **cfg):
+    scene, model = tiny
+    config = TrainConfig(**{"iterations": 6, "checkpoint_every": 0, "psf_fraction": 0.34, **cfg})
+    return Trainer(model, scene.views("train"), config, effects=EFFECTS_4,
+                   checkpoint=None if tmp_path is None else tmp_path / "ckpt.safetensors")
+
+
+class _ModelessOptics(Stage):
+    """A third-party optics stage with no ``mode``."""
+
+    name = "optics"
+    order = 50.0
+
+    def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
+        return image
+
+
+def test_resume_is_exact(tiny, tmp_path):
+    straight = _trainer_4(tiny)
+    straight.train(progress=False)
+    want = {k: v.clone() for k, v in straight.cgs.injector.state_dict().items()}
+    losses = list(straight.history)
+    straight.cgs.unwrap()
+
+    first = _trainer_4(tiny, tmp_path)
+    first.train(until=4, progress=False)  # "interrupted" after 4 of 6 iterations; checkpoint written
+    first.cgs.unwrap()
+    second = _trainer_4(tiny, tmp_path)
+    assert second.resume() and second.iteration == 4
+    second.train(progress=False)
+    got = second.cgs.injector.state_dict()
+    second.cgs.unwrap()
+    assert second.history == losses
+    for k in want:
+        assert torch.equal(want[k], got[k]), k
+    assert any(float(v.abs().max()) > 0 for k, v in want.items() if k.startswith("conditions")), "conditions never moved"
+
+
+def test_only_the_adapter_trains_and_phases(tiny):
+    scene, model = tiny
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    t = _trainer_4(tiny, iterations=3)
+    assert [t.optics_mode(i) for i in range(3)] == ["distortion", "distortion", "fast"]
+    t.train(progress=False)
+    t.cgs.unwrap()
+    for k, v in model.state_dict().items():
+        assert torch.equal(before[k], v), k
+
+
+def test_each_step_runs_the_optics_in_its_phase_mode(tiny):
+    t = _trainer_4(tiny, iterations=3, psf_mode="exact")  # psf_fraction 0.34 of 3: the last step in the PSF phase
+    modes = []
+    for _ in range(3):
+        t.step()
+        modes.append(t.pipeline["optics"].mode)
+    t.cgs.unwrap()
+    assert modes == ["distortion", "distortion", "exact"]
+
+
+def test_an_optics_stage_without_modes_is_refused_before_training(tiny):
+    scene, model = tiny
+    with pytest.raises(InputValueError, match="PSFOptics.*_ModelessOptics"):
+        Trainer(model, scene.views("train"), TrainConfig(iterations=2, checkpoint_every=0),
+                effects={"resample": True, "optics": _ModelessOptics()})
+    t = _trainer_4(tiny)  # the wrap was rolled back: a model still wrapped is refused (LifecycleError)
+    t.cgs.unwrap()
+
+
+def test_state_sampling_follows_the_paper(tiny):
+    t = _trainer_4(tiny)
+    draws = [t.sample() for _ in range(400)]
+    t.cgs.unwrap()
+    d = torch.tensor([s.downsample for _, s in draws])
+    rho = torch.tensor([s.power_saving for _, s in draws])
+    assert float(d.min()) >= 1.0 and float(d.max()) <= 8.0 and float(rho.max()) <= 0.8
+    # log-uniform: log2 d is uniform on [0, 3] (mean 1.5, var 0.75); rho uniform on [0, 0.8]
+    assert abs(float(torch.log2(d).mean()) - 1.5) < 0.15 and abs(float(torch.log2(d).var()) - 0.75) < 0.15
+    assert abs(float(rho.mean()) - 0.4) < 0.04
+    views = {v for v, _ in draws}
+    assert views == set(range(len(tiny[0].train_cameras)))
+
+
+def test_modules_follow_the_effects_and_errors():
+    assert modules_for(DEFAULT_EFFECTS) == ("lens", "resample", "display")
+    assert modules_for({"resample": True, "oled": True}) == ("resample",)
+    assert modules_for({"optics": True, "display": False}) == ("lens",)
+    with pytest.raises(InputValueError, match="max_power_saving"):
+        TrainConfig(max_power_saving=1.0)
+
+
+def test_checkpoint_from_another_config_is_refused(tiny, tmp_path):
+    t = _trainer_4(tiny, tmp_path, iterations=1)
+    t.train(progress=False)
+    t.cgs.unwrap()
+    other = _trainer_4(tiny, tmp_path, iterations=1, lr=1e-2)
+    with pytest.raises(FileFormatError, match="lr"):
+        other.resume()
+    other.cgs.unwrap()
+
+
+def test_checkpoint_from_other_views_is_refused_and_views_are_checked(tiny, tmp_path):
+    scene, model = tiny
+    t = _trainer_4(tiny, tmp_path, iterations=1)
+    t.train(progress=False)
+    t.cgs.unwrap()
+    config = TrainConfig(iterations=1, checkpoint_every=0, psf_fraction=0.34)
+    other = Trainer(model, scene.views("test"), config, effects=EFFECTS_4, checkpoint=tmp_path / "ckpt.safetensors")
+    with pytest.raises(FileFormatError, match=r"ckpt\.safetensors.*other views"):
+        other.resume()
+    other.cgs.unwrap()
+    with pytest.raises(InputValueError, match="views must be"):
+        Trainer(model, scene.train_images, config, effects=EFFECTS_4)
+
+
+def test_views_of_any_size_and_a_plain_sequence(tiny):
+    """Non-square views of different sizes train; a plain list with a background is a dataset too."""
+    from controlgs_adapter.datasets.base import PosedImages
+    from controlgs_adapter.datasets.memory import tensor_frames
+
+    scene, model = tiny
+    frames = tensor_frames(scene.train_images, scene.train_cameras)
+    crops = [PosedImages(frames, resolution=12).cameras[0], scene.train_cameras[1]]
+
+    class Plain(list):
+        background = scene.background
+
+    views = Plain([(crops[0], PosedImages(frames, resolution=12).image(0)), (crops[1], scene.train_images[1])])
+    t = Trainer(model, views, TrainConfig(iterations=2, checkpoint_every=0), effects={"resample": True, "display": True})
+    t.train(progress=False)
+    t.cgs.unwrap()
+    assert len(t.history) == 2 and all(math.isfinite(v) for v in t.history)

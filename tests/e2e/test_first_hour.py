@@ -15,6 +15,7 @@ pytest.importorskip("skimage")  # the capture is the built-in scene's
 pytest.importorskip("matplotlib")  # the report's plots
 
 from helpers.capture import FORMATS, write_capture
+
 from controlgs_adapter.backends.model_dir import detect_family
 from controlgs_adapter.cli import main
 from controlgs_adapter.viewer.server import ViewerServer

@@ -5,12 +5,12 @@ from __future__ import annotations
 import math
 
 import pytest
+from helpers.adapter_files import rewrite, trained
+from helpers.scaffold_standin import ScaffoldStandIn
 
-from _adapter_files import rewrite, trained
 from controlgs_adapter import ControlGS
 from controlgs_adapter.errors import FileFormatError
 from controlgs_adapter.formats.adapter import read_spec
-from scaffold_standin import ScaffoldStandIn
 
 
 @pytest.fixture
@@ -40,3 +40,119 @@ def test_valid_endpoints_still_load(saved):
     cgs = ControlGS.load(path, model)
     assert (cgs.schedules["display"].lo, cgs.schedules["display"].hi) == (0.1, 0.7)
     cgs.unwrap()
+
+
+import torch
+
+from controlgs_adapter.errors import InputValueError, NonFiniteError
+
+
+def _spec(**over):
+    base = {"backend": "b", "modules": ["lens", "display"], "cond_dim": 2, "schedules": {
+        "lens": {"lo": 0, "hi": 1.5}, "display": {"lo": 0.0, "hi": 1}}, "state_blind": False,
+        "targets": [{"decoder": "mlp_color", "in_features": 3, "out_features": 4},
+                    {"decoder": "mlp_opacity", "in_features": 3, "out_features": 6},
+                    {"decoder": "mlp_cov", "in_features": 3, "out_features": 4}],
+        "num_anchors": 5, "rows_per_anchor": 1, "fingerprint": "f"}
+    return {**base, **over}
+
+
+@pytest.mark.parametrize("over, bad", [
+    (dict(backend=1), ["backend"]), (dict(modules="lens"), ["modules"]), (dict(cond_dim=2.0), ["cond_dim"]),
+    (dict(state_blind=None), ["state_blind"]), (dict(num_anchors="5"), ["num_anchors"]),
+    (dict(rows_per_anchor=None), ["rows_per_anchor"]), (dict(fingerprint=3), ["fingerprint"]),
+    (dict(schedules={"lens": {"lo": 0, "hi": 1}}), ["schedules.display"]),
+    (dict(schedules={"lens": {"lo": 0, "hi": "1"}, "display": {"lo": 0, "hi": 1}}), ["schedules.lens"]),
+    (dict(schedules={"lens": {"lo": 0, "hi": 1}, "display": [0, 1]}), ["schedules.display"]),
+    (dict(targets=[{"decoder": "d", "in_features": 3, "out_features": 4}, {"decoder": "d", "in_features": 3}]),
+     ["targets[1]"]),
+    (dict(targets=[{"decoder": 1, "in_features": 3, "out_features": 4}]), ["targets[0]"]),
+    (dict(targets=["d"]), ["targets[0]"]),
+])
+def test_adapter_header_fields_checked(over, bad):
+    from controlgs_adapter.formats.adapter import check_header
+
+    assert check_header("a.safetensors", _spec()) == _spec()
+    with pytest.raises(FileFormatError, match=rf"^a.safetensors: adapter header is missing or has malformed field\(s\) "
+                                              rf"{__import__('re').escape(str(bad))}$"):
+        check_header("a.safetensors", _spec(**over))
+
+
+def test_adapter_tensor_mismatches_by_hand():
+    from controlgs_adapter.formats.adapter import tensor_mismatches
+
+    spec = _spec()
+    good = {"conditions": torch.zeros(5, 2, 2), **{f"projections.{m}.d{d}.weight": torch.zeros(d, 2)
+                                                   for m in ("lens", "display") for d in (4, 6)}}
+    assert tensor_mismatches(good, spec) == []
+    bad = {**good, "conditions": torch.zeros(5, 2, 3), "projections.lens.d4.weight": torch.zeros(4, 2, dtype=torch.int32),
+           "projections.display.d6.weight": torch.full((6, 2), math.inf), "junk": torch.zeros(1)}
+    del bad["projections.lens.d6.weight"]
+    got = tensor_mismatches(bad, spec)
+    assert got == [
+        ("tensors missing from the file: ['projections.lens.d6.weight']", frozenset({"projections.lens.d6.weight"})),
+        ("unexpected tensors in the file: ['junk']", frozenset({"junk"})),
+        ("tensor 'conditions': shape [5, 2, 3], expected [5, 2, 2]", frozenset({"conditions"})),
+        ("tensor 'projections.display.d6.weight': contains NaN/Inf", frozenset({"projections.display.d6.weight"})),
+        ("tensor 'projections.lens.d4.weight': dtype torch.int32, expected a floating-point type",
+         frozenset({"projections.lens.d4.weight"})),
+    ]
+
+
+def test_adapter_fingerprint_and_condition_mapping_by_hand():
+    from controlgs_adapter.formats.adapter import fingerprint_mismatch, map_conditions
+
+    assert fingerprint_mismatch({"fingerprint": "abc"}, "abc") == []
+    (msg, skip), = fingerprint_mismatch({"fingerprint": "abc"}, "xyz")
+    assert "trained on backbone abc, this model is xyz" in msg and skip is None
+    saved = torch.arange(6.0).view(3, 1, 2)
+    gathered = map_conditions(saved, ("gather", torch.tensor([2, 0])), 2)
+    assert gathered.tolist() == [[[4.0, 5.0]], [[0.0, 1.0]]]
+    scattered = map_conditions(saved, ("scatter", torch.tensor([4, 1, 0])), 5)
+    assert scattered.tolist() == [[[4.0, 5.0]], [[2.0, 3.0]], [[0.0, 0.0]], [[0.0, 0.0]], [[0.0, 1.0]]]
+
+
+def test_write_adapter_dtype_choices(tmp_path):
+    from controlgs_adapter.formats.adapter import read_spec, read_tensors, write_adapter
+
+    t = {"conditions": torch.tensor([[[1.0, -70000.0]]]), "projections.lens.d4.weight": torch.ones(4, 2)}
+    spec = _spec(modules=["lens"], num_anchors=1, schedules={"lens": {"lo": 0, "hi": 1}})
+    with pytest.raises(InputValueError, match="dtype must be None, torch.float16 or torch.float32, got torch.float64"):
+        write_adapter(tmp_path / "a.safetensors", t, spec, dtype=torch.float64)
+    with pytest.raises(NonFiniteError, match=r"a.safetensors: conditions reach \|7e\+04\|, beyond float16's range \(65504\)"):
+        write_adapter(tmp_path / "a.safetensors", t, spec, dtype=torch.float16)
+    assert not (tmp_path / "a.safetensors").exists()
+    t["conditions"] = torch.tensor([[[1.0, -65504.0]]])
+    write_adapter(tmp_path / "a.safetensors", t, spec, dtype=torch.float16)
+    assert read_spec(tmp_path / "a.safetensors")["condition_dtype"] == "float16"
+    assert read_tensors(tmp_path / "a.safetensors")["conditions"].dtype == torch.float16
+    write_adapter(tmp_path / "b.safetensors", {**t, "conditions": t["conditions"].double()}, spec)
+    assert read_spec(tmp_path / "b.safetensors")["condition_dtype"] == "float64"
+    write_adapter(tmp_path / "c.safetensors", {**t, "conditions": t["conditions"].double()}, spec, dtype=torch.float32)
+    assert read_tensors(tmp_path / "c.safetensors")["conditions"].dtype == torch.float32
+    write_adapter(tmp_path / "d.safetensors", {**t, "conditions": torch.zeros(0, 1, 2)}, {**spec, "num_anchors": 0},
+                  dtype=torch.float16)
+
+
+def test_row_map_bounds_the_source_index_by_the_saved_rows(tmp_path):
+    from helpers.contextgs_files import PAD, A, _arrays, _decoders, _model, _write_dir
+
+    from controlgs_adapter.backends.contextgs import ContextGSBackend, load_contextgs_dir
+    from controlgs_adapter.formats.adapter import row_map, valid_fingerprint
+
+    arr, decs = _arrays(7, decoded=True), _decoders(7)
+    arr["mask"][3] = 0.0
+    live, loaded = _model(arr, decs, decoded=True), load_contextgs_dir(_write_dir(tmp_path / "s", arr, decs))
+    backend = ContextGSBackend()
+    spec = {"valid_fingerprint": valid_fingerprint(live, backend), "num_anchors": A}
+    kind, rows = row_map(loaded, backend, spec)
+    assert kind == "gather" and rows.tolist() == [i for i in range(A - PAD) if i != 3]
+    source = loaded.source_index.clone()
+    loaded.source_index = source.clone()
+    loaded.source_index[-1] = A - 1  # the last saved row: still a row of the file
+    assert row_map(loaded, backend, spec)[0] == "gather"
+    loaded.source_index[-1] = A  # one past the saved rows: no mapping
+    assert row_map(loaded, backend, spec) is None
+    assert row_map(loaded, backend, {**spec, "valid_fingerprint": 1}) is None
+    loaded.source_index = source
+    assert row_map(loaded, backend, {**spec, "num_anchors": A - PAD - 1}) is None  # same count: nothing to map

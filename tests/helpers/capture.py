@@ -12,7 +12,7 @@ import torch
 try:  # the independent format writers (kept in tests/helpers/ or, before that, at the top of tests/)
     from helpers.scene_writers import write_blender, write_colmap, write_instant_ngp
 except ImportError:  # pragma: no cover - the older location
-    from _scene_writers import write_blender, write_colmap, write_instant_ngp
+    from helpers.scene_writers import write_blender, write_colmap, write_instant_ngp
 
 from controlgs_adapter.scene import load_builtin_scene
 

@@ -39,7 +39,8 @@ renderer = OwnRenderer()
 
 def write_tiny_colmap(root: Path) -> Path:
     """A COLMAP capture (1 test, 5 training views at 24 px) of the built-in AR scene under ``root``."""
-    from _scene_writers import write_colmap
+    from helpers.scene_writers import write_colmap
+
     from controlgs_adapter.scene import load_builtin_scene
 
     scene = load_builtin_scene("ar", 24, views=6, test_every=6, samples=1)

@@ -72,3 +72,340 @@ def test_json_of_any_nesting_is_a_400(server: ViewerServer, path: str, open_: by
     _one_line_400(*_post(server, path, body), "gaze" if path == "/api/render" else "/api/extra takes")
     status, _ = _post(server, "/api/render", b"{}")
     assert status == 200  # still serving
+
+
+import socket
+import time
+
+from helpers.adapters import random_adapter
+
+from controlgs_adapter.viewer import ViewerSession
+from controlgs_adapter.viewer import server as vs_server
+from controlgs_adapter.viewer.server import LOOPBACK, STATIC_FILES
+
+SIZE = 16
+
+
+# ----------------------------------------------------------------------------- the viewer
+@pytest.fixture(scope="module")
+def viewer_session() -> Any:
+    from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
+    from controlgs_adapter.viewer import ViewerSession
+
+    scene = load_builtin_scene("ar", SIZE, views=4, test_every=4, samples=1)
+    return ViewerSession(load_builtin_backbone("ar"), scene.views("test"), {}, name="tiny")
+
+
+def test_a_refused_host_gets_the_403_and_nothing_else(viewer_session: Any) -> None:
+    """A request for another host name is answered 403 and not handled (server._host_ok: DNS rebinding):
+    everything the server writes on that connection up to its close is the one 403 answer (a handled
+    request would follow it with a second answer, here the scene's info)."""
+    from controlgs_adapter.viewer import make_server
+
+    srv = make_server(viewer_session)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        with socket.create_connection(srv.server_address[:2], timeout=60) as sock:
+            sock.sendall(b"GET /api/info HTTP/1.1\r\nHost: evil.example\r\nConnection: close\r\n\r\n")
+            data = b""
+            while chunk := sock.recv(65536):
+                data += chunk
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    head, _, body = data.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 403 ") and data.count(b"HTTP/1.1 ") == 1, data
+    assert json.loads(body) == {"error": "host 'evil.example' refused: the viewer answers loopback addresses only"}
+
+
+# ---------------------------------------------------------------- the session
+@pytest.fixture(scope="module")
+def small(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene, render_planes
+
+    scene = load_builtin_scene("ar", SIZE, views=4, test_every=4, samples=1)
+    model = load_builtin_backbone("ar")
+    d = tmp_path_factory.mktemp("viewer-sweep")
+    adapters = {"controlgs": random_adapter(model, d / "a.controlgs.safetensors", 3),
+                "blind": random_adapter(model, d / "b.controlgs.safetensors", 3, state_blind=True),
+                "fov": random_adapter(model, d / "f.controlgs.safetensors", 3, modules=("foveation", "display"))}
+    session = ViewerSession(model, scene.views("test"), adapters, name="tiny",
+                            truth=lambda cam: render_planes(scene.planes, cam, samples=1)[0].float())
+    return session, scene
+
+
+class _StubSession:
+    """Stands in for a session (the server's part is under test): a render answers ``self.answer`` and
+    records the worker thread's name; ``extra`` answers one metric."""
+
+    cameras = [None, None]
+
+    def __init__(self, answer: Any) -> None:
+        self.answer, self.threads = answer, []  # type: ignore[var-annotated]
+
+    def info(self) -> dict[str, Any]:
+        return {"name": "stub"}
+
+    def render(self, state: ViewState, check: Any, tag: int) -> dict[str, Any]:
+        self.threads.append(threading.current_thread().name)
+        return dict(self.answer)
+
+    def extra(self, tag: int, check: Any) -> dict[str, Any]:
+        return {"ss": {"flip": 0.5}}
+
+
+def _ask(srv: Any, method: str, path: str, raw: bytes | None = None, host: str | None = None) -> tuple[int, Any]:
+    conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+    conn.request(method, path, body=raw, headers={} if host is None else {"Host": host})
+    resp = conn.getresponse()
+    out = resp.status, json.loads(resp.read())
+    conn.close()
+    return out
+
+
+# ---------------------------------------------------------------- the server's headers
+def test_server_headers_and_query_strings(small: Any) -> None:
+    session, _ = small
+    srv = make_server(session)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        assert LOOPBACK == ("127.0.0.1", "localhost", "[::1]") and MAX_BODY == 65536
+        for name, ctype in (("index.html", "text/html"), ("viewer.js", "text/javascript"), ("viewer.css", "text/css")):
+            conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+            conn.request("GET", f"/static/{name}?v=3")  # a query string is ignored
+            resp = conn.getresponse()
+            body = resp.read()
+            conn.close()
+            assert resp.status == 200 and resp.getheader("Content-Type") == f"{ctype}; charset=utf-8" == STATIC_FILES[name]
+            assert resp.getheader("Cache-Control") == "no-store" and resp.getheader("X-Content-Type-Options") == "nosniff"
+            assert int(resp.getheader("Content-Length")) == len(body) == len(srv.static[name])
+        conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+        conn.request("GET", "/api/info?x=1")
+        resp = conn.getresponse()
+        assert resp.status == 200 and resp.getheader("Content-Type") == "application/json"
+        assert json.loads(resp.read())["name"] == "tiny"
+        conn.close()
+        conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+        conn.request("POST", "/api/render?x=1", body=json.dumps({"downsample": 9}).encode())
+        resp = conn.getresponse()
+        assert resp.status == 400 and "downsample must be" in json.loads(resp.read())["error"]
+        conn.close()
+        conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+        conn.request("POST", "/api/extra", body=b"[1]")  # JSON, but not an object
+        resp = conn.getresponse()
+        assert resp.status == 400 and "/api/extra takes" in json.loads(resp.read())["error"]
+        conn.close()
+        conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+        conn.request("POST", "/api/render", body=b"\xff\xfe")  # not UTF-8
+        resp = conn.getresponse()
+        assert resp.status == 400 and "not JSON" in json.loads(resp.read())["error"]
+        conn.close()
+        assert srv.url == f"http://127.0.0.1:{srv.server_address[1]}/"
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    local = make_server(session, host="localhost")
+    try:
+        assert local.server_address[1] > 0
+    finally:
+        local.server_close()
+
+
+def test_server_answers_with_stub_session() -> None:
+    stub = _StubSession({"x": 1.5})
+    srv = make_server(stub)  # type: ignore[arg-type]
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        port = srv.server_address[1]
+        assert port >= 1024  # the default port 0: a free ephemeral one
+        assert _ask(srv, "POST", "/api/render", b"{}") == (200, {"x": 1.5, "generation": 1})
+        assert _ask(srv, "POST", "/api/render", b'{"view": 1}') == (200, {"x": 1.5, "generation": 2})
+        assert all(name.startswith("controlgs-view") for name in stub.threads) and len(stub.threads) == 2
+        # a one-byte body is read (the lower bound is 1 byte), then refused as not an object
+        status, out = _ask(srv, "POST", "/api/render", b"1")
+        assert status == 400 and out["error"].startswith("the state must be a JSON object")
+        assert _ask(srv, "POST", "/api/extra", b'{"generation": 2}') == (200, {"generation": 2, "metrics": {"ss": {"flip": 0.5}}})
+        assert _ask(srv, "POST", "/api/extra", b'{"generation": 1}') == (
+            409, {"superseded": True, "error": "request 1 was superseded by 2"})
+        # the host check: a bare IPv6 loopback (no port) is loopback too; a port on another host is not
+        assert _ask(srv, "GET", "/api/info", host="[::1]") == (200, {"name": "stub"})
+        assert _ask(srv, "GET", "/api/info", host=f"localhost:{port}") == (200, {"name": "stub"})
+        status, out = _ask(srv, "GET", "/api/info", host=f"example.com:{port}")
+        assert status == 403 and out["error"] == "host 'example.com' refused: the viewer answers loopback addresses only"
+        status, out = _ask(srv, "POST", "/api/render", b"{}", host="127.0.0.1.evil:80")
+        assert status == 403 and stub.threads == ["controlgs-view_0"] * 2  # refused before any work
+        status, out = _ask(srv, "GET", "/nope?x=1")
+        assert status == 404 and out["error"] == "no such page: '/nope' (the viewer serves only / and its static files)"
+        status, out = _ask(srv, "POST", "/api/nope", b"{}")
+        assert status == 404 and out["error"] == "no such endpoint: '/api/nope'"
+        # a result that is not JSON (a NaN) is a server error with its reason, and the server keeps serving
+        stub.answer = {"x": float("nan")}
+        status, out = _ask(srv, "POST", "/api/render", b"{}")
+        assert status == 500 and out["error"].startswith("ValueError: Out of range float values are not JSON compliant")
+        stub.answer = {"x": 2}
+        assert _ask(srv, "POST", "/api/render", b"{}")[0] == 200
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    direct = vs_server.ViewerServer(stub)  # type: ignore[arg-type]
+    try:
+        assert direct.server_address[1] >= 1024 and direct.url.startswith("http://127.0.0.1:")
+    finally:
+        direct.server_close()
+
+
+SIZE_2 = 48
+
+
+@pytest.fixture(scope="module")
+def scene() -> Any:
+    from controlgs_adapter.scene import load_builtin_scene
+
+    return load_builtin_scene("ar", SIZE_2, views=8, test_every=4, samples=1)
+
+
+@pytest.fixture(scope="module")
+def session(scene: Any, tmp_path_factory: pytest.TempPathFactory) -> ViewerSession:
+    from controlgs_adapter.scene import load_builtin_backbone, render_planes
+
+    model = load_builtin_backbone("ar")
+    adapter = random_adapter(model, tmp_path_factory.mktemp("viewer") / "controlgs.controlgs.safetensors")
+    return ViewerSession(model, scene.views("test"), {"controlgs": adapter}, name="test scene",
+                         truth=lambda cam: render_planes(scene.planes, cam, samples=1)[0].float())
+
+
+# ---------------------------------------------------------------- the server
+@pytest.fixture(scope="module")
+def server_2(session: ViewerSession) -> Any:
+    srv = make_server(session)
+    thread = threading.Thread(target=srv.serve_forever, daemon=True)
+    thread.start()
+    yield srv
+    srv.shutdown()
+    srv.server_close()
+
+
+def request(srv: Any, method: str, path: str, body: Any = None, headers: dict[str, str] | None = None,
+            raw: bytes | None = None) -> tuple[int, bytes]:
+    conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
+    data = raw if raw is not None else None if body is None else json.dumps(body).encode()
+    conn.request(method, path, body=data, headers=headers or {})
+    resp = conn.getresponse()
+    out = resp.status, resp.read()
+    conn.close()
+    return out
+
+
+class GatedSession:
+    """Stands in for a session: a render takes 3 steps with a check after each; every step waits for
+    ``gate`` (opened by the test), so which request runs when does not depend on timing."""
+
+    cameras = [None]
+
+    def __init__(self) -> None:
+        self.gate, self.running = threading.Event(), threading.Event()
+        self.steps: list[tuple[int, int]] = []
+
+    def render(self, state: ViewState, check: Any, tag: int) -> dict[str, Any]:
+        self.running.set()
+        for i in range(3):
+            assert self.gate.wait(30), "the test never opened the gate"
+            self.steps.append((tag, i))
+            check()
+        return {"state": state.to_json()}
+
+
+class FailingSession:
+    """Stands in for a session whose render fails with a library bug (not a bad request)."""
+
+    cameras = [None]
+
+    def render(self, state: ViewState, check: Any, tag: int) -> dict[str, Any]:
+        raise RuntimeError("boom")
+
+
+def test_newer_request_supersedes_older_ones() -> None:
+    slow = GatedSession()
+    srv = make_server(slow)  # type: ignore[arg-type]
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        results: dict[int, tuple[int, bytes]] = {}
+
+        def send(i: int, d: float) -> None:
+            results[i] = request(srv, "POST", "/api/render", {"downsample": d})
+
+        def start(i: int) -> None:  # request i is in: it holds generation i + 1
+            threads[i].start()
+            deadline = time.monotonic() + 30
+            while srv.generations.current < i + 1:
+                assert time.monotonic() < deadline, f"request {i} never reached the server"
+                time.sleep(0.005)
+
+        threads = [threading.Thread(target=send, args=(i, 1.0 + i)) for i in range(3)]
+        start(0)
+        assert slow.running.wait(30)       # the first one runs (held before its first step),
+        start(1)                           # the second one is queued behind it
+        start(2)                           # and superseded by the third before it starts
+        slow.gate.set()
+        for t in threads:
+            t.join(30)
+        assert results[0][0] == 409 and results[1][0] == 409 and results[2][0] == 200
+        assert json.loads(results[2][1])["state"]["downsample"] == 3.0
+        assert slow.steps == [(1, 0), (3, 0), (3, 1), (3, 2)]  # 1 dropped mid-way, 2 never ran, 3 ran through
+    finally:
+        slow.gate.set()
+        srv.shutdown()
+        srv.server_close()
+
+
+def test_body_size_limit_and_loopback_host_names(server_2: Any) -> None:
+    from controlgs_adapter.viewer.server import MAX_BODY
+
+    body = json.dumps({"downsample": 12}).encode()
+    padded = body[:-1] + b" " * (MAX_BODY - len(body)) + b"}"  # exactly MAX_BODY bytes: read, then refused on its value
+    assert len(padded) == MAX_BODY
+    status, out = request(server_2, "POST", "/api/render", raw=padded)
+    assert status == 400 and "downsample must be" in json.loads(out)["error"]
+    status, out = request(server_2, "POST", "/api/render", raw=padded + b" ")
+    assert status == 400 and f"at most {MAX_BODY} bytes" in json.loads(out)["error"]
+    port = server_2.server_address[1]
+    for host in (f"[::1]:{port}", f"localhost:{port}", "127.0.0.1"):
+        assert request(server_2, "GET", "/api/info", headers={"Host": host})[0] == 200, host
+    for host in (f"[::2]:{port}", "127.0.0.2", "localhost.evil.example"):
+        assert request(server_2, "GET", "/api/info", headers={"Host": host})[0] == 403, host
+    for tag in (True, None, 1.0):
+        status, out = request(server_2, "POST", "/api/extra", {"generation": tag})
+        assert status == 400 and "/api/extra takes" in json.loads(out)["error"], tag
+
+
+def test_server_errors_keep_it_serving() -> None:
+    srv = make_server(FailingSession())  # type: ignore[arg-type]
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        status, out = request(srv, "POST", "/api/render", {})
+        assert status == 500 and json.loads(out) == {"error": "RuntimeError: boom"}
+        status, out = request(srv, "POST", "/api/render", raw=b"{}", headers={"Content-Length": "two"})
+        assert status == 400 and json.loads(out)["error"] == "bad Content-Length"
+        status, out = request(srv, "POST", "/api/render", raw=b"")
+        assert status == 400 and "at most" in json.loads(out)["error"]
+        status, out = request(srv, "POST", "/api/render", {"view": 1})  # one camera: views are [0, 0]
+        assert status == 400 and "view must be an integer in [0, 0]" in json.loads(out)["error"]
+        assert request(srv, "GET", "/")[0] == 200
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def test_a_client_that_hangs_up_is_not_reported_but_other_errors_are(capsys) -> None:
+    srv = make_server(FailingSession())  # type: ignore[arg-type]
+    try:
+        for exc, reported in ((BrokenPipeError(32, "Broken pipe"), False), (ConnectionResetError(104, "reset"), False),
+                              (ValueError("a real bug"), True)):
+            try:
+                raise exc
+            except Exception:
+                srv.handle_error(None, ("127.0.0.1", 1))
+            err = capsys.readouterr().err
+            assert ("Traceback" in err and type(exc).__name__ in err) if reported else err == "", (exc, err)
+    finally:
+        srv.server_close()

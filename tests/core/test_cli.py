@@ -1,0 +1,316 @@
+"""Tests of ``controlgs_adapter.cli``."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from controlgs_adapter import cli
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_cli_error_in_a_fresh_process_has_no_traceback():
+    r = subprocess.run([sys.executable, "-m", "controlgs_adapter.cli", "optics", "build-bank", "--psf-size", "4"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+# ------------------------------------------------------------------------------ parser
+def test_usage_names_the_sub_command_as_COMMAND():
+    usage = cli.build_parser().format_usage()
+    assert "COMMAND" in usage and "{plugins" not in usage, usage
+
+
+# (command, option, dest, action, type, choices, default, metavar, nargs, required)
+OPTIONS: list[tuple[str, str, str, str, str, list[str] | None, Any, Any, Any, bool]] = [
+    ('plugins', '--strict', 'strict', 'true', 'str', None, False, None, 0, False),
+    ('optics build-bank', '--prescription', 'prescription', 'store', 'Path', None, None, None, None, False),
+    ('optics build-bank', '--out', 'out', 'store', 'Path', None, Path('psf_bank.safetensors'), None, None, False),
+    ('optics build-bank', '--grid', 'grid', 'store', 'int', None, (30, 30), ('GY', 'GX'), 2, False),
+    ('optics build-bank', '--psf-size', 'psf_size', 'store', 'int', None, 33, None, None, False),
+    ('optics build-bank', '--pupil-samples', 'pupil_samples', 'store', 'int', None, 192, None, None, False),
+    ('optics build-bank', '--min-pitch-px', 'min_pitch_px', 'store', 'float', None, 0.125, None, None, False),
+    ('optics figures', '--prescription', 'prescription', 'store', 'Path', None, None, None, None, False),
+    ('optics bench', '--sizes', 'sizes', 'store', 'str', None, ['256', '512', '1024', '576x1024'], None, '+', False),
+    ('optics bench', '--radiometry', 'radiometry', 'store', 'str', ['radiance', 'energy'], ['radiance', 'energy'], None, '+', False),
+    ('optics bench', '--tols', 'tols', 'store', 'float', None, [0.02], None, '+', False),
+    ('optics bench', '--repeat', 'repeat', 'store', 'int', None, 3, None, None, False),
+    ('optics bench', '--no-scaling', 'scaling', 'false', 'str', None, True, None, 0, False),
+    ('optics bench', '--zone', 'zone', 'store', 'int', None, 5, None, None, False),
+    ('optics bench', '--exact-max', 'exact_max', 'store', 'int', None, 1024, None, None, False),
+    ('optics bench', '--threads', 'threads', 'store', 'int', None, 2, None, None, False),
+    ('optics bench', '--out', 'out', 'store', 'Path', None, None, None, None, False),
+    ('optics bench', '--doc', 'out', 'const', 'str', None, None, None, 0, False),
+    ('optics fit-prewarp', '--bank', 'bank', 'store', 'Path', None, None, None, None, False),
+    ('optics fit-prewarp', '--out', 'out', 'store', 'Path', None, None, None, None, True),
+    ('optics fit-prewarp', '--size', 'size', 'store', 'int', None, 256, None, None, False),
+    ('optics fit-prewarp', '--modes', 'modes', 'store', 'str', ['distortion', 'exact', 'fast'], ['distortion', 'exact'], None, '+', False),
+    ('optics fit-prewarp', '--radiometry', 'radiometry', 'store', 'str', ['radiance', 'energy'], 'radiance', None, None, False),
+    ('scene build-backbone', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
+    ('scene build-backbone', '--resolution', 'resolution', 'store', 'int', None, 128, None, None, False),
+    ('scene build-backbone', '--iterations', 'iterations', 'store', 'int', None, 1500, None, None, False),
+    ('scene build-backbone', '--max-anchors', 'max_anchors', 'store', 'int', None, 3000, None, None, False),
+    ('scene build-backbone', '--n-offsets', 'n_offsets', 'store', 'int', None, 5, None, None, False),
+    ('scene build-backbone', '--out', 'out', 'store', 'str', None, None, None, None, True),
+    ('scene build-backbone', '--seed', 'seed', 'store', 'int', None, 0, None, None, False),
+    ('scene export', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
+    ('scene export', '--resolution', 'resolution', 'store', 'int', None, 128, None, None, False),
+    ('scene export', '--out', 'out', 'store', 'str', None, None, None, None, True),
+    ('train', '--out', 'out', 'store', 'str', None, 'controlgs-run', None, None, False),
+    ('train', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
+    ('train', '--resolution', 'resolution', 'store', 'int', None, None, None, None, False),
+    ('train', '--test-views', 'test_views', 'store', 'int', None, None, None, None, False),
+    ('train', '--optics', 'optics', 'store', 'str', ['fast', 'exact'], 'fast', None, None, False),
+    ('train', '--seed', 'seed', 'store', 'int', None, 0, None, None, False),
+    ('train', '--seeds', 'seeds', 'store', 'int', None, None, None, None, False),
+    ('train', '--no-progress', 'progress', 'false', 'str', None, True, None, 0, False),
+    ('train', '--effects', 'effects', 'store', 'str', None, None, None, None, False),
+    ('train', '--iterations', 'iterations', 'store', 'int', None, 1000, None, None, False),
+    ('train', '--psf-fraction', 'psf_fraction', 'store', 'float', None, 0.1, None, None, False),
+    ('train', '--lr', 'lr', 'store', 'float', None, 0.003, None, None, False),
+    ('train', '--cond-dim', 'cond_dim', 'store', 'int', None, 8, None, None, False),
+    ('train', '--checkpoint-every', 'checkpoint_every', 'store', 'int', None, 500, None, None, False),
+    ('train', '--model', 'model', 'store', 'str', None, None, None, None, False),
+    ('train', '--data', 'data', 'store', 'str', None, None, None, None, False),
+    ('train', '--family', 'family', 'store', 'str', ['scaffold_gs', 'octree_gs', 'hac', 'contextgs', 'compgs'], None, None, None, False),
+    ('train', '--model-iteration', 'model_iteration', 'store', 'int', None, None, None, None, False),
+    ('train', '--allow-unquantized', 'allow_unquantized', 'true', 'str', None, None, None, 0, False),
+    ('train', '--format', 'format', 'store', 'str', ['colmap', 'blender', 'instant_ngp'], None, None, None, False),
+    ('train', '--images', 'images', 'store', 'str', None, None, None, None, False),
+    ('train', '--holdout', 'holdout', 'store', 'int', None, None, None, None, False),
+    ('train', '--white-background', 'white_background', 'true', 'str', None, None, None, 0, False),
+    ('train', '--cache-mib', 'cache_mib', 'store', 'int', None, 1024, None, None, False),
+    ('train', '--device', 'device', 'store', 'str', None, 'cpu', None, None, False),
+    ('train', '--rasterizer', 'rasterizer', 'store', 'str', None, None, 'NAME', None, False),
+    ('train', '--renderer', 'renderer', 'store', 'str', None, None, 'MODULE:ATTR', None, False),
+    ('train', '--batch-size', 'batch_size', 'store', 'int', None, 1, None, None, False),
+    ('train', '--scenes', 'scenes', 'store', 'str', ['ar', 'vr'], None, 'SCENE', '+', False),
+    ('train', '--dist-backend', 'dist_backend', 'store', 'str', ['gloo', 'nccl'], None, None, None, False),
+    ('train', '--dist-timeout', 'dist_timeout', 'store', 'float', None, 300.0, None, None, False),
+    ('train', '--exchange', 'exchange', 'store', 'str', ['auto', 'sparse', 'dense'], 'auto', None, None, False),
+    ('train', '--ablations', 'ablations', 'bool', 'str', None, True, None, 0, False),
+    ('train', '--ablation', 'ablation', 'append', 'str', ['wo_lens', 'wo_display', 'wo_resample', 'state_blind'], [], None, None, False),
+    ('eval', '--run', 'run', 'store', 'str', None, 'controlgs-run', None, None, False),
+    ('eval', '--out', 'out', 'store', 'str', None, None, None, None, False),
+    ('eval', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
+    ('eval', '--resolution', 'resolution', 'store', 'int', None, None, None, None, False),
+    ('eval', '--test-views', 'test_views', 'store', 'int', None, None, None, None, False),
+    ('eval', '--optics', 'optics', 'store', 'str', ['fast', 'exact'], 'fast', None, None, False),
+    ('eval', '--seed', 'seed', 'store', 'int', None, 0, None, None, False),
+    ('eval', '--seeds', 'seeds', 'store', 'int', None, None, None, None, False),
+    ('eval', '--no-progress', 'progress', 'false', 'str', None, True, None, 0, False),
+    ('eval', '--model', 'model', 'store', 'str', None, None, None, None, False),
+    ('eval', '--data', 'data', 'store', 'str', None, None, None, None, False),
+    ('eval', '--family', 'family', 'store', 'str', ['scaffold_gs', 'octree_gs', 'hac', 'contextgs', 'compgs'], None, None, None, False),
+    ('eval', '--model-iteration', 'model_iteration', 'store', 'int', None, None, None, None, False),
+    ('eval', '--allow-unquantized', 'allow_unquantized', 'true', 'str', None, None, None, 0, False),
+    ('eval', '--format', 'format', 'store', 'str', ['colmap', 'blender', 'instant_ngp'], None, None, None, False),
+    ('eval', '--images', 'images', 'store', 'str', None, None, None, None, False),
+    ('eval', '--holdout', 'holdout', 'store', 'int', None, None, None, None, False),
+    ('eval', '--white-background', 'white_background', 'true', 'str', None, None, None, 0, False),
+    ('eval', '--cache-mib', 'cache_mib', 'store', 'int', None, 1024, None, None, False),
+    ('eval', '--device', 'device', 'store', 'str', None, 'cpu', None, None, False),
+    ('eval', '--rasterizer', 'rasterizer', 'store', 'str', None, None, 'NAME', None, False),
+    ('eval', '--renderer', 'renderer', 'store', 'str', None, None, 'MODULE:ATTR', None, False),
+    ('eval', '--trust-run-renderer', 'trust_run_renderer', 'true', 'str', None, False, None, 0, False),
+    ('eval', '--effects', 'effects', 'store', 'str', None, None, None, None, False),
+    ('eval', '--lpips-weights', 'lpips_weights', 'store', 'str', None, None, 'PATH', '+', False),
+    ('demo', '--out', 'out', 'store', 'str', None, 'report', None, None, False),
+    ('demo', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
+    ('demo', '--resolution', 'resolution', 'store', 'int', None, None, None, None, False),
+    ('demo', '--test-views', 'test_views', 'store', 'int', None, None, None, None, False),
+    ('demo', '--optics', 'optics', 'store', 'str', ['fast', 'exact'], 'fast', None, None, False),
+    ('demo', '--seed', 'seed', 'store', 'int', None, 0, None, None, False),
+    ('demo', '--seeds', 'seeds', 'store', 'int', None, None, None, None, False),
+    ('demo', '--no-progress', 'progress', 'false', 'str', None, True, None, 0, False),
+    ('demo', '--effects', 'effects', 'store', 'str', None, None, None, None, False),
+    ('demo', '--iterations', 'iterations', 'store', 'int', None, 1000, None, None, False),
+    ('demo', '--psf-fraction', 'psf_fraction', 'store', 'float', None, 0.1, None, None, False),
+    ('demo', '--lr', 'lr', 'store', 'float', None, 0.003, None, None, False),
+    ('demo', '--cond-dim', 'cond_dim', 'store', 'int', None, 8, None, None, False),
+    ('demo', '--checkpoint-every', 'checkpoint_every', 'store', 'int', None, 500, None, None, False),
+    ('demo', '--lpips-weights', 'lpips_weights', 'store', 'str', None, None, 'PATH', '+', False),
+    ('demo', '--ablations', 'ablations', 'bool', 'str', None, True, None, 0, False),
+    ('bench', '--out', 'out', 'store', 'Path', None, None, None, None, False),
+    ('bench', '--doc', 'out', 'const', 'str', None, None, None, 0, False),
+    ('bench', '--resolution', 'resolution', 'store', 'int', None, 96, None, None, False),
+    ('bench', '--iterations', 'iterations', 'store', 'int', None, None, None, None, False),
+    ('bench', '--test-views', 'test_views', 'store', 'int', None, None, None, None, False),
+    ('bench', '--quick', 'quick', 'true', 'str', None, False, None, 0, False),
+    ('bench', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
+    ('bench', '--seed', 'seed', 'store', 'int', None, 0, None, None, False),
+    ('bench', '--no-progress', 'progress', 'false', 'str', None, True, None, 0, False),
+    ('view', '--run', 'run', 'store', 'str', None, None, None, None, False),
+    ('view', '--port', 'port', 'store', 'int', None, 0, None, None, False),
+    ('view', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
+    ('view', '--resolution', 'resolution', 'store', 'int', None, None, None, None, False),
+    ('view', '--test-views', 'test_views', 'store', 'int', None, None, None, None, False),
+    ('view', '--iterations', 'iterations', 'store', 'int', None, 150, None, None, False),
+    ('view', '--threads', 'threads', 'store', 'int', None, None, None, None, False),
+    ('view', '--model', 'model', 'store', 'str', None, None, None, None, False),
+    ('view', '--data', 'data', 'store', 'str', None, None, None, None, False),
+    ('view', '--family', 'family', 'store', 'str', ['scaffold_gs', 'octree_gs', 'hac', 'contextgs', 'compgs'], None, None, None, False),
+    ('view', '--model-iteration', 'model_iteration', 'store', 'int', None, None, None, None, False),
+    ('view', '--allow-unquantized', 'allow_unquantized', 'true', 'str', None, None, None, 0, False),
+    ('view', '--format', 'format', 'store', 'str', ['colmap', 'blender', 'instant_ngp'], None, None, None, False),
+    ('view', '--images', 'images', 'store', 'str', None, None, None, None, False),
+    ('view', '--holdout', 'holdout', 'store', 'int', None, None, None, None, False),
+    ('view', '--white-background', 'white_background', 'true', 'str', None, None, None, 0, False),
+    ('view', '--cache-mib', 'cache_mib', 'store', 'int', None, 1024, None, None, False),
+    ('view', '--device', 'device', 'store', 'str', None, 'cpu', None, None, False),
+    ('view', '--rasterizer', 'rasterizer', 'store', 'str', None, None, 'NAME', None, False),
+    ('view', '--renderer', 'renderer', 'store', 'str', None, None, 'MODULE:ATTR', None, False),
+    ('view', '--trust-run-renderer', 'trust_run_renderer', 'true', 'str', None, False, None, 0, False),
+]
+
+
+#: the value a flag stores
+CONSTS: dict[tuple[str, str], Any] = {("optics bench", "--doc"): Path("docs"), ("bench", "--doc"): Path("docs/benchmarks.md")}
+
+
+#: options a command needs to parse at all
+REQUIRED_ARGS: dict[str, list[str]] = {"optics fit-prewarp": ["--out", "lut.safetensors"],
+                                       "scene build-backbone": ["--out", "o"], "scene export": ["--out", "o"]}
+
+
+@functools.lru_cache(maxsize=1)
+def _parser() -> argparse.ArgumentParser:
+    return cli.build_parser()  # parsing does not change it: one for the file
+
+
+def _parse(command: str, *argv: str, fill: bool = True) -> argparse.Namespace:
+    extra = [] if not fill or any(a in argv for a in REQUIRED_ARGS.get(command, [])[:1]) else REQUIRED_ARGS.get(command, [])
+    return _parser().parse_args([*command.split(), *extra, *argv])
+
+
+def _refused(capsys: pytest.CaptureFixture[str], command: str, *argv: str, fill: bool = True) -> str:
+    with pytest.raises(SystemExit) as e:
+        _parse(command, *argv, fill=fill)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith("usage: controlgs " + command), err
+    return err[-1]
+
+
+def _help(command: str) -> str:
+    parser = _parser()
+    for name in command.split():
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        parser = sub.choices[name]
+    return " ".join(parser.format_help().split())
+
+
+_IDS = [f"{c}:{o}" for c, o, *_ in OPTIONS]
+
+
+@pytest.mark.parametrize("command, option, dest, action, typ, choices, default, metavar, nargs, required", OPTIONS, ids=_IDS)
+def test_option(command, option, dest, action, typ, choices, default, metavar, nargs, required, capsys):
+    help_text = _help(command)
+    if required:
+        msg = _refused(capsys, command, fill=False)
+        assert msg == f"controlgs {command}: error: the following arguments are required: {option}", msg
+    else:  # the default reaches the namespace as written (value and type)
+        got = getattr(_parse(command), dest)
+        assert got == default and type(got) is type(default), (got, default)
+    if action == "store":
+        if metavar is not None:  # the help shows it after the option
+            shown = " ".join(metavar) if isinstance(metavar, tuple) else metavar
+            assert f"{option} {shown}" in help_text, help_text
+        n = 2 if nargs == 2 else 1
+        if typ in ("int", "float"):
+            msg = _refused(capsys, command, option, *["x1"] * n)
+            assert msg == f"controlgs {command}: error: argument {option}: invalid {typ} value: 'x1'", msg
+            value = getattr(_parse(command, option, *["7"] * n), dest)
+            want: Any = [int("7") if typ == "int" else 7.0] * n
+            assert value == (want if isinstance(nargs, (int, str)) else want[0])
+            assert all(type(v) is type(want[0]) for v in (value if isinstance(value, list) else [value]))
+        elif typ == "Path":
+            assert getattr(_parse(command, option, "a/b.x"), dest) == Path("a/b.x")
+        elif choices is None:  # a plain string, kept as given
+            value = getattr(_parse(command, option, "a:b"), dest)
+            assert value == (["a:b"] if nargs == "+" else "a:b")
+        if nargs == "+":  # several values
+            vals = choices[:2] if choices else (["1", "2"] if typ == "str" else ["7", "8"])
+            assert len(getattr(_parse(command, option, *vals), dest)) == len(vals)
+        if nargs == 2:
+            msg = _refused(capsys, command, option, "7")
+            assert msg == f"controlgs {command}: error: argument {option}: expected 2 arguments", msg
+    if choices is not None:
+        msg = _refused(capsys, command, option, "bogus")
+        assert msg.startswith(f"controlgs {command}: error: argument {option}: invalid choice: 'bogus' (choose from "), msg
+        assert all(c in msg.split("choose from", 1)[1] for c in choices), msg
+        for c in choices:
+            value = getattr(_parse(command, option, c), dest)
+            assert value == ([c] if action == "append" or nargs == "+" else c)
+    if action == "true":
+        assert getattr(_parse(command, option), dest) is True
+    elif action == "false":
+        assert getattr(_parse(command, option), dest) is False
+    elif action == "const":
+        assert getattr(_parse(command, option), dest) == CONSTS[command, option]
+    elif action == "bool":
+        assert getattr(_parse(command, option), dest) is True
+        assert getattr(_parse(command, "--no-" + option[2:]), dest) is False
+    elif action == "append":
+        assert getattr(_parse(command, option, choices[0], option, choices[-1]), dest) == [choices[0], choices[-1]]
+    assert option in help_text
+
+
+def test_table_lists_every_option():
+    # an option added without a row here (or a row for one removed) fails: the table stays complete
+    parser = cli.build_parser()
+    seen = set()
+
+    def walk(p: argparse.ArgumentParser, prefix: str) -> None:
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sp in a.choices.items():
+                    walk(sp, f"{prefix} {name}".strip())
+            elif a.option_strings and not isinstance(a, (argparse._HelpAction, argparse._VersionAction)):
+                seen.add((prefix, a.option_strings[0]))
+
+    walk(parser, "")
+    assert seen == {(c, o) for c, o, *_ in OPTIONS}
+
+
+def test_every_option_is_described_in_the_help():
+    # each option's --help line carries a description (a dropped help= leaves the bare option)
+    for command, option, *_ in OPTIONS:
+        parser = _parser()
+        for name in command.split():
+            parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+        action = next(a for a in parser._actions if option in a.option_strings)
+        described = parser._get_formatter()._expand_help(action) if action.help else ""
+        assert len(described.split()) >= 2, (command, option, action.help)
+        assert " ".join(described.split()[:2]) in _help(command), (command, option)  # printed by --help
+
+
+def test_every_command_action_and_option_has_a_help_text():
+    """``controlgs --help`` and each sub-command's ``--help`` describe everything they offer."""
+    undocumented: list[str] = []
+
+    def walk(p: argparse.ArgumentParser, path: list[str]) -> int:
+        n = 0
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for ca in a._choices_actions:
+                    n += 1
+                    if not ca.help:
+                        undocumented.append(" ".join(path + [ca.dest]))
+                for name, sp in a.choices.items():
+                    n += walk(sp, path + [name])
+            elif not isinstance(a, argparse._HelpAction):
+                n += 1
+                if not a.help:
+                    undocumented.append(" ".join(path + [a.option_strings[0] if a.option_strings else a.dest]))
+        return n
+
+    assert walk(cli.build_parser(), []) > 150  # every command, action and option was visited
+    assert undocumented == []

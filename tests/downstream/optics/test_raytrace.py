@@ -1,0 +1,197 @@
+"""Tests of ``controlgs_adapter.downstream.optics.raytrace``."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription, cauchy_index
+from controlgs_adapter.downstream.optics.raytrace import chief_ray, paraxial, real_magnification, trace
+
+
+@pytest.mark.parametrize("lam", [486.0, 550.0, 656.0])
+def test_tracer_matches_paraxial_abcd(lam):
+    rx = Prescription.cardboard()
+    par = paraxial(rx, lam)
+    # near-axis rays from the on-axis display point: their backward extensions cross the axis at the
+    # paraxial image; each leaves the lens as Y(z) = Y_i + s (z - zi), s from the pupil-plane height
+    zi = rx.image_z
+    xp, yp, _, Yi, _ = trace(rx, lam, 0.0, 0.0, 0.0, np.array([1e-5, 2e-5]))
+    s = (yp - Yi) / (rx.pupil_z - zi)
+    z_cross = zi - Yi / s
+    image_distance = rx.pupil_z - z_cross
+    assert np.allclose(image_distance, par.image_distance, rtol=1e-4)
+    # chief-ray magnification on the 667 mm plane = paraxial magnification scaled to that plane
+    m667 = par.magnification * rx.image_distance / par.image_distance
+    assert real_magnification(rx, lam) == pytest.approx(m667, rel=1e-4)
+
+
+def test_distortion_and_lateral_colour_at_the_corner():
+    rx = Prescription.cardboard()
+    m = real_magnification(rx, 550.0)
+    corner = 12 * math.sqrt(2)
+    land = {lam: chief_ray(rx, lam, np.array([corner]))[1][0] / m / corner * 512 for lam in (486.0, 550.0, 656.0)}
+    assert land[550.0] == pytest.approx(611.8, abs=0.5)               # pincushion, ~19.5 %
+    assert land[486.0] - land[656.0] == pytest.approx(10.6, abs=0.5)  # per axis (15.0 px along the diagonal)
+
+
+def test_trace_computes_in_float64_whatever_the_input_dtype():
+    """float32 display points and slopes are traced in float64: the same rays as float64 input, to the
+    bit (a float32 trace through the lens differs by ~1e-5 mm), and float64 outputs."""
+    rx = Prescription.cardboard()
+    h = np.linspace(0.0, 16.0, 9)
+    v = np.linspace(-0.3, 0.0, 9)
+    ref = trace(rx, 550.0, np.zeros(9), h, np.zeros(9), v)
+    low = trace(rx, 550.0, np.zeros(9, np.float32), h.astype(np.float32), np.zeros(9, np.float32), v.astype(np.float32))
+    h32, v32 = h.astype(np.float32).astype(np.float64), v.astype(np.float32).astype(np.float64)
+    ref32 = trace(rx, 550.0, np.zeros(9), h32, np.zeros(9), v32)  # the float32 inputs' exact values, traced in float64
+    for a, b in zip(low, ref32):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    assert all(a.dtype == np.float64 for a in low[:4])
+    assert np.array_equal(low[4], ref[4])
+
+
+def test_chief_ray_newton_steps_are_clamped_to_0_05():
+    """From the paraxial guess v0 = -h / pupil_z, one Newton step moves the slope by at most 0.05 each
+    way: at h = 16 mm the full step is +0.057 (the converged slope, 40 steps), at h = 30 mm it is
+    negative and larger; one step is then exactly v0 +- 0.05. Near the axis the step is unclamped."""
+    rx = Prescription.cardboard()
+    h = np.array([16.0, 30.0, 2.0])
+    v0 = -h / rx.pupil_z
+    v0_back, _, ok0 = chief_ray(rx, 550.0, h, iters=0)
+    assert not ok0.any()  # the paraxial guess does not cross the pupil centre within 1e-9 mm
+    assert np.array_equal(v0_back, v0)
+    v1, _, ok1 = chief_ray(rx, 550.0, h, iters=1)
+    assert not ok1[0]  # clamped short of the root: not converged
+    assert v1[0] - v0[0] == pytest.approx(0.05, abs=1e-12)
+    assert v1[1] - v0[1] == pytest.approx(-0.05, abs=1e-12)
+    assert 0.0 < v1[2] - v0[2] < 0.01  # 2 mm: 0.0036, far from the clamp
+    v, _, ok = chief_ray(rx, 550.0, h[:1], iters=40)
+    assert ok[0] and v[0] - v0[0] > 0.05  # the clamp only slows the approach, the root is further
+    v2, _, _ = chief_ray(rx, 550.0, h[:1], iters=2)
+    assert v2[0] - v0[0] == pytest.approx((v[0] - v0[0]), abs=1e-3)  # second step: the remaining 0.007
+
+
+def test_chief_ray_converged_means_within_1e_9_mm_of_the_pupil_centre():
+    """``ok`` is |pupil height| < 1e-9 mm of the returned slope's ray (traced here again): after two Newton
+    steps the 5.31 mm ray misses the centre by 1.3e-9 mm (found by a scan): not converged; 1 mm has."""
+    from controlgs_adapter.downstream.optics.raytrace import trace
+
+    rx = Prescription.cardboard()
+    h = np.array([5.31, 1.0])
+    v, _, ok = chief_ray(rx, 550.0, h, iters=2)
+    _, yp, _, _, _ = trace(rx, 550.0, 0.0, h, 0.0, v)
+    assert 1.2e-9 < abs(yp[0]) < 1.8e-9 and abs(yp[1]) < 1e-12
+    assert ok.tolist() == [False, True]
+    v, _, ok = chief_ray(rx, 550.0, h)  # the default 40 steps converge both
+    assert ok.all()
+
+
+def _spec(**over):
+    spec = {k: (list(v) if isinstance(v, list) else v) for k, v in CARDBOARD.items()}
+    spec.update(over)
+    return spec
+
+
+def _lens(surfaces, **over):
+    return Prescription(_spec(surfaces=surfaces, **over))
+
+
+# ----------------------------------------------------------------------------- tracer
+def _meridional(surfaces, obj, h, slope, lam_index, pupil_gap, image_distance):
+    """Independent meridional trace with angles (Snell's law ``n1 sin i = n2 sin r``) through
+    spherical surfaces ``(R, thickness_after, n_after)``; returns (pupil height, image-plane height)."""
+    z, y, ang, n1 = 0.0, h, math.atan(slope), 1.0                             # angle to the axis
+    zv = obj
+    for R, t, n2 in surfaces:
+        if math.isinf(R):
+            zs = zv
+            ys = y + math.tan(ang) * (zs - z)
+            normal = 0.0                                                         # normal angle to the axis
+        else:                                                                    # circle: centre at zv + R
+            zc = zv + R
+            dz, dy = math.cos(ang), math.sin(ang)
+            oz, oy = z - zc, y
+            b = oz * dz + oy * dy
+            c = oz * oz + oy * oy - R * R
+            root = math.sqrt(b * b - c)
+            s = -b - root if R > 0 else -b + root                                # the near intersection
+            zs, ys = z + s * dz, y + s * dy
+            normal = math.atan2(-(ys), -(zs - zc)) if R > 0 else math.atan2(ys, zs - zc)
+        i = ang - normal
+        r = math.asin(n1 * math.sin(i) / n2)
+        ang = normal + r
+        z, y, n1 = zs, ys, n2
+        zv += t
+    zp = zv
+    yp = y + math.tan(ang) * (zp - z)
+    Y = y + math.tan(ang) * (zp - image_distance - z)
+    return yp, Y
+
+
+@pytest.mark.parametrize("h, slope", [(0.0, 0.1), (3.0, 0.0), (5.0, -0.2), (-2.0, 0.15)])
+def test_trace_matches_an_angle_based_meridional_trace(h, slope):
+    """A biconvex glass lens with a plane window, non-dispersive (V huge) so n = 1.6 at any wavelength."""
+    glass = {"nd": 1.6, "vd": 1e12}
+    rx = _lens([{"radius_mm": 40.0, "thickness_mm": 6.0, "after": glass},
+                {"radius_mm": -30.0, "thickness_mm": 4.0, "after": "air"},
+                {"radius_mm": None, "thickness_mm": 2.0, "after": glass},
+                {"radius_mm": None, "thickness_mm": 15.0, "after": "air"}], object_distance_mm=30.0,
+               virtual_image_distance_mm=500.0)
+    n = cauchy_index(1.6, 1e12, 550.0)
+    want_yp, want_Y = _meridional([(40.0, 6.0, n), (-30.0, 4.0, 1.0), (math.inf, 2.0, n), (math.inf, 15.0, 1.0)],
+                                  30.0, h, slope, 0, 15.0, 500.0)
+    xp, yp, X, Y, ok = trace(rx, 550.0, 0.0, h, 0.0, slope)
+    assert ok and xp == pytest.approx(0.0, abs=1e-12) and X == pytest.approx(0.0, abs=1e-12)
+    assert yp == pytest.approx(want_yp, abs=1e-9) and Y == pytest.approx(want_Y, abs=1e-7)
+    # the same ray turned by 90 degrees about the axis: x and y swap
+    xp2, yp2, X2, Y2, _ = trace(rx, 550.0, h, 0.0, slope, 0.0)
+    assert (xp2, X2) == pytest.approx((want_yp, want_Y), abs=1e-7) and abs(yp2) < 1e-12 and abs(Y2) < 1e-12
+
+
+def test_trace_flags_apertures_misses_and_total_internal_reflection():
+    rx = Prescription.cardboard()
+    # a ray from the display centre at slope v reaches S1 (z = 39.07, sag ~0) at height ~39.07 v; semi-diameter 17
+    *_, ok = trace(rx, 550.0, 0.0, 0.0, 0.0, np.array([0.40, 0.45, -0.45]))
+    assert ok.tolist() == [True, False, False]
+    *_, ok = trace(rx, 550.0, 0.0, 0.0, np.array([0.40, 0.0, 0.3]), np.array([0.0, 0.40, 0.3]))
+    assert ok.tolist() == [True, True, False]                                  # the aperture is a disc: |(0.3, 0.3)| = 0.42
+    # glass (n = 1.5) -> air through a surface of radius 2 (centre toward the eye): a ray parallel to
+    # the axis at height y meets it at incidence asin(y / 2); 1.5 * 0.9 > 1 is total internal
+    # reflection, 1.5 * 0.5 < 1 passes; y = 2.5 misses the sphere altogether
+    glass = {"nd": 1.5, "vd": 1e12}
+    rx = _lens([{"radius_mm": None, "thickness_mm": 1.0, "after": glass},
+                {"radius_mm": 2.0, "thickness_mm": 5.0, "after": "air"}], object_distance_mm=1.0)
+    *_, ok = trace(rx, 550.0, 0.0, np.array([1.0, 1.8, 2.5, 0.0]), 0.0, 0.0)
+    assert ok.tolist() == [True, False, False, True]
+
+
+def test_slab_paraxial_image_by_hand():
+    """A plane-parallel slab has no power: magnification 1; the display is seen at
+    object distance + t / n + the air gap from the pupil (apparent depth of the slab)."""
+    glass = {"nd": 1.6, "vd": 40.0}
+    rx = _lens([{"radius_mm": None, "thickness_mm": 5.0, "after": glass},
+                {"radius_mm": None, "thickness_mm": 10.0, "after": "air"}])
+    n = cauchy_index(1.6, 40.0, 550.0)
+    with np.errstate(divide="ignore"):
+        p = paraxial(rx, 550.0)
+    assert p.magnification == pytest.approx(1.0, abs=1e-12)
+    assert p.image_distance == pytest.approx(39.07 + 5.0 / n + 10.0, abs=1e-9)
+    assert math.isinf(p.efl)
+    # the chief ray through the pupil centre, projected onto the 667 mm plane: 667 / apparent distance
+    assert real_magnification(rx, 550.0) == pytest.approx(667.0 / (39.07 + 5.0 / n + 10.0), rel=1e-6)
+
+
+def test_chief_ray_crosses_the_pupil_centre_and_reports_convergence():
+    rx = Prescription.cardboard()
+    h = np.array([0.0, 4.0, 12.0])
+    v, Y, ok = chief_ray(rx, 550.0, h)
+    assert ok.all() and v[0] == 0.0 and Y[0] == 0.0
+    _, yp, _, Y2, _ = trace(rx, 550.0, 0.0, h, 0.0, v)
+    assert np.abs(yp).max() < 1e-9 and np.allclose(Y2, Y, atol=0, rtol=0)
+    # no Newton step: the paraxial guess -h / pupil_z misses the pupil centre and is reported as such
+    v0, _, ok0 = chief_ray(rx, 550.0, h, iters=0)
+    assert np.allclose(v0, -h / rx.pupil_z) and ok0.tolist() == [True, False, False]

@@ -1,0 +1,45 @@
+"""Shared test helpers: banks."""
+
+from __future__ import annotations
+
+import torch
+
+from controlgs_adapter.downstream.optics.bank import PSFBank
+
+D64 = torch.float64
+
+
+def tiny_bank(**over):
+    L, G, K = 3, 3, 5
+    psf = torch.rand(L, G, G, K, K, dtype=D64)
+    psf /= psf.sum((-1, -2), keepdim=True)
+    c = torch.linspace(-1, 1, 5, dtype=D64)
+    cy, cx = torch.meshgrid(c, c, indexing="ij")
+    f = -1 + (2 * torch.arange(G, dtype=D64) + 1) / G
+    args = dict(psf=psf, psf_pitch_mm=torch.full((L, G, G), 0.1, dtype=D64), field_x=f, field_y=f,
+                chief=torch.stack([cx, cy], -1).expand(L, 5, 5, 2).clone(), chief_x=c, chief_y=c,
+                wavelengths_nm=(656.0, 550.0, 486.0), display_mm=(24.0, 24.0))
+    args.update(over)
+    return PSFBank(**args)
+
+
+import torch
+
+D64 = torch.float64
+
+
+def synthetic_bank(K=7, G=4, L=2, pitch_px=1.0, width_px=16, uniform=True, identity=True, seed=0):
+    """A small bank: random PSFs (the same everywhere if ``uniform``), identity or pincushion chief rays."""
+    g = torch.Generator().manual_seed(seed)
+    psf = torch.rand(L, G, G, K, K, generator=g, dtype=D64) ** 3
+    if uniform:
+        psf = psf[:1, :1, :1].expand(L, G, G, K, K).clone()
+    psf /= psf.sum((-1, -2), keepdim=True)
+    c = torch.linspace(-1, 1, 9, dtype=D64)
+    cy, cx = torch.meshgrid(c, c, indexing="ij")
+    scale = 1.0 if identity else 1 + 0.08 * (cx ** 2 + cy ** 2)
+    chief = torch.stack([cx * scale, cy * scale], -1).expand(L, 9, 9, 2).clone()
+    f = -1 + (2 * torch.arange(G, dtype=D64) + 1) / G
+    return PSFBank(psf=psf, psf_pitch_mm=torch.full((L, G, G), pitch_px * 24 / width_px, dtype=D64), field_x=f,
+                   field_y=f, chief=chief, chief_x=c, chief_y=c, wavelengths_nm=(600.0, 500.0)[:L],
+                   display_mm=(24.0, 24.0))
