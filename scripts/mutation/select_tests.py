@@ -6,8 +6,9 @@ data that run.sh recorded with one context per test (scripts/mutation/pytest_con
 already failed on the unmutated code, and runs the most focused of them (fewest library lines executed, then
 fastest) with ``pytest -x``. Exit status 0: the mutant survived; anything else: it was killed.
 
-Lines that only run at import (module constants, signatures, decorators) carry no test context: those mutants
-get the tests that executed any line of the file. A file no test executes: nothing to run, the mutant survives.
+A mutated continuation line is looked up under its statement's first line, where coverage.py files it. Lines
+that only run at import (module constants, signatures, decorators) carry no test context: those mutants get the
+tests that executed any line of the file. A file no test executes: nothing to run, the mutant survives.
 
     python scripts/mutation/select_tests.py            # cosmic-ray's test command, in the scratch copy
     python scripts/mutation/select_tests.py --index    # once, after the coverage run (run.sh)
@@ -18,6 +19,7 @@ MUTATION_MAX_TESTS (default 60).
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import re
@@ -67,6 +69,18 @@ def changed_lines() -> dict[str, set[int]]:
     return out
 
 
+def statement_starts(rel: str) -> dict[int, int]:
+    """{line: first line of the innermost statement that spans it} for the unmutated file."""
+    source = subprocess.run(["git", "show", f"HEAD:{rel}"], capture_output=True, text=True, check=True, cwd=TREE).stdout
+    starts: dict[int, int] = {}
+    for node in ast.walk(ast.parse(source)):  # outer statements first: inner ones overwrite their lines
+        if isinstance(node, ast.stmt):
+            for n in range(node.lineno, (node.end_lineno or node.lineno) + 1):
+                if starts.get(n, 0) <= node.lineno:
+                    starts[n] = node.lineno
+    return starts
+
+
 def main() -> int:
     if sys.argv[1:] == ["--index"]:
         build_index()
@@ -83,7 +97,9 @@ def main() -> int:
     how = "the mutated lines"
     for rel, lines in changes.items():
         by_line = data.contexts_by_lineno(str((TREE / rel).resolve()))
-        tests.update(c for n in lines for c in by_line.get(n, ()) if c)
+        starts = statement_starts(rel)
+        # coverage.py files a statement under its first line: a mutated continuation line is looked up there
+        tests.update(c for n in lines for c in by_line.get(n) or by_line.get(starts.get(n, n), ()) if c)
     if not tests:
         how = "a line of the mutated file (the mutated lines run at import)"
         for rel in changes:
