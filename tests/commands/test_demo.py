@@ -240,7 +240,7 @@ def test_demo_view_scene_optics_bench_defaults():
         (None, 96, None, None, False, "ar", 0)
     assert _parse("bench", "--doc").out == Path("docs") / "benchmarks.md"
     assert _parse("plugins").strict is False
-    assert cli.COMMANDS == ("plugins", "optics", "scene", "train", "eval", "demo", "bench", "view")
+    assert cli.COMMANDS == ("plugins", "optics", "scene", "backbone", "train", "eval", "demo", "bench", "view")
 
 
 @pytest.mark.parametrize("argv, needs", [

@@ -53,6 +53,18 @@ OPTIONS: list[tuple[str, str, str, str, str, list[str] | None, Any, Any, Any, bo
     ('optics fit-prewarp', '--size', 'size', 'store', 'int', None, 256, None, None, False),
     ('optics fit-prewarp', '--modes', 'modes', 'store', 'str', ['distortion', 'exact', 'fast'], ['distortion', 'exact'], None, '+', False),
     ('optics fit-prewarp', '--radiometry', 'radiometry', 'store', 'str', ['radiance', 'energy'], 'radiance', None, None, False),
+    ('backbone train', '--data', 'data', 'store', 'str', None, None, None, None, True),
+    ('backbone train', '--out', 'out', 'store', 'str', None, None, None, None, True),
+    ('backbone train', '--resolution', 'resolution', 'store', 'int', None, 256, None, None, False),
+    ('backbone train', '--iterations', 'iterations', 'store', 'int', None, 1500, None, None, False),
+    ('backbone train', '--max-anchors', 'max_anchors', 'store', 'int', None, 3000, None, None, False),
+    ('backbone train', '--seed', 'seed', 'store', 'int', None, 0, None, None, False),
+    ('backbone train', '--device', 'device', 'store', 'str', None, 'cpu', None, None, False),
+    ('backbone train', '--format', 'format', 'store', 'str', ['colmap', 'blender', 'instant_ngp'], None, None, None, False),
+    ('backbone train', '--images', 'images', 'store', 'str', None, None, None, None, False),
+    ('backbone train', '--holdout', 'holdout', 'store', 'int', None, 8, None, None, False),
+    ('backbone train', '--white-background', 'white_background', 'true', 'str', None, False, None, 0, False),
+    ('backbone train', '--no-progress', 'progress', 'false', 'str', None, True, None, 0, False),
     ('scene build-backbone', '--variant', 'variant', 'store', 'str', ['ar', 'vr'], 'ar', None, None, False),
     ('scene build-backbone', '--resolution', 'resolution', 'store', 'int', None, 128, None, None, False),
     ('scene build-backbone', '--iterations', 'iterations', 'store', 'int', None, 1500, None, None, False),
@@ -177,7 +189,8 @@ CONSTS: dict[tuple[str, str], Any] = {("optics bench", "--doc"): Path("docs"), (
 
 #: options a command needs to parse at all
 REQUIRED_ARGS: dict[str, list[str]] = {"optics fit-prewarp": ["--out", "lut.safetensors"],
-                                       "scene build-backbone": ["--out", "o"], "scene export": ["--out", "o"]}
+                                       "scene build-backbone": ["--out", "o"], "scene export": ["--out", "o"],
+                                       "backbone train": ["--data", "d", "--out", "o"]}
 
 
 @functools.lru_cache(maxsize=1)
@@ -186,7 +199,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _parse(command: str, *argv: str, fill: bool = True) -> argparse.Namespace:
-    extra = [] if not fill or any(a in argv for a in REQUIRED_ARGS.get(command, [])[:1]) else REQUIRED_ARGS.get(command, [])
+    need = REQUIRED_ARGS.get(command, [])
+    extra = [x for o, v in zip(need[::2], need[1::2]) if fill and o not in argv for x in (o, v)]
     return _parser().parse_args([*command.split(), *extra, *argv])
 
 
@@ -215,7 +229,8 @@ def test_option(command, option, dest, action, typ, choices, default, metavar, n
     help_text = _help(command)
     if required:
         msg = _refused(capsys, command, fill=False)
-        assert msg == f"controlgs {command}: error: the following arguments are required: {option}", msg
+        needed = ", ".join(o for c, o, *_, r in OPTIONS if c == command and r)
+        assert option in needed and msg == f"controlgs {command}: error: the following arguments are required: {needed}", msg
     else:  # the default reaches the namespace as written (value and type)
         got = getattr(_parse(command), dest)
         assert got == default and type(got) is type(default), (got, default)

@@ -1,15 +1,19 @@
-"""Tests of ``controlgs_adapter.report``."""
+"""Tests of ``controlgs_adapter.report``: the Markdown tables, the seed summary and spread test, the findings
+(counts and differences read back from the text), the per-setting grids, the figures and results.json."""
 
 from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from pathlib import Path
 
 import pytest
 import torch
+from helpers.grid_results import DOWNSAMPLE, POWER_SAVING, grid_result
 
+from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.evaluation import IDEAL, GridResult
 from controlgs_adapter.metrics import FLIP_PPD
 from controlgs_adapter.report import (
@@ -21,53 +25,339 @@ from controlgs_adapter.report import (
     plot_condition_response,
     plot_heatmaps,
     read_results,
+    seed_independent,
     seed_summary,
     write_report,
 )
 
-
-def test_difference_tables_appear_with_exactly_the_two_methods():
-    """A result holding only ``ss`` and ``controlgs`` gets the per-setting ControlGS-minus-SS table, its
-    cells the differences by hand, signed."""
-    ss = torch.full((1, 2, 1), 20.0, dtype=torch.float64)
-    cg = ss + torch.tensor([[0.5, -0.25]], dtype=torch.float64)[..., None]
-    md = markdown_tables(GridResult((1.0,), (0.0, 0.4), {"ss": {"psnr": ss}, "controlgs": {"psnr": cg}}))
-    section = md.split("PSNR of ControlGS minus SS-backbone:", 1)[1].split("\n\n", 2)[1]
-    assert "+0.50" in section and "-0.25" in section, section
+F64 = torch.float64
+NUMBER = re.compile(r"[+-]?\d+(?:\.\d+)?(?:e[+-]?\d+)?")
+SPREAD = re.compile(r"(\w+) ([+-]\S+) \((exceeds|within) the spread, pooled std ([^)]+)\)")
 
 
-GRID = ((1.0, 2.0, 4.0, 8.0), (0.0, 0.2, 0.4, 0.6, 0.8))
+def _line(md: str, *words: str) -> str:
+    """The one line of ``md`` that holds every one of ``words``."""
+    found = [line for line in md.splitlines() if all(w in line for w in words)]
+    assert len(found) == 1, (words, found)
+    return found[0]
 
 
-def _seed_result(seed: int, values: dict[str, float]) -> GridResult:
-    """Every view and cell of a method holds one known PSNR (so its overall mean is that number)."""
-    per_view = {m: {"psnr": torch.full((4, 5, 2), v, dtype=torch.float64)} for m, v in values.items()}
-    return GridResult(*GRID, per_view, info={"seed": seed})
+def _numbers(line: str) -> list[float]:
+    return [float(v) for v in NUMBER.findall(line)]
 
 
-def test_seeds_mean_std_and_which_differences_exceed_the_spread(tmp_path):
-    runs = [_seed_result(0, {"ss": 20.0, "controlgs": 21.0, "wo_lens": 21.0, "state_blind": 20.0}),
-            _seed_result(1, {"ss": 20.0, "controlgs": 21.2, "wo_lens": 21.1, "state_blind": 20.2})]
+def _spread(md: str, a: str, b: str) -> dict[str, tuple[float, bool, float]]:
+    """The spread line of ``a`` minus ``b``: metric -> (difference, exceeds the spread, pooled std)."""
+    line = _line(md, f"- {a} minus {b}:")
+    return {k: (float(d), word == "exceeds", float(p)) for k, d, word, p in SPREAD.findall(line)}
+
+
+def _cell(v: float) -> torch.Tensor:
+    return torch.full((1, 1, 1), v, dtype=F64)
+
+
+def _seeds(values: dict[str, tuple[float, ...]], grid=((1.0, 2.0), (0.0, 0.5)), ssim: bool = False) -> list[GridResult]:
+    """One result per seed, every view and cell of a method holding that seed's value (PSNR; SSIM = PSNR / 100)."""
+    runs = []
+    for seed in range(len(next(iter(values.values())))):
+        shape = (len(grid[0]), len(grid[1]), 2)
+        per_view = {m: {"psnr": torch.full(shape, v[seed], dtype=F64)} for m, v in values.items()}
+        if ssim:
+            for m, v in values.items():
+                per_view[m]["ssim"] = torch.full(shape, v[seed] / 100.0, dtype=F64)
+        runs.append(GridResult(*grid, per_view, info={"seed": seed}))
+    return runs
+
+
+# ------------------------------------------------------------------------------ tables
+def test_main_table_bold_best_and_ideal_row():
+    md = markdown_tables(grid_result(), {"scene": "s", "views": [1, 2], "n": 3, "d": {"a": 1}})
+    lines = md.splitlines()
+    assert "Run: scene = s, n = 3" in lines  # lists and dicts are left out
+    head = _line(md, "End-to-end")
+    assert "`fast`" in head and _numbers(head) == [2, 4, 1]  # 2 test views, 4 run-time settings, Tbl. 1
+    assert "±" not in md
+    i = lines.index("| Method | PSNR↑ | FLIP↓ |")
+    assert lines[i + 1:i + 6] == ["|---|---:|---:|",
+                                  "| Backbone (no SS) | 18.25 | 0.3000 |",
+                                  "| SS-backbone | 19.00 | 0.2000 |",
+                                  "| ControlGS | **19.75** | **0.1500** |",  # best PSNR (highest), best FLIP (lowest)
+                                  "| Ideal render (GT through E_s) | 20.50 | 0.0500 |"]  # above all, never bold
+    # the ablation table: ControlGS, the ablations in ABLATIONS order, SS-backbone
+    j = lines.index("Ablations (paper Tbl. 4):")
+    assert lines[j + 2:j + 8] == ["| Method | PSNR↑ | FLIP↓ |", "|---|---:|---:|",
+                                  "| ControlGS | **19.75** | **0.1500** |", "| w/o Lens | 18.75 | 0.1800 |",
+                                  "| w/o Display Mapping | 19.25 | 0.2200 |", "| SS-backbone | 19.00 | 0.2000 |"]
+    assert 67.02 in _numbers(_line(md, "LDR-FLIP"))  # FLIP's observer, in pixels per degree
+    assert LPIPS_NOT_COMPUTED in md
+
+
+def test_metric_formats_and_arrows():
+    per_view = {m: {k: torch.full((1, 1, 1), v, dtype=F64) for k, v in
+                    (("ssim", 0.123456), ("lpips", 0.5), ("cvvdp", 9.87654), ("other", 1.23456))} for m in ("ss", "controlgs")}
+    per_view["ss"]["lpips"] = torch.full((1, 1, 1), 0.25, dtype=F64)
+    r = GridResult((1.0,), (0.0,), per_view)
+    md = markdown_tables(r, {"lpips_weights": "a.pth, b.pth"})
+    assert "| Method | SSIM↑ | LPIPS↓ | CVVDP↑ | OTHER↑ |" in md
+    # equal values are both best; LPIPS: the lower (SS 0.25) is bold
+    assert "| SS-backbone | **0.1235** | **0.2500** | **9.877** | **1.2346** |" in md
+    assert "| ControlGS | **0.1235** | 0.5000 | **9.877** | **1.2346** |" in md
+    assert "LPIPS" in _line(md, "a.pth, b.pth") and LPIPS_NOT_COMPUTED not in md  # the weights it was computed with
+    assert "LDR-FLIP" not in md
+    # weights named but no LPIPS column: not computed
+    no = GridResult((1.0,), (0.0,), {m: {"psnr": torch.zeros(1, 1, 1, dtype=F64)} for m in ("ss",)})
+    assert LPIPS_NOT_COMPUTED in markdown_tables(no, {"lpips_weights": "a.pth"})
+    assert METHOD_LABELS["state_blind"] == "w/o State-Aware" and METHOD_LABELS["wo_resample"] == "w/o Resampling"
+
+
+def test_per_setting_grids_by_hand():
+    """One grid per method and metric, and ControlGS minus SS-backbone / the ideal render, signed; the
+    difference grids need both methods, and two methods alone are enough."""
+    lines = markdown_tables(grid_result()).splitlines()
+    i = lines.index("PSNR of SS-backbone:")
+    assert lines[i + 2:i + 6] == ["| d \\ ρ | 0% | 50% |", "|---|---:|---:|", "| 1× | 20.00 | 22.00 |",
+                                  "| 2× | 18.00 | 16.00 |"]
+    i = lines.index("PSNR of ControlGS minus SS-backbone:")
+    assert lines[i + 4:i + 6] == ["| 1× | +1.00 | -1.00 |", "| 2× | +1.00 | +2.00 |"]
+    i = lines.index("PSNR of ControlGS minus Ideal render (GT through E_s):")
+    assert lines[i + 4:i + 6] == ["| 1× | -4.00 | +1.00 |", "| 2× | -3.00 | +3.00 |"]
+    i = lines.index("FLIP of ControlGS minus SS-backbone:")
+    assert lines[i + 4:i + 6] == ["| 1× | -0.1000 | +0.0500 |", "| 2× | -0.0500 | -0.1000 |"]
+    i = lines.index("FLIP of w/o Lens:")
+    assert lines[i + 4] == "| 1× | 0.1800 | 0.1800 |"
+    assert "## Per setting" in lines and "PSNR of Backbone (no SS):" in lines
+    # exactly ss and controlgs: the difference table, its cells signed
+    ss = torch.full((1, 2, 1), 20.0, dtype=F64)
+    cg = ss + torch.tensor([[0.5, -0.25]], dtype=F64)[..., None]
+    lines = markdown_tables(GridResult((1.0,), (0.0, 0.4), {"ss": {"psnr": ss}, "controlgs": {"psnr": cg}})).splitlines()
+    i = lines.index("PSNR of ControlGS minus SS-backbone:")
+    assert lines[i + 4] == "| 1× | +0.50 | -0.25 |"
+    assert not any("minus" in line for line in markdown_tables(grid_result(("no_ss", "ss"))).splitlines())
+
+
+# ------------------------------------------------------------------------------ findings
+def test_findings_by_hand():
+    md = markdown_tables(grid_result())
+    # ControlGS - SS = [[1, -1], [1, 2]]: 3 wins of 4, mean +0.75, worst cell -1
+    assert _numbers(_line(md, "- PSNR:", "ControlGS", "SS-backbone")) == [3, 4, 0.75, -1]
+    # SS - no-SS = [[0, 1], [1, 1]]: 3 wins, 1 tie (at d = 1 both render at S), mean +0.75
+    assert _numbers(_line(md, "- PSNR:", "no-SS")) == [3, 4, 1, 1, 0.75]
+    # the ideal render scores 20.5; ControlGS - ideal = [[-4, 1], [-3, 3]]: above it in 2 of 4, mean -0.75
+    assert _numbers(_line(md, "- PSNR:", "ideal")) == [20.5, 2, 4, -0.75]
+    # FLIP, lower is better: SS - ControlGS = [[0.1, -0.05], [0.05, 0.1]]; printed as ControlGS - SS
+    assert _numbers(_line(md, "- FLIP:", "ControlGS", "SS-backbone")) == [3, 4, -0.05, 0.05]
+    assert _numbers(_line(md, "- FLIP:", "no-SS")) == [4, 4, -0.1]  # no tie
+    assert _numbers(_line(md, "- FLIP:", "ideal")) == [0.05, 0, 4, 0.1]
+    # ablations, largest PSNR loss first: w/o Lens 19.75 - 18.75 = 1, w/o Display 19.75 - 19.25 = 0.5
+    lost = _line(md, "ablation", "dB")
+    assert _numbers(lost) == [1.0, 0.5] and lost.index("w/o Lens") < lost.index("w/o Display Mapping")
+    _line(md, "One seed")  # no spread measured, none claimed
+    # without ss or controlgs there is nothing to compare
+    only = markdown_tables(grid_result(("no_ss", "ss")))
+    _line(only, "needs ss and controlgs")
+    assert "Differences against the seed spread" not in only and "Ablations" not in only
+    # exactly the two methods the findings need: no no-SS and no ideal lines
+    two = markdown_tables(grid_result(("ss", "controlgs")))
+    assert _numbers(_line(two, "- PSNR:", "ControlGS", "SS-backbone")) == [3, 4, 0.75, -1]
+    assert "needs ss and controlgs" not in two and "no-SS" not in two and "Ideal render" not in two
+    assert "ideal" not in "\n".join(line for line in two.splitlines() if line.startswith("- "))
+
+
+def test_findings_count_strict_wins_ties_and_worst_cells_by_hand():
+    """2 x 3 grid, one view. PSNR ControlGS - SS per cell: +1, 0, 0, -0.5, +2, 0 -> 2 wins of 6 (ties are
+    not wins), mean +0.4167, worst -0.5. FLIP (lower is better) ControlGS - SS: -0.1, 0, +0.2, 0, 0, 0 ->
+    1 win; printed in FLIP units: mean +0.01667, worst cell +0.2. SS vs no-SS PSNR: +1 in 4 cells, equal in 2."""
+    ss_psnr = torch.full((2, 3, 1), 20.0, dtype=F64)
+    cg_psnr = ss_psnr + torch.tensor([[1.0, 0.0, 0.0], [-0.5, 2.0, 0.0]], dtype=F64)[..., None]
+    ss_flip = torch.full((2, 3, 1), 0.5, dtype=F64)
+    cg_flip = ss_flip - torch.tensor([[0.1, 0.0, -0.2], [0.0, 0.0, 0.0]], dtype=F64)[..., None]
+    no_ss_psnr = ss_psnr - torch.tensor([[0.0, 1.0, 1.0], [0.0, 1.0, 1.0]], dtype=F64)[..., None]
+    result = GridResult((1.0, 2.0), (0.0, 0.2, 0.4), {
+        "no_ss": {"psnr": no_ss_psnr, "flip": ss_flip.clone()},
+        "ss": {"psnr": ss_psnr, "flip": ss_flip},
+        "controlgs": {"psnr": cg_psnr, "flip": cg_flip}})
+    md = markdown_tables(result)
+    assert _numbers(_line(md, "- PSNR:", "ControlGS", "SS-backbone")) == [2, 6, 0.4167, -0.5]
+    assert _numbers(_line(md, "- FLIP:", "ControlGS", "SS-backbone")) == [1, 6, 0.01667, 0.2]
+    assert _numbers(_line(md, "- PSNR:", "no-SS")) == [4, 6, 2, 1, 0.6667]
+    # Tbl. 1: the best mean in bold (highest PSNR, lowest FLIP; ties all bold). Means by hand: PSNR 19.33,
+    # 20, 20.42; FLIP 0.5, 0.5, 3.1 / 6 = 0.5167
+    assert "| Backbone (no SS) | 19.33 | **0.5000** |" in md, md
+    assert "| SS-backbone | 20.00 | **0.5000** |" in md and "| ControlGS | **20.42** | 0.5167 |" in md, md
+
+
+# ------------------------------------------------------------------------------ seeds
+def test_seed_summary_pools_mean_and_sample_std_by_hand():
+    r0 = grid_result(("ss", "controlgs", "wo_lens"), info={"seed": 5})
+    r1 = grid_result(("ss", "controlgs", "wo_lens"), info={"seed": 6})
+    r1.per_view["controlgs"]["psnr"] += 0.4  # ControlGS 19.75 and 20.15 over the seeds; the others equal
+    r1.per_view["wo_lens"]["psnr"] -= 0.2  # 18.75 and 18.55
+    s = seed_summary([r0, r1])
+    assert s["controlgs"]["psnr"]["per_seed"] == [19.75, 20.15]
+    assert s["controlgs"]["psnr"]["mean"] == pytest.approx(19.95, abs=1e-12)
+    assert s["controlgs"]["psnr"]["std"] == pytest.approx(0.4 / math.sqrt(2), abs=1e-12)  # ddof 1: |a - b| / sqrt 2
+    assert s["ss"]["psnr"]["std"] == 0.0 and seed_summary(r0)["ss"]["psnr"] == {"mean": 19.0, "std": 0.0, "per_seed": [19.0]}
+    md = markdown_tables([r0, r1])
+    assert _numbers(_line(md, "End-to-end")) == [2, 4, 2, 1]  # 2 views, 4 settings, over 2 seeds
+    assert "| ControlGS | **19.95 ± 0.28** | **0.1500 ± 0.0000** |" in md
+    assert _numbers(_line(md, "## Per setting")) == [2]  # means over the 2 seeds
+    lines = md.splitlines()
+    i = lines.index("PSNR of ControlGS:")
+    assert lines[i + 4] == "| 1× | 21.20 | 21.20 |"  # the cell's mean over the seeds: (21 + 21.4) / 2
+
+
+def test_seed_summary_of_runs_that_differ_is_refused():
+    with pytest.raises(InputValueError, match="no results"):
+        markdown_tables([])
+    a = grid_result(("ss", "controlgs"))
+    for other in (grid_result(("ss",)), GridResult((1.0, 4.0), POWER_SAVING, a.per_view),
+                  GridResult(DOWNSAMPLE, (0.0, 0.6), a.per_view),
+                  GridResult(DOWNSAMPLE, POWER_SAVING, {m: {"psnr": v["psnr"]} for m, v in a.per_view.items()})):
+        with pytest.raises(InputValueError, match="cannot be pooled"):
+            seed_summary([a, other])
+
+
+def test_differences_against_the_seed_spread_by_hand():
+    """A difference of seed means exceeds the spread when strictly larger than SPREAD_FACTOR pooled std,
+    sqrt((s_a^2 + s_b^2) / 2); ControlGS is compared with SS-backbone and each ablation with ControlGS."""
+    assert SPREAD_FACTOR == 2.0
+    runs = _seeds({"ss": (20.0, 20.0), "controlgs": (21.0, 21.2), "wo_lens": (21.0, 21.1), "state_blind": (20.0, 20.2)},
+                  grid=((1.0, 2.0, 4.0, 8.0), (0.0, 0.2, 0.4, 0.6, 0.8)))
     s = seed_summary(runs)
     assert s["controlgs"]["psnr"]["mean"] == pytest.approx(21.1)
     assert s["controlgs"]["psnr"]["std"] == pytest.approx(math.sqrt(0.02))  # sample std of (21.0, 21.2)
     assert s["ss"]["psnr"]["std"] == 0.0
     md = markdown_tables(runs)
-    assert "| ControlGS | **21.10 ± 0.14** |" in md and "| SS-backbone | 20.00 ± 0.00 |" in md
+    assert _numbers(_line(md, "pooled std over seeds"))[0] == SPREAD_FACTOR
     # ControlGS - SS = 1.1, pooled std sqrt((0.02 + 0) / 2) = 0.1: exceeds 2 x 0.1
-    assert "ControlGS minus SS-backbone: PSNR +1.1 (exceeds the spread, pooled std 0.1)" in md
+    assert _spread(md, "ControlGS", "SS-backbone") == {"PSNR": (1.1, True, 0.1)}
     # w/o Lens - ControlGS = -0.05, pooled sqrt((0.005 + 0.02) / 2) = 0.112: within
-    assert "w/o Lens minus ControlGS: PSNR -0.05 (within the spread, pooled std 0.11)" in md
+    assert _spread(md, "w/o Lens", "ControlGS") == {"PSNR": (-0.05, False, 0.11)}
     # state-blind - ControlGS = -1.0, pooled 0.141: exceeds
-    assert "w/o State-Aware minus ControlGS: PSNR -1 (exceeds the spread, pooled std 0.14)" in md
-    assert "over 2 seeds" in md
+    assert _spread(md, "w/o State-Aware", "ControlGS") == {"PSNR": (-1.0, True, 0.14)}
+    # two seeds of the 2 x 2 result: ControlGS 19.75 / 20.15, w/o Lens 18.75 / 18.55, FLIP equal in both
+    r0, r1 = (grid_result(("ss", "controlgs", "wo_lens"), info={"seed": k}) for k in (5, 6))
+    r1.per_view["controlgs"]["psnr"] += 0.4
+    r1.per_view["wo_lens"]["psnr"] -= 0.2
+    md = markdown_tables([r0, r1])
+    # ControlGS - SS = 0.95, pooled sqrt((0.2828^2 + 0) / 2) = 0.2: exceeds; FLIP -0.05 with no spread at all exceeds
+    assert _spread(md, "ControlGS", "SS-backbone") == {"PSNR": (0.95, True, 0.2), "FLIP": (-0.05, True, 0.0)}
+    # w/o Lens - ControlGS = 18.65 - 19.95 = -1.3, pooled sqrt((0.1414^2 + 0.2828^2) / 2) = 0.2236: exceeds
+    assert _spread(md, "w/o Lens", "ControlGS")["PSNR"] == (-1.3, True, 0.22)
+    # the threshold is strict: no difference and no spread is within it
+    assert _spread(markdown_tables(_seeds({"ss": (20.0, 20.0), "controlgs": (20.0, 20.0)}, grid=((1.0,), (0.0,)))),
+                   "ControlGS", "SS-backbone") == {"PSNR": (0.0, False, 0.0)}
+    # ControlGS - SS = 0.3 with pooled std 0.1414 (seeds 0.1 apart, x2 = 0.2828 < 0.3) exceeds; 0.15 does not;
+    # the sign does not matter
+    for gap, exceeds in ((0.3, True), (0.15, False), (-0.3, True)):
+        md = markdown_tables(_seeds({"ss": (0.0, 0.0), "controlgs": (gap - 0.1, gap + 0.1)}, grid=((1.0,), (0.0,))))
+        assert _spread(md, "ControlGS", "SS-backbone") == {"PSNR": (gap, exceeds, 0.1)}, gap
+
+
+def test_seed_independent_rows_show_the_value_alone():
+    """Rows that do not depend on the seed (the same per-view values in every seed: the backbone without and
+    with supersampling, the ideal render, any method that happens to be equal) show their value without ±
+    and are listed in a note; one differing metric keeps a row's spread; one seed has no spread and no note."""
+    runs = _seeds({"no_ss": (18.0, 18.0), "ss": (20.0, 20.0), IDEAL: (20.5, 20.5), "controlgs": (21.0, 21.2),
+                   "wo_lens": (20.9, 20.9)}, ssim=True)
+    assert seed_independent(runs) == {"no_ss", "ss", IDEAL, "wo_lens"}
+    md = markdown_tables(runs)
+    assert "| Backbone (no SS) | 18.00 | 0.1800 |" in md
+    assert "| SS-backbone | 20.00 | 0.2000 |" in md
+    assert "| Ideal render (GT through E_s) | 20.50 | 0.2050 |" in md
+    assert "| ControlGS | **21.10 ± 0.14** | **0.2110 ± 0.0014** |" in md
+    assert "| w/o Lens | 20.90 | 0.2090 |" in md
+    assert "± 0.00 " not in md and "± 0.0000 " not in md
+    note = _line(md, "without ±")
+    assert all(METHOD_LABELS[m] in note for m in ("no_ss", "ss", IDEAL, "wo_lens")) and "ControlGS" not in note
+    # one seed: no spread and no note
+    one = _seeds({"ss": (20.0,), "controlgs": (21.0,)}, ssim=True)
+    assert seed_independent(one) == set()
+    md = markdown_tables(one)
+    assert "±" not in md and "without ±" not in md
+    # a row differing in one metric keeps its spread
+    a, b = _seeds({"ss": (20.0, 20.0), "controlgs": (21.0, 21.0)}, ssim=True)
+    b.per_view["controlgs"]["ssim"] = b.per_view["controlgs"]["ssim"] + 0.01
+    assert seed_independent([a, b]) == {"ss"}
+    assert "| ControlGS | **21.00 ± 0.00** | **0.2150 ± 0.0071** |" in markdown_tables([a, b])
+
+
+# ------------------------------------------------------------------------------ results.json
+def test_write_report_keeps_every_seed_in_results_json(tmp_path):
+    runs = _seeds({"ss": (20.0, 20.0), "controlgs": (21.0, 21.2)})
     write_report(tmp_path, runs)
     data = json.loads((tmp_path / "results.json").read_text())
     assert data["seeds"] == [0, 1] and data["summary"]["controlgs"]["psnr"]["per_seed"] == [21.0, 21.2]
     assert read_results(data) == runs
-    assert "One seed: no spread was measured" in markdown_tables(runs[0])
 
 
+# ------------------------------------------------------------------------------ heatmaps
+def _heatmap(tmp_path: Path, r: GridResult, name: str = "h.png", **kw) -> torch.Tensor:
+    import matplotlib.image
+
+    return torch.from_numpy(matplotlib.image.imread(plot_heatmaps(r, tmp_path / name, **kw)))[..., :3].double()
+
+
+def test_heatmap_colour_scale_is_symmetric_at_the_largest_difference(tmp_path: Path):
+    """Each panel's colour scale runs from -L to +L (L the largest |difference|), so that zero is the neutral
+    middle even when every difference has one sign: with PSNR differences of +10 / +5 dB the +5 cells are
+    RdBu at 0.75 and the +10 cells at 1, with SSIM differences of -10 / -5 the -5 cells are RdBu at 0.25 and
+    the -10 cells at 0 (an automatic range would put the +5 / -5 cells at the ends of the scale)."""
+    import matplotlib
+
+    half = torch.tensor([[10.0, 5.0], [5.0, 10.0]], dtype=F64)[..., None]
+    base = torch.full((2, 2, 1), 20.0, dtype=F64)
+    img = _heatmap(tmp_path, GridResult((1.0, 2.0), (0.0, 0.2), {"ss": {"psnr": base, "ssim": base},
+                                                                  "controlgs": {"psnr": base + half, "ssim": base - half}}))
+
+    def count(at: float) -> int:
+        colour = torch.tensor(matplotlib.colormaps["RdBu"](at)[:3], dtype=F64)
+        return int(((img - colour).abs().amax(-1) < 0.02).sum())
+
+    # two cells of about 100 x 100 px each (less their labels); a colour bar holds a few hundred at most
+    counts = {at: count(at) for at in (0.0, 0.25, 0.75, 1.0)}
+    assert all(n > 6000 for n in counts.values()), counts
+
+
+@pytest.mark.parametrize("d, p", [(2, 3), (3, 2)])
+def test_every_heatmap_cell_carries_its_signed_value(tmp_path, monkeypatch, d, p):
+    """The heatmaps show method minus baseline; every cell, in grids wider than tall and taller than wide,
+    is labelled at its (column, row) with its difference, signed, in the metric's format (PSNR: two
+    decimals): +0.01 and +0.04 dB against a +/-3 dB range share a colour, only the label tells them apart."""
+    from matplotlib.figure import Figure
+
+    labels: list[tuple[float, float, str]] = []
+    save = Figure.savefig
+
+    def recording_savefig(fig, *args, **kwargs):
+        for ax in fig.axes:
+            labels.extend((t.get_position()[0], t.get_position()[1], t.get_text()) for t in ax.texts)
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", recording_savefig)
+    values = [0.5, -0.25, 0.0, 0.01, 0.04, -3.0][:d * p]
+    ss = torch.full((d, p, 1), 20.0, dtype=F64)
+    delta = torch.tensor(values, dtype=F64).view(d, p, 1)
+    r = GridResult(tuple(float(2 ** i) for i in range(d)), tuple(0.2 * j for j in range(p)),
+                   {"ss": {"psnr": ss}, "controlgs": {"psnr": ss + delta}})
+    plot_heatmaps(r, tmp_path / "h.png", baselines=("ss",))
+    assert sorted(labels) == sorted((k % p, k // p, f"{v:+.2f}") for k, v in enumerate(values))
+
+
+def test_heatmap_figure_grows_with_its_panels(tmp_path: Path):
+    """One panel per metric and one row per baseline, each the same size: two metrics and two rows
+    (SS-backbone and the ideal render) make a figure twice as wide and twice as tall as one of each."""
+    def size(methods: tuple[str, ...], metrics: tuple[str, ...], name: str) -> tuple[int, int]:
+        r = GridResult((1.0,), (0.0,), {m: {k: _cell(float(i)) for k in metrics} for i, m in enumerate(methods)})
+        head = plot_heatmaps(r, tmp_path / name).read_bytes()[:24]
+        return struct.unpack(">II", head[16:24])  # the PNG's IHDR: width, height
+
+    w1, h1 = size(("ss", "controlgs"), ("psnr",), "one.png")
+    w2, h2 = size(("ss", "controlgs", IDEAL), ("psnr", "flip"), "four.png")
+    assert (w2, h2) == (2 * w1, 2 * h1) and w1 > 0 and h1 > 0
+
+
+# ------------------------------------------------------------------------------ other figures
 def _runs(mask) -> list[tuple[int, int]]:
     """``[start, stop)`` of each run of True in a 1-D boolean array."""
     out, start = [], None
@@ -82,11 +372,9 @@ def _runs(mask) -> list[tuple[int, int]]:
 
 def test_comparison_figure_titles_fit_over_their_panels(tmp_path):
     """Fig. 1's panel titles (the rows :func:`evaluation.side_by_side` gives, two-line settings, metrics)
-    are set small enough to sit over their own image: in the written PNG, every dark title pixel lies within the columns of the
-    image panel below it, never over the gap or a neighbour's panel."""
+    are set small enough to sit over their own image: in the written PNG, every dark title pixel lies
+    within the columns of the image panel below it, never over the gap or a neighbour's panel."""
     from matplotlib.image import imread
-
-    from controlgs_adapter.report import plot_comparison
 
     img = torch.full((3, 32, 32), 0.5)
     rows = {m: [(img, img, 31.25, 0.912), (img, img, 28.5, 0.88)] for m in ("no_ss", "ss", "controlgs")}
@@ -115,10 +403,6 @@ def test_comparison_figure_titles_fit_over_their_panels(tmp_path):
 def test_condition_response_figure_has_a_column_for_the_longest_strip(tmp_path):
     """Strips of unequal length: the figure has as many columns as the longest (2 in by 120 dpi each), the
     shorter row's missing panels left blank."""
-
-    pytest.importorskip("matplotlib")
-    from controlgs_adapter.report import plot_condition_response
-
     img = torch.rand(3, 8, 8, generator=torch.Generator().manual_seed(0))
     strips = {"resample": [("d=1", img), ("d=2", img)], "display": [("p=0", img), ("p=0.3", img), ("p=0.6", img)]}
     path = plot_condition_response(strips, tmp_path / "response.png")
@@ -126,162 +410,10 @@ def test_condition_response_figure_has_a_column_for_the_longest_strip(tmp_path):
     assert (width, height) == (round(2.0 * 3 * 120), round(2.1 * 2 * 120))
 
 
-# ------------------------------------------------------------------------------ report
-def _cell(v: float) -> torch.Tensor:
-    return torch.full((1, 1, 1), v, dtype=torch.float64)
-
-
-def test_no_difference_and_no_spread_is_within_the_spread():
-    """A difference "exceeds the spread" only when strictly larger than SPREAD_FACTOR pooled std (the
-    report's own wording): two seeds where ControlGS equals the SS-backbone exactly, with no spread at all,
-    show a difference of 0 *within* the spread, not exceeding it."""
-    runs = [GridResult((1.0,), (0.0,), {"ss": {"psnr": _cell(20.0)}, "controlgs": {"psnr": _cell(20.0)}},
-                       info={"seed": k}) for k in range(2)]
-    md = markdown_tables(runs)
-    assert "- ControlGS minus SS-backbone: PSNR +0 (within the spread, pooled std 0)." in md
-    assert "larger than 2 x the pooled std" in md
-
-
-D, P = (1.0, 2.0), (0.0, 0.5)
-
-
-#: [D, P] grids of each method (the mean over the two views, which are the grid -/+ 1 dB, -/+ 0.01)
-PSNR = {"no_ss": [[20, 21], [17, 15]], "ss": [[20, 22], [18, 16]], "controlgs": [[21, 21], [19, 18]],
-        IDEAL: [[25, 20], [22, 15]], "wo_lens": [[18.75] * 2] * 2, "wo_display": [[19.25] * 2] * 2}
-
-
-FLIP = {"no_ss": [[0.3] * 2] * 2, "ss": [[0.2] * 2] * 2, "controlgs": [[0.1, 0.25], [0.15, 0.1]],
-        IDEAL: [[0.05] * 2] * 2, "wo_lens": [[0.18] * 2] * 2, "wo_display": [[0.22] * 2] * 2}
-
-
-def _views(grid: list[list[float]], spread: float) -> torch.Tensor:
-    g = torch.tensor(grid, dtype=torch.float64)
-    return torch.stack([g - spread, g + spread], dim=-1)  # [D, P, 2]
-
-
-def _result(methods=tuple(PSNR), offset: float = 0.0, info=None) -> GridResult:
-    per_view = {m: {"psnr": _views(PSNR[m], 1.0) + offset, "flip": _views(FLIP[m], 0.01)} for m in methods}
-    return GridResult(D, P, per_view, info=dict(info or {}))
-
-
-# ------------------------------------------------------------------------------ Markdown
-def test_main_table_bold_best_and_ideal_row():
-    md = markdown_tables(_result(), {"scene": "s", "views": [1, 2], "n": 3, "d": {"a": 1}})
-    lines = md.splitlines()
-    assert "Run: scene = s, n = 3" in lines  # lists and dicts are left out
-    assert ("End-to-end quality after the XR pipeline (optics `fast`), averaged over the 2 test views and the 4 "
-            "run-time settings (paper Tbl. 1)") in md
-    assert "over 1 seeds" not in md and "±" not in md
-    i = lines.index("| Method | PSNR↑ | FLIP↓ |")
-    assert lines[i + 1:i + 6] == ["|---|---:|---:|",
-                                  "| Backbone (no SS) | 18.25 | 0.3000 |",
-                                  "| SS-backbone | 19.00 | 0.2000 |",
-                                  "| ControlGS | **19.75** | **0.1500** |",  # best PSNR (highest), best FLIP (lowest)
-                                  "| Ideal render (GT through E_s) | 20.50 | 0.0500 |"]  # above all, never bold
-    # the ablation table: ControlGS, the ablations in ABLATIONS order, SS-backbone
-    j = lines.index("Ablations (paper Tbl. 4):")
-    assert lines[j + 2:j + 8] == ["| Method | PSNR↑ | FLIP↓ |", "|---|---:|---:|",
-                                  "| ControlGS | **19.75** | **0.1500** |", "| w/o Lens | 18.75 | 0.1800 |",
-                                  "| w/o Display Mapping | 19.25 | 0.2200 |", "| SS-backbone | 19.00 | 0.2000 |"]
-    assert f"FLIP is NVIDIA's LDR-FLIP (flip-evaluator) at {67.02:.2f} pixels per degree" in md
-    assert LPIPS_NOT_COMPUTED in md
-
-
-def test_findings_by_hand():
-    md = markdown_tables(_result())
-    # ControlGS - SS = [[1, -1], [1, 2]]: 3 wins, mean 0.75, worst -1
-    assert "- PSNR: ControlGS better than SS-backbone in 3/4 settings (mean difference +0.75, worst cell -1)." in md
-    # SS - no-SS = [[0, 1], [1, 1]]: 3 wins, 1 tie at d = 1
-    assert ("- PSNR: SS-backbone better than no-SS in 3/4 settings, equal in 1 (at d = 1 both render at S) "
-            "(mean difference +0.75).") in md
-    # ControlGS - ideal = [[-4, 1], [-3, 3]]: above in 2, mean -0.75
-    assert ("- PSNR: the ideal render (ground truth through the pipeline) scores 20.5, the pipeline's own cost to a "
-            "perfect render; ControlGS is above that bound in 2/4 settings (pre-compensating beyond it; mean "
-            "ControlGS minus ideal -0.75).") in md
-    # FLIP, lower is better: SS - ControlGS = [[0.1, -0.05], [0.05, 0.1]]; printed as ControlGS - SS
-    assert "- FLIP: ControlGS better than SS-backbone in 3/4 settings (mean difference -0.05, worst cell +0.05)." in md
-    assert "- FLIP: SS-backbone better than no-SS in 4/4 settings (mean difference -0.1)." in md  # no tie clause
-    assert "ControlGS is above that bound in 0/4 settings (pre-compensating beyond it; mean ControlGS minus ideal +0.1)" in md
-    # ablations, largest PSNR loss first: w/o Lens 19.75 - 18.75 = 1, w/o Display 19.75 - 19.25 = 0.5
-    assert ("- PSNR lost by each ablation (ControlGS minus ablation, larger = that part matters more): "
-            "w/o Lens +1.000 dB, w/o Display Mapping +0.500 dB.") in md
-    assert "- One seed: no spread was measured, so no difference is shown to exceed it (`--seeds K`)." in md
-    # without ss or controlgs there is nothing to compare
-    only = markdown_tables(_result(("no_ss", "ss")))
-    assert "- (needs ss and controlgs)" in only and "Differences against the seed spread" not in only
-    assert "Ablations" not in only and "minus" not in only
-    # no no_ss and no ideal: only the ControlGS-vs-SS lines
-    two = markdown_tables(_result(("ss", "controlgs")))  # exactly the two methods the findings need
-    assert "- PSNR: ControlGS better than SS-backbone in 3/4 settings" in two and "(needs ss and controlgs)" not in two
-    assert "better than no-SS" not in two and "ideal render (ground truth" not in two
-    assert "Ideal render" not in two
-
-
-def test_per_setting_grids_by_hand():
-    lines = markdown_tables(_result()).splitlines()
-    i = lines.index("PSNR of SS-backbone:")
-    assert lines[i + 2:i + 6] == ["| d \\ ρ | 0% | 50% |", "|---|---:|---:|", "| 1× | 20.00 | 22.00 |",
-                                  "| 2× | 18.00 | 16.00 |"]
-    i = lines.index("PSNR of ControlGS minus SS-backbone:")
-    assert lines[i + 4:i + 6] == ["| 1× | +1.00 | -1.00 |", "| 2× | +1.00 | +2.00 |"]
-    i = lines.index("PSNR of ControlGS minus Ideal render (GT through E_s):")
-    assert lines[i + 4:i + 6] == ["| 1× | -4.00 | +1.00 |", "| 2× | -3.00 | +3.00 |"]
-    i = lines.index("FLIP of ControlGS minus SS-backbone:")
-    assert lines[i + 4:i + 6] == ["| 1× | -0.1000 | +0.0500 |", "| 2× | -0.0500 | -0.1000 |"]
-    i = lines.index("FLIP of w/o Lens:")
-    assert lines[i + 4] == "| 1× | 0.1800 | 0.1800 |"
-    assert "## Per setting" in lines and "PSNR of Backbone (no SS):" in lines
-
-
-def test_metric_formats_and_arrows():
-    per_view = {m: {k: torch.full((1, 1, 1), v, dtype=torch.float64) for k, v in
-                    (("ssim", 0.123456), ("lpips", 0.5), ("cvvdp", 9.87654), ("other", 1.23456))} for m in ("ss", "controlgs")}
-    per_view["ss"]["lpips"] = torch.full((1, 1, 1), 0.25, dtype=torch.float64)
-    r = GridResult((1.0,), (0.0,), per_view)
-    md = markdown_tables(r, {"lpips_weights": "a.pth, b.pth"})
-    assert "| Method | SSIM↑ | LPIPS↓ | CVVDP↑ | OTHER↑ |" in md
-    # equal values are both best; LPIPS: the lower (SS 0.25) is bold
-    assert "| SS-backbone | **0.1235** | **0.2500** | **9.877** | **1.2346** |" in md
-    assert "| ControlGS | **0.1235** | 0.5000 | **9.877** | **1.2346** |" in md
-    assert "LPIPS (AlexNet) from a.pth, b.pth." in md and LPIPS_NOT_COMPUTED not in md
-    assert "FLIP is" not in md
-    # weights named but no LPIPS column: not computed
-    no = GridResult((1.0,), (0.0,), {m: {"psnr": torch.zeros(1, 1, 1, dtype=torch.float64)} for m in ("ss",)})
-    assert LPIPS_NOT_COMPUTED in markdown_tables(no, {"lpips_weights": "a.pth"})
-    assert METHOD_LABELS["state_blind"] == "w/o State-Aware" and METHOD_LABELS["wo_resample"] == "w/o Resampling"
-
-
-# ------------------------------------------------------------------------------ seeds
-def test_seed_pooling_std_and_spread_by_hand():
-    r0 = _result(("ss", "controlgs", "wo_lens"), info={"seed": 5})
-    r1 = _result(("ss", "controlgs", "wo_lens"), info={"seed": 6})
-    r1.per_view["controlgs"]["psnr"] += 0.4  # ControlGS 19.75 and 20.15 over the seeds; the others equal
-    r1.per_view["wo_lens"]["psnr"] -= 0.2  # 18.75 and 18.55
-    s = seed_summary([r0, r1])
-    assert s["controlgs"]["psnr"]["per_seed"] == [19.75, 20.15]
-    assert s["controlgs"]["psnr"]["mean"] == pytest.approx(19.95, abs=1e-12)
-    assert s["controlgs"]["psnr"]["std"] == pytest.approx(0.4 / math.sqrt(2), abs=1e-12)  # ddof 1: |a - b| / sqrt 2
-    assert s["ss"]["psnr"]["std"] == 0.0 and seed_summary(r0)["ss"]["psnr"] == {"mean": 19.0, "std": 0.0, "per_seed": [19.0]}
-    md = markdown_tables([r0, r1])
-    assert " and over 2 seeds (mean ± sample std of the seeds' means)" in md
-    assert "| ControlGS | **19.95 ± 0.28** | **0.1500 ± 0.0000** |" in md
-    assert "## Per setting (means over 2 seeds)" in md
-    lines = md.splitlines()
-    i = lines.index("PSNR of ControlGS:")
-    assert lines[i + 4] == "| 1× | 21.20 | 21.20 |"  # the cell's mean over the seeds: (21 + 21.4) / 2
-    assert SPREAD_FACTOR == 2.0
-    # FLIP: -0.05 with no spread at all exceeds it
-    # ControlGS - SS = 0.95; pooled std sqrt((0.2828^2 + 0) / 2) = 0.2: 0.95 > 2 x 0.2 exceeds
-    assert "- ControlGS minus SS-backbone: PSNR +0.95 (exceeds the spread, pooled std 0.2); FLIP -0.05 (exceeds the spread, pooled std 0)." in md
-    # w/o Lens - ControlGS = 18.65 - 19.95 = -1.3, pooled sqrt((0.1414^2 + 0.2828^2) / 2) = 0.2236: exceeds
-    assert "- w/o Lens minus ControlGS: PSNR -1.3 (exceeds the spread, pooled std 0.22)" in md
-    assert "larger than 2 x the pooled std over seeds" in md
-
-
 def test_plots_of_one_row_and_ragged_strips(tmp_path: Path):
-    r = _result(("ss", "controlgs"))  # one heatmap row (no ideal), two metric panels
+    r = grid_result(("ss", "controlgs"))  # one heatmap row (no ideal), two metric panels
     assert plot_heatmaps(r, tmp_path / "h.png").stat().st_size > 0
-    zero = _result(("ss", "controlgs"))
+    zero = grid_result(("ss", "controlgs"))
     zero.per_view["controlgs"] = zero.per_view["ss"]  # an all-zero difference still plots
     assert plot_heatmaps([zero, zero], tmp_path / "z.png", baselines=("ss",)).is_file()
     img = torch.rand(3, 6, 6)
