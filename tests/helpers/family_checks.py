@@ -68,12 +68,12 @@ def check_wrap_identity_and_rows(model, inputs: dict[str, torch.Tensor], ids: to
         assert torch.equal(y, before[p])
 
 
-def make_camera(width: int = 64, height: int = 48):
-    """A camera at (0, 0, -5) looking along +z at the origin (OpenCV axes)."""
+def make_camera(width: int = 64, height: int = 48, distance: float = 5.0):
+    """A camera at (0, 0, -distance) looking along +z at the origin (OpenCV axes), focal length 40 px."""
     from controlgs_adapter import Camera
 
     w2c = torch.eye(4)
-    w2c[2, 3] = 5.0
+    w2c[2, 3] = distance
     k = torch.tensor([[40.0, 0.0, width / 2], [0.0, 40.0, height / 2], [0.0, 0.0, 1.0]])
     return Camera(w2c, k, width, height)
 

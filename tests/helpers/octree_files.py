@@ -68,3 +68,62 @@ def _write_dir(root, arr, decoders, *, mode="split", iteration=30000):
         torch.save({"opacity_mlp": decoders["mlp_opacity"].state_dict(), "cov_mlp": decoders["mlp_cov"].state_dict(),
                     "color_mlp": decoders["mlp_color"].state_dict()}, it / "checkpoints.pth")
     return root
+
+
+ANYGS_YAML = """# Model Parameters
+model_params: {
+    model_config: {
+        name: "GaussianLoDModel",
+        kwargs: {
+            feat_dim: %d,
+            view_dim: 3,
+            appearance_dim: 0,
+            n_offsets: %d,
+            fork: 2,
+            visible_threshold: 0.9,
+            dist2level: 'round',
+            progressive: True,
+            use_feat_bank: False,
+            levels: -1,
+        }
+    },
+    base_model: "%s",
+    resolution_scales: [1.0],
+}
+optim_params: {
+    iterations: 40_000,
+}
+"""
+
+
+def anygs_decoders(seed: int) -> dict[str, nn.Sequential]:
+    """Octree-AnyGS's decoders on its Scaffold-GS base: every one takes [feat, view] = F + 3."""
+    torch.manual_seed(seed)
+    return {"mlp_opacity": nn.Sequential(nn.Linear(F + 3, F), nn.ReLU(), nn.Linear(F, K), nn.Tanh()),
+            "mlp_cov": nn.Sequential(nn.Linear(F + 3, F), nn.ReLU(), nn.Linear(F, 7 * K)),
+            "mlp_color": nn.Sequential(nn.Linear(F + 3, F), nn.ReLU(), nn.Linear(F, 3 * K), nn.Sigmoid())}
+
+
+def anygs_fields(arr) -> dict[str, np.ndarray]:
+    """The PLY fields of Octree-AnyGS's anchors: no ``info`` or ``opacity`` column."""
+    fields = {"x": arr["anchor"][:, 0], "y": arr["anchor"][:, 1], "z": arr["anchor"][:, 2],
+              "level": arr["level"].astype(np.float32), "extra_level": arr["extra"]}
+    flat = arr["offset"].transpose(0, 2, 1).reshape(A, 3 * K)
+    fields.update({f"f_offset_{i}": flat[:, i] for i in range(3 * K)})
+    fields.update({f"f_anchor_feat_{i}": arr["feat"][:, i] for i in range(F)})
+    fields.update({f"scale_{i}": arr["scale"][:, i] for i in range(6)})
+    fields.update({f"rot_{i}": np.full(A, 1.0 if i == 0 else 0.0, np.float32) for i in range(4)})
+    return fields
+
+
+def write_anygs_dir(root, arr, decoders, *, base_model="scaffoldgs"):
+    """Octree-AnyGS's layout (Scaffold-GS base): config.yaml, a PLY whose LOD metadata (standard_dist,
+    levels) sits in obj_info lines, TorchScript decoders. Returns the iteration folder."""
+    it = root / "point_cloud" / "iteration_40000"
+    it.mkdir(parents=True)
+    (root / "config.yaml").write_text(ANYGS_YAML % (F, K, base_model))
+    write_ply(it / "point_cloud.ply", anygs_fields(arr), comments=[f"standard_dist {STD_DIST}", "levels 3"],
+              comment_keyword="obj_info")
+    for attr, fname in (("mlp_opacity", "opacity_mlp.pt"), ("mlp_cov", "cov_mlp.pt"), ("mlp_color", "color_mlp.pt")):
+        torch.jit.trace(decoders[attr], torch.randn(5, F + 3)).save(str(it / fname))
+    return it
