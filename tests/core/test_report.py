@@ -102,7 +102,7 @@ def test_metric_formats_and_arrows():
     # equal values are both best; LPIPS: the lower (SS 0.25) is bold
     assert "| SS-backbone | **0.1235** | **0.2500** | **9.877** | **1.2346** |" in md
     assert "| ControlGS | **0.1235** | 0.5000 | **9.877** | **1.2346** |" in md
-    assert "LPIPS" in _line(md, "a.pth, b.pth") and LPIPS_NOT_COMPUTED not in md  # the weights it was computed with
+    assert "a.pth, b.pth" in _line(md, "LPIPS", "AlexNet") and LPIPS_NOT_COMPUTED not in md  # the weights it was computed with
     assert "LDR-FLIP" not in md
     # weights named but no LPIPS column: not computed
     no = GridResult((1.0,), (0.0,), {m: {"psnr": torch.zeros(1, 1, 1, dtype=F64)} for m in ("ss",)})
