@@ -37,18 +37,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 @contextlib.contextmanager
 def warnings_as_lines(command: str) -> Iterator[None]:
-    """Inside the block every warning shown is one line ``controlgs <command>: warning: <message>`` on
-    stderr (no file, line or source line: they would point into the library, not at the user's input),
-    written around any progress bar; the previous ``warnings.showwarning`` and filters come back after."""
+    """Inside the block every warning Python prints is one line ``controlgs <command>: warning:
+    <message>`` on stderr (no file, line or source line: they would point into the library, not at the
+    user's input), written around any progress bar. It replaces ``warnings.formatwarning`` (put back
+    after), so a caller recording warnings (``warnings.catch_warnings(record=True)``) still gets them."""
 
-    def show(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+    def line(message: Any, category: Any, filename: str, lineno: int, line: Any = None) -> str:
         from tqdm import tqdm
 
         tqdm.write(f"controlgs {command}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+        return ""  # written above, clear of the progress bars
 
-    with warnings.catch_warnings():
-        warnings.showwarning = show
+    before = warnings.formatwarning
+    warnings.formatwarning = line
+    try:
         yield
+    finally:
+        warnings.formatwarning = before
 
 
 def main(argv: list[str] | None = None) -> int:
