@@ -101,7 +101,7 @@ def main() -> int:
         # coverage.py files a statement under its first line: a mutated continuation line is looked up there
         tests.update(c for n in lines for c in by_line.get(n) or by_line.get(starts.get(n, n), ()) if c)
     if not tests:
-        how = "a line of the mutated file (the mutated lines run at import)"
+        how = "a line of the mutated file (none executed the mutated lines: they run at import, or never)"
         for rel in changes:
             for contexts in data.contexts_by_lineno(str((TREE / rel).resolve())).values():
                 tests.update(c for c in contexts if c)
