@@ -124,3 +124,16 @@ def poison_first_weight(weights: Path) -> str:
                 torch.save(blob, weights)
                 return f"{key}.{sub}" if sub else key
     raise AssertionError(f"{weights}: no floating-point tensor")
+
+
+def rewrite_ply(ply: Path, **changes: object) -> None:
+    """Rewrite a PLY with fields replaced (a value: set to it, as float32) or dropped (None)."""
+    from controlgs_adapter.formats.backbone import read_ply
+
+    fields, _ = read_ply(ply)
+    for name, value in changes.items():
+        if value is None:
+            fields.pop(name)
+        else:
+            fields[name] = np.asarray(value, np.float32)
+    write_ply(ply, fields)
