@@ -1,4 +1,5 @@
-"""Tests of ``controlgs_adapter.cli``."""
+"""Tests of ``controlgs_adapter.cli``: every option of every command (name, default, type, choices, help text),
+and a refused command in a fresh process (one line, no traceback)."""
 
 from __future__ import annotations
 
@@ -184,7 +185,8 @@ OPTIONS: list[tuple[str, str, str, str, str, list[str] | None, Any, Any, Any, bo
 
 
 #: the value a flag stores
-CONSTS: dict[tuple[str, str], Any] = {("optics bench", "--doc"): Path("docs"), ("bench", "--doc"): Path("docs/benchmarks.md")}
+CONSTS: dict[tuple[str, str], Any] = {("optics bench", "--doc"): Path("docs/benchmarks"),
+                                      ("bench", "--doc"): Path("docs/benchmarks/accuracy-time.md")}
 
 
 #: options a command needs to parse at all
@@ -229,8 +231,9 @@ def test_option(command, option, dest, action, typ, choices, default, metavar, n
     help_text = _help(command)
     if required:
         msg = _refused(capsys, command, fill=False)
-        needed = ", ".join(o for c, o, *_, r in OPTIONS if c == command and r)
-        assert option in needed and msg == f"controlgs {command}: error: the following arguments are required: {needed}", msg
+        needed = [o for c, o, *_, r in OPTIONS if c == command and r]
+        assert msg.startswith(f"controlgs {command}: error: ") and "required" in msg, msg
+        assert all(o in msg for o in needed), msg  # every required option is named
     else:  # the default reaches the namespace as written (value and type)
         got = getattr(_parse(command), dest)
         assert got == default and type(got) is type(default), (got, default)
@@ -241,7 +244,7 @@ def test_option(command, option, dest, action, typ, choices, default, metavar, n
         n = 2 if nargs == 2 else 1
         if typ in ("int", "float"):
             msg = _refused(capsys, command, option, *["x1"] * n)
-            assert msg == f"controlgs {command}: error: argument {option}: invalid {typ} value: 'x1'", msg
+            assert msg.startswith(f"controlgs {command}: error: argument {option}: ") and typ in msg and "'x1'" in msg, msg
             value = getattr(_parse(command, option, *["7"] * n), dest)
             want: Any = [int("7") if typ == "int" else 7.0] * n
             assert value == (want if isinstance(nargs, (int, str)) else want[0])
@@ -256,11 +259,11 @@ def test_option(command, option, dest, action, typ, choices, default, metavar, n
             assert len(getattr(_parse(command, option, *vals), dest)) == len(vals)
         if nargs == 2:
             msg = _refused(capsys, command, option, "7")
-            assert msg == f"controlgs {command}: error: argument {option}: expected 2 arguments", msg
+            assert msg.startswith(f"controlgs {command}: error: argument {option}: ") and "2" in msg, msg
     if choices is not None:
         msg = _refused(capsys, command, option, "bogus")
-        assert msg.startswith(f"controlgs {command}: error: argument {option}: invalid choice: 'bogus' (choose from "), msg
-        assert all(c in msg.split("choose from", 1)[1] for c in choices), msg
+        assert msg.startswith(f"controlgs {command}: error: argument {option}: ") and "'bogus'" in msg, msg
+        assert all(c in msg.split("'bogus'", 1)[1] for c in choices), msg  # the choices are listed
         for c in choices:
             value = getattr(_parse(command, option, c), dest)
             assert value == ([c] if action == "append" or nargs == "+" else c)
@@ -329,3 +332,4 @@ def test_every_command_action_and_option_has_a_help_text():
 
     assert walk(cli.build_parser(), []) > 150  # every command, action and option was visited
     assert undocumented == []
+
