@@ -1,59 +1,42 @@
-"""Up-front dataset checks: the warning about cameras that see little of the scene points at the caller."""
+"""Tests of ``controlgs_adapter.datasets.sanity.check_scene``: the fraction of points each camera sees, the
+warning about a few blind cameras and the refusal of mostly blind ones (flipped axes), image sizes against
+their cameras, required splits, and the points it projects."""
 
 from __future__ import annotations
 
-import pytest
-import torch
-
-from controlgs_adapter.datasets import Frame, SceneData, check_scene
-from controlgs_adapter.state import Camera
-
-
-def _camera(turn: bool) -> Camera:
-    """4 units from the origin, facing it; ``turn``: facing away (the origin at depth -4)."""
-    w2c = torch.eye(4)
-    if turn:  # half a turn about y
-        w2c[0, 0] = w2c[2, 2] = -1.0
-    w2c[2, 3] = -4.0 if turn else 4.0
-    return Camera(w2c, torch.tensor([[10.0, 0, 4], [0, 10.0, 3], [0, 0, 1]]), 8, 6)
-
-
-def test_the_blind_camera_warning_points_at_the_callers_line():
-    frames = [Frame(f"v{i}", _camera(turn=(i == 2)), torch.zeros(3, 6, 8)) for i in range(3)]
-    data = SceneData({"train": frames, "test": []}, source="three-views")
-    with pytest.warns(RuntimeWarning, match=r"three-views: 1 of 3 cameras see almost none .*: v2$") as caught:
-        report = check_scene(data, torch.zeros(5, 3))
-    assert report["blind"] == ["v2"]
-    assert caught[0].filename == __file__
-
+import math
+import warnings
 
 import numpy as np
-from helpers.datasets_synth import marker_image, ring_poses, write_json, write_png
+import pytest
+import torch
+from helpers.dataset_views import BACK, FRONT, looking, pinhole
+from helpers.datasets_synth import GL_TO_CV, marker_image, project_gl, ring_poses, write_blender_ring, write_png
 
-from controlgs_adapter.datasets import read_blender
+from controlgs_adapter.datasets import Frame, SceneData, check_scene, read_blender, sanity
 from controlgs_adapter.errors import FileFormatError, InputValueError
+from controlgs_adapter.state import Camera
+
+#: the object the cameras of :func:`write_blender_ring` look at
+POINTS = np.random.default_rng(0).uniform(-0.8, 0.8, size=(300, 3))
 
 
-def _cam(w: int, h: int, fx: float = 10.0, fy: float = 12.0, cx: float | None = None, cy: float | None = None) -> Camera:
-    k = torch.tensor([[fx, 0.0, w / 2.0 if cx is None else cx], [0.0, fy, h / 2.0 if cy is None else cy], [0.0, 0.0, 1.0]])
-    return Camera(torch.eye(4), k, w, h)
+def _scene(poses: list[torch.Tensor], *, source: str = "mem") -> SceneData:
+    """One black 8 x 6 frame (f = 10, centred) per pose, named v00, v01, ..."""
+    frames = [Frame(f"v{i:02d}", pinhole(8, 6, w2c=p), torch.zeros(3, 6, 8)) for i, p in enumerate(poses)]
+    return SceneData({"train": frames, "test": []}, source=source, format="builtin")
 
 
-def _looking(n: int, flipped: int = 0) -> list[Frame]:
-    """``n`` cameras at the origin looking down +z (8 x 6, f = 4, centre (4, 3)); the last ``flipped`` look down -z."""
-    out = []
-    for i in range(n):
-        cam = _cam(8, 6, fx=4.0, fy=4.0)
-        if i >= n - flipped:
-            cam.world_to_camera[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
-        out.append(Frame(f"v{i}", cam, torch.zeros(3, 6, 8)))
-    return out
+def _sizes(sizes: list[tuple[int, int]]) -> list[Frame]:
+    """Frames v0, v1, ... of the given image sizes, each with an 8 x 6 camera."""
+    return [Frame(f"v{i}", pinhole(8, 6, 4.0), torch.zeros(3, h, w)) for i, (w, h) in enumerate(sizes)]
 
 
-def test_check_scene_fractions_and_image_borders_by_hand():
-    from controlgs_adapter.datasets.sanity import check_scene
+# ----------------------------------------------------------------------------- fractions in front
 
-    # u = 4 x / z + 4, v = 4 y / z + 3: inside iff 0 <= u < 8 and 0 <= v < 6
+def test_fractions_count_points_in_front_and_inside_the_image():
+    """u = 4 x / z + 4, v = 4 y / z + 3: inside iff 0 <= u < 8 and 0 <= v < 6; depth 0 is behind. A camera
+    exactly at the threshold is not blind."""
     pts = torch.tensor([[0.0, 0.0, 1.0],      # centre: inside
                         [-1.0, -0.75, 1.0],   # u = 0, v = 0: inside (left/top edges included)
                         [1.0, 0.0, 1.0],      # u = 8: outside (right edge excluded)
@@ -62,186 +45,182 @@ def test_check_scene_fractions_and_image_borders_by_hand():
                         [0.0, 0.0, 0.0],      # depth 0: not in front
                         [0.99, 0.74, 1.0],    # inside
                         [10.0, 0.0, 1.0]])    # outside
-    data = SceneData({"train": _looking(2), "test": []}, source="src", format="colmap")
+    data = SceneData({"train": looking(2), "test": []}, source="src", format="colmap")
     rep = check_scene(data, pts, required=("train",))
     assert rep["in_front"] == {"v0": 3 / 8, "v1": 3 / 8} and rep["blind"] == [] and rep["points"] == 8
     assert rep["splits"] == {"train": 2, "test": 0} and rep["images_checked"] == 2
     assert (rep["source"], rep["format"]) == ("src", "colmap")
-    # a camera exactly at the threshold is not blind
     assert check_scene(data, pts, min_in_front=3 / 8)["blind"] == []
-    with pytest.warns(RuntimeWarning, match=r"src: 1 of 2 cameras see almost none of the 8 points \(< 38% in front"):
-        assert check_scene(SceneData({"train": _looking(2, flipped=1)}, source="src"), pts, min_in_front=0.375)["blind"] \
+    with pytest.warns(RuntimeWarning, match=r"src: 1 of 2 cameras .* 8 points \(< 38% "):  # v1 sees 1 of 8
+        assert check_scene(SceneData({"train": looking(2, flipped=1)}, source="src"), pts, min_in_front=0.375)["blind"] \
             == ["v1"]
+    # left of or above the image (f = 10, c = (4, 3)): (-1, 0, 1) -> u = -6, (0, -1, 1) -> v = -7
+    left_above = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 1.0], [0.0, -1.0, 1.0]])
+    assert check_scene(_scene([FRONT]), left_above, min_in_front=0.0)["in_front"] == {"v00": pytest.approx(1 / 3)}
 
 
-def test_check_scene_points_choice_stride_and_refusals():
-    from controlgs_adapter.datasets import sanity
+def test_an_80x40_image_counts_points_by_its_width():
+    """Every point projects to u in [44, 76], v in [4, 36]: inside the image (u < W) though u > H."""
+    cam = Camera(torch.eye(4), torch.tensor([[40.0, 0.0, 40.0], [0.0, 40.0, 20.0], [0.0, 0.0, 1.0]]), 80, 40)
+    uv = torch.rand(50, 2, generator=torch.Generator().manual_seed(0)) * 32.0 + torch.tensor([44.0, 4.0])
+    pts = torch.cat([(uv - torch.tensor([40.0, 20.0])) / 40.0 * 3.0, torch.full((50, 1), 3.0)], dim=1)  # depth 3
+    data = SceneData({"train": [Frame("a", cam, torch.zeros(3, 40, 80))]}, points=pts, source="synthetic", format="builtin")
+    report = check_scene(data)
+    assert report["in_front"] == {"a": 1.0} and report["blind"] == []
 
-    data = SceneData({"train": _looking(1)}, points=torch.tensor([[0.0, 0.0, -1.0]]), source="s")
+
+def test_fractions_match_an_independent_projection_of_a_blender_scene(tmp_path):
+    poses = ring_poses(6)
+    data = read_blender(write_blender_ring(tmp_path, poses))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        report = check_scene(data, torch.from_numpy(POINTS).float(), required=("train", "test"))
+    f = 0.5 * 32 / math.tan(1.0 / 2)
+    frames = data.splits["train"] + data.splits["test"]
+    assert report["points"] == len(POINTS) and report["blind"] == []
+    assert report["splits"] == {"train": 6, "test": 2} and report["images_checked"] == 8
+    for frame, c2w in zip(frames, list(poses) + list(poses[-2:])):
+        uv, depth = project_gl(c2w, f, f, 16, 12, POINTS)
+        inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 32) & (uv[:, 1] >= 0) & (uv[:, 1] < 24)
+        assert report["in_front"][frame.name] == pytest.approx(inside.mean(), abs=1e-9)
+        assert report["in_front"][frame.name] > 0.5
+
+
+def test_default_min_in_front_is_5_percent_and_strict():
+    """100 points: 5 straight ahead of v0 (5 %: not blind), 4 straight ahead of v1 (4 %: blind), 91 far to the
+    side (outside both images or behind)."""
+    pts = torch.cat([torch.tensor([[0.0, 0, 1]]).repeat(5, 1), torch.tensor([[0.0, 0, -1]]).repeat(4, 1),
+                     torch.tensor([[10.0, 0, 1]]).repeat(91, 1)])
+    data = SceneData({"train": looking(2, flipped=1)}, source="src")
+    with pytest.warns(RuntimeWarning, match=r"^src: 1 of 2 cameras .* 100 points \(< 5% .*: v1$"):
+        rep = check_scene(data, pts)
+    assert rep["in_front"] == pytest.approx({"v0": 0.05, "v1": 0.04}, abs=1e-6) and rep["blind"] == ["v1"]
+    assert check_scene(data, pts, min_in_front=0.035)["blind"] == []
+    with pytest.raises(InputValueError, match=r"^src: 2 of 2 cameras see none"):
+        check_scene(data, pts, min_in_front=0.051)
+
+
+# ----------------------------------------------------------------------------- blind cameras
+
+def test_a_few_blind_cameras_are_named_in_a_warning_pointing_at_the_caller(tmp_path):
+    """At most half of the cameras blind: a RuntimeWarning naming up to five of them (", ..." after that),
+    raised at the caller's line."""
+    frames = [Frame(f"v{i}", pinhole(8, 6, w2c=BACK if i == 2 else FRONT), torch.zeros(3, 6, 8)) for i in range(3)]
+    data = SceneData({"train": frames, "test": []}, source="three-views")
+    pts = torch.tensor([[0.0, 0.0, 4.0]] * 5)
+    with pytest.warns(RuntimeWarning, match=r"three-views: 1 of 3 cameras see almost none .*: v2$") as caught:
+        report = check_scene(data, pts)
+    assert report["blind"] == ["v2"] and caught[0].filename == __file__
+    pts = torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.0, 2.0]])
+    for n_seeing, n_blind, tail in ((3, 3, ": v03, v04, v05"), (6, 5, ": v06, v07, v08, v09, v10"),
+                                    (7, 6, ": v07, v08, v09, v10, v11, ...")):
+        with pytest.warns(RuntimeWarning, match=rf" {n_blind} of {n_seeing + n_blind} cameras") as rec:
+            check_scene(_scene([FRONT] * n_seeing + [BACK] * n_blind), pts)
+        assert str(rec[0].message).endswith(tail)
+    poses = ring_poses(6)
+    poses[4] = poses[4] @ GL_TO_CV
+    with pytest.warns(RuntimeWarning, match=r"1 of 6 cameras see almost none.*train/r_4\.png"):
+        report = check_scene(read_blender(write_blender_ring(tmp_path, poses, test=False)), torch.from_numpy(POINTS).float())
+    assert report["blind"] == ["train/r_4.png"]
+
+
+@pytest.mark.parametrize("fmt, hint", [("blender", "OpenGL axes"), ("instant_ngp", "OpenGL axes"),
+                                       ("colmap", "not camera to world"), ("", "OpenCV axes")])
+def test_mostly_blind_cameras_are_refused_with_the_formats_convention(fmt, hint):
+    pts = torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.0, 2.0]])
+    with pytest.raises(InputValueError) as e:
+        check_scene(SceneData({"train": looking(3, flipped=2)}, source="s", format=fmt), pts)
+    msg = str(e.value)
+    assert msg.startswith("s: 2 of 3 cameras see none of the scene") and hint in msg
+    assert "5% of 2 points" in msg and "on average 67% lie behind" in msg
+
+
+def test_points_in_the_camera_plane_are_behind_it():
+    with pytest.raises(InputValueError, match=r"on average 100% lie behind"):
+        check_scene(_scene([FRONT, FRONT]), torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+
+
+def test_opencv_poses_written_as_opengl_are_caught(tmp_path):
+    """OpenCV camera-to-world poses written into a Blender file as if they were OpenGL: every camera then
+    looks away from the object."""
+    data = read_blender(write_blender_ring(tmp_path, [c2w @ GL_TO_CV for c2w in ring_poses(6)]))
+    with pytest.raises(InputValueError, match=r"8 of 8 cameras see none .*flipped.*blender.*OpenGL axes"):
+        check_scene(data, torch.from_numpy(POINTS).float())
+
+
+# ----------------------------------------------------------------------------- which points
+
+def test_which_points_are_projected():
+    """The given points win over the scene's SfM points; no points (None or ``[0, 3]``) skips the check;
+    at most 20,000 points are projected, an even stride through the given ones (20,001 take every 2nd)."""
+    data = SceneData({"train": looking(1)}, points=torch.tensor([[0.0, 0.0, -1.0]]), source="s")
     with pytest.raises(InputValueError, match="1 of 1 cameras"):
-        sanity.check_scene(data)  # the SfM points, behind the camera
-    assert sanity.check_scene(data, torch.tensor([[0.0, 0.0, 1.0]]))["in_front"] == {"v0": 1.0}  # given points win
-    assert sanity.check_scene(data, torch.zeros(0, 3))["points"] == 0
-    assert sanity.check_scene(SceneData({"train": _looking(1)}))["in_front"] == {}  # no points: skipped
-    n = sanity._MAX_POINTS + 1
-    assert sanity.check_scene(data, torch.tensor([[0.0, 0.0, 1.0]]).repeat(n, 1))["points"] == (n + 1) // 2
-    for bad in (-0.1, 1.0, True, "0.5"):
-        with pytest.raises(InputValueError, match=f"min_in_front must be a fraction in \\[0, 1\\), got {bad!r}"):
-            sanity.check_scene(data, min_in_front=bad)
-    with pytest.raises(InputValueError, match=r"^s: the 'test' split is empty \(splits: train=1\)$"):
-        sanity.check_scene(data, required=("train", "test"))
-    with pytest.raises(InputValueError, match=r"the 'train' split is empty \(splits: none\)$"):
-        sanity.check_scene(SceneData({}))
-    frames = [Frame(f"w{i}", _cam(8, 6), torch.zeros(3, 6, 7)) for i in range(7)]
-    with pytest.raises(FileFormatError, match=r"^7 of 8 images do not match their camera's size: w0 is 7x6, its camera "
-                                              r"8x6; .*w4 is 7x6, its camera 8x6; \.\.\.$"):
-        sanity.check_scene(SceneData({"train": _looking(1) + frames}))
+        check_scene(data)  # the SfM points, behind the camera
+    assert check_scene(data, torch.tensor([[0.0, 0.0, 1.0]]))["in_front"] == {"v0": 1.0}
+    for report in (check_scene(data, torch.zeros(0, 3)), check_scene(SceneData({"train": looking(1)}))):
+        assert report["in_front"] == {} and report["blind"] == [] and report["points"] == 0
+    assert sanity._MAX_POINTS == 20_000
+    n = 20_001
+    pts = torch.zeros(n, 3)
+    pts[:, 2] = 1.0
+    pts[1::2, 0] = -10.0  # every odd point projects left of the image; the stride keeps only even ones
+    report = check_scene(_scene([FRONT]), pts)
+    assert report["points"] == 10_001 and report["in_front"]["v00"] == 1.0
 
 
-W, H = 32, 24
-
-
-ANGLE_X = 1.0
-
-
-POINTS = np.random.default_rng(0).uniform(-0.8, 0.8, size=(300, 3))   # the object the cameras look at
-
-
-_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def _write_blender(root, poses, *, test=True):
-    """A NeRF-synthetic folder with ``poses`` (camera to world as written in the files): all in
-    train, the last two also in test when ``test``."""
-    for split, ps in (("train", poses), ("test", poses[-2:] if test else None)):
-        if ps is None:
-            continue
-        frames = []
-        for n, c2w in enumerate(ps):
-            write_png(root / split / f"r_{n}.png", marker_image(W, H, [], rgba=True))
-            frames.append({"file_path": f"./{split}/r_{n}", "transform_matrix": np.asarray(c2w).tolist()})
-        write_json(root / f"transforms_{split}.json", {"camera_angle_x": ANGLE_X, "frames": frames})
-
-
-def test_check_scene_uses_the_scene_points_and_skips_without_any(tmp_path):
-    _write_blender(tmp_path, [c2w @ _GL_TO_CV for c2w in ring_poses(4)])
-    data = read_blender(tmp_path)
-    assert check_scene(data)["in_front"] == {}                 # no points: nothing to test against
+def test_scene_points_are_used_and_the_check_skipped_without_any(tmp_path):
+    data = read_blender(write_blender_ring(tmp_path, [c2w @ GL_TO_CV for c2w in ring_poses(4)]))
+    assert check_scene(data)["in_front"] == {}  # no points: nothing to test against
     data.points = torch.from_numpy(POINTS).float()
     with pytest.raises(InputValueError, match="flipped"):
         check_scene(data)
 
 
-def test_empty_split_is_an_error(tmp_path):
-    _write_blender(tmp_path, ring_poses(3), test=False)
-    data = read_blender(tmp_path)
-    assert check_scene(data)["splits"] == {"train": 3, "test": 0}
-    with pytest.raises(InputValueError, match=r"the 'test' split is empty \(splits: train=3, test=0\)"):
-        check_scene(data, required=("train", "test"))
+@pytest.mark.parametrize("bad", [-0.1, 1.0, True, "0.5"])
+def test_min_in_front_must_be_a_fraction(bad):
+    with pytest.raises(InputValueError, match=rf"min_in_front.*got {bad!r}$"):
+        check_scene(SceneData({"train": looking(1)}), min_in_front=bad)
 
 
-def _two_cameras() -> SceneData:
-    """Two 8 x 6 cameras at the origin (f = 4, centre (4, 3)): v0 looks down +z, v1 down -z."""
-    frames = []
-    for i, flip in enumerate((1.0, -1.0)):
-        w2c = torch.eye(4)
-        w2c[:3, :3] = torch.diag(torch.tensor([1.0, flip, flip]))
-        k = torch.tensor([[4.0, 0, 4], [0, 4.0, 3], [0, 0, 1]])
-        frames.append(Frame(f"v{i}", Camera(w2c, k, 8, 6), torch.zeros(3, 6, 8)))
-    return SceneData({"train": frames}, source="src")
-
-
-def test_check_scene_default_min_in_front_is_5_percent():
-    from controlgs_adapter.datasets.sanity import check_scene
-
-    # 100 points: 5 straight ahead of v0 (5 % -> not blind: the threshold is strict), 4 straight ahead of
-    # v1 (4 % -> blind), 91 far to the side (outside both images or behind)
-    pts = torch.cat([torch.tensor([[0.0, 0, 1]]).repeat(5, 1), torch.tensor([[0.0, 0, -1]]).repeat(4, 1),
-                     torch.tensor([[10.0, 0, 1]]).repeat(91, 1)])
-    data = _two_cameras()
-    with pytest.warns(RuntimeWarning, match=r"^src: 1 of 2 cameras see almost none of the 100 points \(< 5% in front, "
-                                            r"inside the image\): v1$"):
-        rep = check_scene(data, pts)
-    assert rep["in_front"] == pytest.approx({"v0": 0.05, "v1": 0.04}, abs=1e-6) and rep["blind"] == ["v1"]
-    assert check_scene(data, pts, min_in_front=0.035)["blind"] == []
-    with pytest.raises(InputValueError, match=r"^src: 2 of 2 cameras see none of the scene"):
-        check_scene(data, pts, min_in_front=0.051)
-    # default required=("train",): an empty test split passes, an empty train split is refused
-    with pytest.raises(InputValueError, match=r"^src: the 'train' split is empty \(splits: train=0, test=2\)$"):
-        check_scene(SceneData({"train": [], "test": data.splits["train"]}, source="src"))
-
-
-W_2, H_2, F = 8, 6, 10.0
-
-
-#: OpenCV camera at the origin looking down +z, and one turned round (looking down -z)
-FRONT = torch.eye(4)
-
-
-BACK = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
-
-
-def _camera_2(w2c: torch.Tensor = FRONT, w: int = W_2, h: int = H_2, f: float = F) -> Camera:
-    k = torch.tensor([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
-    return Camera(w2c.clone(), k, w, h)
-
-
-def _scene(poses: list[torch.Tensor], *, source: str = "mem") -> SceneData:
-    frames = [Frame(f"v{i:02d}", _camera_2(p), torch.zeros(3, H_2, W_2)) for i, p in enumerate(poses)]
-    return SceneData({"train": frames, "test": []}, source=source, format="builtin")
-
-
-def _blind_warning(n_seeing: int, n_blind: int) -> str:
-    data = _scene([FRONT] * n_seeing + [BACK] * n_blind)
-    pts = torch.tensor([[0.0, 0.0, 1.0], [0.1, 0.1, 2.0]])
-    with pytest.warns(RuntimeWarning) as rec:
-        check_scene(data, pts)
-    return str(rec[0].message)
-
-
-def test_check_scene_counts_points_left_of_or_above_the_image_as_outside():
-    """A point in front of the camera but projecting to u < 0 (or v < 0) is not "inside the image":
-    by hand with f = 10, c = (4, 3): (0, 0, 1) -> (4, 3) inside, (-1, 0, 1) -> u = -6, (0, -1, 1) -> v = -7."""
-    pts = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 1.0], [0.0, -1.0, 1.0]])
-    report = check_scene(_scene([FRONT]), pts, min_in_front=0.0)
-    assert report["in_front"] == {"v00": pytest.approx(1 / 3)}
-
-
-def test_check_scene_refuses_non_finite_points():
-    pts = torch.tensor([[0.0, 0.0, 1.0], [float("nan"), 0.0, 1.0]])
+def test_non_finite_points_are_refused():
     with pytest.raises(InputValueError, match="points contains 1 non-finite"):
-        check_scene(_scene([FRONT]), pts)
+        check_scene(_scene([FRONT]), torch.tensor([[0.0, 0.0, 1.0], [float("nan"), 0.0, 1.0]]))
 
 
-def test_check_scene_with_no_points_reports_no_fractions():
-    """``in_front`` is documented empty without points; an empty ``[0, 3]`` tensor is no points."""
-    report = check_scene(_scene([FRONT, BACK]), torch.zeros(0, 3))
-    assert report["in_front"] == {} and report["blind"] == [] and report["points"] == 0
+# ----------------------------------------------------------------------------- splits and sizes
+
+def test_required_splits_must_not_be_empty(tmp_path):
+    """Default ``required=("train",)``: an empty test split passes, an empty train split is refused, naming the
+    source and every split's size."""
+    data = SceneData({"train": looking(1)}, source="s")
+    with pytest.raises(InputValueError, match=r"^s: the 'test' split is empty \(splits: train=1\)$"):
+        check_scene(data, required=("train", "test"))
+    with pytest.raises(InputValueError, match=r"the 'train' split is empty \(splits: none\)$"):
+        check_scene(SceneData({}))
+    with pytest.raises(InputValueError, match=r"^src: the 'train' split is empty \(splits: train=0, test=2\)$"):
+        check_scene(SceneData({"train": [], "test": looking(2)}, source="src"))
+    blender = read_blender(write_blender_ring(tmp_path, ring_poses(3), test=False))
+    assert check_scene(blender)["splits"] == {"train": 3, "test": 0}
+    with pytest.raises(InputValueError, match=r"the 'test' split is empty \(splits: train=3, test=0\)"):
+        check_scene(blender, required=("train", "test"))
 
 
-def test_check_scene_projects_an_even_stride_of_at_most_20000_points():
-    """sanity.py's ``_MAX_POINTS`` doc comment: at most 20,000 points per camera, an even stride
-    through the given ones; 20,001 points take every 2nd (10,001), and the fraction is that of those."""
-    n = 20_001
-    pts = torch.zeros(n, 3)
-    pts[:, 2] = 1.0
-    pts[1::2, 0] = -1.0          # every odd point projects left of the image; the stride keeps only even ones
-    report = check_scene(_scene([FRONT]), pts)
-    assert report["points"] == len(range(0, n, 2)) == 10_001
-    assert report["in_front"]["v00"] == 1.0
+@pytest.mark.parametrize("n_bad, tail", [(5, "v4 is 9x6, its camera 8x6"), (6, "v4 is 9x6, its camera 8x6; ...")])
+def test_images_of_another_size_than_their_camera_are_named_five_at_most(n_bad, tail):
+    data = SceneData({"train": _sizes([(9, 6)] * n_bad + [(8, 6)])}, source="src")
+    with pytest.raises(FileFormatError) as e:
+        check_scene(data)
+    msg = str(e.value)
+    assert msg.startswith(f"{n_bad} of {n_bad + 1} images do not match their camera's size: v0 is 9x6")
+    assert msg.endswith(tail) and msg.count(" is 9x6") == 5
 
 
-def test_check_scene_warning_names_up_to_five_blind_cameras_and_marks_more():
-    """Five blind cameras are all named with nothing after them; a sixth is left out as ", ..."."""
-    msg = _blind_warning(6, 5)
-    assert msg.endswith(": v06, v07, v08, v09, v10")
-    msg = _blind_warning(7, 6)
-    assert msg.endswith(": v07, v08, v09, v10, v11, ...")
-
-
-def test_check_scene_counts_points_in_the_camera_plane_as_behind():
-    """Depth 0 is not in front (Camera.project: "Depth <= 0 is behind"): points in the plane of every
-    camera make all of them blind and the message reports 100 % behind."""
-    pts = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    with pytest.raises(InputValueError, match=r"on average 100% lie behind the cameras"):
-        check_scene(_scene([FRONT, FRONT]), pts)
+def test_an_image_files_size_is_read_from_its_header(tmp_path):
+    """Files are named by path, in-memory images by frame name, across splits."""
+    write_png(tmp_path / "a.png", marker_image(32, 24, [], rgba=False))
+    write_png(tmp_path / "b.png", marker_image(32, 26, [], rgba=False))
+    cam = pinhole(32, 24, 20.0)
+    data = SceneData(splits={"train": [Frame("a.png", cam, tmp_path / "a.png"), Frame("b.png", cam, tmp_path / "b.png")],
+                             "test": [Frame("c", cam, torch.zeros(3, 24, 33))]}, source="synthetic")
+    with pytest.raises(FileFormatError, match=r"2 of 3 images.*b\.png is 32x26, its camera 32x24.*c is 33x24"):
+        check_scene(data)

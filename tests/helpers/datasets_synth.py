@@ -74,3 +74,34 @@ def marker_image(width: int, height: int, marks: list[tuple[int, int, tuple[int,
     for col, row, colour in marks:
         img[row, col] = colour
     return img
+
+
+#: OpenGL camera axes to OpenCV ones (and back): y and z flipped
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def write_blender_ring(root: Path, poses, *, test: bool = True, width: int = 32, height: int = 24,
+                       angle: float = 1.0) -> Path:
+    """A NeRF-synthetic folder of transparent ``width x height`` images with ``poses`` (camera to world as
+    written in the files, ``camera_angle_x`` = ``angle``): all in train, the last two also in test when
+    ``test``."""
+    for split, ps in (("train", poses), ("test", poses[-2:] if test else None)):
+        if ps is None:
+            continue
+        frames = []
+        for n, c2w in enumerate(ps):
+            write_png(root / split / f"r_{n}.png", marker_image(width, height, [], rgba=True))
+            frames.append({"file_path": f"./{split}/r_{n}", "transform_matrix": np.asarray(c2w).tolist()})
+        write_json(root / f"transforms_{split}.json", {"camera_angle_x": angle, "frames": frames})
+    return root
+
+
+def write_ngp_ring(root: Path, n: int = 10, transforms: str = "transforms.json") -> Path:
+    """An instant-ngp folder of ``n`` 8 x 6 RGB frames ``images/img_XX.png`` on a ring (fl 9 px, centred)."""
+    poses = ring_poses(n, phase=0.1)
+    frames = []
+    for i in range(n):
+        write_png(root / "images" / f"img_{i:02d}.png", marker_image(8, 6, [], rgba=False, fill=(10 * i, 0, 0)))
+        frames.append({"file_path": f"images/img_{i:02d}.png", "transform_matrix": poses[i].tolist()})
+    write_json(root / transforms, {"fl_x": 9.0, "fl_y": 9.0, "cx": 4.0, "cy": 3.0, "w": 8.0, "h": 6.0, "frames": frames})
+    return root
