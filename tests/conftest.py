@@ -28,6 +28,19 @@ def _process_group_count():
         distributed_c10d._world.group_count = count
 
 
+@pytest.fixture()
+def fresh_plugins(monkeypatch):
+    """A plug-in manager built anew on first use, with the plug-in environment variables unset
+    (installed plug-ins autoload, a broken one only warns), and dropped again after the test."""
+    from controlgs_adapter import plugins
+
+    monkeypatch.delenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", raising=False)
+    monkeypatch.delenv("CONTROLGS_STRICT_PLUGINS", raising=False)
+    plugins.reset_plugin_manager()
+    yield
+    plugins.reset_plugin_manager()
+
+
 @pytest.fixture(scope="module")
 def tiny():
     """The built-in AR scene at 16 px (4 views) and an untrained backbone whose colours match it: enough

@@ -17,15 +17,6 @@ EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "third_party_plugin
 
 
 @pytest.fixture()
-def fresh_plugins(monkeypatch):
-    monkeypatch.delenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", raising=False)
-    monkeypatch.delenv("CONTROLGS_STRICT_PLUGINS", raising=False)
-    plugins.reset_plugin_manager()
-    yield
-    plugins.reset_plugin_manager()
-
-
-@pytest.fixture()
 def example():
     spec = importlib.util.spec_from_file_location("third_party_plugin_example", EXAMPLE)
     module = importlib.util.module_from_spec(spec)

@@ -1,4 +1,6 @@
-"""Tests of ``controlgs_adapter.plugins``."""
+"""The plug-in manager: built-ins register through the same hooks as plug-ins, installed plug-ins load
+from their entry points (switched off, blocked, broken or strict), runtime registration, the caches
+of what is registered, the choice of a backend for a model and of a rasterizer."""
 
 from __future__ import annotations
 
@@ -7,14 +9,17 @@ from types import SimpleNamespace
 import pytest
 import torch
 from helpers.fake_plugins import _fake_distributions, _FakeDistribution, _FakeEntryPoint, _GoodPlugin
+from helpers.scaffold_standin import ScaffoldStandIn
+from torch import nn
 
 import controlgs_adapter
 from controlgs_adapter import plugins
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.downstream.stage import Stage
-from controlgs_adapter.errors import PluginLoadError
+from controlgs_adapter.errors import NoMatchingBackendError, PluginLoadError
 from controlgs_adapter.evaluation import make_pipeline
 from controlgs_adapter.hookspecs import hookimpl
+from controlgs_adapter.plugins import _describe
 from controlgs_adapter.rendering.rasterizers import Rasterizer, TorchSplatter, rasterize_gaussians
 from controlgs_adapter.state import Camera
 
@@ -49,11 +54,10 @@ def test_stages_are_plain_modules_with_functional_twins():
 
 
 @pytest.fixture()
-def pm(monkeypatch):
+def pm(fresh_plugins, monkeypatch):
+    """A fresh plug-in manager holding the built-ins only."""
     monkeypatch.setenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", "1")
-    plugins.reset_plugin_manager()
-    yield plugins.get_plugin_manager()
-    plugins.reset_plugin_manager()
+    return plugins.get_plugin_manager()
 
 
 class _Extra(ScaffoldGSBackend):
@@ -118,17 +122,7 @@ def test_blocking_drops_the_cache(pm):
     assert "extra_family" not in plugins.backends()
 
 
-@pytest.fixture()
-def fresh_plugins(monkeypatch):
-    monkeypatch.delenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", raising=False)
-    monkeypatch.delenv("CONTROLGS_STRICT_PLUGINS", raising=False)
-    plugins.reset_plugin_manager()
-    yield
-    plugins.reset_plugin_manager()
-
-
 def _stage_named(stage_name: str) -> type:
-
     return type(f"Stage_{stage_name}", (Stage,), {"name": stage_name, "forward": lambda self, image, state, ctx: image})
 
 
@@ -139,16 +133,6 @@ class _StagePlugin:
     @controlgs_adapter.hookimpl
     def controlgs_register_stages(self):
         return [self.stage]
-
-
-def test_entry_point_plugins_load_with_their_distribution(fresh_plugins, monkeypatch):
-    _fake_distributions(monkeypatch, _FakeDistribution("acme-xr", "1.2.3", [
-        _FakeEntryPoint("acme", _GoodPlugin()),
-        _FakeEntryPoint("unrelated", ImportError("never loaded"), group="other_group"),
-    ]))
-    info = plugins.stages()["sharpen_test"]
-    assert (info.plugin, info.source) == ("acme", "acme-xr 1.2.3")
-    assert plugins.load_failures() == []
 
 
 def test_a_name_registered_twice(fresh_plugins, monkeypatch, tmp_path):
@@ -197,6 +181,10 @@ def test_register_blocked_unregister_and_report(fresh_plugins):
     assert {i.kind for i in report} == {"backend", "stage", "schedule", "rasterizer"}
     plugins.unregister_plugin("mine")
     assert "extra_stage" not in plugins.stages() and pm.get_plugin("mine") is None
+    name = plugins.register_plugin(_GoodPlugin())  # without a name: one is made up and returned
+    assert plugins.stages()["sharpen_test"].plugin == name and pm.get_plugin(name) is not None
+    plugins.unregister_plugin(name)
+    assert "sharpen_test" not in plugins.stages()
 
 
 def _scene(n: int = 40, seed: int = 0, device: str = "cpu", max_opacity: float = 0.9):
@@ -212,7 +200,7 @@ def _scene(n: int = 40, seed: int = 0, device: str = "cpu", max_opacity: float =
     return [t.to(device) for t in (means, scales, rotations, opacities, colors)], cam
 
 
-def test_registered_through_the_hook_and_listed():
+def test_builtin_rasterizers_are_registered_through_the_hook_and_listed():
     names = list(plugins.rasterizers())
     assert names == ["gsplat", "torch"]  # the automatic choice tries gsplat first, torch always works
     assert {(i.kind, i.name) for i in plugins.plugin_report() if i.kind == "rasterizer"} == {
@@ -220,7 +208,7 @@ def test_registered_through_the_hook_and_listed():
     assert all(i.source == plugins.BUILTIN_DIST for i in plugins.rasterizers().values())
 
 
-def test_a_plugin_rasterizer_goes_first():
+def test_a_plugin_rasterizer_goes_first(fresh_plugins):
     class Counting(Rasterizer):
         """Counts renders, then splats with the torch splatter."""
 
@@ -250,15 +238,6 @@ def test_a_plugin_rasterizer_goes_first():
     assert "counting" not in plugins.rasterizers()
 
 
-@pytest.fixture()
-def fresh(monkeypatch):
-    monkeypatch.delenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", raising=False)
-    monkeypatch.delenv("CONTROLGS_STRICT_PLUGINS", raising=False)
-    plugins.reset_plugin_manager()
-    yield
-    plugins.reset_plugin_manager()
-
-
 class _BadHook:
     """Registers, then fails pluggy's check: a hook implementation no specification knows."""
 
@@ -268,15 +247,24 @@ class _BadHook:
 
 
 @pytest.mark.parametrize("value, loaded", [("", True), ("0", True), ("1", False), ("yes", False)])
-def test_autoload_switch(fresh, monkeypatch, value, loaded):
-    _fake_distributions(monkeypatch, _FakeDistribution("acme-xr", "1.2.3", [_FakeEntryPoint("acme", _GoodPlugin())]))
+def test_entry_points_load_with_their_distribution_unless_autoload_is_off(fresh_plugins, monkeypatch, value, loaded):
+    """CONTROLGS_DISABLE_PLUGIN_AUTOLOAD: an installed plug-in's entry point (of this group only) is
+    registered under its name, attributed to its distribution; the built-ins are always there."""
+    _fake_distributions(monkeypatch, _FakeDistribution("acme-xr", "1.2.3", [
+        _FakeEntryPoint("acme", _GoodPlugin()),
+        _FakeEntryPoint("unrelated", ImportError("never loaded"), group="other_group"),
+    ]))
     monkeypatch.setenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", value)
     assert ("sharpen_test" in plugins.stages()) is loaded
     assert (plugins.get_plugin_manager().get_plugin("acme") is not None) is loaded
+    if loaded:
+        info = plugins.stages()["sharpen_test"]
+        assert (info.plugin, info.source) == ("acme", "acme-xr 1.2.3")
+    assert plugins.load_failures() == []
     assert "scaffold_gs" in plugins.backends()  # built-ins always
 
 
-def test_entry_points_already_registered_blocked_or_failing_late(fresh, monkeypatch):
+def test_entry_points_already_registered_blocked_or_failing_late(fresh_plugins, monkeypatch):
     first, second = _GoodPlugin(), _GoodPlugin()
     _fake_distributions(monkeypatch,
                         _FakeDistribution("acme-xr", "1.2.3", [_FakeEntryPoint("acme", first)]),
@@ -284,7 +272,7 @@ def test_entry_points_already_registered_blocked_or_failing_late(fresh, monkeypa
                         _FakeDistribution("late-xr", "0.2", [_FakeEntryPoint("late", _BadHook())]))
     with pytest.warns(RuntimeWarning, match="plug-in 'late' from late-xr 0.2 failed to load") as rec:
         pm = plugins.get_plugin_manager()
-    assert len(rec) == 1 and "(skipped; CONTROLGS_STRICT_PLUGINS=1 makes this fatal)" in str(rec[0].message)
+    assert len(rec) == 1 and "CONTROLGS_STRICT_PLUGINS=1" in str(rec[0].message)
     assert pm.get_plugin("acme") is first and plugins.stages()["sharpen_test"].source == "acme-xr 1.2.3"
     assert pm.get_plugin("late") is None  # registered, failed the check, unregistered again
     failures = plugins.load_failures()
@@ -293,7 +281,7 @@ def test_entry_points_already_registered_blocked_or_failing_late(fresh, monkeypa
     assert plugins._pm is None and plugins._sources == {} and plugins._failures == []
 
 
-def test_blocked_entry_point_is_not_loaded(fresh, monkeypatch):
+def test_blocked_entry_point_is_not_loaded(fresh_plugins, monkeypatch):
     _fake_distributions(monkeypatch, _FakeDistribution("acme-xr", "1.2.3", [_FakeEntryPoint("acme", _GoodPlugin())]))
     pm = plugins.PluginManager(controlgs_adapter.hookspecs.PROJECT)
     pm.add_hookspecs(controlgs_adapter.hookspecs)
@@ -305,7 +293,7 @@ def test_blocked_entry_point_is_not_loaded(fresh, monkeypatch):
         plugins._load_entry_points(pm, strict=True)
 
 
-def test_builtin_plugin_order_and_sources(fresh, monkeypatch):
+def test_builtin_plugin_order_and_sources(fresh_plugins, monkeypatch):
     monkeypatch.setenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", "1")
     assert plugins.BUILTIN_PLUGINS == ("controlgs_adapter.builtin", "controlgs_adapter.backends.builtin",
                                        "controlgs_adapter.downstream.builtin", "controlgs_adapter.rendering.builtin")
@@ -313,7 +301,43 @@ def test_builtin_plugin_order_and_sources(fresh, monkeypatch):
     infos = plugins.plugin_report()
     assert {i.source for i in infos} == {"controlgs-adapter (built-in)"}
     assert list(plugins.schedules()) == ["lens", "resample", "display", "foveation"]
-    name = plugins.register_plugin(_GoodPlugin())
-    assert plugins.stages()["sharpen_test"].plugin == name and plugins.stages()["sharpen_test"].source == "runtime"
-    plugins.unregister_plugin(name)
-    assert "sharpen_test" not in plugins.stages()
+
+
+class _Picky(ScaffoldGSBackend):
+    """Picky test backend: recognises only models with a ``picky`` attribute.
+
+    A second paragraph that the listing leaves out."""
+
+    name = "picky"
+
+    def matches(self, model):
+        return hasattr(model, "picky")
+
+
+def test_select_backend_names_what_each_backend_looks_for():
+    """A backend is described by its name and the first paragraph of its docstring (else its class name);
+    a refusal lists the registered backends in the order they are tried, or the chosen one."""
+    model = ScaffoldStandIn(4, seed=0)
+    assert plugins.select_backend(model).name == "scaffold_gs"  # the first that recognises it
+    assert plugins.select_backend(model, "scaffold_gs") is plugins.backends()["scaffold_gs"].obj
+    picky = _Picky()
+    assert plugins.select_backend(SimpleNamespace(picky=1), picky) is picky  # an instance is used as given
+    assert _describe(picky) == "picky: Picky test backend: recognises only models with a ``picky`` attribute"
+    assert _describe(type("NoDoc", (ScaffoldGSBackend,), {"name": "nodoc", "__doc__": None})()) == "nodoc: NoDoc"
+    listing = "".join(f"\n  - {_describe(info.obj)}" for info in plugins.backends().values())
+    assert "scaffold_gs: Scaffold-GS layout" in listing and "mlp_color" in listing
+
+    class NotAModel:
+        mlp_opacity = nn.Linear(3, 3)
+
+    with pytest.raises(NoMatchingBackendError) as e:
+        plugins.select_backend(NotAModel())
+    assert str(e.value).startswith("no registered backend recognises a NotAModel") and str(e.value).endswith(listing)
+    for name in ("no_such_family", 5):
+        with pytest.raises(NoMatchingBackendError) as e:
+            plugins.select_backend(model, name)
+        assert str(e.value).startswith(f"backend {name!r} is not registered") and str(e.value).endswith(listing)
+    with pytest.raises(NoMatchingBackendError, match=r"scaffold_gs: Scaffold-GS layout.* does not recognise a SimpleNamespace"):
+        plugins.select_backend(SimpleNamespace(mlp_cov=nn.Linear(2, 2)), "scaffold_gs")
+    with pytest.raises(NoMatchingBackendError, match="picky: Picky test backend.* does not recognise a ScaffoldStandIn"):
+        plugins.select_backend(model, picky)

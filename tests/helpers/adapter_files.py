@@ -31,3 +31,14 @@ def rewrite(path, header_changes=None, tensor_changes=None, drop=()) -> dict[str
         tensors.pop(k)
     write_raw(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
     return tensors
+
+
+def saved_adapter(folder, seed: int = 7, file: str = "a.safetensors", **kw):
+    """An adapter of ``ScaffoldStandIn(30, seed=0)`` with random parameters (``trained(model, seed, **kw)``)
+    saved to ``folder / file``; the model is unwrapped again. Returns the path."""
+    from helpers.scaffold_standin import ScaffoldStandIn
+
+    cgs = trained(ScaffoldStandIn(30, seed=0), seed, **kw)
+    path = cgs.save(folder / file)
+    cgs.unwrap()
+    return path

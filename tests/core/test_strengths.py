@@ -1,0 +1,175 @@
+"""Injection strengths of a wrapped model: the schedules of its modules (checked before the model
+changes) and their values for a run-time state at each anchor's position on the display, against a
+float64 pinhole projection and the schedules' equations in plain Python."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import pytest
+import torch
+from helpers.scaffold_standin import ScaffoldStandIn, make_camera
+from helpers.strength_oracle import STATES, reference_strengths
+from helpers.wrapping import assert_unchanged, decode, model_record, stand_in
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controlgs_adapter import ControlGS, RuntimeState
+from controlgs_adapter.downstream.placement import to_display
+from controlgs_adapter.errors import InputValueError
+
+
+def test_strengths_by_hand():
+    """lambda = log2(d) / 3 (resample), rho / 0.8 (display), |p| / sqrt(2) clamped (lens) with p the
+    anchor's position on the display, in the order of the wrapped modules; every module is listed,
+    zeros included."""
+    model, cam = ScaffoldStandIn(), make_camera()
+    cgs = ControlGS.wrap(model, modules=("resample", "display", "lens"), cond_dim=4)
+    lam = cgs.strengths(RuntimeState(downsample=2.0, power_saving=0.3), cam)
+    assert list(lam) == ["resample", "display", "lens"]
+    assert torch.allclose(lam["resample"].double(), torch.full((40,), 1 / 3, dtype=torch.float64), atol=1e-7)
+    assert torch.allclose(lam["display"].double(), torch.full((40,), 0.375, dtype=torch.float64), atol=1e-7)
+    p = to_display(cam.normalized_screen(model.get_anchor.detach()).double(), cam.height, cam.width, cgs.placement)
+    want = (p.norm(dim=1) / math.sqrt(2)).clamp(0, 1)
+    assert torch.allclose(lam["lens"].double(), want, atol=1e-6)
+    assert 0 < float(want.min()) < float(want.max()) < 1
+    got = cgs.strengths(RuntimeState(downsample=2.0, power_saving=0.2), cam, torch.tensor([3, 1]))  # the given anchors
+    assert got["resample"].tolist() == pytest.approx([1 / 3, 1 / 3], abs=1e-7) and got["display"].tolist() == [0.25, 0.25]
+    assert torch.equal(got["lens"], lam["lens"][[3, 1]])
+    got = cgs.strengths(RuntimeState(), cam, torch.tensor([3, 1, 0]))
+    assert got["resample"].tolist() == [0.0] * 3 and got["display"].tolist() == [0.0] * 3
+    with pytest.raises(InputValueError, match=r"'lens'.*camera=Camera\(...\).*got NoneType"):
+        cgs.strengths(RuntimeState())
+    with pytest.raises(InputValueError, match="state.*RuntimeState.*got dict"):
+        cgs.strengths({"downsample": 2.0}, cam)
+    cgs.unwrap()
+
+
+def test_lens_strength_follows_the_radial_distance_on_the_display():
+    """16:9 camera: an anchor at the right edge's middle gets 1/sqrt 2, one at the top edge's middle
+    (9/16) / sqrt 2; with placement "stretch" both get 1/sqrt 2."""
+    cam = make_camera(width=64, height=36)
+    fx, dist = float(cam.intrinsics[0, 0]), float(cam.world_to_camera[2, 3])
+    model = ScaffoldStandIn(num_anchors=4, seed=0)
+    with torch.no_grad():
+        model._anchor.copy_(torch.tensor([[32 * dist / fx, 0.0, 0.0], [0.0, -18 * dist / fx, 0.0],
+                                          [0.0, 0.0, 0.0], [-32 * dist / fx, 18 * dist / fx, 0.0]]))
+    cgs = ControlGS.wrap(model, modules=("lens", "foveation"))
+    try:
+        lam = cgs.strengths(RuntimeState(gaze=(0.0, -1.0)), cam)
+        r2 = math.sqrt(2)
+        assert torch.allclose(lam["lens"], torch.tensor([1 / r2, 9 / 16 / r2, 0.0, math.hypot(1, 9 / 16) / r2]), atol=1e-6)
+        # gaze at the top edge's middle, also placed on the display
+        fov = (torch.tensor([math.hypot(1, 9 / 16), 0.0, 9 / 16, math.hypot(1, 9 / 8)]) / r2).clamp(max=1)
+        assert torch.allclose(lam["foveation"], fov, atol=1e-6)
+        square = make_camera(width=36, height=36)
+        lam_sq = cgs.strengths(RuntimeState(), square)["lens"]
+        xy = square.normalized_screen(model._anchor.detach())
+        assert torch.equal(lam_sq, (xy.norm(dim=1) / r2).clamp(0, 1).float())
+        cgs.placement = "stretch"
+        assert torch.allclose(cgs.strengths(RuntimeState(), cam)["lens"][:2], torch.full((2,), 1 / r2), atol=1e-6)
+    finally:
+        cgs.unwrap()
+
+
+def test_gaze_is_placed_on_the_display_like_the_anchors():
+    """"fit" placement on a 64 x 48 image: y is scaled by 48 / 64 = 0.75; an anchor at the gaze has
+    eccentricity 0."""
+    model = ScaffoldStandIn(6, feat_dim=4, n_offsets=2, seed=1)
+    cam = make_camera()
+    cgs = ControlGS.wrap(model, modules=("foveation",))
+    screen = cam.normalized_screen(model._anchor.detach()[[2]])[0]
+    gaze = (float(screen[0]), float(screen[1]))
+    lam = cgs.strengths(RuntimeState(gaze=gaze), cam, torch.tensor([2]))["foveation"]
+    assert float(lam[0]) < 1e-6
+    # gaze at the image centre: eccentricity = |(x, 0.75 y)| / sqrt 2
+    lam = cgs.strengths(RuntimeState(gaze=(0.0, 0.0)), cam, torch.tensor([2]))["foveation"]
+    want = math.hypot(gaze[0], 0.75 * gaze[1]) / math.sqrt(2.0)
+    assert math.isclose(float(lam[0]), want, rel_tol=1e-5)
+    cgs.placement = "stretch"  # stretched: display positions are the screen positions
+    lam = cgs.strengths(RuntimeState(gaze=(0.0, 0.0)), cam, torch.tensor([2]))["foveation"]
+    assert math.isclose(float(lam[0]), math.hypot(*gaze) / math.sqrt(2.0), rel_tol=1e-5)
+    cgs.unwrap()
+
+
+_MODEL = ScaffoldStandIn(num_anchors=25, seed=3)
+
+
+@settings(max_examples=20, deadline=None)
+@given(STATES, st.floats(0.0, 0.5), st.floats(0.6, 2.0), st.integers(0, 2**31 - 1))
+def test_strengths_follow_eqs_10_11_at_each_anchors_display_position(state, lo, hi, seed):
+    cam = make_camera(width=40, height=30)
+    cgs = ControlGS.wrap(_MODEL, modules=("lens", "resample", "display", "foveation"),
+                         endpoints={"lens": (lo, hi), "foveation": (lo, hi)})
+    try:
+        ids = torch.randperm(25, generator=torch.Generator().manual_seed(seed))[:10]
+        got = cgs.strengths(state, cam, ids)
+        # independent pinhole projection in float64
+        pts = _MODEL._anchor.detach().double()[ids]
+        k = cam.intrinsics.double()
+        z = pts[:, 2] + float(cam.world_to_camera[2, 3])
+        u = k[0, 0] * pts[:, 0] / z + k[0, 2]
+        v = k[1, 1] * pts[:, 1] / z + k[1, 2]
+        xy = torch.stack([2 * u / cam.width - 1, 2 * v / cam.height - 1], dim=1)
+        assert bool((xy.abs() > 1).any())  # some anchors are off screen
+        # anchors and gaze on the display ("fit" placement: the 40 px width spans it, the height 30/40)
+        xy = xy * torch.tensor([1.0, 30 / 40], dtype=torch.float64)
+        if state.gaze is not None:
+            state = RuntimeState(state.downsample, state.power_saving, (state.gaze[0], state.gaze[1] * 30 / 40))
+        for i in range(len(ids)):
+            want = reference_strengths(state, (float(xy[i, 0]), float(xy[i, 1])), (lo, hi), (lo, hi))
+            for m in want:
+                assert math.isclose(float(got[m][i]), want[m], abs_tol=2e-6), (m, i)
+    finally:
+        cgs.unwrap()
+
+
+def test_state_blind_strength_is_one_whatever_the_state():
+    """The state-blind ablation injects at full strength, needing no camera: at the neutral state
+    (where every schedule gives 0 at the centre) the outputs still change."""
+    model, cam = ScaffoldStandIn(6, feat_dim=4, n_offsets=2, seed=1), make_camera()
+    x = model.decoder_input(cam.center)
+    ref = decode(model, x)
+    blind = ControlGS.wrap(model, modules=("resample", "lens"), state_blind=True)
+    got = blind.strengths(RuntimeState(), anchor_ids=torch.tensor([0, 5, 2]))
+    assert {m: v.tolist() for m, v in got.items()} == {"resample": [1.0] * 3, "lens": [1.0] * 3}
+    assert got["lens"].dtype == torch.float32
+    with torch.no_grad():
+        for p in blind.trainable_parameters():
+            p.normal_(generator=torch.Generator().manual_seed(1))
+    with torch.no_grad(), blind.conditioned(RuntimeState()):  # no camera
+        out = model.decode(x)
+    assert not torch.equal(out["color"], ref["color"])
+    blind.unwrap()
+
+
+@pytest.mark.parametrize("kw, pattern", [
+    (dict(modules=("lens", "vignetting")), r"\['vignetting'\].*'resample'"),
+    (dict(modules=()), r"modules.*at least one.*'display'"),
+    (dict(modules=("lens", "display", "lens")), r"modules.*\['lens'\] more than once"),
+    (dict(modules=("display", "resample", "display")), r"modules.*\['display'\] more than once"),
+    (dict(modules=5), "modules.*got 5"),
+    (dict(cond_dim=0), "cond_dim.*got 0"),
+    (dict(cond_dim=-2), "cond_dim.*got -2"),
+    (dict(cond_dim=True), "cond_dim.*got True"),
+    (dict(cond_dim=2.0), r"cond_dim.*got 2\.0"),
+    (dict(endpoints={"lens": (1.0, 1.0)}), r"'lens'.*differ.*1\.0"),
+    (dict(endpoints={"lens": (0.1, 0.5, 0.9)}), r"endpoints\['lens'\].*\(lo, hi\).*\(0\.1, 0\.5, 0\.9\)"),
+    (dict(endpoints={"display": (0, 1)}, modules=("lens",)), r"endpoints.*\['display'\].*\['lens'\]"),
+], ids=lambda v: str(v) if isinstance(v, dict) else "")
+@pytest.mark.parametrize("kind", ["eager", "script"])
+def test_modules_cond_dim_and_endpoints_are_checked_before_the_model_changes(kind: str, kw: dict[str, Any],
+                                                                             pattern: str) -> None:
+    model = stand_in(kind)
+    before = model_record(model)
+    with pytest.raises(InputValueError, match=pattern):
+        ControlGS.wrap(model, **kw)
+    assert_unchanged(before, model)
+    assert ControlGS.attached(model) is None
+
+
+def test_endpoints_take_a_headers_lo_hi_mapping():
+    cgs = ControlGS.wrap(ScaffoldStandIn(10, seed=1), modules=("lens",), endpoints={"lens": {"lo": 0.2, "hi": 0.9, "x": 1}})
+    assert (cgs.schedules["lens"].lo, cgs.schedules["lens"].hi) == (0.2, 0.9)
+    cgs.unwrap()
