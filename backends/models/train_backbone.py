@@ -292,6 +292,10 @@ def score_backbone(model: NeuralGaussianModel, views: Any) -> tuple[list[float],
     return p, s
 
 
+#: what a folder written by :func:`build_backbone` holds (the only folder ``replace`` swaps)
+_BACKBONE_ENTRIES = frozenset({"build.json", "cfg_args", "point_cloud"})
+
+
 def _empty_or_missing(path: Path) -> bool:
     return not path.exists() or (path.is_dir() and not any(path.iterdir()))
 
@@ -309,10 +313,12 @@ def build_backbone(views: Any, out: str | Path, *, test_views: Any = None, point
 
     The folder is assembled next to ``out`` and renamed into place at the end, so an interrupted
     build leaves nothing at ``out``. ``out`` must not exist or be an empty folder; with ``replace``
-    an existing folder is replaced as a whole (the built-in scene's baked backbone).
+    an existing backbone folder (holding only ``build.json``, ``cfg_args``, ``point_cloud``) is
+    replaced as a whole (the built-in scene's baked backbone); a folder holding anything else is refused.
 
     Raises:
-        InputValueError: ``out`` holds files (without ``replace``) or is a file; a bad argument.
+        InputValueError: ``out`` holds files (without ``replace``; with it, files a backbone folder does
+            not hold) or is a file; a bad argument.
         FileWriteError: ``out``'s folder cannot be written.
     """
     from controlgs_adapter.backends.scaffold_io import save_scaffold_dir
@@ -322,6 +328,11 @@ def build_backbone(views: Any, out: str | Path, *, test_views: Any = None, point
         raise InputValueError(f"{target}: is a file; expected a folder to write the backbone into")
     if not replace and not _empty_or_missing(target):
         raise InputValueError(f"{target}: the folder is not empty; a backbone is written into a new or empty folder")
+    if replace and target.is_dir():
+        foreign = sorted(p.name for p in target.iterdir() if p.name not in _BACKBONE_ENTRIES)
+        if foreign:
+            raise InputValueError(f"{target}: holds {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}, which is "
+                                  "not part of a backbone folder; only a backbone folder is replaced")
     has_points = points is not None and points.shape[0] > 0
     t0 = time.perf_counter()
     model = train_reference_model(views, None, points if has_points else None, colors if has_points else None,

@@ -168,7 +168,7 @@ def test_an_interrupted_write_leaves_nothing(tmp_path, monkeypatch, capsys, ngp)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
 
 
-def test_replace_swaps_a_whole_folder_and_refusal_keeps_it(tmp_path):
+def test_replace_swaps_a_whole_backbone_folder_and_nothing_else(tmp_path):
     images, cams, points = _scene()
     views = posed_images(images, cams)
     out = tmp_path / "m"
@@ -177,8 +177,15 @@ def test_replace_swaps_a_whole_folder_and_refusal_keeps_it(tmp_path):
     with pytest.raises(InputValueError, match="not empty"):
         build_backbone(views, out, points=points, iterations=1, max_anchors=10, progress=False)
     assert [p.name for p in out.iterdir()] == ["old.txt"]
+    with pytest.raises(InputValueError, match="holds old.txt, which is not part of a backbone folder"):
+        build_backbone(views, out, points=points, iterations=1, max_anchors=10, progress=False, replace=True)
+    assert [p.name for p in out.iterdir()] == ["old.txt"]  # a folder of other files is never swapped away
+    (out / "old.txt").unlink()
     build_backbone(views, out, points=points, iterations=1, max_anchors=10, progress=False, replace=True)
+    first = (out / "build.json").read_text()
+    build_backbone(views, out, points=points, iterations=2, max_anchors=10, progress=False, replace=True)
     assert sorted(p.name for p in out.iterdir()) == ["build.json", "cfg_args", "point_cloud"]
+    assert [p.name for p in (out / "point_cloud").iterdir()] == ["iteration_2"] and (out / "build.json").read_text() != first
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]
 
 
