@@ -1,6 +1,6 @@
-"""One process of the distributed-training tests (``tests/test_distributed.py``), run by torchrun.
+"""One process of the distributed-training tests (``tests/core/test_distributed.py``), run by torchrun.
 
-    torchrun --nproc_per_node=2 tests/_dist_worker.py FIXTURE OUT --iterations 4 --batch 2 \
+    torchrun --nproc_per_node=2 tests/helpers/dist_worker.py FIXTURE OUT --iterations 4 --batch 2 \
         [--checkpoint CK] [--die-at K]
 
 FIXTURE is written by :func:`write_fixture` (a tiny backbone, the training views); OUT receives
