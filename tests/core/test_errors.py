@@ -1,4 +1,4 @@
-"""Tests of ``controlgs_adapter.errors``."""
+"""The error types: each subclasses ControlGSError and the built-in an ``except`` clause would name."""
 
 from __future__ import annotations
 
@@ -26,3 +26,4 @@ def test_error_taxonomy_keeps_builtin_bases():
              (InjectionMissedError, RuntimeError)]
     for sub, base in pairs:
         assert issubclass(sub, base) and issubclass(sub, ControlGSError), sub
+    assert not issubclass(LifecycleError, StateError)  # a lifecycle error is no state error

@@ -1,99 +1,16 @@
-"""RuntimeState and Camera: hostile numbers (ints of any size, NaN, inf, wrong types) and focal lengths
-whose field of view is not representable give the library's error naming the argument."""
+"""RuntimeState and Camera: the run-time state's ranges and conversions; the camera's checks (sizes,
+intrinsics, rigid poses, focal lengths with a representable field of view), its centre, projection,
+normalised screen positions, field of view, rescaling and the conversion from a Scaffold-GS camera.
+Also the OLED and resampling stages at a state, and the splatter's projection and compositing."""
 
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
+import types
 from typing import Any
 
 import pytest
 import torch
-
-from controlgs_adapter.errors import InputValueError, StateRangeError
-from controlgs_adapter.state import FOCAL_RATIO, MAX_PIXELS, Camera, RuntimeState
-
-HUGE = 10**400  # beyond float range: float(HUGE) raises OverflowError
-HOSTILE = [HUGE, -HUGE, 10**5000, math.nan, math.inf, -math.inf, True, "2", None, b"2", [2.0]]
-
-
-def _k(fx: float, fy: float | None = None, w: int = 16, h: int = 12) -> torch.Tensor:
-    return torch.tensor([[fx, 0.0, w / 2], [0.0, fx if fy is None else fy, h / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-
-
-@pytest.mark.parametrize("value", HOSTILE, ids=lambda v: type(v).__name__)
-@pytest.mark.parametrize("field", ["downsample", "power_saving"])
-def test_runtime_state_refuses_hostile_numbers(field: str, value: Any) -> None:
-    with pytest.raises(StateRangeError, match=rf"^{field} must be a") as e:
-        RuntimeState(**{field: value})
-    assert "\n" not in str(e.value) and len(str(e.value)) < 200
-
-
-@pytest.mark.parametrize("gaze", [(HUGE, 0.0), (0.0, -HUGE), (math.nan, 0.0), (True, 0.0), ("0", 0.0), [[[0.0]]], 5])
-def test_runtime_state_refuses_hostile_gaze(gaze: Any) -> None:
-    with pytest.raises(StateRangeError, match="^gaze must be "):
-        RuntimeState(gaze=gaze)
-
-
-def test_runtime_state_takes_big_finite_numbers() -> None:
-    assert RuntimeState(downsample=10**300).downsample == 1e300
-    assert RuntimeState(downsample=torch.tensor(4.0), power_saving=0.5).downsample == 4.0
-
-
-@pytest.mark.parametrize("value", [0, -1, HUGE, MAX_PIXELS + 1, 16.0, True, "16", None, math.inf],
-                         ids=lambda v: type(v).__name__ + ("-big" if isinstance(v, int) and v > 1 else ""))
-@pytest.mark.parametrize("field", ["width", "height"])
-def test_camera_refuses_hostile_sizes(field: str, value: Any) -> None:
-    size = {"width": 16, "height": 12, field: value}
-    with pytest.raises(InputValueError, match=rf"^{field} must be an int"):
-        Camera(torch.eye(4), _k(16.0), size["width"], size["height"])
-
-
-@pytest.mark.parametrize("fx, fy, name", [(5e-324, 16.0, "fx"), (16.0, 5e-324, "fy"), (1e-300, 16.0, "fx"),
-                                          (1e300, 16.0, "fx"), (16.0, 1e30, "fy"), (16.0 / FOCAL_RATIO / 2, 16.0, "fx")])
-def test_camera_refuses_focal_lengths_without_a_representable_fov(fx: float, fy: float, name: str) -> None:
-    with pytest.raises(InputValueError, match=rf"intrinsics: focal length {name} = K\[\d, \d\] must be in"):
-        Camera(torch.eye(4), _k(fx, fy), 16, 12)
-
-
-@pytest.mark.parametrize("ratio", [1.001 / FOCAL_RATIO, 1.0, FOCAL_RATIO / 1.001])
-def test_fov_stays_inside_its_documented_range_at_the_focal_limits(ratio: float) -> None:
-    for dtype in (torch.float32, torch.float64):
-        cam = Camera(torch.eye(4, dtype=dtype), _k(16.0 * ratio, 12.0 * ratio).to(dtype), 16, 12)
-        for fov in cam.fov:
-            assert 0.0 < fov < math.pi
-        uv, _ = cam.project(torch.tensor([[0.5, -0.5, 1.0]], dtype=dtype))
-        assert bool(torch.isfinite(uv).all())
-
-
-@pytest.mark.parametrize("factor, word", [(0, "factor must be"), (-2, "factor must be"), (math.nan, "factor must be"),
-                                          ("2", "factor must be"), (None, "factor must be"), (HUGE, "factor must be"),
-                                          (5e-324, "factor 4.94066e-324 would give"), (1e-300, "factor 1e-300 would give")],
-                         ids=repr)
-def test_scaled_refuses_bad_factors(factor: Any, word: str) -> None:
-    cam = Camera(torch.eye(4), _k(16.0), 16, 12)
-    with pytest.raises(InputValueError, match=word):
-        cam.scaled(factor)
-    assert cam.scaled(2).width == 8
-
-
-def test_from_scaffold_refuses_fovs_without_a_usable_focal_length() -> None:
-    def scaffold(**kw: Any) -> Any:
-        return SimpleNamespace(**{"world_view_transform": torch.eye(4), "image_width": 16, "image_height": 12,
-                                  "FoVx": 1.0, "FoVy": 1.0, "uid": 0, **kw})
-
-    assert Camera.from_scaffold(scaffold()).width == 16
-    for kw, word in [(dict(FoVx=5e-324), "FoVx = 5e-324 rad gives a focal length of inf"),
-                     (dict(FoVy=math.pi - 1e-15), "FoVy = 3.14159"), (dict(FoVx=HUGE), "FoVx must be a field of view"),
-                     (dict(image_width=HUGE), "image_width must be an int <= "), (dict(uid=HUGE), "uid must be an int < 2"),
-                     (dict(uid=-1), "uid must be an int >= 0")]:
-        with pytest.raises(InputValueError, match=word):
-            Camera.from_scaffold(scaffold(**kw))
-
-
-import types
-from typing import Callable
-
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -102,124 +19,310 @@ from controlgs_adapter.downstream.oled import OLEDEmission
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.downstream.resample import AreaResample
 from controlgs_adapter.downstream.stage import Stage, StageContext
-from controlgs_adapter.errors import ControlGSError, LifecycleError, ShapeError, StateError
+from controlgs_adapter.errors import InputValueError, ShapeError, StateError, StateRangeError
 from controlgs_adapter.rendering.splatter import rasterize
 from controlgs_adapter.rendering.splatter_reference import rasterize_reference
+from controlgs_adapter.state import FOCAL_RATIO, MAX_PIXELS, Camera, RuntimeState
+
+D = F64 = torch.float64
+HUGE = 10**400  # beyond float range: float(HUGE) raises OverflowError
 
 
-def _raises(fn: Callable[[], Any], error: type[BaseException] | tuple[type[BaseException], ...], *names: str) -> str:
-    """Call ``fn``; it must raise ``error`` (a ControlGSError) whose message holds every one of ``names``."""
-    with pytest.raises(error) as info:
-        fn()
-    assert isinstance(info.value, ControlGSError), type(info.value)
-    msg = str(info.value)
-    for n in names:
-        assert n in msg, f"{n!r} not in {msg!r}"
-    return msg
+# ------------------------------------------------------------------------------ RuntimeState
+def test_runtime_state_defaults_and_conversions() -> None:
+    s = RuntimeState()
+    assert (s.downsample, s.power_saving, s.gaze) == (1.0, 0.0, None)
+    s = RuntimeState(downsample=2, power_saving=torch.tensor(0.25), gaze=torch.tensor([1.0, -1.0]))
+    assert (s.downsample, s.power_saving, s.gaze) == (2.0, 0.25, (1.0, -1.0))  # gaze bounds are inclusive
+    assert type(s.downsample) is float and type(s.power_saving) is float
+    assert RuntimeState(downsample=1.0, power_saving=0.999999).power_saving == 0.999999  # below the open bound
+    assert RuntimeState(downsample=10**300).downsample == 1e300  # an int within float range is converted
+    assert RuntimeState(downsample=torch.tensor(4.0), power_saving=0.5).downsample == 4.0
 
 
-# ============================================================================ API: run-time state, camera
-EYE4, K = torch.eye(4), torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
+STATE_REFUSALS = [  # id, keyword arguments, what the message shows after the field's name
+    ("d huge", dict(downsample=HUGE), r">= 1.*got an int of about 401 digits"),
+    ("d -huge", dict(downsample=-HUGE), r">= 1.*got an int of about 401 digits"),
+    ("d 10**5000", dict(downsample=10**5000), r"got an int of about 5001 digits"),
+    ("d nan", dict(downsample=math.nan), r">= 1.*got nan"),
+    ("d inf", dict(downsample=math.inf), r">= 1.*got inf"),
+    ("d -inf", dict(downsample=-math.inf), r">= 1.*got -inf"),
+    ("d 0.5", dict(downsample=0.5), r">= 1.*got 0\.5"),
+    ("d 0.999", dict(downsample=0.999), r">= 1.*got 0\.999"),
+    ("d True", dict(downsample=True), r"real number, got True"),
+    ("d '2'", dict(downsample="2"), r"real number, got '2'"),
+    ("d 'abc'", dict(downsample="abc"), r"real number, got 'abc'"),
+    ("d None", dict(downsample=None), r"real number, got None"),
+    ("d b'2'", dict(downsample=b"2"), r"real number, got b'2'"),
+    ("d [2.0]", dict(downsample=[2.0]), r"real number, got \[2\.0\]"),
+    ("d 1j", dict(downsample=1j), r"real number, got 1j"),
+    ("d complex tensor", dict(downsample=torch.tensor(2.0 + 0j)), r"real number"),
+    ("rho -0.1", dict(power_saving=-0.1), r"in \[0, 1\), got -0\.1"),
+    ("rho -1e-9", dict(power_saving=-1e-9), r"in \[0, 1\), got -1e-09"),
+    ("rho 1.0", dict(power_saving=1.0), r"in \[0, 1\), got 1\.0"),
+    ("rho nan", dict(power_saving=math.nan), r"in \[0, 1\), got nan"),
+    ("rho huge", dict(power_saving=HUGE), r"in \[0, 1\), got an int of about 401 digits"),
+    ("rho None", dict(power_saving=None), r"real number, got None"),
+    ("rho '0.2'", dict(power_saving="0.2"), r"real number, got '0\.2'"),
+    ("gaze (huge, 0)", dict(gaze=(HUGE, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(1000"),
+    ("gaze (0, -huge)", dict(gaze=(0.0, -HUGE)), r"\(x, y\) in \[-1, 1\]\^2, got \(0\.0, -1000"),
+    ("gaze (nan, 0)", dict(gaze=(math.nan, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(nan, 0\.0\)"),
+    ("gaze (0, nan)", dict(gaze=(0.0, math.nan)), r"\(x, y\) in \[-1, 1\]\^2, got \(0\.0, nan\)"),
+    ("gaze (2, 0)", dict(gaze=(2.0, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(2\.0, 0\.0\)"),
+    ("gaze (0, 1.0001)", dict(gaze=(0.0, 1.0001)), r"\(x, y\) in \[-1, 1\]\^2, got \(0\.0, 1\.0001\)"),
+    ("gaze (-1.0001, 0)", dict(gaze=(-1.0001, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(-1\.0001, 0\.0\)"),
+    ("gaze (True, 0)", dict(gaze=(True, 0.0)), r"real number, got True"),
+    ("gaze (0, True)", dict(gaze=(0.0, True)), r"real number, got True"),
+    ("gaze ('0', 0)", dict(gaze=("0", 0.0)), r"real number, got '0'"),
+    ("gaze ('a', 0)", dict(gaze=("a", 0.0)), r"real number, got 'a'"),
+    ("gaze (None, 0)", dict(gaze=(None, 0.0)), r"real number, got None"),
+    ("gaze [[[0]]]", dict(gaze=[[[0.0]]]), r"a pair \(x, y\).*got \[\[\[0\.0\]\]\]"),
+    ("gaze 5", dict(gaze=5), r"a pair \(x, y\).*got 5"),
+    ("gaze 0.5", dict(gaze=0.5), r"a pair \(x, y\).*got 0\.5"),
+    ("gaze 'ab'", dict(gaze="ab"), r"a pair \(x, y\).*got 'ab'"),
+    ("gaze (0,)", dict(gaze=(0.0,)), r"a pair \(x, y\).*got \(0\.0,\)"),
+    ("gaze (0, 0, 0)", dict(gaze=(0.0, 0.0, 0.0)), r"a pair \(x, y\).*got \(0\.0, 0\.0, 0\.0\)"),
+    ("gaze {'x': 0}", dict(gaze={"x": 0}), r"a pair \(x, y\).*got \{'x': 0\}"),
+]
 
 
-def _k_2(**cells: float) -> torch.Tensor:
+@pytest.mark.parametrize("kw, shown", [c[1:] for c in STATE_REFUSALS], ids=[c[0] for c in STATE_REFUSALS])
+def test_runtime_state_refuses_values_outside_its_range_in_one_short_line(kw: dict[str, Any], shown: str) -> None:
+    (field,) = kw
+    with pytest.raises(StateRangeError, match=rf"^{field} must be .*{shown}") as e:
+        RuntimeState(**kw)
+    assert isinstance(e.value, StateError) and isinstance(e.value, ValueError)
+    assert "\n" not in str(e.value) and len(str(e.value)) < 200
+
+
+# ------------------------------------------------------------------------------ Camera: checks
+K = torch.tensor([[50.0, 0.0, 32.0], [0.0, 40.0, 24.0], [0.0, 0.0, 1.0]], dtype=F64)  # a 64 x 48 camera
+
+
+def _camera(w2c: torch.Tensor | None = None, k: torch.Tensor | None = None, w: Any = 64, h: Any = 48, **extra: Any) -> Camera:
+    """A float64 camera, identity pose and ``K`` unless given."""
+    return Camera(torch.eye(4, dtype=F64) if w2c is None else w2c, K if k is None else k, w, h, extra)
+
+
+def _k(**cells: float) -> torch.Tensor:
+    """``K`` with cells ``kij`` replaced."""
     k = K.clone()
     for key, v in cells.items():
         k[int(key[1]), int(key[2])] = v
     return k
 
 
-def _w2c(fn: Callable[[torch.Tensor], None]) -> torch.Tensor:
-    m = EYE4.clone()
-    fn(m)
+def _w2c(**cells: float) -> torch.Tensor:
+    """The identity pose with cells ``mij`` replaced."""
+    m = torch.eye(4, dtype=F64)
+    for key, v in cells.items():
+        m[int(key[1]), int(key[2])] = v
     return m
 
 
-STATE_CASES = [
-    ({"downsample": None}, "downsample"), ({"downsample": "abc"}, "downsample"), ({"downsample": "4"}, "downsample"),
-    ({"downsample": math.nan}, "downsample"), ({"downsample": math.inf}, "downsample"), ({"downsample": 0.5}, "downsample"),
-    ({"downsample": True}, "downsample"), ({"downsample": [2]}, "downsample"), ({"downsample": 1j}, "downsample"),
-    ({"power_saving": -0.1}, "power_saving"), ({"power_saving": 1.0}, "power_saving"), ({"power_saving": None}, "power_saving"),
-    ({"power_saving": math.nan}, "power_saving"), ({"power_saving": "0.2"}, "power_saving"),
-    ({"gaze": 5}, "gaze"), ({"gaze": "ab"}, "gaze"), ({"gaze": (0.0,)}, "gaze"), ({"gaze": (0.0, 0.0, 0.0)}, "gaze"),
-    ({"gaze": (2.0, 0.0)}, "gaze"), ({"gaze": (math.nan, 0.0)}, "gaze"), ({"gaze": ("a", 0.0)}, "gaze"),
-    ({"gaze": (None, 0.0)}, "gaze"), ({"gaze": {"x": 0}}, "gaze"),
+CAMERA_REFUSALS = [  # id, Camera arguments, error, message
+    ("width 'abc'", dict(w="abc"), InputValueError, r"^width must be an int >= 1 \(pixels\), got 'abc'"),
+    ("width 0", dict(w=0), InputValueError, r"^width must be an int >= 1 \(pixels\), got 0"),
+    ("width -3", dict(w=-3), InputValueError, r"^width must be an int >= 1 \(pixels\), got -3"),
+    ("width 1.5", dict(w=1.5), InputValueError, r"^width must be an int >= 1 \(pixels\), got 1\.5"),
+    ("width 64.0", dict(w=64.0), InputValueError, r"^width must be an int >= 1 \(pixels\), got 64\.0"),
+    ("width 16.0", dict(w=16.0), InputValueError, r"^width must be an int >= 1 \(pixels\), got 16\.0"),
+    ("width None", dict(w=None), InputValueError, r"^width must be an int >= 1 \(pixels\), got None"),
+    ("width True", dict(w=True), InputValueError, r"^width must be an int >= 1 \(pixels\), got True"),
+    ("width inf", dict(w=math.inf), InputValueError, r"^width must be an int >= 1 \(pixels\), got inf"),
+    ("width huge", dict(w=HUGE), InputValueError, rf"^width must be an int <= {MAX_PIXELS} \(pixels\), got an int of"),
+    ("width max + 1", dict(w=MAX_PIXELS + 1), InputValueError, rf"^width must be an int <= {MAX_PIXELS}.*{MAX_PIXELS + 1}"),
+    ("height 'x'", dict(h="x"), InputValueError, r"^height must be an int >= 1 \(pixels\), got 'x'"),
+    ("height 0", dict(h=0), InputValueError, r"^height must be an int >= 1 \(pixels\), got 0"),
+    ("height True", dict(h=True), InputValueError, r"^height must be an int >= 1 \(pixels\), got True"),
+    ("height '16'", dict(h="16"), InputValueError, r"^height must be an int >= 1 \(pixels\), got '16'"),
+    ("height huge", dict(h=HUGE), InputValueError, rf"^height must be an int <= {MAX_PIXELS}"),
+    ("K zeros", dict(k=torch.zeros(3, 3, dtype=F64)), InputValueError, r"^intrinsics: focal lengths.*got fx = 0, fy = 0"),
+    ("fx 0", dict(k=_k(k00=0.0)), InputValueError, r"^intrinsics: focal lengths.*got fx = 0, fy = 40"),
+    ("fx < 0", dict(k=_k(k00=-50.0)), InputValueError, r"^intrinsics: focal lengths.*got fx = -50"),
+    ("fy < 0", dict(k=_k(k11=-1.0)), InputValueError, r"^intrinsics: focal lengths.*got fx = 50, fy = -1"),
+    ("K22 0", dict(k=_k(k22=0.0)), InputValueError, r"^intrinsics must be \[\[fx.*got .*\[0\.0, 0\.0, 0\.0\]\]"),
+    ("K22 2", dict(k=_k(k22=2.0)), InputValueError, r"^intrinsics must be \[\[fx.*got .*\[0\.0, 0\.0, 2\.0\]\]"),
+    ("K22 1.00001", dict(k=_k(k22=1.00001)), InputValueError, r"^intrinsics must be \[\[fx.*got .*1\.00001\]\]"),
+    ("K20 0.5", dict(k=_k(k20=0.5)), InputValueError, r"^intrinsics must be \[\[fx.*got .*\[0\.5, 0\.0, 1\.0\]\]"),
+    ("K20 1e-8", dict(k=_k(k20=1e-8)), InputValueError, r"^intrinsics must be \[\[fx.*got .*\[1e-08, 0\.0, 1\.0\]\]"),
+    ("K21 -1e-8", dict(k=_k(k21=-1e-8)), InputValueError, r"^intrinsics must be \[\[fx.*got .*\[0\.0, -1e-08, 1\.0\]\]"),
+    ("K10 1e-8", dict(k=_k(k10=1e-8)), InputValueError, r"^intrinsics must be \[\[fx.*got .*\[1e-08, 40\.0, 24\.0\]"),
+    ("K nan", dict(k=_k(k02=math.nan)), InputValueError, r"^intrinsics contains 1 non-finite value"),
+    ("K 3x4", dict(k=torch.zeros(3, 4, dtype=F64)), ShapeError, r"^intrinsics must have size 3 in dim -1.*got \[3, 4\]"),
+    ("K 4x4", dict(k=torch.eye(4, dtype=F64)), ShapeError, r"^intrinsics must have size 3 in dim -2.*got \[4, 4\]"),
+    ("K list", dict(k=K.tolist()), InputValueError, r"^intrinsics must be a torch\.Tensor, got list"),
+    ("K int", dict(k=K.long()), InputValueError, r"^world_to_camera and intrinsics must be floating-point.*torch\.int64"),
+    ("w2c int", dict(w2c=torch.eye(4, dtype=torch.int64)), InputValueError,
+     r"^world_to_camera and intrinsics must be floating-point, got torch\.int64"),
+    ("w2c zeros", dict(w2c=torch.zeros(4, 4, dtype=F64)), InputValueError, r"^world_to_camera: last row.*\[0\.0, 0\.0, 0\.0, 0\.0\]"),
+    ("w2c last row 1", dict(w2c=_w2c(m30=1.0)), InputValueError, r"^world_to_camera: last row.*\[1\.0, 0\.0, 0\.0, 1\.0\]"),
+    ("w2c last row 1e-5", dict(w2c=_w2c(m30=1e-5)), InputValueError, r"^world_to_camera: last row.*\[1e-05, 0\.0, 0\.0, 1\.0\]"),
+    ("w2c scaled", dict(w2c=_w2c(m00=2.0, m11=2.0, m22=2.0)), InputValueError, r"^world_to_camera: .*orthonormal.*det 8"),
+    ("w2c scaled 1.002", dict(w2c=_w2c(m00=1.002)), InputValueError, r"^world_to_camera: .*orthonormal.*up to 0\.004, det 1\.002"),
+    ("w2c scaled 1.00075", dict(w2c=_w2c(m00=1.00075)), InputValueError, r"^world_to_camera: .*orthonormal.*up to 0\.0015"),
+    ("w2c mirrored", dict(w2c=_w2c(m00=-1.0)), InputValueError, r"^world_to_camera: .*orthonormal.*det -1"),
+    ("w2c sheared", dict(w2c=_w2c(m01=0.3)), InputValueError, r"^world_to_camera: .*orthonormal.*up to 0\.3"),
+    ("w2c nan", dict(w2c=_w2c(m03=math.nan)), InputValueError, r"^world_to_camera contains 1 non-finite value"),
+    ("w2c 3x4", dict(w2c=torch.eye(3, 4, dtype=F64)), ShapeError, r"^world_to_camera must have size 4 in dim -2.*got \[3, 4\]"),
+    ("w2c None", dict(w2c=None, none_pose=True), InputValueError, r"^world_to_camera must be a torch\.Tensor, got NoneType"),
 ]
 
 
-CAMERA_CASES = [
-    ("width='abc'", {"width": "abc"}, "width"), ("width=0", {"width": 0}, "width"), ("width=-3", {"width": -3}, "width"),
-    ("width=1.5", {"width": 1.5}, "width"), ("width=None", {"width": None}, "width"), ("width=True", {"width": True}, "width"),
-    ("height='x'", {"height": "x"}, "height"), ("height=0", {"height": 0}, "height"),
-    ("K zeros", {"intrinsics": torch.zeros(3, 3)}, "intrinsics"), ("K22=0", {"intrinsics": _k_2(k22=0.0)}, "intrinsics"),
-    ("K22=2", {"intrinsics": _k_2(k22=2.0)}, "intrinsics"), ("fx<0", {"intrinsics": _k_2(k00=-50.0)}, "intrinsics"),
-    ("fy=0", {"intrinsics": _k_2(k11=0.0)}, "intrinsics"), ("K20!=0", {"intrinsics": _k_2(k20=0.5)}, "intrinsics"),
-    ("K nan", {"intrinsics": _k_2(k02=math.nan)}, "intrinsics"), ("K 3x4", {"intrinsics": torch.zeros(3, 4)}, "intrinsics"),
-    ("K list", {"intrinsics": K.tolist()}, "intrinsics"), ("K int", {"intrinsics": K.long()}, "intrinsics"),
-    ("w2c zeros", {"world_to_camera": torch.zeros(4, 4)}, "world_to_camera"),
-    ("w2c scaled", {"world_to_camera": _w2c(lambda m: m[:3, :3].mul_(2.0))}, "world_to_camera"),
-    ("w2c mirrored", {"world_to_camera": _w2c(lambda m: m[0, 0].fill_(-1.0))}, "world_to_camera"),
-    ("w2c last row", {"world_to_camera": _w2c(lambda m: m[3, 0].fill_(1.0))}, "world_to_camera"),
-    ("w2c sheared", {"world_to_camera": _w2c(lambda m: m[0, 1].fill_(0.3))}, "world_to_camera"),
-    ("w2c nan", {"world_to_camera": _w2c(lambda m: m[0, 3].fill_(math.nan))}, "world_to_camera"),
-    ("w2c 3x4", {"world_to_camera": torch.eye(3, 4)}, "world_to_camera"),
-    ("w2c None", {"world_to_camera": None}, "world_to_camera"),
-]
+@pytest.mark.parametrize("kw, error, pattern", [c[1:] for c in CAMERA_REFUSALS], ids=[c[0] for c in CAMERA_REFUSALS])
+def test_camera_refuses_bad_sizes_intrinsics_and_poses_naming_them(kw: dict[str, Any], error: type, pattern: str) -> None:
+    kw = dict(kw)
+    if kw.pop("none_pose", False):
+        with pytest.raises(error, match=pattern):
+            Camera(None, K, 64, 48)  # type: ignore[arg-type]
+        return
+    with pytest.raises(error, match=pattern):
+        _camera(**kw)
 
 
-@pytest.mark.parametrize("kw, name", STATE_CASES, ids=[f"{k}={v!r}" for (kw, _) in STATE_CASES for k, v in kw.items()])
-def test_runtime_state(kw, name):
-    _raises(lambda: RuntimeState(**kw), StateError, name)
+def test_camera_accepts_what_lies_within_its_tolerances() -> None:
+    """Float32 round-off of a composed pose and more passes: K's last row within 1e-6, a rotation whose
+    R R^T is 5e-4 off the identity (a scale of 1.00025 or 1.0004), the pose's last row within 1e-6; a skew
+    is allowed; a 0-d integer tensor is a size."""
+    cam = _camera(w=torch.tensor(64), h=48)
+    assert (cam.width, cam.height) == (64, 48) and type(cam.width) is int
+    _camera(k=_k(k01=0.5))
+    _camera(k=_k(k22=1 + 5e-7))
+    _camera(w2c=_w2c(m30=5e-7))
+    for scale in (1.00025, 1.0004):  # |R R^T - I| = 2 (s - 1) + (s - 1)^2 against a tolerance of 1e-3
+        assert _camera(w2c=_w2c(m00=scale)).width == 64
 
 
-@pytest.mark.parametrize("kw, name", [c[1:] for c in CAMERA_CASES], ids=[c[0] for c in CAMERA_CASES])
-def test_camera(kw, name):
-    args = {"world_to_camera": EYE4, "intrinsics": K, "width": 64, "height": 48, **kw}
-    _raises(lambda: Camera(**args), (InputValueError, ShapeError), name)
+@pytest.mark.parametrize("fx, fy, name", [(5e-324, 16.0, "fx"), (16.0, 5e-324, "fy"), (1e-300, 16.0, "fx"),
+                                          (1e300, 16.0, "fx"), (16.0, 1e30, "fy"), (16.0 / FOCAL_RATIO / 2, 16.0, "fx")])
+def test_camera_refuses_focal_lengths_without_a_representable_fov(fx: float, fy: float, name: str) -> None:
+    k = torch.tensor([[fx, 0.0, 8.0], [0.0, fy, 6.0], [0.0, 0.0, 1.0]], dtype=F64)
+    with pytest.raises(InputValueError, match=rf"intrinsics: focal length {name} = K\[\d, \d\] must be in"):
+        Camera(torch.eye(4), k, 16, 12)
 
 
-@pytest.mark.parametrize("fov", [0.0, math.pi, -0.5, math.nan, "wide"])
-def test_scaffold_camera_fov(fov):
-    vc = types.SimpleNamespace(world_view_transform=torch.eye(4), image_width=64, image_height=48, FoVx=fov, FoVy=0.8)
-    _raises(lambda: Camera.from_scaffold(vc), InputValueError, "FoVx")
+@pytest.mark.parametrize("ratio", [1.001 / FOCAL_RATIO, 1.0, FOCAL_RATIO / 1.001])
+def test_fov_stays_inside_its_documented_range_at_the_focal_limits(ratio: float) -> None:
+    for dtype in (torch.float32, torch.float64):
+        k = torch.tensor([[16.0 * ratio, 0.0, 8.0], [0.0, 12.0 * ratio, 6.0], [0.0, 0.0, 1.0]], dtype=dtype)
+        cam = Camera(torch.eye(4, dtype=dtype), k, 16, 12)
+        for fov in cam.fov:
+            assert 0.0 < fov < math.pi
+        uv, _ = cam.project(torch.tensor([[0.5, -0.5, 1.0]], dtype=dtype))
+        assert bool(torch.isfinite(uv).all())
 
 
-D = torch.float64
+def test_fov_per_axis_by_hand_and_from_scaffold_round_trip():
+    """fov = (2 atan(W / 2fx), 2 atan(H / 2fy)) with fx != fy, and Camera.from_scaffold's FoVx, FoVy come
+    back out (3DGS's cameras carry the two angles)."""
+    cam = Camera(torch.eye(4), torch.tensor([[40.0, 0, 32.0], [0, 20.0, 24.0], [0, 0, 1]]), 64, 48)
+    fx, fy = cam.fov
+    assert math.isclose(fx, 2 * math.atan(0.8), rel_tol=1e-7) and math.isclose(fy, 2 * math.atan(1.2), rel_tol=1e-7)
+    vc = types.SimpleNamespace(world_view_transform=torch.eye(4), image_width=80, image_height=45, FoVx=1.2, FoVy=0.7)
+    got = Camera.from_scaffold(vc).fov
+    assert math.isclose(got[0], 1.2, rel_tol=1e-6) and math.isclose(got[1], 0.7, rel_tol=1e-6)
 
 
-def _camera(uid: int | None = None) -> Camera:
-    """Non-square camera about 5 units from the origin, turned 0.1 rad about y, principal point off centre."""
-    c, s = math.cos(0.1), math.sin(0.1)
-    w2c = torch.eye(4)
-    w2c[:3, :3] = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
-    w2c[:3, 3] = torch.tensor([-0.3, 0.2, 5.0])
-    k = torch.tensor([[52.0, 0.0, 37.0], [0.0, 47.0, 21.0], [0.0, 0.0, 1.0]])
-    return Camera(w2c, k, 72, 40, {} if uid is None else {"uid": uid})
+# ------------------------------------------------------------------------------ Camera: geometry
+def test_camera_centre_and_projection_by_hand():
+    # R = rotation by +90 deg about z (x -> y), t = (1, 2, 3): centre = -R^T t = -(2, -1, 3) = (-2, 1, -3)
+    w2c = torch.tensor([[0.0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]], dtype=F64)
+    cam = _camera(w2c=w2c, uid=7)
+    assert torch.allclose(cam.center, torch.tensor([-2.0, 1.0, -3.0], dtype=F64), atol=0)
+    assert cam.to_camera(cam.center[None]).tolist() == [[0.0, 0.0, 0.0]]
+    # world (1, 0, 1) -> camera R p + t = (0, 1, 1) + (1, 2, 3) = (1, 3, 4); u = 50 * 1/4 + 32, v = 40 * 3/4 + 24
+    p = torch.tensor([[1.0, 0.0, 1.0]], dtype=F64)
+    assert cam.to_camera(p).tolist() == [[1.0, 3.0, 4.0]]
+    uv, z = cam.project(p)
+    assert uv.tolist() == [[44.5, 54.0]] and z.tolist() == [4.0]
 
 
-def _centre(cam: Camera) -> torch.Tensor:
-    """Camera centre -R^T t in float64 from the world-to-camera matrix."""
-    w2c = cam.world_to_camera.to(D)
-    return -(w2c[:3, :3].T @ w2c[:3, 3])
-
-
-def test_camera_centre_of_a_turned_camera_by_hand():
+def test_project_divides_by_the_signed_depth_and_clamps_tiny_depths():
+    """``Camera.project`` docstring: a point at camera coordinates ``(x, y, -z)`` lands where ``(x, y, z)``
+    does, mirrored through the principal point; only ``|depth| < 1e-12`` is clamped to ``1e-12`` (never
+    inf or nan). Identity pose: world = camera coordinates."""
     cam = _camera()
-    torch.testing.assert_close(cam.center.to(D), _centre(cam), rtol=0, atol=1e-6)
-    torch.testing.assert_close(cam.to_camera(cam.center[None]), torch.zeros(1, 3), rtol=0, atol=1e-5)
+    pts = torch.tensor([[1.0, 3.0, -2.0], [1.0, 3.0, 2.0], [-4.0, 2.0, -0.5]], dtype=F64)
+    uv, z = cam.project(pts)
+    assert z.tolist() == [-2.0, 2.0, -0.5]
+    # (1, 3, -2): u = 50 * 1 / -2 + 32 = 7, v = 40 * 3 / -2 + 24 = -36; its mirror (1, 3, 2): (57, 84)
+    # (-4, 2, -0.5): u = 50 * -4 / -0.5 + 32 = 432, v = 40 * 2 / -0.5 + 24 = -136
+    assert uv.tolist() == [[7.0, -36.0], [57.0, 84.0], [432.0, -136.0]]
+    centre = torch.tensor([32.0, 24.0], dtype=F64)
+    assert torch.equal(uv[0] - centre, -(uv[1] - centre))
+    # a depth below 1e-12 in magnitude, on either side, is divided as +1e-12
+    uv0, _ = cam.project(torch.tensor([[1e-12, 0.0, -1e-13], [1e-12, 0.0, 1e-13]], dtype=F64))
+    assert torch.allclose(uv0, torch.tensor([[82.0, 24.0], [82.0, 24.0]], dtype=F64), rtol=1e-12, atol=0)
+    uv0, z0 = cam.project(torch.tensor([[1.0, 0.0, 0.0]], dtype=F64))  # on the camera plane: u = 50 * 1 / 1e-12 + 32
+    assert z0.tolist() == [0.0] and math.isclose(float(uv0[0, 0]), 5e13, rel_tol=1e-9) and float(uv0[0, 1]) == 24.0
 
 
+@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(0.5, 20))
+def test_normalized_screen_matches_pixel_convention(x, y, z):
+    k = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1]], dtype=F64)
+    cam = Camera(torch.eye(4, dtype=F64), k, 64, 48)
+    p = cam.normalized_screen(torch.tensor([[x, y, z]], dtype=F64))[0]
+    u, v = 50 * x / z + 32, 50 * y / z + 24
+    assert math.isclose(float(p[0]), 2 * u / 64 - 1, abs_tol=1e-9)
+    assert math.isclose(float(p[1]), 2 * v / 48 - 1, abs_tol=1e-9)
+
+
+def test_normalized_screen_puts_points_at_and_behind_the_camera_plane_at_inf():
+    # depth exactly 0 (the camera centre itself, and a point beside it) and depth < 0: +inf, never nan or -inf
+    k = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1]], dtype=F64)
+    cam = Camera(torch.eye(4, dtype=F64), k, 64, 48)
+    pts = torch.tensor([[0.0, 0.0, 0.0], [-1.0, 0.5, 0.0], [0.3, -0.2, -2.0], [0.3, -0.2, 2.0]], dtype=F64)
+    p = cam.normalized_screen(pts)
+    assert torch.equal(p[:3], torch.full((3, 2), float("inf"), dtype=F64))
+    assert torch.allclose(p[3], torch.tensor([2 * (50 * 0.15 + 32) / 64 - 1, 2 * (50 * -0.1 + 24) / 48 - 1], dtype=F64))
+
+
+@pytest.mark.parametrize("size, factor, want", [((64, 48), 3.0, (21, 16)), ((64, 48), 2.5, (26, 19)),
+                                                ((64, 48), 1000.0, (1, 1)), ((103, 77), 2.0, (52, 38)),
+                                                ((100, 60), 1.5, (67, 40)), ((10, 7), 3.0, (3, 2)), ((5, 3), 8.0, (1, 1))])
+def test_scaled_rounds_each_side_to_the_nearest_pixel_and_rescales_each_axis(size, factor, want):
+    """Camera.scaled(f): size round(size / f) per axis (never below one pixel), K's rows scaled by that
+    axis's own ratio (a 64 x 48 camera at f = 3 becomes 21 x 16: x by 21/64, y by 16/48); the pose and a
+    copy of ``extra`` are kept; the original camera is not changed."""
+    w, h = size
+    k = torch.tensor([[50.0, 0.0, w / 2], [0.0, 40.0, h / 2], [0.0, 0.0, 1.0]], dtype=F64)
+    w2c = torch.tensor([[0.0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]], dtype=F64)
+    cam = Camera(w2c, k, w, h, {"uid": 2})
+    small = cam.scaled(factor)
+    assert (small.width, small.height) == want
+    sx, sy = want[0] / w, want[1] / h
+    assert torch.allclose(small.intrinsics, torch.tensor([[50.0 * sx, 0.0, w / 2 * sx], [0.0, 40.0 * sy, h / 2 * sy],
+                                                          [0.0, 0.0, 1.0]], dtype=F64), rtol=1e-15, atol=0)
+    assert small.extra == {"uid": 2} and small.extra is not cam.extra and torch.equal(small.world_to_camera, w2c)
+    assert torch.equal(cam.intrinsics, k) and (cam.width, cam.height) == (w, h)
+    corner = w2c[:3, :3].T @ (torch.tensor([w / 2 / 50, h / 2 / 40, 1.0], dtype=F64) - w2c[:3, 3])  # lands on (w, h)
+    assert torch.allclose(cam.project(corner[None])[0], torch.tensor([[float(w), float(h)]], dtype=F64))
+    assert torch.allclose(small.project(corner[None])[0], torch.tensor([[float(want[0]), float(want[1])]], dtype=F64))
+
+
+@pytest.mark.parametrize("factor, pattern", [(0, "factor must be"), (-2, "factor must be"), (math.nan, "factor must be"),
+                                             ("2", "factor must be"), (None, "factor must be"), (HUGE, "factor must be"),
+                                             (5e-324, "factor 4.94066e-324 would give"), (1e-300, "factor 1e-300 would give")],
+                         ids=["0", "-2", "nan", "'2'", "None", "huge", "5e-324", "1e-300"])
+def test_scaled_refuses_bad_factors(factor: Any, pattern: str) -> None:
+    cam = _camera()
+    with pytest.raises(InputValueError, match=pattern):
+        cam.scaled(factor)
+    assert cam.scaled(2).width == 32
+
+
+# ------------------------------------------------------------------------------ Camera.from_scaffold
 def _scaffold_camera(w: int, h: int, fovx: float, fovy: float, uid: int | None = 3) -> types.SimpleNamespace:
     """A 3DGS/Scaffold-GS camera as its ``Camera`` class builds it: ``world_view_transform`` the
     transposed world-to-camera, ``full_proj_transform`` = view @ projection (row-vector convention)."""
     angle = 0.3
     r = torch.tensor([[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0], [-math.sin(angle), 0.0, math.cos(angle)]],
-                     dtype=torch.float64)
-    w2c = torch.eye(4, dtype=torch.float64)
-    w2c[:3, :3], w2c[:3, 3] = r, torch.tensor([0.2, -0.1, 3.0], dtype=torch.float64)
+                     dtype=F64)
+    w2c = torch.eye(4, dtype=F64)
+    w2c[:3, :3], w2c[:3, 3] = r, torch.tensor([0.2, -0.1, 3.0], dtype=F64)
     znear, zfar = 0.01, 100.0
     top, right = math.tan(fovy / 2) * znear, math.tan(fovx / 2) * znear
-    p = torch.zeros(4, 4, dtype=torch.float64)  # 3DGS getProjectionMatrix (symmetric frustum)
+    p = torch.zeros(4, 4, dtype=F64)  # 3DGS getProjectionMatrix (symmetric frustum)
     p[0, 0], p[1, 1] = 2 * znear / (2 * right), 2 * znear / (2 * top)
     p[3, 2], p[2, 2], p[2, 3] = 1.0, zfar / (zfar - znear), -(zfar * znear) / (zfar - znear)
     view = w2c.T
@@ -234,8 +337,8 @@ def _scaffold_camera(w: int, h: int, fovx: float, fovy: float, uid: int | None =
 def test_projection_matches_3dgs_ndc_to_pixel(w, h):
     vc = _scaffold_camera(w, h, 1.1, 0.9)
     cam = Camera.from_scaffold(vc)
-    pts = torch.tensor([[0.0, 0.0, 0.0], [0.4, -0.3, 0.5], [-0.5, 0.2, -0.4]], dtype=torch.float64)
-    hom = torch.cat([pts, torch.ones(3, 1, dtype=torch.float64)], dim=1) @ vc.full_proj_transform
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.4, -0.3, 0.5], [-0.5, 0.2, -0.4]], dtype=F64)
+    hom = torch.cat([pts, torch.ones(3, 1, dtype=F64)], dim=1) @ vc.full_proj_transform
     ndc = hom[:, :3] / hom[:, 3:]
     # 3DGS's ndc2Pix puts pixel centres at integers: ((ndc + 1) * S - 1) / 2; this library at i + 0.5
     want = torch.stack([((ndc[:, 0] + 1) * w - 1) / 2 + 0.5, ((ndc[:, 1] + 1) * h - 1) / 2 + 0.5], dim=1)
@@ -245,248 +348,6 @@ def test_projection_matches_3dgs_ndc_to_pixel(w, h):
     assert cam.intrinsics[0, 2].item() == w / 2 and cam.intrinsics[1, 2].item() == h / 2
     fx = w / (2 * math.tan(1.1 / 2))
     assert cam.intrinsics[0, 0].item() == pytest.approx(fx, rel=1e-6)
-
-
-def test_uid_carried_and_picks_the_appearance_code():
-    vc = _scaffold_camera(32, 24, 1.0, 0.8, uid=3)
-    cam = Camera.from_scaffold(vc)
-    assert cam.extra == {"uid": 3}
-    assert Camera.from_scaffold(_scaffold_camera(32, 24, 1.0, 0.8, uid=None)).extra == {}
-    with pytest.raises(InputValueError, match="uid"):
-        Camera.from_scaffold(_scaffold_camera(32, 24, 1.0, 0.8, uid=-1))
-    torch.manual_seed(0)
-    model = NeuralGaussianModel(6, feat_dim=8, n_offsets=2, appearance_dim=4, num_cameras=5)
-    with torch.no_grad():
-        model._anchor.copy_(torch.randn(6, 3) * 0.3)
-        model._anchor_feat.copy_(torch.randn(6, 8))
-        model.embedding_appearance.embedding.weight.copy_(torch.randn(5, 4) * 3)
-        model.mlp_opacity[2].bias.fill_(5.0)  # every Gaussian kept
-    want = model.decode(Camera(cam.world_to_camera, cam.intrinsics, 32, 24, {"uid": 3})).colors
-    code0 = model.decode(Camera(cam.world_to_camera, cam.intrinsics, 32, 24)).colors
-    got = model.decode(cam).colors
-    assert torch.equal(got, want)
-    assert (got - code0).abs().max() > 1e-2  # the code matters: uid 0 would decode other colours
-
-
-def test_scaled_rescales_each_axis_by_its_own_rounded_size():
-    """Camera.scaled(f): size round(size / f) per axis, K's rows scaled by that axis's ratio (a 64 x 48
-    camera at f = 3 becomes 21 x 16: x by 21/64, y by 16/48, not the same factor)."""
-    k = torch.tensor([[50.0, 0.0, 32.0], [0.0, 40.0, 24.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    cam = Camera(torch.eye(4, dtype=torch.float64), k, 64, 48, {"uid": 2})
-    small = cam.scaled(3.0)
-    assert (small.width, small.height, small.extra) == (21, 16, {"uid": 2})
-    want = torch.tensor([[50.0 * 21 / 64, 0.0, 32.0 * 21 / 64], [0.0, 40.0 * 16 / 48, 24.0 * 16 / 48], [0.0, 0.0, 1.0]],
-                        dtype=torch.float64)
-    assert torch.allclose(small.intrinsics, want, atol=1e-12, rtol=0)
-    corner = torch.tensor([[0.64, 0.6, 1.0]], dtype=torch.float64)  # projects to pixel (64, 48): the corner
-    assert torch.allclose(cam.project(corner)[0], torch.tensor([[64.0, 48.0]], dtype=torch.float64))
-    assert torch.allclose(small.project(corner)[0], torch.tensor([[21.0, 16.0]], dtype=torch.float64))
-
-
-def test_lifecycle_and_state_range_errors_are_distinct():
-    from controlgs_adapter import RuntimeState
-
-    with pytest.raises(StateRangeError) as e:
-        RuntimeState(downsample=0.5)
-    assert isinstance(e.value, StateError) and isinstance(e.value, ValueError)
-    assert not issubclass(LifecycleError, StateError) and issubclass(LifecycleError, RuntimeError)
-
-
-@pytest.mark.parametrize("size,factor,want", [((103, 77), 2.0, (52, 38)), ((100, 60), 1.5, (67, 40)),
-                                              ((10, 7), 3.0, (3, 2)), ((5, 3), 8.0, (1, 1))])
-def test_camera_scaled_rounds_each_side_to_the_nearest_pixel(size, factor, want):
-    """round(W / f), round(H / f) (at least 1), intrinsics scaled by each axis's own ratio."""
-    from controlgs_adapter import Camera
-
-    w, h = size
-    k = torch.tensor([[50.0, 0.0, w / 2], [0.0, 40.0, h / 2], [0.0, 0.0, 1.0]])
-    cam = Camera(torch.eye(4), k, w, h).scaled(factor)
-    assert (cam.width, cam.height) == want
-    torch.testing.assert_close(cam.intrinsics, torch.tensor([[50.0 * want[0] / w, 0.0, want[0] / 2],
-                                                             [0.0, 40.0 * want[1] / h, want[1] / 2], [0.0, 0.0, 1.0]]))
-
-
-@pytest.mark.parametrize("kw", [dict(downsample=0.5), dict(downsample=float("nan")), dict(power_saving=1.0),
-                                dict(power_saving=-0.1), dict(gaze=(2.0, 0.0))])
-def test_runtime_state_rejects_out_of_range(kw):
-    with pytest.raises(StateError) as e:
-        RuntimeState(**kw)
-    assert next(iter(kw)) in str(e.value)
-
-
-@given(st.floats(-3, 3), st.floats(-3, 3), st.floats(0.5, 20))
-def test_normalized_screen_matches_pixel_convention(x, y, z):
-    k = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1]], dtype=torch.float64)
-    cam = Camera(torch.eye(4, dtype=torch.float64), k, 64, 48)
-    p = cam.normalized_screen(torch.tensor([[x, y, z]], dtype=torch.float64))[0]
-    u, v = 50 * x / z + 32, 50 * y / z + 24
-    assert math.isclose(float(p[0]), 2 * u / 64 - 1, abs_tol=1e-9)
-    assert math.isclose(float(p[1]), 2 * v / 48 - 1, abs_tol=1e-9)
-
-
-def test_normalized_screen_puts_points_at_and_behind_the_camera_plane_at_inf():
-    # depth exactly 0 (the camera centre itself, and a point beside it) and depth < 0: +inf, never nan or -inf
-    k = torch.tensor([[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1]], dtype=torch.float64)
-    cam = Camera(torch.eye(4, dtype=torch.float64), k, 64, 48)
-    pts = torch.tensor([[0.0, 0.0, 0.0], [-1.0, 0.5, 0.0], [0.3, -0.2, -2.0], [0.3, -0.2, 2.0]], dtype=torch.float64)
-    p = cam.normalized_screen(pts)
-    assert torch.equal(p[:3], torch.full((3, 2), float("inf"), dtype=torch.float64))
-    assert torch.allclose(p[3], torch.tensor([2 * (50 * 0.15 + 32) / 64 - 1, 2 * (50 * -0.1 + 24) / 48 - 1],
-                                             dtype=torch.float64))
-
-
-def test_fov_per_axis_by_hand_and_from_scaffold_round_trip():
-    """fov = (2 atan(W / 2fx), 2 atan(H / 2fy)) with fx != fy (by hand), and Camera.from_scaffold's FoVx,
-    FoVy come back out (3DGS's cameras carry the two angles)."""
-    import types
-
-    cam = Camera(torch.eye(4), torch.tensor([[40.0, 0, 32.0], [0, 20.0, 24.0], [0, 0, 1]]), 64, 48)
-    fx, fy = cam.fov
-    assert math.isclose(fx, 2 * math.atan(0.8), rel_tol=1e-7) and math.isclose(fy, 2 * math.atan(1.2), rel_tol=1e-7)
-    vc = types.SimpleNamespace(world_view_transform=torch.eye(4), image_width=80, image_height=45, FoVx=1.2, FoVy=0.7)
-    got = Camera.from_scaffold(vc).fov
-    assert math.isclose(got[0], 1.2, rel_tol=1e-6) and math.isclose(got[1], 0.7, rel_tol=1e-6)
-
-
-def _camera_2(rot: torch.Tensor, t: tuple[float, float, float], f: float = 40.0, size: int = 32) -> Camera:
-    w2c = torch.eye(4, dtype=torch.float64)
-    w2c[:3, :3] = rot
-    w2c[:3, 3] = torch.tensor(t, dtype=torch.float64)
-    k = torch.tensor([[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    return Camera(w2c, k, size, size)
-
-
-# ------------------------------------------------------------------------------ camera rigidity
-def test_camera_refuses_a_rotation_0_15_percent_off_orthonormal_and_accepts_float32_round_off():
-    """``world_to_camera`` must be rigid: a rotation block whose R R^T is 1.5e-3 off the identity (a scale
-    of 1.00075 on one axis) is refused; 5e-4 off (float32 round-off of a composed pose and more) passes."""
-    off = torch.diag(torch.tensor([1.00075, 1.0, 1.0], dtype=torch.float64))
-    with pytest.raises(InputValueError, match="orthonormal"):
-        _camera_2(off, (0.0, 0.0, 0.0))
-    near = torch.diag(torch.tensor([1.00025, 1.0, 1.0], dtype=torch.float64))
-    assert _camera_2(near, (0.0, 0.0, 0.0)).width == 32
-
-
-F64 = torch.float64
-
-
-def test_project_divides_by_the_signed_depth_behind_the_camera():
-    """``Camera.project`` docstring: a point at camera coordinates ``(x, y, -z)`` lands where ``(x, y, z)``
-    does, mirrored through the principal point; only ``|depth| < 1e-12`` is clamped to ``1e-12``.
-    By hand with fx = 50, fy = 40, cx = 32, cy = 24 (identity pose: world = camera coordinates)."""
-    k = torch.tensor([[50.0, 0, 32.0], [0, 40.0, 24.0], [0, 0, 1]], dtype=F64)
-    cam = Camera(torch.eye(4, dtype=F64), k, 64, 48, {})
-    pts = torch.tensor([[1.0, 3.0, -2.0], [1.0, 3.0, 2.0], [-4.0, 2.0, -0.5]], dtype=F64)
-    uv, z = cam.project(pts)
-    assert z.tolist() == [-2.0, 2.0, -0.5]
-    # (1, 3, -2): u = 50 * 1 / -2 + 32 = 7, v = 40 * 3 / -2 + 24 = -36; its mirror (1, 3, 2): (57, 84)
-    # (-4, 2, -0.5): u = 50 * -4 / -0.5 + 32 = 432, v = 40 * 2 / -0.5 + 24 = -136
-    assert uv.tolist() == [[7.0, -36.0], [57.0, 84.0], [432.0, -136.0]]
-    centre = torch.tensor([32.0, 24.0], dtype=F64)
-    assert torch.equal(uv[0] - centre, -(uv[1] - centre))
-    # a depth below 1e-12 in magnitude, on either side, is divided as +1e-12
-    uv0, _ = cam.project(torch.tensor([[1e-12, 0.0, -1e-13], [1e-12, 0.0, 1e-13]], dtype=F64))
-    assert torch.allclose(uv0, torch.tensor([[82.0, 24.0], [82.0, 24.0]], dtype=F64), rtol=1e-12, atol=0)
-
-
-def _camera_3(w2c=None, k=None, w=64, h=48, **extra):
-    k = torch.tensor([[50.0, 0, 32.0], [0, 40.0, 24.0], [0, 0, 1]], dtype=torch.float64) if k is None else k
-    return Camera(torch.eye(4, dtype=torch.float64) if w2c is None else w2c, k, w, h, extra)
-
-
-def test_runtime_state_defaults_bounds_and_conversions():
-    s = RuntimeState()
-    assert (s.downsample, s.power_saving, s.gaze) == (1.0, 0.0, None)
-    s = RuntimeState(downsample=2, power_saving=torch.tensor(0.25), gaze=torch.tensor([1.0, -1.0]))
-    assert (s.downsample, s.power_saving, s.gaze) == (2.0, 0.25, (1.0, -1.0))  # gaze bounds are inclusive
-    assert type(s.downsample) is float and type(s.power_saving) is float
-    RuntimeState(downsample=1.0, power_saving=0.999999)  # the open upper bound's neighbourhood is fine
-    for kw, word in [(dict(downsample=0.999), "downsample must be a finite number >= 1"),
-                     (dict(downsample=float("inf")), "downsample must be a finite"),
-                     (dict(power_saving=float("nan")), "power_saving must be a finite"),
-                     (dict(power_saving=1.0), "in [0, 1)"), (dict(power_saving=-1e-9), "in [0, 1)"),
-                     (dict(downsample=True), "downsample must be a real number"),
-                     (dict(power_saving="0.1"), "power_saving must be a real number"),
-                     (dict(downsample=torch.tensor(2.0 + 0j)), "downsample must be a real number"),
-                     (dict(gaze=(0.0, 1.0001)), "gaze must be None or (x, y) in [-1, 1]^2"),
-                     (dict(gaze=(-1.0001, 0.0)), "gaze must be None or (x, y)"),
-                     (dict(gaze=(0.0, float("nan"))), "gaze must be None or (x, y)"),
-                     (dict(gaze=(0.0, 0.0, 0.0)), "gaze must be None or a pair"),
-                     (dict(gaze="ab"), "gaze must be None or a pair"),
-                     (dict(gaze=0.5), "gaze must be None or a pair"),
-                     (dict(gaze=(0.0, True)), "gaze must be a real number")]:
-        with pytest.raises(StateRangeError) as e:
-            RuntimeState(**kw)
-        assert word in str(e.value), kw
-
-
-def test_camera_refuses_bad_sizes_intrinsics_and_non_rigid_poses():
-    cam = _camera_3(w=torch.tensor(64), h=48)
-    assert (cam.width, cam.height) == (64, 48) and type(cam.width) is int
-    for kw, word in [(dict(w=0), "width must be an int >= 1 (pixels), got 0"), (dict(h=True), "height must be an int >= 1"),
-                     (dict(w=64.0), "width must be an int >= 1")]:
-        with pytest.raises(InputValueError, match=word.replace("(", r"\(").replace(")", r"\)")):
-            _camera_3(**kw)
-    k = torch.tensor([[50.0, 0, 32.0], [0, 40.0, 24.0], [0, 0, 1]], dtype=torch.float64)
-    _camera_3(k=k.clone().index_put_((torch.tensor(0), torch.tensor(1)), torch.tensor(0.5, dtype=torch.float64)))  # skew ok
-    for (i, j), v, word in [((0, 0), 0.0, "focal lengths"), ((1, 1), -1.0, "focal lengths"), ((2, 2), 1.00001, "must be [[fx"),
-                            ((2, 0), 1e-8, "must be [[fx"), ((2, 1), -1e-8, "must be [[fx"), ((1, 0), 1e-8, "must be [[fx")]:
-        bad = k.clone()
-        bad[i, j] = v
-        with pytest.raises(InputValueError, match="intrinsics") as e:
-            _camera_3(k=bad)
-        assert word in str(e.value), (i, j)
-    _camera_3(k=k.clone().index_put_((torch.tensor(2), torch.tensor(2)), torch.tensor(1 + 5e-7, dtype=torch.float64)))
-    with pytest.raises(InputValueError, match="floating-point"):
-        Camera(torch.eye(4, dtype=torch.int64), k, 64, 48)
-    with pytest.raises(ShapeError, match="intrinsics"):
-        Camera(torch.eye(4), torch.eye(4), 64, 48)
-    with pytest.raises(InputValueError, match="world_to_camera contains 1 non-finite"):
-        Camera(torch.eye(4).index_put_((torch.tensor(0), torch.tensor(3)), torch.tensor(float("nan"))), k, 64, 48)
-    w2c = torch.eye(4, dtype=torch.float64)
-    w2c[3, 0] = 1e-5
-    with pytest.raises(InputValueError, match="last row must be"):
-        _camera_3(w2c=w2c)
-    w2c = torch.eye(4, dtype=torch.float64)
-    w2c[3, 0] = 5e-7  # within the 1e-6 tolerance
-    _camera_3(w2c=w2c)
-    for scale, ok in [(1.0004, True), (1.002, False)]:  # |R R^T - I| = 2 (s - 1) + (s-1)^2 vs tol 1e-3
-        w2c = torch.eye(4, dtype=torch.float64)
-        w2c[0, 0] = scale
-        if ok:
-            _camera_3(w2c=w2c)
-        else:
-            with pytest.raises(InputValueError, match="orthonormal"):
-                _camera_3(w2c=w2c)
-    mirror = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64))
-    with pytest.raises(InputValueError, match="det -1"):
-        _camera_3(w2c=mirror)
-
-
-def test_camera_centre_scaling_and_projection_by_hand():
-    # R = rotation by +90 deg about z (x -> y), t = (1, 2, 3): centre = -R^T t = -(2, -1, 3) = (-2, 1, -3)
-    w2c = torch.tensor([[0.0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]], dtype=torch.float64)
-    cam = _camera_3(w2c=w2c, uid=7)
-    assert torch.allclose(cam.center, torch.tensor([-2.0, 1.0, -3.0], dtype=torch.float64), atol=0)
-    # world (1, 0, 1) -> camera R p + t = (0, 1, 1) + (1, 2, 3) = (1, 3, 4); u = 50 * 1/4 + 32, v = 40 * 3/4 + 24
-    p = torch.tensor([[1.0, 0.0, 1.0]], dtype=torch.float64)
-    assert cam.to_camera(p).tolist() == [[1.0, 3.0, 4.0]]
-    uv, z = cam.project(p)
-    assert uv.tolist() == [[44.5, 54.0]] and z.tolist() == [4.0]
-    # a point on the camera plane: depth 0 is divided as 1e-12 (finite, not inf): u = 50 * 1 / 1e-12 + 32
-    uv0, z0 = _camera_3().project(torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64))
-    assert z0.tolist() == [0.0] and math.isclose(float(uv0[0, 0]), 5e13, rel_tol=1e-9) and float(uv0[0, 1]) == 24.0
-    # scaled by 3: round(64 / 3) = 21, round(48 / 3) = 16 pixels; K rows rescaled by 21/64 and 16/48
-    s = cam.scaled(3.0)
-    assert (s.width, s.height) == (21, 16)
-    want = torch.tensor([[50 * 21 / 64, 0, 32 * 21 / 64], [0, 40 / 3, 8.0], [0, 0, 1]], dtype=torch.float64)
-    assert torch.allclose(s.intrinsics, want, rtol=1e-15, atol=0)
-    assert s.extra == {"uid": 7} and s.extra is not cam.extra and torch.equal(s.world_to_camera, w2c)
-    assert torch.equal(cam.intrinsics[0, 0], torch.tensor(50.0, dtype=torch.float64))  # not scaled in place
-    s = cam.scaled(2.5)  # 64 / 2.5 = 25.6 -> 26 (rounded, not floored), 48 / 2.5 = 19.2 -> 19
-    assert (s.width, s.height) == (26, 19)
-    tiny_cam = cam.scaled(1000.0)
-    assert (tiny_cam.width, tiny_cam.height) == (1, 1)  # never below one pixel
 
 
 def test_camera_from_scaffold_by_hand():
@@ -506,17 +367,54 @@ def test_camera_from_scaffold_by_hand():
     assert Camera.from_scaffold(vc).extra == {"uid": 0}
     vc.uid = None
     assert Camera.from_scaffold(vc).extra == {}
-    vc.uid = -1
-    with pytest.raises(InputValueError, match="uid must be an int >= 0, got -1"):
-        Camera.from_scaffold(vc)
-    vc.uid, vc.image_height = 0, 0
-    with pytest.raises(InputValueError, match="image_height must be an int >= 1"):
-        Camera.from_scaffold(vc)
-    vc.image_height, vc.FoVy = 40, math.pi
-    with pytest.raises(InputValueError, match=r"FoVy must be a field of view in \(0, pi\)"):
+    del vc.uid
+    assert Camera.from_scaffold(vc).extra == {}
+
+
+FROM_SCAFFOLD_REFUSALS = [
+    ("FoVx 0", dict(FoVx=0.0), r"FoVx must be a field of view in \(0, pi\).*got 0\.0"),
+    ("FoVx pi", dict(FoVx=math.pi), r"FoVx must be a field of view in \(0, pi\).*got 3\.14159"),
+    ("FoVx -0.5", dict(FoVx=-0.5), r"FoVx must be a field of view.*got -0\.5"),
+    ("FoVx nan", dict(FoVx=math.nan), r"FoVx must be a field of view.*got nan"),
+    ("FoVx huge", dict(FoVx=HUGE), r"FoVx must be a field of view.*got inf"),
+    ("FoVx 'wide'", dict(FoVx="wide"), r"FoVx must be a real number, got 'wide'"),
+    ("FoVy pi", dict(FoVy=math.pi), r"FoVy must be a field of view in \(0, pi\).*got 3\.14159"),
+    ("FoVx 5e-324", dict(FoVx=5e-324), r"FoVx = 5e-324 rad gives a focal length of inf px for 16 px"),
+    ("FoVy pi - 1e-15", dict(FoVy=math.pi - 1e-15), r"FoVy = 3\.14159\d* rad gives a focal length of .* for 12 px"),
+    ("image_width huge", dict(image_width=HUGE), r"image_width must be an int <= \d+ \(pixels\), got an int of"),
+    ("image_height 0", dict(image_height=0), r"image_height must be an int >= 1 \(pixels\), got 0"),
+    ("uid huge", dict(uid=HUGE), r"uid must be an int < 2\^63.*got an int of"),
+    ("uid -1", dict(uid=-1), r"uid must be an int >= 0, got -1"),
+]
+
+
+@pytest.mark.parametrize("kw, pattern", [c[1:] for c in FROM_SCAFFOLD_REFUSALS], ids=[c[0] for c in FROM_SCAFFOLD_REFUSALS])
+def test_from_scaffold_refuses_sizes_ids_and_fovs_without_a_usable_focal_length(kw: dict[str, Any], pattern: str) -> None:
+    vc = types.SimpleNamespace(**{"world_view_transform": torch.eye(4), "image_width": 16, "image_height": 12,
+                                  "FoVx": 1.0, "FoVy": 1.0, "uid": 0, **kw})
+    with pytest.raises(InputValueError, match=pattern):
         Camera.from_scaffold(vc)
 
 
+def test_the_cameras_uid_picks_the_appearance_code():
+    """A Scaffold-GS camera's ``uid`` travels in ``Camera.extra`` and selects the reference model's
+    appearance embedding (another uid decodes other colours)."""
+    cam = Camera.from_scaffold(_scaffold_camera(32, 24, 1.0, 0.8, uid=3))
+    torch.manual_seed(0)
+    model = NeuralGaussianModel(6, feat_dim=8, n_offsets=2, appearance_dim=4, num_cameras=5)
+    with torch.no_grad():
+        model._anchor.copy_(torch.randn(6, 3) * 0.3)
+        model._anchor_feat.copy_(torch.randn(6, 8))
+        model.embedding_appearance.embedding.weight.copy_(torch.randn(5, 4) * 3)
+        model.mlp_opacity[2].bias.fill_(5.0)  # every Gaussian kept
+    want = model.decode(Camera(cam.world_to_camera, cam.intrinsics, 32, 24, {"uid": 3})).colors
+    code0 = model.decode(Camera(cam.world_to_camera, cam.intrinsics, 32, 24)).colors
+    got = model.decode(cam).colors
+    assert torch.equal(got, want)
+    assert (got - code0).abs().max() > 1e-2  # the code matters: uid 0 would decode other colours
+
+
+# ------------------------------------------------------------------------------ stages at a state
 def _img(values: list[float], h: int = 1, w: int = 1) -> torch.Tensor:
     """A [3, h, w] float64 image with channel c constant at values[c]."""
     return torch.tensor(values, dtype=D)[:, None, None].expand(3, h, w).clone()
@@ -568,6 +466,7 @@ def test_active_passes_the_native_size_to_the_stages():
     assert p.active(RuntimeState()) == []  # no size known: (0, 0)
 
 
+# ------------------------------------------------------------------------------ the splatter
 BOTH = [rasterize, rasterize_reference]
 
 
@@ -687,5 +586,3 @@ def test_opacity_exactly_at_the_clamp_keeps_its_gradient() -> None:
             (grad,) = torch.autograd.grad(out.alpha[0, 8, 8], op)
             assert float(grad) == pytest.approx(want, abs=1e-12), (fn.__name__, o)
 
-
-pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
