@@ -155,6 +155,8 @@ class TrainConfig:
                    "checkpoint_every": dict(integer=True, low=0), "seed": dict(integer=True, low=0, high=2**63 - 1),
                    "batch_size": dict(integer=True, low=1)}
         for name, limits in numbers.items():
+            if limits.get("integer"):  # counts and sizes fit an int64 (a float product of them stays finite)
+                limits = {"high": 2**63 - 1, **limits}
             object.__setattr__(self, name, check_number(f"TrainConfig.{name}", getattr(self, name), **limits))
         if not isinstance(self.state_blind, bool):
             raise InputValueError(f"TrainConfig.state_blind must be a bool, got {self.state_blind!r}")

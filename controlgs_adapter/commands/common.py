@@ -208,6 +208,8 @@ def check_options(args: argparse.Namespace) -> None:
     for dest, limits in _NUMBER_OPTIONS.items():
         value = getattr(args, dest, None)
         if value is not None:
+            if limits.get("integer"):  # counts and sizes fit an int64 (--iterations 10**400 is one line)
+                limits = {"high": 2**63 - 1, **limits}
             check_number("--" + dest.replace("_", "-"), value, **limits)
     if getattr(args, "effects", None) is not None:
         effects_from(args.effects)

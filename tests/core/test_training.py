@@ -1015,3 +1015,10 @@ def test_views_of_any_size_and_a_plain_sequence(tiny):
     t.train(progress=False)
     t.cgs.unwrap()
     assert len(t.history) == 2 and all(math.isfinite(v) for v in t.history)
+
+
+@pytest.mark.parametrize("name", ["iterations", "cond_dim", "checkpoint_every", "batch_size"])
+def test_train_config_counts_fit_int64(name: str) -> None:
+    with pytest.raises(InputValueError, match=f"TrainConfig.{name} must be an integer in"):
+        TrainConfig(**{name: 10**400})
+    assert getattr(TrainConfig(**{name: 2**40}), name) == 2**40
