@@ -1,16 +1,21 @@
-"""Tests of ``controlgs_adapter.benchmarking.accuracy_time``."""
+"""Tests of ``controlgs_adapter.benchmarking.accuracy_time``: the benchmark's settings, the knobs it trains, the
+phase timings, the interleaved median timer, the SS rows and the render overhead, and a tiny run end to end."""
 
 from __future__ import annotations
 
 import math
-import re
+import os
 import time
 from typing import Any
 
 import pytest
+import torch
+from helpers.markdown_tables import positive, table_rows
 
 import controlgs_adapter.benchmarking.accuracy_time as at
 import controlgs_adapter.evaluation as evaluation
+import controlgs_adapter.rendering.protocol as protocol
+from controlgs_adapter import ControlGS
 from controlgs_adapter.benchmarking.accuracy_time import (
     COND_DIMS,
     MODULE_SETS,
@@ -22,89 +27,13 @@ from controlgs_adapter.benchmarking.accuracy_time import (
 )
 from controlgs_adapter.benchmarking.report import PART_DOCS, format_report, write_report
 from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.evaluation import GridResult
+from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_backbone, load_builtin_scene
 from controlgs_adapter.training import TrainConfig, Trainer
 
 
-def _table_rows(text: str, header_start: str) -> list[list[str]]:
-    """Cells of the Markdown table whose header line starts with ``header_start``."""
-    lines = text.splitlines()
-    i = next(k for k, line in enumerate(lines) if line.startswith(header_start))
-    rows = []
-    for line in lines[i + 2:]:
-        if not line.startswith("|"):
-            break
-        rows.append([c.strip() for c in line.strip("|").split("|")])
-    return rows
+# ----------------------------------------------------------------------------- settings and knobs
 
-
-def _positive(cell: str) -> float:
-    value = float(re.sub(r"[^0-9.eE+-]", "", cell))
-    assert math.isfinite(value) and value > 0, cell
-    return value
-
-
-def test_bench_report_tiny(tmp_path):
-    s = BenchSettings(resolution=16, iterations=2, phase_iterations=1, repeats=1, test_views=1,
-                      downsample=(1.0, 2.0), power_saving=(0.0, 0.6))
-    t0 = time.perf_counter()
-    r = run_bench(s)
-    wall = time.perf_counter() - t0
-    for k in r.knobs:  # a step's median time: positive, and a small part of the whole run
-        assert 0 < k["s_per_it"] < wall / s.iterations, k
-    r.info["date"] = "test"
-    text = format_report(r, "controlgs bench --test")
-    path = write_report(text, tmp_path / "benchmarks.md")
-    assert path.read_text() == text
-
-    phases = _table_rows(text, "| optics |")
-    assert [row[0] for row in phases] == list(PSF_MODES)
-    for mode, p in r.phases.items():  # the PSF phase is timed by hooks on the real optics stage: > 0 in every mode
-        assert all(math.isfinite(v) and v > 0 for v in p.values()), (mode, p)
-        assert p["total"] >= sum(v for k, v in p.items() if k != "total") * 0.999
-
-    knobs = _table_rows(text, "| knob |")
-    settings = [row[1] for row in knobs]
-    assert set(PSF_MODES) <= set(settings)
-    assert {f"N={n}" for n in COND_DIMS if n != 8} <= set(settings)
-    assert {"+".join(m) for m in MODULE_SETS if len(m) < 3} <= set(settings)
-    for row in knobs:
-        _positive(row[2])  # ms / iteration
-        assert math.isfinite(float(row[3])) and math.isfinite(float(row[4]))
-    ref = next(row for row in knobs if row[0] == "reference")
-    assert float(ref[4]) == 0.0
-
-    ss = _table_rows(text, "| d |")
-    assert [float(row[0]) for row in ss] == [1.0, 2.0]
-    for row in ss:
-        _positive(row[1]), _positive(row[2]), _positive(row[3]), _positive(row[4]), _positive(row[5])
-
-    overhead = _table_rows(text, "| | SS-backbone |")
-    assert [row[0] for row in overhead][:3] == ["render time (ms)", "parameters", "storage (float32)"]
-    _positive(overhead[0][1]), _positive(overhead[0][2])
-    assert r.overhead["bytes_adapter_fp16"] < r.overhead["bytes_adapter"]
-    # reference adapter: N = 8 per anchor for each of the three modules, plus the projections
-    assert r.overhead["params_conditions"] == r.info["anchors"] * 3 * 8 < r.overhead["params_adapter"]
-    for doc, _, _ in PART_DOCS:
-        assert f"]({doc})" in text
-
-
-def test_bench_is_quiet_unless_asked_for_progress(capsys):
-    """``run_bench(progress=False)`` (the default, as a library call) writes nothing to stderr or stdout;
-    with ``progress=True`` it names its phases on stderr, starting with the phase timings."""
-    from controlgs_adapter.benchmarking.accuracy_time import BenchSettings, run_bench
-
-    s = BenchSettings(resolution=16, iterations=1, phase_iterations=1, repeats=1, test_views=1,
-                      downsample=(1.0,), power_saving=(0.0,))
-    run_bench(s)
-    quiet = capsys.readouterr()
-    assert (quiet.out, quiet.err) == ("", "")
-    run_bench(s, progress=True)
-    loud = capsys.readouterr()
-    assert loud.out == ""
-    assert loud.err.splitlines()[0] == "training phases"
-
-
-# ---------------------------------------------------------------- settings and knobs
 def test_bench_settings_defaults() -> None:
     s = BenchSettings()
     assert (s.resolution, s.iterations, s.phase_iterations, s.repeats, s.test_views) == (64, 100, 40, 20, 4)
@@ -112,12 +41,15 @@ def test_bench_settings_defaults() -> None:
     assert s.variant == "ar" and s.seed == TrainConfig.seed
     assert (at.DEFAULT_ITERATIONS, at.QUICK_ITERATIONS) == (100, 20)
     assert at.COND_DIMS == (2, 4, 8, 16) and at.PSF_MODES == ("distortion", "fast", "exact")
+    assert at.psf_keywords("distortion") == {"psf_fraction": 0.0}
+    assert at.psf_keywords("fast") == {"psf_fraction": 1.0, "psf_mode": "fast"}
+    assert at.psf_keywords("exact") == {"psf_fraction": 1.0, "psf_mode": "exact"}
 
 
 @pytest.mark.parametrize("name", ["resolution", "iterations", "phase_iterations", "repeats", "test_views"])
 def test_bench_settings_refuse_counts_below_one(name: str) -> None:
     BenchSettings(**{name: 1})  # the bound itself is allowed
-    with pytest.raises(InputValueError, match=f"{name} must be >= 1, got 0"):
+    with pytest.raises(InputValueError, match=f"{name}.*got 0$"):
         BenchSettings(**{name: 0})
 
 
@@ -147,7 +79,8 @@ def test_knob_configs_list() -> None:
     assert (c.cond_dim, c.modules, c.psf_fraction, c.psf_mode) == (8, None, 0.1, "fast")  # None: every module
 
 
-# ---------------------------------------------------------------- the interleaved median timer
+# ----------------------------------------------------------------------------- timings
+
 def test_median_times_interleaves_after_one_warm_up(monkeypatch: pytest.MonkeyPatch) -> None:
     """A fake clock that each call advances by a scripted duration: the medians are those of the
     scripted durations without the warm-up call (which is the slowest, so it would show)."""
@@ -172,18 +105,10 @@ def test_median_times_interleaves_after_one_warm_up(monkeypatch: pytest.MonkeyPa
     assert order == ["c", "c"]
 
 
-def test_psf_keywords() -> None:
-    assert at.psf_keywords("distortion") == {"psf_fraction": 0.0}
-    assert at.psf_keywords("fast") == {"psf_fraction": 1.0, "psf_mode": "fast"}
-    assert at.psf_keywords("exact") == {"psf_fraction": 1.0, "psf_mode": "exact"}
-
-
 def test_phase_times_configs_order_and_phases_adding_up(tiny: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     """Trainers recorded as the real ones run: one per mode with its optics for the whole run, the
     seed given, steps + 1 iterations (a warm-up), stepping in turn in a rotating order; with one timed
     step the phases of a mode add up to its total exactly (each is the one lap, not a median of sums)."""
-    from controlgs_adapter.training import Trainer
-
     scene, model = tiny
     made: list[Any] = []
     order: list[str] = []
@@ -219,8 +144,6 @@ def test_phase_times_configs_order_and_phases_adding_up(tiny: Any, monkeypatch: 
 
 def test_knob_results_trains_each_setting_in_turn_and_evaluates_them_all(tmp_path: Any,
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
-
     s = BenchSettings(resolution=16, iterations=2, test_views=1, downsample=(1.0, 2.0), power_saving=(0.0,), seed=5)
     scene = load_builtin_scene(s.variant, s.resolution, views=8, test_every=4, samples=1)
     assert len(scene.test_cameras) == 2  # more test views than the settings ask for
@@ -267,3 +190,126 @@ def test_knob_results_trains_each_setting_in_turn_and_evaluates_them_all(tmp_pat
         assert r["ssim"] == float(result.per_view[f"k{i}"]["ssim"].mean())
         assert r["s_per_it"] > 0
     assert len({r["psnr"] for r in rows}) > 1  # the settings train different adapters
+
+
+def test_ss_rows_read_the_rho_0_column_of_each_method(tiny: Any) -> None:
+    """A hand-made grid (rho = 0 second, so its index matters): per-view PSNR base + 10 i + p + v / 2, whose
+    view mean at (i, p) is base + 10 i + p + 0.25; the rows take p = 1 (rho = 0)."""
+    scene, model = tiny
+
+    def psnr(base: float) -> dict[str, torch.Tensor]:
+        i, p, v = torch.meshgrid(torch.arange(2.0), torch.arange(2.0), torch.arange(2.0), indexing="ij")
+        return {"psnr": (base + 10 * i + p + 0.5 * v).double()}
+
+    grid = GridResult(downsample=(1.0, 2.5), power_saving=(0.4, 0.0),
+                      per_view={"no_ss": psnr(100.0), "ss": psnr(200.0), "k0": psnr(300.0)})
+    sizes: list[tuple[int, Any, Any]] = []
+    real = protocol.render_view
+
+    def recorded(cgs: Any, m: Any, cam: Any, state: Any, *args: Any, **kw: Any) -> Any:
+        sizes.append((cam.width, cgs, state))
+        return real(cgs, m, cam, state, *args, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(protocol, "render_view", recorded)
+        rows = at.ss_rows(model, scene, grid, BenchSettings(repeats=1))
+    # per d: the bare backbone at S / d and at S (16 px), interleaved, a warm-up and one timed call each
+    assert sizes == [(16, None, None)] * 4 + [(round(16 / 2.5), None, None), (16, None, None)] * 2
+    assert [r["d"] for r in rows] == [1.0, 2.5]
+    assert [(r["psnr_no_ss"], r["psnr_ss"], r["psnr_controlgs"]) for r in rows] == [
+        (101.25, 201.25, 301.25), (111.25, 211.25, 311.25)]
+    assert all(r["render_s_no_ss"] > 0 and r["render_s_ss"] > 0 for r in rows)
+
+
+def test_render_overhead_counts_and_sizes(tiny: Any, tmp_path: Any) -> None:
+    scene, model = tiny
+    cgs = ControlGS.wrap(model)  # lens, resample, display with N = 8
+    adapter = cgs.save(tmp_path / "a.controlgs.safetensors")
+    cgs.unwrap()
+    seen: list[tuple[Any, ...]] = []
+    real = protocol.render_view
+
+    def recorded(cgs: Any, m: Any, cam: Any, state: Any, *args: Any, **kw: Any) -> Any:
+        seen.append((cgs is None, cam is scene.test_cameras[0], None if state is None else
+                     (state.downsample, state.power_saving)))
+        return real(cgs, m, cam, state, *args, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(protocol, "render_view", recorded)
+        o = at.render_overhead(model, scene, adapter, tmp_path, repeats=2)
+    # bare, then through the adapter at d = 2, rho = 0.4, on the first test camera: a warm-up and two timed calls
+    assert seen == [(True, True, None), (False, True, (2.0, 0.4))] * 3
+    assert o["render_s_ss"] > 0 and o["render_s_controlgs"] > 0
+    assert o["params_conditions"] == model.num_anchors * 3 * 8
+    assert o["params_backbone"] == float(sum(t.numel() for t in model.state_dict().values() if t.is_floating_point()))
+    assert o["params_conditions"] < o["params_adapter"] < o["params_conditions"] * 2
+    assert o["bytes_adapter"] == os.path.getsize(adapter)
+    fp16 = tmp_path / "fp16.controlgs.safetensors"
+    assert o["bytes_adapter_fp16"] == os.path.getsize(fp16)
+    # float16: the conditions take half the bytes (the header is the same order of size)
+    assert o["bytes_adapter"] - o["bytes_adapter_fp16"] >= 0.9 * 2 * o["params_conditions"]
+    folder = builtin_backbone_dir(scene.variant) / "point_cloud"
+    want = sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(folder) for f in files)
+    assert o["bytes_backbone"] == want > 0
+    assert not any(p.name.startswith("k0") for p in tmp_path.iterdir())  # writes only its fp16 copy
+
+
+# ----------------------------------------------------------------------------- run_bench
+
+def test_bench_report_tiny(tmp_path):
+    s = BenchSettings(resolution=16, iterations=2, phase_iterations=1, repeats=1, test_views=1,
+                      downsample=(1.0, 2.0), power_saving=(0.0, 0.6))
+    t0 = time.perf_counter()
+    r = run_bench(s)
+    wall = time.perf_counter() - t0
+    for k in r.knobs:  # a step's median time: positive, and a small part of the whole run
+        assert 0 < k["s_per_it"] < wall / s.iterations, k
+    r.info["date"] = "test"
+    text = format_report(r, "controlgs bench --test")
+    path = write_report(text, tmp_path / "benchmarks.md")
+    assert path.read_text() == text
+
+    phases = table_rows(text, "| optics |")
+    assert [row[0] for row in phases] == list(PSF_MODES)
+    for mode, p in r.phases.items():  # the PSF phase is timed by hooks on the real optics stage: > 0 in every mode
+        assert all(math.isfinite(v) and v > 0 for v in p.values()), (mode, p)
+        assert p["total"] >= sum(v for k, v in p.items() if k != "total") * 0.999
+
+    knobs = table_rows(text, "| knob |")
+    settings = [row[1] for row in knobs]
+    assert set(PSF_MODES) <= set(settings)
+    assert {f"N={n}" for n in COND_DIMS if n != 8} <= set(settings)
+    assert {"+".join(m) for m in MODULE_SETS if len(m) < 3} <= set(settings)
+    for row in knobs:
+        positive(row[2])  # ms / iteration
+        assert math.isfinite(float(row[3])) and math.isfinite(float(row[4]))
+    ref = next(row for row in knobs if row[0] == "reference")
+    assert float(ref[4]) == 0.0
+
+    ss = table_rows(text, "| d |")
+    assert [float(row[0]) for row in ss] == [1.0, 2.0]
+    for row in ss:
+        positive(row[1]), positive(row[2]), positive(row[3]), positive(row[4]), positive(row[5])
+
+    overhead = table_rows(text, "| | SS-backbone |")
+    assert [row[0] for row in overhead][:3] == ["render time (ms)", "parameters", "storage (float32)"]
+    positive(overhead[0][1]), positive(overhead[0][2])
+    assert r.overhead["bytes_adapter_fp16"] < r.overhead["bytes_adapter"]
+    # reference adapter: N = 8 per anchor for each of the three modules, plus the projections
+    assert r.overhead["params_conditions"] == r.info["anchors"] * 3 * 8 < r.overhead["params_adapter"]
+    for doc, _, _ in PART_DOCS:
+        assert f"]({doc})" in text
+
+
+def test_bench_is_quiet_unless_asked_for_progress(capsys):
+    """``run_bench(progress=False)`` (the default, as a library call) writes nothing to stderr or stdout;
+    with ``progress=True`` it names its phases on stderr, starting with the phase timings."""
+    s = BenchSettings(resolution=16, iterations=1, phase_iterations=1, repeats=1, test_views=1,
+                      downsample=(1.0,), power_saving=(0.0,))
+    run_bench(s)
+    quiet = capsys.readouterr()
+    assert (quiet.out, quiet.err) == ("", "")
+    run_bench(s, progress=True)
+    loud = capsys.readouterr()
+    assert loud.out == ""
+    assert loud.err.splitlines()[0] == "training phases"

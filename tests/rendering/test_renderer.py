@@ -1,4 +1,5 @@
-"""Tests of ``controlgs_adapter.rendering.renderer``."""
+"""Tests of ``controlgs_adapter.rendering.renderer``: the ``Renderer`` protocol, ``ModelRenderer`` (models that render
+themselves), ``FunctionRenderer`` (a render function and its return forms) and ``model_device``."""
 
 from __future__ import annotations
 
@@ -11,51 +12,8 @@ from helpers.scaffold_standin import ScaffoldStandIn
 from torch import nn
 
 from controlgs_adapter.errors import InputValueError
-from controlgs_adapter.rendering.protocol import FunctionRenderer, ModelRenderer, Renderer, as_renderer, model_device
+from controlgs_adapter.rendering.renderer import FunctionRenderer, ModelRenderer, Renderer, model_device
 from controlgs_adapter.state import Camera
-
-pytest.importorskip("skimage")
-
-
-
-# ---------------------------------------------------------------- render protocol pieces
-def test_function_renderer_unwraps_results() -> None:
-    img = torch.rand(3, 2, 2)
-
-    class Out:
-        color = img
-
-    r = FunctionRenderer(lambda m, c, v, b: {"render": img, "viewspace_points": None})
-    assert r.render(None, None, None, None) is img and r.visible(None, None) is None
-    assert FunctionRenderer(lambda m, c, v, b: Out()).render(None, None, None, None) is img
-    mask = torch.tensor([True, False])
-    assert FunctionRenderer(lambda *a: img, visible=lambda m, c: mask).visible(None, None) is mask
-    with pytest.raises(InputValueError, match="FunctionRenderer takes callables, got render=3"):
-        FunctionRenderer(3)  # type: ignore[arg-type]
-    fn = as_renderer(lambda m, c, v, b: img, None)
-    assert isinstance(fn, FunctionRenderer) and fn.render(None, None, None, None) is img
-    assert as_renderer(r, None) is r
-
-    class HalfRenderer:  # has the two names, but visible is not callable: not a Renderer
-        visible = None
-
-        def render(self, *a: Any) -> Any:
-            return img
-
-    with pytest.raises(InputValueError, match="got HalfRenderer"):
-        as_renderer(HalfRenderer(), None)
-
-
-def test_model_device_of_a_plain_object():
-    assert model_device(ScaffoldStandIn(num_anchors=5)) == torch.device("cpu")
-    assert model_device(object()) == torch.device("cpu")
-    assert model_device(torch.nn.Linear(2, 2).to(torch.device("meta"))) == torch.device("meta")
-
-    class Plain:
-        def __init__(self):
-            self.mlp = torch.nn.Linear(2, 2, device="meta")
-
-    assert model_device(Plain()) == torch.device("meta")
 
 
 def _camera(width: int = 4, height: int = 3) -> Camera:
@@ -78,7 +36,13 @@ class Renders:
         return self.out
 
 
-# ---------------------------------------------------------------- ModelRenderer
+def test_renderer_protocol_is_runtime_checkable() -> None:
+    assert isinstance(ModelRenderer(), Renderer) and isinstance(FunctionRenderer(lambda *a: None), Renderer)
+    assert not isinstance(lambda *a: None, Renderer)
+
+
+# ----------------------------------------------------------------------------- ModelRenderer
+
 def test_model_renderer_fits_needs_both_methods_callable() -> None:
     assert ModelRenderer.fits(Renders(None))
     assert not ModelRenderer.fits(SimpleNamespace(visible_anchors=lambda c: None))          # no render
@@ -100,7 +64,8 @@ def test_model_renderer_unwraps_color_and_passes_visible_and_background() -> Non
         assert model.seen[0][0] is vis and model.seen[0][1] is bg
 
 
-# ---------------------------------------------------------------- FunctionRenderer
+# ----------------------------------------------------------------------------- FunctionRenderer
+
 def test_function_renderer_unwraps_every_documented_return_form() -> None:
     image = torch.rand(3, 3, 4)
     calls: list[tuple[Any, ...]] = []
@@ -128,11 +93,14 @@ def test_function_renderer_visible_default_and_given() -> None:
     ids = torch.tensor([3, 1])
     r = FunctionRenderer(lambda *a: None, visible=lambda m, c: ids if (m, c) == ("m", cam) else None)
     assert r.visible("m", cam) is ids
+    mask = torch.tensor([True, False])
+    assert FunctionRenderer(lambda *a: None, visible=lambda m, c: mask).visible(None, None) is mask
 
 
 def test_function_renderer_refuses_non_callables_and_names_itself() -> None:
-    with pytest.raises(InputValueError, match="FunctionRenderer takes callables, got render=42"):
-        FunctionRenderer(42)  # type: ignore[arg-type]
+    for bad in (3, 42):
+        with pytest.raises(InputValueError, match=f"FunctionRenderer.*render={bad}"):
+            FunctionRenderer(bad)  # type: ignore[arg-type]
     with pytest.raises(InputValueError, match="visible='mask'"):
         FunctionRenderer(lambda *a: None, visible="mask")  # type: ignore[arg-type]
 
@@ -152,9 +120,15 @@ def test_function_renderer_refuses_non_callables_and_names_itself() -> None:
     assert repr(FunctionRenderer(CallableObj())) == "FunctionRenderer(obj)"
 
 
-# ---------------------------------------------------------------- model_device
+# ----------------------------------------------------------------------------- model_device
+
 def test_model_device_search_order() -> None:
+    """A module's parameters, then its buffers; a plain object's first tensor or module with parameters, in
+    attribute order; else the CPU."""
     meta = torch.device("meta")
+    assert model_device(ScaffoldStandIn(num_anchors=5)) == torch.device("cpu")
+    assert model_device(object()) == torch.device("cpu")
+    assert model_device(nn.Linear(2, 2).to(meta)) == meta
     only_buffers = nn.Module()
     only_buffers.register_buffer("b", torch.zeros(2, device=meta))
     assert model_device(only_buffers) == meta  # a module without parameters: its buffers
@@ -177,8 +151,3 @@ def test_model_device_search_order() -> None:
     assert model_device(Plain(nn.Linear(1, 1, device=meta), torch.zeros(1))) == meta
     assert model_device(Plain(torch.zeros(1), nn.Linear(1, 1, device=meta))) == torch.device("cpu")
     assert model_device(Plain(nn.ReLU())) == torch.device("cpu")
-
-
-def test_renderer_protocol_is_runtime_checkable() -> None:
-    assert isinstance(ModelRenderer(), Renderer) and isinstance(FunctionRenderer(lambda *a: None), Renderer)
-    assert not isinstance(lambda *a: None, Renderer)

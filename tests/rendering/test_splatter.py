@@ -1,20 +1,96 @@
-"""The splatter on degenerate Gaussians: scales far beyond the image (1e20, float32's largest) render a
-saturated footprint with finite gradients, equal to the float64 splat without the spread cap."""
+"""Tests of ``controlgs_adapter.rendering.splatter``: the tiled splatter against the float64 brute-force reference
+(images and gradients, float32 and float64), closed forms, early termination and its error bound, chunked and
+recomputed passes, degenerate Gaussians (needles, scales far beyond the image), invariances, and its refusals."""
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 import torch
+import torch.nn.functional as F
+from helpers.scaffold_oracle import camera_looking_down_z
+from helpers.splat_scenes import F64, camera_to_world_points, make_camera, random_scene
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.checks import value_checks
+from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.rendering import splatter
-from controlgs_adapter.rendering.splatter import rasterize
+from controlgs_adapter.rendering.splatter import RasterOutput, rasterize
+from controlgs_adapter.rendering.splatter_reference import rasterize_reference
 from controlgs_adapter.state import Camera
 
+#: a 16 x 12 float64 camera for the degenerate-Gaussian tests
 W, H = 16, 12
-CAM = Camera(torch.eye(4, dtype=torch.float64),
-             torch.tensor([[14.0, 0.0, 8.0], [0.0, 14.0, 6.0], [0.0, 0.0, 1.0]], dtype=torch.float64), W, H)
+CAM = Camera(torch.eye(4, dtype=F64), torch.tensor([[14.0, 0.0, 8.0], [0.0, 14.0, 6.0], [0.0, 0.0, 1.0]], dtype=F64), W, H)
+
+
+def _stack(out) -> torch.Tensor:
+    return torch.cat([out.color, out.alpha, out.depth])
+
+
+def _camera(f: float = 20.0, width: int = 24, height: int = 16) -> Camera:
+    """Identity pose, principal point at the image centre."""
+    k = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=F64)
+    return Camera(torch.eye(4, dtype=F64), k, width, height)
+
+
+def _one(mean: list[float], scale: list[float], q: list[float], o: float, color: list[float] | None = None
+         ) -> tuple[torch.Tensor, ...]:
+    """One float64 Gaussian (white unless ``color``)."""
+    return (torch.tensor([mean], dtype=F64), torch.tensor([scale], dtype=F64), torch.tensor([q], dtype=F64),
+            torch.tensor([o], dtype=F64), torch.tensor([color or [1.0, 1.0, 1.0]], dtype=F64))
+
+
+def _wide_scene():
+    """A 37 x 11 camera (unrotated, principal point off-centre) and Gaussians placed by pixel: inside,
+    straddling each border, entirely off-screen below and right, and one behind the near plane."""
+    w, h = 37, 11
+    k = torch.tensor([[30.0, 0, 17.3], [0, 28.0, 5.9], [0, 0, 1]], dtype=F64)
+    cam = Camera(torch.eye(4, dtype=F64), k, w, h)
+    # (u, v) pixel positions and depths
+    uv = torch.tensor([[5.0, 5.0], [18.0, 10.6], [36.4, 3.0], [-0.5, 7.0], [20.0, -0.4], [18.0, 12.5],
+                       [45.0, 5.0], [9.0, 2.0], [30.0, 8.0], [18.0, 5.0]], dtype=F64)
+    z = torch.tensor([2.0, 1.5, 3.0, 2.5, 1.2, 2.0, 2.0, 4.0, 0.15, 3.5], dtype=F64)
+    x = (uv[:, 0] - 17.3) / 30.0 * z
+    y = (uv[:, 1] - 5.9) / 28.0 * z
+    means = torch.stack([x, y, z], -1)
+    g = torch.Generator().manual_seed(3)
+    scales = 0.02 + 0.05 * torch.rand(10, 3, generator=g, dtype=F64)
+    rot = torch.randn(10, 4, generator=g, dtype=F64)
+    opac = 0.3 + 0.69 * torch.rand(10, generator=g, dtype=F64)
+    colors = torch.rand(10, 3, generator=g, dtype=F64)
+    return cam, (means, scales, rot, opac, colors)
+
+
+def _smooth_scene():
+    """A few wide Gaussians covering an 8x8 image: every pixel is well inside every footprint, alpha
+    stays in (1/255, 0.99) and T > 1e-4, so no cut-off lies within a finite-difference step."""
+    cam = Camera(torch.eye(4, dtype=F64), torch.tensor([[8.0, 0, 4.2], [0, 9.0, 3.9], [0, 0, 1]], dtype=F64), 8, 8)
+    means = torch.tensor([[0.05, -0.02, 2.0], [-0.1, 0.08, 2.5], [0.12, 0.1, 3.0]], dtype=F64)
+    scales = torch.tensor([[0.9, 0.6, 0.3], [0.7, 1.1, 0.5], [1.2, 0.8, 0.9]], dtype=F64)
+    rotations = torch.tensor([[0.9, 0.1, -0.2, 0.3], [0.5, 0.5, 0.1, -0.4], [1.2, -0.3, 0.2, 0.1]], dtype=F64)
+    opacities = torch.tensor([0.55, 0.7, 0.8], dtype=F64)
+    colors = torch.tensor([[0.9, 0.1, 0.2], [0.2, 0.8, 0.3], [0.1, 0.3, 0.9]], dtype=F64)
+    bg = torch.tensor([0.4, 0.4, 0.2], dtype=F64)
+    return (means, scales, rotations, opacities, colors, bg), cam
+
+
+def _opaque_stack(n: int = 40, seed: int = 2):
+    """Layers of large, fairly opaque Gaussians over a 23 x 17 image: most pixels terminate (T < 1e-4)."""
+    cam = make_camera()
+    g = torch.Generator().manual_seed(seed)
+    z = 1.0 + 3.0 * torch.rand(n, generator=g, dtype=F64)
+    xy = (torch.rand(n, 2, generator=g, dtype=F64) * 2 - 1) * 0.3 * z[:, None]
+    means = camera_to_world_points(cam, torch.cat([xy, z[:, None]], -1))
+    scales = 0.25 * z[:, None] * (0.5 + torch.rand(n, 3, generator=g, dtype=F64))
+    rotations = torch.randn(n, 4, generator=g, dtype=F64)
+    opacities = 0.5 + 0.5 * torch.rand(n, generator=g, dtype=F64)
+    colors = torch.rand(n, 3, generator=g, dtype=F64)
+    return (means, scales, rotations, opacities, colors), cam
 
 
 def _gaussians(big: float | None) -> list[torch.Tensor]:
@@ -44,6 +120,382 @@ def _uncapped(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(splatter, "MAX_SPREAD", math.inf)
     monkeypatch.setattr(splatter, "_MAX_SPREAD_PX", math.inf)
 
+
+# ----------------------------------------------------------------------------- against the float64 reference
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("tile_size", [4, 16])
+@pytest.mark.parametrize("t_min", [0.0, 1e-4])
+def test_matches_reference_float64(seed: int, tile_size: int, t_min: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Same threshold, same image; the depth-rank passes of early termination (here of 1, 2, 4, ...
+    records per tile) change nothing."""
+    monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
+    cam = make_camera()
+    scene = random_scene(seed, 60, cam)
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+    fast = rasterize(*scene, cam, bg, tile_size=tile_size, transmittance_min=t_min)
+    ref = rasterize_reference(*scene, cam, bg, transmittance_min=t_min)
+    assert fast.color.shape == (3, 17, 23) and fast.alpha.shape == fast.depth.shape == (1, 17, 23)
+    torch.testing.assert_close(_stack(fast), _stack(ref), rtol=1e-10, atol=1e-10)
+    assert torch.equal(fast.visible, ref.visible)
+    assert 0 < int(fast.visible.sum()) < 60  # some culled, some drawn: the scene exercises both
+
+
+def test_matches_reference_float32() -> None:
+    cam = make_camera(dtype=torch.float32)
+    scene = random_scene(11, 60, cam, dtype=torch.float32)
+    fast = rasterize(*scene, cam)
+    ref = rasterize_reference(*scene, cam)
+    assert fast.color.dtype == torch.float32
+    err = (_stack(fast).double() - _stack(ref)).abs()
+    assert float(err[:4].max()) < 1e-4  # colour and alpha
+    assert float(err[4].max()) < 1e-3  # depth (scene units ~5)
+
+
+def test_gradients_match_reference() -> None:
+    cam = make_camera()
+    scene = random_scene(3, 40, cam)
+    bg = torch.tensor([0.3, 0.1, 0.6], dtype=F64)
+    weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(0), dtype=F64)
+    grads = []
+    for fn in (rasterize, rasterize_reference):
+        inputs = [t.clone().requires_grad_() for t in (*scene, bg)]
+        loss = (_stack(fn(*inputs[:5], cam, inputs[5])) * weights).sum()
+        grads.append(torch.autograd.grad(loss, inputs))
+    for name, g_fast, g_ref in zip(("means", "scales", "rotations", "opacities", "colors", "background"), *grads):
+        assert float(g_ref.abs().max()) > 0, name
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-8, atol=1e-9, msg=name)
+
+
+def test_gradcheck() -> None:
+    inputs, cam = _smooth_scene()
+    ref = rasterize_reference(*inputs[:5], cam, inputs[5])
+    assert bool(ref.visible.all()) and float(ref.alpha.min()) > 0.1  # the scene is as intended
+    inputs = tuple(t.clone().requires_grad_() for t in inputs)
+
+    def fn(*args):
+        return _stack(rasterize(*args[:5], cam, args[5], tile_size=4))
+
+    # fast mode compares u^T J v (analytic) with finite differences for random u, v: any wrong entry of
+    # the Jacobian fails it; the full Jacobian (45 inputs x 320 outputs) would take ~20 s
+    torch.manual_seed(0)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6, fast_mode=True)
+
+
+@pytest.mark.parametrize("limits", [None, (40, 64)])
+def test_wide_image_borders_background_and_small_chunks_match_the_reference(limits, monkeypatch):
+    cam, scene = _wide_scene()
+    if limits is not None:  # chunks of a few tiles, passes of a few pairs
+        monkeypatch.setattr(splatter, "_KEY_LIMIT", limits[0])
+        monkeypatch.setattr(splatter, "_PAIR_BUDGET", limits[1])
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+    for t_min in (0.0, 0.3):
+        got = rasterize(*scene, cam, bg, tile_size=4, transmittance_min=t_min)
+        ref = rasterize_reference(*scene, cam, bg, transmittance_min=t_min)
+        for name in ("color", "alpha", "depth"):
+            assert torch.allclose(getattr(got, name), getattr(ref, name), atol=1e-10), (name, t_min)
+        assert torch.equal(got.visible, ref.visible)
+    # visibility by hand: off-screen right (45, 5) and behind the near plane (z = 0.15) are not visible
+    assert not got.visible[6] and not got.visible[8] and got.visible[[0, 1, 7, 9]].all()
+    # where nothing is drawn the pixel is the background colour exactly, with T = 1 - alpha elsewhere
+    empty = got.alpha[0] == 0
+    assert empty.any() and torch.equal(got.color[:, empty], bg[:, None].expand(3, int(empty.sum())))
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 30), tile_size=st.sampled_from([3, 4, 16]))
+def test_every_pair_above_alpha_min_is_enumerated(seed: int, n: int, tile_size: int) -> None:
+    """The candidate culling (alpha box, tiles, chunks) drops no (pixel, Gaussian) pair with alpha >= 1/255
+    inside the footprint (counted by brute force), and the image matches the float64 oracle."""
+    cam = make_camera(19, 13)
+    scene = random_scene(seed, n, cam)
+    enumerated = []
+    expand = splatter._chunk_passes
+
+    def counting(*args):
+        passes, first = expand(*args)
+        enumerated.extend(int((p.alpha > 0).sum()) for p in passes)
+        return passes, first
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(splatter, "_chunk_passes", counting)
+        fast = rasterize(*scene, cam, tile_size=tile_size, transmittance_min=0.0)
+    means, scales, rotations, opacities = scene[:4]
+    w2c, k = cam.world_to_camera, cam.intrinsics
+    means_cam = means @ w2c[:3, :3].t() + w2c[:3, 3]
+    front = means_cam[:, 2] > splatter.NEAR_PLANE
+    uv, cov2d, conic = splatter.project_gaussians(means_cam[front], scales[front], rotations[front], w2c, k, 19, 13)
+    rect, _ = splatter._footprints(uv, cov2d, opacities[front], 19, 13)
+    ys, xs = torch.meshgrid(torch.arange(13, dtype=F64), torch.arange(19, dtype=F64), indexing="ij")
+    dx = xs.reshape(-1, 1) + 0.5 - uv[:, 0]  # [HW, M]
+    dy = ys.reshape(-1, 1) + 0.5 - uv[:, 1]
+    alpha = opacities[front] * torch.exp(-0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) - conic[:, 1] * dx * dy)
+    ix, iy = xs.reshape(-1, 1), ys.reshape(-1, 1)
+    inside = (ix >= rect[:, 0]) & (ix <= rect[:, 1]) & (iy >= rect[:, 2]) & (iy <= rect[:, 3])
+    assert sum(enumerated) == int((inside & (alpha >= splatter.ALPHA_MIN)).sum())
+    torch.testing.assert_close(_stack(fast), _stack(rasterize_reference(*scene, cam, transmittance_min=0.0)),
+                               rtol=1e-10, atol=1e-10)
+
+
+def test_float32_needles_near_the_camera() -> None:
+    """Long thin Gaussians close to the camera have a nearly singular 2D covariance with huge entries:
+    the float32 determinant must not cancel (it would turn them into opaque slabs)."""
+    cam = Camera(torch.eye(4), torch.tensor([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]), 100, 100)
+    g = torch.Generator().manual_seed(0)
+    n = 12
+    means = torch.tensor([0.0, 0.0, 0.3]) + 0.05 * torch.randn(n, 3, generator=g)
+    scales = torch.tensor([[1e2, 1e-4, 1e-4]]).expand(n, 3)
+    args = (means, scales, torch.randn(n, 4, generator=g), torch.full((n,), 0.5), torch.rand(n, 3, generator=g))
+    fast, ref = rasterize(*args, cam), rasterize_reference(*args, cam)
+    assert float((fast.alpha.double() - ref.alpha).abs().max()) < 2e-3
+    assert float((fast.color.double() - ref.color).abs().max()) < 2e-3
+
+
+# ----------------------------------------------------------------------------- closed forms
+
+@pytest.mark.parametrize("x_over_z", [0.0, 0.25])
+def test_single_gaussian_closed_form(x_over_z: float) -> None:
+    """One isotropic Gaussian (sigma s) at (X, 0, Z): its 2D covariance is
+    s^2 [[f^2/Z^2 (1 + X^2/Z^2), 0], [0, f^2/Z^2]] + 0.3 I, so every pixel is known in closed form
+    (checks the conventions that the reference shares: Jacobian, low-pass, pixel centres, cut-offs)."""
+    f, z, s, o = 20.0, 2.0, 0.05, 0.8
+    x = x_over_z * z
+    cam = Camera(torch.eye(4, dtype=F64), torch.tensor([[f, 0, 8.0], [0, f, 8.0], [0, 0, 1]], dtype=F64), 24, 16)
+    args = (torch.tensor([[x, 0.0, z]], dtype=F64), torch.full((1, 3), s, dtype=F64),
+            torch.tensor([[1.0, 0, 0, 0]], dtype=F64), torch.tensor([o], dtype=F64),
+            torch.tensor([[0.2, 0.5, 1.0]], dtype=F64))
+    out = rasterize(*args, cam)
+    var_x = (s * f / z) ** 2 * (1 + x_over_z**2) + 0.3
+    var_y = (s * f / z) ** 2 + 0.3
+    u0, v0 = f * x_over_z + 8.0, 8.0
+    xs = torch.arange(24, dtype=F64) + 0.5 - u0
+    ys = torch.arange(16, dtype=F64) + 0.5 - v0
+    alpha = o * torch.exp(-0.5 * (ys[:, None] ** 2 / var_y + xs[None, :] ** 2 / var_x))
+    r = 3 * math.sqrt(max(var_x, var_y))
+    alpha = alpha * (xs.abs()[None, :] <= r) * (ys.abs()[:, None] <= r) * (alpha >= 1 / 255)
+    assert int((alpha > 0).sum()) >= 9
+    torch.testing.assert_close(out.alpha[0], alpha, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.color, alpha * args[4][0].view(3, 1, 1), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out.depth[0], alpha * z, rtol=1e-12, atol=1e-12)
+
+
+def test_background_is_weighted_by_the_remaining_transmittance():
+    """One Gaussian at the principal point, opacity 0.5: the centre pixel has alpha 0.5 exp(-m/2)
+    (m its Mahalanobis distance, the low-pass included), colour c alpha + bg (1 - alpha)."""
+    w = h = 5
+    k = torch.tensor([[10.0, 0, 2.5], [0, 10.0, 2.5], [0, 0, 1]], dtype=F64)
+    cam = Camera(torch.eye(4, dtype=F64), k, w, h)
+    s = 0.05
+    out = rasterize(torch.tensor([[0.0, 0.0, 1.0]], dtype=F64), torch.full((1, 3), s, dtype=F64),
+                    torch.tensor([[1.0, 0, 0, 0]], dtype=F64), torch.tensor([0.5], dtype=F64),
+                    torch.tensor([[1.0, 0.0, 0.0]], dtype=F64), cam, torch.tensor([0.0, 1.0, 0.0], dtype=F64))
+    var = (10.0 * s) ** 2 + 0.3  # px^2: (f s / z)^2 + low-pass, isotropic
+    a = 0.5  # the centre pixel (2.5, 2.5) sits on the mean
+    assert math.isclose(float(out.alpha[0, 2, 2]), a, rel_tol=1e-12)
+    assert torch.allclose(out.color[:, 2, 2], torch.tensor([a, 1 - a, 0.0], dtype=F64), atol=1e-12)
+    a1 = 0.5 * math.exp(-0.5 * 1.0 / var)  # one pixel to the right
+    assert torch.allclose(out.color[:, 2, 3], torch.tensor([a1, 1 - a1, 0.0], dtype=F64), atol=1e-12)
+
+
+def test_fast_path_output_types_and_shapes() -> None:
+    cam = _camera(width=10, height=7)
+    out = rasterize(*_one([0.0, 0.0, 2.0], [0.05, 0.05, 0.05], [1.0, 0, 0, 0], 0.5), cam)
+    assert isinstance(out, RasterOutput)
+    assert out.color.shape == (3, 7, 10) and out.alpha.shape == (1, 7, 10) and out.depth.shape == (1, 7, 10)
+    assert out.visible.dtype == torch.bool and out.visible.shape == (1,)
+
+
+def test_empty_scene_and_all_culled() -> None:
+    cam = make_camera()
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=F64)
+    empty = [torch.zeros(0, 3, dtype=F64), torch.zeros(0, 3, dtype=F64), torch.zeros(0, 4, dtype=F64),
+             torch.zeros(0, dtype=F64), torch.zeros(0, 3, dtype=F64)]
+    out = rasterize(*empty, cam, bg)
+    torch.testing.assert_close(out.color, bg.view(3, 1, 1).expand(3, 17, 23))
+    assert float(out.alpha.abs().max()) == 0 and out.visible.shape == (0,)
+    # everything behind the camera: background, nothing visible, and backward still runs (zero grads)
+    scene = [t.clone().requires_grad_() for t in random_scene(0, 10, cam, hard=False)]
+    with torch.no_grad():
+        scene[0].copy_(camera_to_world_points(cam, torch.tensor([[0.0, 0.0, -2.0]], dtype=F64).expand(10, 3)))
+    out = rasterize(*scene, cam, bg)
+    assert not bool(out.visible.any())
+    torch.testing.assert_close(out.color, bg.view(3, 1, 1).expand(3, 17, 23))
+    out.color.sum().backward()
+    assert all(float(t.grad.abs().max()) == 0 for t in scene if t.grad is not None)
+
+
+def test_supersampling_matches_direct_rendering_on_smooth_content() -> None:
+    """Area-pooling a render at S approximates rendering at camera.scaled(d) when the content is
+    band-limited: this pins the pixel-centre and intrinsics-scaling conventions (a half-pixel shift fails)."""
+    cam = make_camera(48, 32, yaw=0.0)
+    scene = list(random_scene(2, 30, cam, hard=False))
+    scene[1] = scene[1] * 0 + 0.3  # wide blobs, several pixels at S/2
+    pooled = F.avg_pool2d(rasterize(*scene, cam).color.unsqueeze(0), 2).squeeze(0)
+    small_cam = cam.scaled(2)
+    small = rasterize(*scene, small_cam).color
+    assert small.shape == pooled.shape == (3, 16, 24)
+    err = float((pooled - small).abs().mean())
+    assert err < 0.006
+    k = small_cam.intrinsics.clone()
+    k[0, 2] += 0.5  # the same camera with the principal point half a pixel off
+    shifted = rasterize(*scene, Camera(small_cam.world_to_camera, k, 24, 16)).color
+    assert float((pooled - shifted).abs().mean()) > 2 * err
+
+
+# ----------------------------------------------------------------------------- early termination, depth passes, chunks and the pair cache
+
+def test_early_termination_error_bound() -> None:
+    """Against the exact oracle (no termination), a terminated pixel's colour, alpha and depth are off by
+    at most ``T_stop max|f - f_bg|`` (``T_stop = 1 - alpha``, the transmittance it stopped at, which is
+    below ``transmittance_min / (1 - ALPHA_MAX)``); the other pixels are exact."""
+    scene, cam = _opaque_stack()
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+    for t_min in (1e-4, 1e-2):
+        fast = rasterize(*scene, cam, bg, transmittance_min=t_min)
+        torch.testing.assert_close(_stack(fast), _stack(rasterize_reference(*scene, cam, bg, transmittance_min=t_min)),
+                                   rtol=1e-10, atol=1e-10)
+        exact = rasterize_reference(*scene, cam, bg, transmittance_min=0.0)
+        err = (_stack(fast) - _stack(exact)).abs()  # [5, H, W]
+        t_stop = 1 - fast.alpha[0]
+        stopped = err.amax(0) > 1e-9  # beyond float64 rounding
+        assert int(stopped.sum()) > 0.5 * stopped.numel()  # the scene exercises termination
+        assert float(t_stop[stopped].max()) < t_min / (1 - splatter.ALPHA_MAX)
+        z = (scene[0] @ cam.world_to_camera[:3, :3].t() + cam.world_to_camera[:3, 3])[:, 2]
+        spread = torch.cat([(scene[4] - bg).abs().amax(0), torch.ones(1, dtype=F64), z.abs().amax().view(1)])
+        assert bool((err <= t_stop * spread.view(5, 1, 1) + 1e-10).all())
+
+
+def test_gradcheck_with_early_termination() -> None:
+    """Gradients of the drawn splats where pixels terminate (generic scene: no threshold crossing within
+    the finite-difference step)."""
+    scene, cam = _opaque_stack(n=8, seed=4)
+    scene = (*scene[:3], torch.full((8,), 0.93, dtype=F64), scene[4])
+    bg = torch.tensor([0.4, 0.4, 0.2], dtype=F64)
+    exact = rasterize_reference(*scene, cam, bg, transmittance_min=0.0)
+    assert not torch.allclose(_stack(rasterize(*scene, cam, bg)), _stack(exact), atol=1e-9)  # some pixels stop
+    inputs = tuple(t.clone().requires_grad_() for t in (*scene, bg))
+
+    def fn(*args):
+        return _stack(rasterize(*args[:5], cam, args[5], tile_size=4))
+
+    torch.manual_seed(0)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6, fast_mode=True)
+
+
+@pytest.mark.parametrize("budget", [64, 1 << 21])
+def test_exact_compositing_carries_the_transmittance_across_depth_passes(budget: int, monkeypatch) -> None:
+    """``transmittance_min=0`` composites every splat (rasterize's docstring). A chunk whose candidate
+    pairs exceed ``_PAIR_BUDGET`` is expanded in several depth passes; each pixel's later passes must start
+    from its transmittance after the earlier ones (a pass restarting at T = 1 gives alpha > 1 on a
+    crowded pixel). A tiny budget forces many passes on a small image; the float64 brute-force reference
+    decides, for the image and for the gradients."""
+    monkeypatch.setattr(splatter, "_PAIR_BUDGET", budget)
+    cam = make_camera()
+    scene = random_scene(5, 60, cam, hard=False)
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
+    weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(2), dtype=F64)
+
+    def run(fn: Any) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        inputs = [t.clone().requires_grad_() for t in scene]
+        out = fn(*inputs, cam, bg, transmittance_min=0.0)
+        stack = torch.cat([out.color, out.alpha, out.depth])
+        return stack.detach(), torch.autograd.grad((stack * weights).sum(), inputs)
+
+    got, got_grads = run(lambda *a, **k: rasterize(*a, tile_size=4, **k))
+    ref, ref_grads = run(rasterize_reference)
+    assert float(ref[3].max()) > 0.8  # crowded pixels: a pass restarting at T = 1 overshoots them
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-10)
+    for g, r in zip(got_grads, ref_grads):
+        torch.testing.assert_close(g, r, rtol=1e-8, atol=1e-8)
+
+
+@pytest.mark.parametrize("opaque", [False, True])
+def test_chunked_and_recomputed_backward_agree(opaque: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Chunks of two tiles, a tiny pair budget (many passes), no pair cache (backward recomputes) and
+    depth-rank passes of 1, 2, 4, ... records per tile give the same result."""
+    scene, cam = _opaque_stack() if opaque else (random_scene(5, 50, make_camera()), make_camera())
+    weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(1), dtype=F64)
+
+    def run():
+        inputs = [t.clone().requires_grad_() for t in scene]
+        out = _stack(rasterize(*inputs, cam, tile_size=4))
+        return out, torch.autograd.grad((out * weights).sum(), inputs)
+
+    out_a, grads_a = run()
+    monkeypatch.setattr(splatter, "_KEY_LIMIT", 2 * 16 + 1)
+    monkeypatch.setattr(splatter, "_PAIR_BUDGET", 64)
+    monkeypatch.setattr(splatter, "_CACHE_BYTES", 0)
+    monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
+    out_b, grads_b = run()
+    torch.testing.assert_close(out_b, out_a, rtol=1e-12, atol=1e-12)
+    for g_a, g_b in zip(grads_a, grads_b):
+        torch.testing.assert_close(g_b, g_a, rtol=1e-10, atol=1e-12)
+
+
+def test_a_tile_whose_pixels_all_terminated_takes_no_further_pass(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 3 x 3 image in one 4 x 4 tile (7 padding pixels, which no record covers and which count as
+    terminated from the start) under 12 wide splats of opacity 0.95 (alpha in (0.945, 0.95] at every pixel:
+    G > 0.995 within 1.5 px of the centre for the first four, sigma = 3 px x 20 / z >= 15 px): with one depth rank per pass (tiny pair budget), every
+    pixel draws three (T <= 0.055^3 = 1.7e-4 stays >= 1e-4) and stops at the fourth (T <= 0.055^4 < 1e-5),
+    so the tile is done after 4 passes; the 8 other ranks are never expanded."""
+    monkeypatch.setattr(splatter, "_PAIR_BUDGET", 4)
+    monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
+    calls: list[int] = []
+    expand = splatter._candidates
+
+    def counting(*args):  # type: ignore[no-untyped-def]
+        calls.append(int(args[3].numel()))
+        return expand(*args)
+
+    monkeypatch.setattr(splatter, "_candidates", counting)
+    k = torch.tensor([[3.0, 0.0, 1.5], [0.0, 3.0, 1.5], [0.0, 0.0, 1.0]], dtype=F64)
+    cam = Camera(torch.eye(4, dtype=F64), k, 3, 3)
+    n = 12
+    means = torch.tensor([[0.0, 0.0, 1.0 + i] for i in range(n)], dtype=F64)
+    out = rasterize(means, torch.full((n, 3), 20.0, dtype=F64), torch.tensor([[1.0, 0, 0, 0]] * n, dtype=F64),
+                    torch.full((n,), 0.95, dtype=F64), torch.rand(n, 3, generator=torch.Generator().manual_seed(0),
+                                                                  dtype=F64), cam, tile_size=4)
+    # three splats drawn: T = prod (1 - alpha_i) in [0.05^3, 0.055^3]
+    assert float(out.alpha.min()) >= 1 - 0.055**3 and float(out.alpha.max()) <= 1 - 0.05**3 + 1e-12
+    assert len(calls) == 4, calls
+
+
+def test_pairs_that_fit_the_cache_exactly_are_kept_for_backward(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A chunk's pairs are kept while they fit in ``_CACHE_BYTES`` (size <= what is left): with a cache of
+    exactly their size, backward reuses them (no second expansion); one byte less, it recomputes them;
+    the gradients agree."""
+    sizes: list[int] = []
+    expand = splatter._chunk_passes
+
+    def counting(*args):  # type: ignore[no-untyped-def]
+        passes, first = expand(*args)
+        sizes.append(sum(p.nbytes() for p in passes))
+        return passes, first
+
+    monkeypatch.setattr(splatter, "_chunk_passes", counting)
+    g = _one([0.0, 0.0, 2.0], [0.1, 0.05, 0.02], [0.9, 0.1, 0.2, 0.3], 0.8)
+    cam = _camera(width=12, height=10)  # one 16 px tile: one chunk
+
+    def grads(cache: int) -> tuple[int, torch.Tensor]:
+        monkeypatch.setattr(splatter, "_CACHE_BYTES", cache)
+        sizes.clear()
+        means = g[0].clone().requires_grad_(True)
+        out = rasterize(means, *g[1:], cam)
+        n_forward = len(sizes)
+        (grad,) = torch.autograd.grad(out.color.sum(), means)
+        return len(sizes) - n_forward, grad
+
+    grads(1 << 30)
+    size = sizes[0]
+    assert size > 0 and len(sizes) == 1
+    recomputed, exact_fit = grads(size)
+    assert recomputed == 0
+    recomputed, too_small = grads(size - 1)
+    assert recomputed == 1
+    torch.testing.assert_close(exact_fit, too_small, rtol=0, atol=0)
+
+
+# ----------------------------------------------------------------------------- Gaussians far beyond the image
 
 @pytest.mark.parametrize("big", [1e20, 1e30, float(torch.finfo(torch.float32).max)])
 def test_a_huge_gaussian_has_finite_gradients_equal_to_the_float64_splat(big: float, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -80,388 +532,12 @@ def test_without_the_cap_float32_gradients_are_nan(monkeypatch: pytest.MonkeyPat
     assert not bool(torch.isfinite(grads[1]).all())
 
 
-import types
-from typing import Any
-
-import torch.nn.functional as F
-from helpers.scaffold_oracle import camera_looking_down_z
-from helpers.splat_scenes import F64 as F64_2
-from helpers.splat_scenes import camera_to_world_points, random_scene
-from helpers.splat_scenes import make_camera as make_camera_2
-from helpers.splat_scenes import make_camera as make_camera_3
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
-from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
-from controlgs_adapter.errors import InputValueError, ShapeError
-from controlgs_adapter.rendering import rasterizers
-from controlgs_adapter.rendering.rasterizers import GsplatRasterizer
-from controlgs_adapter.rendering.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE, RasterOutput
-from controlgs_adapter.rendering.splatter_reference import rasterize_reference
-
-F64 = torch.float64
-
-
-def _wide_scene():
-    """A 37 x 11 camera (unrotated, principal point off-centre) and Gaussians placed by pixel: inside,
-    straddling each border, entirely off-screen below and right, and one behind the near plane."""
-    w, h = 37, 11
-    k = torch.tensor([[30.0, 0, 17.3], [0, 28.0, 5.9], [0, 0, 1]], dtype=F64)
-    cam = Camera(torch.eye(4, dtype=F64), k, w, h)
-    # (u, v) pixel positions and depths
-    uv = torch.tensor([[5.0, 5.0], [18.0, 10.6], [36.4, 3.0], [-0.5, 7.0], [20.0, -0.4], [18.0, 12.5],
-                       [45.0, 5.0], [9.0, 2.0], [30.0, 8.0], [18.0, 5.0]], dtype=F64)
-    z = torch.tensor([2.0, 1.5, 3.0, 2.5, 1.2, 2.0, 2.0, 4.0, 0.15, 3.5], dtype=F64)
-    x = (uv[:, 0] - 17.3) / 30.0 * z
-    y = (uv[:, 1] - 5.9) / 28.0 * z
-    means = torch.stack([x, y, z], -1)
-    g = torch.Generator().manual_seed(3)
-    scales = 0.02 + 0.05 * torch.rand(10, 3, generator=g, dtype=F64)
-    rot = torch.randn(10, 4, generator=g, dtype=F64)
-    opac = 0.3 + 0.69 * torch.rand(10, generator=g, dtype=F64)
-    colors = torch.rand(10, 3, generator=g, dtype=F64)
-    return cam, (means, scales, rot, opac, colors)
-
-
-@pytest.mark.parametrize("limits", [None, (40, 64)])
-def test_wide_image_borders_background_and_small_chunks_match_the_reference(limits, monkeypatch):
-    cam, scene = _wide_scene()
-    if limits is not None:  # chunks of a few tiles, passes of a few pairs
-        monkeypatch.setattr(splatter, "_KEY_LIMIT", limits[0])
-        monkeypatch.setattr(splatter, "_PAIR_BUDGET", limits[1])
-    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
-    for t_min in (0.0, 0.3):
-        got = rasterize(*scene, cam, bg, tile_size=4, transmittance_min=t_min)
-        ref = rasterize_reference(*scene, cam, bg, transmittance_min=t_min)
-        for name in ("color", "alpha", "depth"):
-            assert torch.allclose(getattr(got, name), getattr(ref, name), atol=1e-10), (name, t_min)
-        assert torch.equal(got.visible, ref.visible)
-    # visibility by hand: off-screen right (45, 5) and behind the near plane (z = 0.15) are not visible
-    assert not got.visible[6] and not got.visible[8] and got.visible[[0, 1, 7, 9]].all()
-    # where nothing is drawn the pixel is the background colour exactly, with T = 1 - alpha elsewhere
-    empty = got.alpha[0] == 0
-    assert empty.any() and torch.equal(got.color[:, empty], bg[:, None].expand(3, int(empty.sum())))
-
-
-def test_background_is_weighted_by_the_remaining_transmittance_by_hand():
-    """One Gaussian at the principal point, opacity 0.5: the centre pixel has alpha 0.5 exp(-m/2)
-    (m its Mahalanobis distance, the low-pass included), colour c alpha + bg (1 - alpha)."""
-    w = h = 5
-    k = torch.tensor([[10.0, 0, 2.5], [0, 10.0, 2.5], [0, 0, 1]], dtype=F64)
-    cam = Camera(torch.eye(4, dtype=F64), k, w, h)
-    s = 0.05
-    out = rasterize(torch.tensor([[0.0, 0.0, 1.0]], dtype=F64), torch.full((1, 3), s, dtype=F64),
-                    torch.tensor([[1.0, 0, 0, 0]], dtype=F64), torch.tensor([0.5], dtype=F64),
-                    torch.tensor([[1.0, 0.0, 0.0]], dtype=F64), cam, torch.tensor([0.0, 1.0, 0.0], dtype=F64))
-    var = (10.0 * s) ** 2 + 0.3  # px^2: (f s / z)^2 + low-pass, isotropic
-    a = 0.5  # the centre pixel (2.5, 2.5) sits on the mean
-    assert math.isclose(float(out.alpha[0, 2, 2]), a, rel_tol=1e-12)
-    assert torch.allclose(out.color[:, 2, 2], torch.tensor([a, 1 - a, 0.0], dtype=F64), atol=1e-12)
-    a1 = 0.5 * math.exp(-0.5 * 1.0 / var)  # one pixel to the right
-    assert torch.allclose(out.color[:, 2, 3], torch.tensor([a1, 1 - a1, 0.0], dtype=F64), atol=1e-12)
-
-
-@pytest.mark.parametrize("t_min", [1.0, -0.1, 1.5, "0.1"])
-def test_transmittance_min_outside_0_1_is_refused(t_min):
-    cam, scene = _wide_scene()
-    with pytest.raises(InputValueError, match="transmittance_min"):
-        rasterize(*scene, cam, transmittance_min=t_min)
-
-
-def _scene(n: int = 40, seed: int = 0, device: str = "cpu", max_opacity: float = 0.9):
-    g = torch.Generator().manual_seed(seed)
-    means = torch.rand(n, 3, generator=g) * 2 - 1
-    scales = torch.rand(n, 3, generator=g) * 0.15 + 0.02
-    rotations = torch.randn(n, 4, generator=g)
-    opacities = torch.rand(n, generator=g) * max_opacity
-    colors = torch.rand(n, 3, generator=g)
-    w2c = torch.eye(4)
-    w2c[2, 3] = 3.0
-    cam = Camera(w2c, torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]), 48, 32)
-    return [t.to(device) for t in (means, scales, rotations, opacities, colors)], cam
-
-
-def _fake_gsplat(version: str, seen: dict):
-    """A stand-in for the gsplat module whose ``rasterization`` renders with the project splatter,
-    checking the arguments the plug-in passes (gsplat's documented signature and shapes)."""
-
-    def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, near_plane, eps2d,
-                      packed, render_mode, backgrounds, rasterize_mode):
-        assert viewmats.shape == (1, 4, 4) and Ks.shape == (1, 3, 3) and render_mode == "RGB+D" and not packed
-        assert (near_plane, eps2d, rasterize_mode) == (NEAR_PLANE, LOW_PASS, "classic")
-        assert backgrounds is None or backgrounds.shape == (1, 3)
-        seen["opacities"] = opacities
-        out = rasterize(means, scales, quats, opacities, colors, Camera(viewmats[0], Ks[0], width, height),
-                        None if backgrounds is None else backgrounds[0])
-        rgbd = torch.cat([out.color, out.depth]).permute(1, 2, 0).unsqueeze(0)  # [1, H, W, 4]
-        radii = out.visible.to(torch.int32)[None, :, None].expand(1, -1, 2)  # [1, N, 2]
-        return rgbd, out.alpha.permute(1, 2, 0).unsqueeze(0), {"radii": radii}
-
-    return types.SimpleNamespace(__version__=version, rasterization=rasterization)
-
-
-@pytest.mark.parametrize("version", ["1.5.3", "1.6.0"])
-def test_gsplat_adaptor_conventions_on_cpu(monkeypatch, version):
-    """The plug-in's marshalling (shapes, background, depth channel, visibility, the straight-through
-    opacity cap for 0.999-clamping releases) against a stand-in that renders with the project splatter."""
-    seen: dict = {}
-    monkeypatch.setattr(rasterizers, "_import_gsplat", lambda: _fake_gsplat(version, seen))
-    (means, scales, rotations, opacities, colors), cam = _scene()
-    opacities[::4] = 0.999  # opaque splats: above the project's 0.99 clamp
-    opacities.requires_grad_(True)
-    bg = torch.tensor([0.2, 0.3, 0.4])
-    got = GsplatRasterizer()(means, scales, rotations, opacities, colors, cam, bg)
-    capped = bool((opacities > ALPHA_MAX).any())
-    assert capped  # the scene has splats above the cap
-    if version == "1.5.3":
-        assert float(seen["opacities"].detach().max()) <= float(torch.tensor(ALPHA_MAX)) + 1e-7
-        want = rasterize(means, scales, rotations, opacities.detach().clamp(max=ALPHA_MAX), colors, cam, bg)
-    else:
-        assert torch.equal(seen["opacities"], opacities)
-        want = rasterize(means, scales, rotations, opacities.detach(), colors, cam, bg)
-    assert torch.equal(got.visible, want.visible)
-    for k in ("color", "alpha", "depth"):  # the straight-through cap rounds like the clamp to ~1 ulp
-        torch.testing.assert_close(getattr(got, k), getattr(want, k), rtol=0, atol=1e-5, msg=k)
-    assert got.color.shape == (3, 32, 48) and got.alpha.shape == got.depth.shape == (1, 32, 48)
-    got.color.sum().backward()
-    assert opacities.grad is not None and bool(opacities.grad.abs().sum() > 0)  # straight through the cap
-    empty = GsplatRasterizer()(means[:0], scales[:0], rotations[:0], opacities[:0], colors[:0], cam, bg)
-    assert torch.equal(empty.color, bg.view(3, 1, 1).expand(3, 32, 48)) and empty.visible.shape == (0,)
-
-
-def test_gsplat_opacity_cap_passes_the_gradient_straight_through(monkeypatch):
-    """With a 0.999-clamping gsplat (< 1.6) the adaptor caps opacities at 0.99 straight-through: a splat
-    above the cap gets the gradient the splatter gives at the capped value (not zero, as a plain clamp would)."""
-    monkeypatch.setattr(rasterizers, "_import_gsplat", lambda: _fake_gsplat("1.5.3", {}))
-    (means, scales, rotations, opacities, colors), cam = _scene(seed=3)
-    opacities[::3] = 0.9995
-    opacities.requires_grad_(True)
-    GsplatRasterizer()(means, scales, rotations, opacities, colors, cam).color.sum().backward()
-    capped = opacities.detach().clamp(max=ALPHA_MAX).requires_grad_(True)
-    rasterize(means, scales, rotations, capped, colors, cam).color.sum().backward()
-    above = opacities.detach() > ALPHA_MAX
-    assert bool(above.any()) and bool((capped.grad[above] != 0).any())
-    torch.testing.assert_close(opacities.grad, capped.grad, rtol=1e-5, atol=1e-6)
-
-
-def _random_model(a=20, f=8, k=4, seed=0, **opts) -> NeuralGaussianModel:
-    torch.manual_seed(seed)
-    m = NeuralGaussianModel(a, feat_dim=f, n_offsets=k, **opts)
-    with torch.no_grad():
-        m._anchor.normal_()
-        m._anchor[:, 2] += 5.0
-        m._offset.normal_()
-        m._anchor_feat.normal_()
-        m._scaling.normal_(-2.0, 0.3)
-        m._rotation.normal_()
-    return m
-
-
-def test_render_is_the_splat_of_the_decoded_gaussians_and_reaches_every_parameter():
-    m = _random_model(12, 8, 3)
-    cam = camera_looking_down_z(size=20, f=20.0)
-    out = m.render(cam, background=torch.tensor([0.2, 0.3, 0.4]))
-    g = m.decode(cam, m.visible_anchors(cam))
-    ref = rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, cam, torch.tensor([0.2, 0.3, 0.4]))
-    assert out.color.shape == (3, 20, 20) and torch.equal(out.color, ref.color)
-    out.color.sum().backward()
-    for name in ("_offset", "_anchor_feat", "_scaling", "mlp_opacity.0.weight", "mlp_cov.2.bias", "mlp_color.0.weight"):
-        p = dict(m.named_parameters())[name]
-        assert p.grad is not None and bool(p.grad.abs().sum() > 0), name
-
-
-def _stack(out) -> torch.Tensor:
-    return torch.cat([out.color, out.alpha, out.depth])
-
-
-def _smooth_scene():
-    """A few wide Gaussians covering an 8x8 image: every pixel is well inside every footprint, alpha
-    stays in (1/255, 0.99) and T > 1e-4, so no cut-off lies within a finite-difference step."""
-    cam = Camera(torch.eye(4, dtype=F64_2), torch.tensor([[8.0, 0, 4.2], [0, 9.0, 3.9], [0, 0, 1]], dtype=F64_2), 8, 8)
-    means = torch.tensor([[0.05, -0.02, 2.0], [-0.1, 0.08, 2.5], [0.12, 0.1, 3.0]], dtype=F64_2)
-    scales = torch.tensor([[0.9, 0.6, 0.3], [0.7, 1.1, 0.5], [1.2, 0.8, 0.9]], dtype=F64_2)
-    rotations = torch.tensor([[0.9, 0.1, -0.2, 0.3], [0.5, 0.5, 0.1, -0.4], [1.2, -0.3, 0.2, 0.1]], dtype=F64_2)
-    opacities = torch.tensor([0.55, 0.7, 0.8], dtype=F64_2)
-    colors = torch.tensor([[0.9, 0.1, 0.2], [0.2, 0.8, 0.3], [0.1, 0.3, 0.9]], dtype=F64_2)
-    bg = torch.tensor([0.4, 0.4, 0.2], dtype=F64_2)
-    return (means, scales, rotations, opacities, colors, bg), cam
-
-
-def _opaque_stack(n: int = 40, seed: int = 2):
-    """Layers of large, fairly opaque Gaussians over a 23 x 17 image: most pixels terminate (T < 1e-4)."""
-    cam = make_camera_2()
-    g = torch.Generator().manual_seed(seed)
-    z = 1.0 + 3.0 * torch.rand(n, generator=g, dtype=F64_2)
-    xy = (torch.rand(n, 2, generator=g, dtype=F64_2) * 2 - 1) * 0.3 * z[:, None]
-    means = camera_to_world_points(cam, torch.cat([xy, z[:, None]], -1))
-    scales = 0.25 * z[:, None] * (0.5 + torch.rand(n, 3, generator=g, dtype=F64_2))
-    rotations = torch.randn(n, 4, generator=g, dtype=F64_2)
-    opacities = 0.5 + 0.5 * torch.rand(n, generator=g, dtype=F64_2)
-    colors = torch.rand(n, 3, generator=g, dtype=F64_2)
-    return (means, scales, rotations, opacities, colors), cam
-
-
-@pytest.mark.parametrize("seed", range(4))
-@pytest.mark.parametrize("tile_size", [4, 16])
-@pytest.mark.parametrize("t_min", [0.0, 1e-4])
-def test_matches_reference_float64(seed: int, tile_size: int, t_min: float, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Same threshold, same image; the depth-rank passes of early termination (here of 1, 2, 4, ...
-    records per tile) change nothing."""
-    monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
-    cam = make_camera_2()
-    scene = random_scene(seed, 60, cam)
-    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64_2)
-    fast = rasterize(*scene, cam, bg, tile_size=tile_size, transmittance_min=t_min)
-    ref = rasterize_reference(*scene, cam, bg, transmittance_min=t_min)
-    assert fast.color.shape == (3, 17, 23) and fast.alpha.shape == fast.depth.shape == (1, 17, 23)
-    torch.testing.assert_close(_stack(fast), _stack(ref), rtol=1e-10, atol=1e-10)
-    assert torch.equal(fast.visible, ref.visible)
-    assert 0 < int(fast.visible.sum()) < 60  # some culled, some drawn: the scene exercises both
-
-
-def test_matches_reference_float32() -> None:
-    cam = make_camera_2(dtype=torch.float32)
-    scene = random_scene(11, 60, cam, dtype=torch.float32)
-    fast = rasterize(*scene, cam)
-    ref = rasterize_reference(*scene, cam)
-    assert fast.color.dtype == torch.float32
-    err = (_stack(fast).double() - _stack(ref)).abs()
-    assert float(err[:4].max()) < 1e-4  # colour and alpha
-    assert float(err[4].max()) < 1e-3  # depth (scene units ~5)
-
-
-def test_gradients_match_reference() -> None:
-    cam = make_camera_2()
-    scene = random_scene(3, 40, cam)
-    bg = torch.tensor([0.3, 0.1, 0.6], dtype=F64_2)
-    weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(0), dtype=F64_2)
-    grads = []
-    for fn in (rasterize, rasterize_reference):
-        inputs = [t.clone().requires_grad_() for t in (*scene, bg)]
-        loss = (_stack(fn(*inputs[:5], cam, inputs[5])) * weights).sum()
-        grads.append(torch.autograd.grad(loss, inputs))
-    for name, g_fast, g_ref in zip(("means", "scales", "rotations", "opacities", "colors", "background"), *grads):
-        assert float(g_ref.abs().max()) > 0, name
-        torch.testing.assert_close(g_fast, g_ref, rtol=1e-8, atol=1e-9, msg=name)
-
-
-def test_gradcheck() -> None:
-    inputs, cam = _smooth_scene()
-    ref = rasterize_reference(*inputs[:5], cam, inputs[5])
-    assert bool(ref.visible.all()) and float(ref.alpha.min()) > 0.1  # the scene is as intended
-    inputs = tuple(t.clone().requires_grad_() for t in inputs)
-
-    def fn(*args):
-        return _stack(rasterize(*args[:5], cam, args[5], tile_size=4))
-
-    # fast mode compares u^T J v (analytic) with finite differences for random u, v: any wrong entry of
-    # the Jacobian fails it; the full Jacobian (45 inputs x 320 outputs) would take ~20 s
-    torch.manual_seed(0)
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6, fast_mode=True)
-
-
-def test_early_termination_error_bound() -> None:
-    """Against the exact oracle (no termination), a terminated pixel's colour, alpha and depth are off by
-    at most ``T_stop max|f - f_bg|`` (``T_stop = 1 - alpha``, the transmittance it stopped at, which is
-    below ``transmittance_min / (1 - ALPHA_MAX)``); the other pixels are exact."""
-    scene, cam = _opaque_stack()
-    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64_2)
-    for t_min in (1e-4, 1e-2):
-        fast = rasterize(*scene, cam, bg, transmittance_min=t_min)
-        torch.testing.assert_close(_stack(fast), _stack(rasterize_reference(*scene, cam, bg, transmittance_min=t_min)),
-                                   rtol=1e-10, atol=1e-10)
-        exact = rasterize_reference(*scene, cam, bg, transmittance_min=0.0)
-        err = (_stack(fast) - _stack(exact)).abs()  # [5, H, W]
-        t_stop = 1 - fast.alpha[0]
-        stopped = err.amax(0) > 1e-9  # beyond float64 rounding
-        assert int(stopped.sum()) > 0.5 * stopped.numel()  # the scene exercises termination
-        assert float(t_stop[stopped].max()) < t_min / (1 - splatter.ALPHA_MAX)
-        z = (scene[0] @ cam.world_to_camera[:3, :3].t() + cam.world_to_camera[:3, 3])[:, 2]
-        spread = torch.cat([(scene[4] - bg).abs().amax(0), torch.ones(1, dtype=F64_2), z.abs().amax().view(1)])
-        assert bool((err <= t_stop * spread.view(5, 1, 1) + 1e-10).all())
-
-
-def test_gradcheck_with_early_termination() -> None:
-    """Gradients of the drawn splats where pixels terminate (generic scene: no threshold crossing within
-    the finite-difference step)."""
-    scene, cam = _opaque_stack(n=8, seed=4)
-    scene = (*scene[:3], torch.full((8,), 0.93, dtype=F64_2), scene[4])
-    bg = torch.tensor([0.4, 0.4, 0.2], dtype=F64_2)
-    exact = rasterize_reference(*scene, cam, bg, transmittance_min=0.0)
-    assert not torch.allclose(_stack(rasterize(*scene, cam, bg)), _stack(exact), atol=1e-9)  # some pixels stop
-    inputs = tuple(t.clone().requires_grad_() for t in (*scene, bg))
-
-    def fn(*args):
-        return _stack(rasterize(*args[:5], cam, args[5], tile_size=4))
-
-    torch.manual_seed(0)
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-6, fast_mode=True)
-
-
-@pytest.mark.parametrize("opaque", [False, True])
-def test_chunked_and_recomputed_backward_agree(opaque: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Chunks of two tiles, a tiny pair budget (many passes), no pair cache (backward recomputes) and
-    depth-rank passes of 1, 2, 4, ... records per tile give the same result."""
-    scene, cam = _opaque_stack() if opaque else (random_scene(5, 50, make_camera_2()), make_camera_2())
-    weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(1), dtype=F64_2)
-
-    def run():
-        inputs = [t.clone().requires_grad_() for t in scene]
-        out = _stack(rasterize(*inputs, cam, tile_size=4))
-        return out, torch.autograd.grad((out * weights).sum(), inputs)
-
-    out_a, grads_a = run()
-    monkeypatch.setattr(splatter, "_KEY_LIMIT", 2 * 16 + 1)
-    monkeypatch.setattr(splatter, "_PAIR_BUDGET", 64)
-    monkeypatch.setattr(splatter, "_CACHE_BYTES", 0)
-    monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
-    out_b, grads_b = run()
-    torch.testing.assert_close(out_b, out_a, rtol=1e-12, atol=1e-12)
-    for g_a, g_b in zip(grads_a, grads_b):
-        torch.testing.assert_close(g_b, g_a, rtol=1e-10, atol=1e-12)
-
-
-def test_empty_scene_and_all_culled() -> None:
-    cam = make_camera_2()
-    bg = torch.tensor([0.1, 0.2, 0.3], dtype=F64_2)
-    empty = [torch.zeros(0, 3, dtype=F64_2), torch.zeros(0, 3, dtype=F64_2), torch.zeros(0, 4, dtype=F64_2),
-             torch.zeros(0, dtype=F64_2), torch.zeros(0, 3, dtype=F64_2)]
-    out = rasterize(*empty, cam, bg)
-    torch.testing.assert_close(out.color, bg.view(3, 1, 1).expand(3, 17, 23))
-    assert float(out.alpha.abs().max()) == 0 and out.visible.shape == (0,)
-    # everything behind the camera: background, nothing visible, and backward still runs (zero grads)
-    scene = [t.clone().requires_grad_() for t in random_scene(0, 10, cam, hard=False)]
-    with torch.no_grad():
-        scene[0].copy_(camera_to_world_points(cam, torch.tensor([[0.0, 0.0, -2.0]], dtype=F64_2).expand(10, 3)))
-    out = rasterize(*scene, cam, bg)
-    assert not bool(out.visible.any())
-    torch.testing.assert_close(out.color, bg.view(3, 1, 1).expand(3, 17, 23))
-    out.color.sum().backward()
-    assert all(float(t.grad.abs().max()) == 0 for t in scene if t.grad is not None)
-
-
-def test_supersampling_matches_direct_rendering_on_smooth_content() -> None:
-    """Area-pooling a render at S approximates rendering at camera.scaled(d) when the content is
-    band-limited: this pins the pixel-centre and intrinsics-scaling conventions (a half-pixel shift fails)."""
-    cam = make_camera_2(48, 32, yaw=0.0)
-    scene = list(random_scene(2, 30, cam, hard=False))
-    scene[1] = scene[1] * 0 + 0.3  # wide blobs, several pixels at S/2
-    pooled = F.avg_pool2d(rasterize(*scene, cam).color.unsqueeze(0), 2).squeeze(0)
-    small_cam = cam.scaled(2)
-    small = rasterize(*scene, small_cam).color
-    assert small.shape == pooled.shape == (3, 16, 24)
-    err = float((pooled - small).abs().mean())
-    assert err < 0.006
-    k = small_cam.intrinsics.clone()
-    k[0, 2] += 0.5  # the same camera with the principal point half a pixel off
-    shifted = rasterize(*scene, Camera(small_cam.world_to_camera, k, 24, 16)).color
-    assert float((pooled - shifted).abs().mean()) > 2 * err
-
+# ----------------------------------------------------------------------------- invariances
 
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 25))
 def test_permutation_invariance(seed: int, n: int) -> None:
-    cam = make_camera_2(12, 9)
+    cam = make_camera(12, 9)
     scene = random_scene(seed, n, cam, hard=False)
     perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed + 1))
     a = rasterize(*scene, cam)
@@ -473,12 +549,12 @@ def test_permutation_invariance(seed: int, n: int) -> None:
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 25), extra=st.integers(1, 10))
 def test_zero_opacity_adds_nothing(seed: int, n: int, extra: int) -> None:
-    cam = make_camera_2(12, 9)
+    cam = make_camera(12, 9)
     scene = random_scene(seed, n, cam)
     ghosts = list(random_scene(seed + 7, extra, cam, hard=False))
     ghosts[3] = torch.zeros_like(ghosts[3])
     both = [torch.cat([a, b]) for a, b in zip(scene, ghosts)]
-    bg = torch.tensor([0.3, 0.6, 0.1], dtype=F64_2)
+    bg = torch.tensor([0.3, 0.6, 0.1], dtype=F64)
     # equal up to float64 summation order: other torch builds (2.11 with CUDA, measured on the GPU machine)
     # vectorise the longer sums differently, 1.3e-15 apart
     torch.testing.assert_close(_stack(rasterize(*both, cam, bg)), _stack(rasterize(*scene, cam, bg)), rtol=0, atol=1e-13)
@@ -488,7 +564,7 @@ def test_zero_opacity_adds_nothing(seed: int, n: int, extra: int) -> None:
 @given(seed=st.integers(0, 10_000), n=st.integers(0, 40))
 def test_outputs_are_bounded(seed: int, n: int) -> None:
     """alpha in [0, 1]; colours in [0, 1] stay in [0, 1]; depth within alpha * [near, max z]."""
-    cam = make_camera_2(12, 9, dtype=torch.float32)
+    cam = make_camera(12, 9, dtype=torch.float32)
     scene = random_scene(seed, n, cam, dtype=torch.float32)
     bg = torch.rand(3, generator=torch.Generator().manual_seed(seed))
     out = rasterize(*scene, cam, bg)
@@ -500,8 +576,10 @@ def test_outputs_are_bounded(seed: int, n: int) -> None:
     assert bool((out.depth >= out.alpha * splatter.NEAR_PLANE - 1e-4).all())
 
 
-def test_input_errors() -> None:
-    cam = make_camera_2()
+# ----------------------------------------------------------------------------- refusals
+
+def test_input_refusals_name_the_argument() -> None:
+    cam = make_camera()
     scene = list(random_scene(0, 5, cam, hard=False))
 
     def call(i, value, error, match):
@@ -527,142 +605,9 @@ def test_input_errors() -> None:
     with pytest.raises(InputValueError, match="camera"):
         rasterize(*scene, "not a camera")  # type: ignore[arg-type]
     with pytest.raises(ShapeError, match="background"):
-        rasterize(*scene, cam, torch.zeros(4, dtype=F64_2))
+        rasterize(*scene, cam, torch.zeros(4, dtype=F64))
     with pytest.raises(InputValueError, match="tile_size"):
         rasterize(*scene, cam, tile_size=0)
-
-
-def test_float32_needles_near_the_camera() -> None:
-    """Long thin Gaussians close to the camera have a nearly singular 2D covariance with huge entries:
-    the float32 determinant must not cancel (it would turn them into opaque slabs)."""
-    cam = Camera(torch.eye(4), torch.tensor([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]), 100, 100)
-    g = torch.Generator().manual_seed(0)
-    n = 12
-    means = torch.tensor([0.0, 0.0, 0.3]) + 0.05 * torch.randn(n, 3, generator=g)
-    scales = torch.tensor([[1e2, 1e-4, 1e-4]]).expand(n, 3)
-    args = (means, scales, torch.randn(n, 4, generator=g), torch.full((n,), 0.5), torch.rand(n, 3, generator=g))
-    fast, ref = rasterize(*args, cam), rasterize_reference(*args, cam)
-    assert float((fast.alpha.double() - ref.alpha).abs().max()) < 2e-3
-    assert float((fast.color.double() - ref.color).abs().max()) < 2e-3
-
-
-@pytest.mark.parametrize("x_over_z", [0.0, 0.25])
-def test_single_gaussian_closed_form(x_over_z: float) -> None:
-    """One isotropic Gaussian (sigma s) at (X, 0, Z): its 2D covariance is
-    s^2 [[f^2/Z^2 (1 + X^2/Z^2), 0], [0, f^2/Z^2]] + 0.3 I, so every pixel is known in closed form
-    (checks the conventions that the reference shares: Jacobian, low-pass, pixel centres, cut-offs)."""
-    f, z, s, o = 20.0, 2.0, 0.05, 0.8
-    x = x_over_z * z
-    cam = Camera(torch.eye(4, dtype=F64_2), torch.tensor([[f, 0, 8.0], [0, f, 8.0], [0, 0, 1]], dtype=F64_2), 24, 16)
-    args = (torch.tensor([[x, 0.0, z]], dtype=F64_2), torch.full((1, 3), s, dtype=F64_2),
-            torch.tensor([[1.0, 0, 0, 0]], dtype=F64_2), torch.tensor([o], dtype=F64_2),
-            torch.tensor([[0.2, 0.5, 1.0]], dtype=F64_2))
-    out = rasterize(*args, cam)
-    var_x = (s * f / z) ** 2 * (1 + x_over_z**2) + 0.3
-    var_y = (s * f / z) ** 2 + 0.3
-    u0, v0 = f * x_over_z + 8.0, 8.0
-    xs = torch.arange(24, dtype=F64_2) + 0.5 - u0
-    ys = torch.arange(16, dtype=F64_2) + 0.5 - v0
-    alpha = o * torch.exp(-0.5 * (ys[:, None] ** 2 / var_y + xs[None, :] ** 2 / var_x))
-    r = 3 * math.sqrt(max(var_x, var_y))
-    alpha = alpha * (xs.abs()[None, :] <= r) * (ys.abs()[:, None] <= r) * (alpha >= 1 / 255)
-    assert int((alpha > 0).sum()) >= 9
-    torch.testing.assert_close(out.alpha[0], alpha, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(out.color, alpha * args[4][0].view(3, 1, 1), rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(out.depth[0], alpha * z, rtol=1e-12, atol=1e-12)
-
-
-@settings(max_examples=20, deadline=None)
-@given(seed=st.integers(0, 10_000), n=st.integers(1, 30), tile_size=st.sampled_from([3, 4, 16]))
-def test_every_pair_above_alpha_min_is_enumerated(seed: int, n: int, tile_size: int) -> None:
-    """The candidate culling (alpha box, tiles, chunks) drops no (pixel, Gaussian) pair with alpha >= 1/255
-    inside the footprint (counted by brute force), and the image matches the float64 oracle."""
-    cam = make_camera_2(19, 13)
-    scene = random_scene(seed, n, cam)
-    enumerated = []
-    expand = splatter._chunk_passes
-
-    def counting(*args):
-        passes, first = expand(*args)
-        enumerated.extend(int((p.alpha > 0).sum()) for p in passes)
-        return passes, first
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(splatter, "_chunk_passes", counting)
-        fast = rasterize(*scene, cam, tile_size=tile_size, transmittance_min=0.0)
-    means, scales, rotations, opacities = scene[:4]
-    w2c, k = cam.world_to_camera, cam.intrinsics
-    means_cam = means @ w2c[:3, :3].t() + w2c[:3, 3]
-    front = means_cam[:, 2] > splatter.NEAR_PLANE
-    uv, cov2d, conic = splatter.project_gaussians(means_cam[front], scales[front], rotations[front], w2c, k, 19, 13)
-    rect, _ = splatter._footprints(uv, cov2d, opacities[front], 19, 13)
-    ys, xs = torch.meshgrid(torch.arange(13, dtype=F64_2), torch.arange(19, dtype=F64_2), indexing="ij")
-    dx = xs.reshape(-1, 1) + 0.5 - uv[:, 0]  # [HW, M]
-    dy = ys.reshape(-1, 1) + 0.5 - uv[:, 1]
-    alpha = opacities[front] * torch.exp(-0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) - conic[:, 1] * dx * dy)
-    ix, iy = xs.reshape(-1, 1), ys.reshape(-1, 1)
-    inside = (ix >= rect[:, 0]) & (ix <= rect[:, 1]) & (iy >= rect[:, 2]) & (iy <= rect[:, 3])
-    assert sum(enumerated) == int((inside & (alpha >= splatter.ALPHA_MIN)).sum())
-    torch.testing.assert_close(_stack(fast), _stack(rasterize_reference(*scene, cam, transmittance_min=0.0)),
-                               rtol=1e-10, atol=1e-10)
-
-
-# ----------------------------------------------------------------------------- splatter: passes without termination
-@pytest.mark.parametrize("budget", [64, 1 << 21])
-def test_exact_compositing_carries_the_transmittance_across_depth_passes(budget: int, monkeypatch) -> None:
-    """``transmittance_min=0`` composites every splat (rasterize's docstring). A chunk whose candidate
-    pairs exceed ``_PAIR_BUDGET`` is expanded in several depth passes; each pixel's later passes must start
-    from its transmittance after the earlier ones (a pass restarting at T = 1 gives alpha > 1 on a
-    crowded pixel). A tiny budget forces many passes on a small image; the float64 brute-force reference
-    decides, for the image and for the gradients."""
-    monkeypatch.setattr(splatter, "_PAIR_BUDGET", budget)
-    cam = make_camera_3()
-    scene = random_scene(5, 60, cam, hard=False)
-    bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
-    weights = torch.randn(5, 17, 23, generator=torch.Generator().manual_seed(2), dtype=F64)
-
-    def run(fn: Any) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        inputs = [t.clone().requires_grad_() for t in scene]
-        out = fn(*inputs, cam, bg, transmittance_min=0.0)
-        stack = torch.cat([out.color, out.alpha, out.depth])
-        return stack.detach(), torch.autograd.grad((stack * weights).sum(), inputs)
-
-    got, got_grads = run(lambda *a, **k: rasterize(*a, tile_size=4, **k))
-    ref, ref_grads = run(rasterize_reference)
-    assert float(ref[3].max()) > 0.8  # crowded pixels: a pass restarting at T = 1 overshoots them
-    torch.testing.assert_close(got, ref, rtol=0, atol=1e-10)
-    for g, r in zip(got_grads, ref_grads):
-        torch.testing.assert_close(g, r, rtol=1e-8, atol=1e-8)
-
-
-def _camera(f: float = 20.0, width: int = 24, height: int = 16) -> Camera:
-    """Identity pose, principal point at the image centre."""
-    k = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=F64)
-    return Camera(torch.eye(4, dtype=F64), k, width, height)
-
-
-def _one(mean: list[float], scale: list[float], q: list[float], o: float, color: list[float] | None = None
-         ) -> tuple[torch.Tensor, ...]:
-    return (torch.tensor([mean], dtype=F64), torch.tensor([scale], dtype=F64), torch.tensor([q], dtype=F64),
-            torch.tensor([o], dtype=F64), torch.tensor([color or [1.0, 1.0, 1.0]], dtype=F64))
-
-
-def test_fast_path_output_types_and_shapes() -> None:
-    cam = _camera(width=10, height=7)
-    out = rasterize(*_one([0.0, 0.0, 2.0], [0.05, 0.05, 0.05], [1.0, 0, 0, 0], 0.5), cam)
-    assert isinstance(out, RasterOutput)
-    assert out.color.shape == (3, 7, 10) and out.alpha.shape == (1, 7, 10) and out.depth.shape == (1, 7, 10)
-    assert out.visible.dtype == torch.bool and out.visible.shape == (1,)
-
-
-@pytest.mark.parametrize("value", [-0.1, 1.0, 1.5, "0.1", None])
-def test_transmittance_min_refusals(value: object) -> None:
-    with pytest.raises(InputValueError, match=r"transmittance_min must be a number in \[0, 1\), got"):
-        rasterize(*_one([0.0, 0.0, 2.0], [0.05] * 3, [1.0, 0, 0, 0], 0.5), _camera(),
-                  transmittance_min=value)  # type: ignore[arg-type]
-
-
-def test_other_refusals() -> None:
     g, cam = _one([0.0, 0.0, 2.0], [0.05] * 3, [1.0, 0, 0, 0], 0.5), _camera()
     with pytest.raises(InputValueError, match="tile_size must be a positive int, got 4.0"):
         rasterize(*g, cam, tile_size=4.0)  # type: ignore[arg-type]
@@ -686,11 +631,16 @@ def test_other_refusals() -> None:
         rasterize(g[0], g[1] * 0, g[2], torch.tensor([o], dtype=F64), g[4], cam)
 
 
+@pytest.mark.parametrize("value", [-0.1, 1.0, 1.5, "0.1", None])
+def test_transmittance_min_must_be_in_0_1(value: object) -> None:
+    with pytest.raises(InputValueError, match=rf"transmittance_min.*got {value!r}$"):
+        rasterize(*_one([0.0, 0.0, 2.0], [0.05] * 3, [1.0, 0, 0, 0], 0.5), _camera(),
+                  transmittance_min=value)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize("i", range(6))
 def test_tensors_on_another_device_are_refused_by_name(i: int) -> None:
     """Each input on the meta device (value checks off, so that only the device check can refuse it)."""
-    from controlgs_adapter.checks import value_checks
-
     names = ["means", "scales", "rotations", "opacities", "colors", "background"]
     args = [*_one([0.0, 0.0, 2.0], [0.05] * 3, [1.0, 0, 0, 0], 0.5), torch.zeros(3, dtype=F64)]
     args[i] = args[i].to("meta")
@@ -698,68 +648,29 @@ def test_tensors_on_another_device_are_refused_by_name(i: int) -> None:
         rasterize(*args[:5], _camera(), args[5])
 
 
-def test_a_tile_whose_pixels_all_terminated_takes_no_further_pass(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A 3 x 3 image in one 4 x 4 tile (7 padding pixels, which no record covers and which count as
-    terminated from the start) under 12 wide splats of opacity 0.95 (alpha in (0.945, 0.95] at every pixel:
-    G > 0.995 within 1.5 px of the centre for the first four, sigma = 3 px x 20 / z >= 15 px): with one depth rank per pass (tiny pair budget), every
-    pixel draws three (T <= 0.055^3 = 1.7e-4 stays >= 1e-4) and stops at the fourth (T <= 0.055^4 < 1e-5),
-    so the tile is done after 4 passes; the 8 other ranks are never expanded."""
-    from controlgs_adapter.rendering import splatter
+# ----------------------------------------------------------------------------- the reference model's render
 
-    monkeypatch.setattr(splatter, "_PAIR_BUDGET", 4)
-    monkeypatch.setattr(splatter, "_PASS_FIRST", 1)
-    calls: list[int] = []
-    expand = splatter._candidates
-
-    def counting(*args):  # type: ignore[no-untyped-def]
-        calls.append(int(args[3].numel()))
-        return expand(*args)
-
-    monkeypatch.setattr(splatter, "_candidates", counting)
-    k = torch.tensor([[3.0, 0.0, 1.5], [0.0, 3.0, 1.5], [0.0, 0.0, 1.0]], dtype=F64)
-    cam = Camera(torch.eye(4, dtype=F64), k, 3, 3)
-    n = 12
-    means = torch.tensor([[0.0, 0.0, 1.0 + i] for i in range(n)], dtype=F64)
-    out = rasterize(means, torch.full((n, 3), 20.0, dtype=F64), torch.tensor([[1.0, 0, 0, 0]] * n, dtype=F64),
-                    torch.full((n,), 0.95, dtype=F64), torch.rand(n, 3, generator=torch.Generator().manual_seed(0),
-                                                                  dtype=F64), cam, tile_size=4)
-    # three splats drawn: T = prod (1 - alpha_i) in [0.05^3, 0.055^3]
-    assert float(out.alpha.min()) >= 1 - 0.055**3 and float(out.alpha.max()) <= 1 - 0.05**3 + 1e-12
-    assert len(calls) == 4, calls
+def _random_model(a=20, f=8, k=4, seed=0, **opts) -> NeuralGaussianModel:
+    torch.manual_seed(seed)
+    m = NeuralGaussianModel(a, feat_dim=f, n_offsets=k, **opts)
+    with torch.no_grad():
+        m._anchor.normal_()
+        m._anchor[:, 2] += 5.0
+        m._offset.normal_()
+        m._anchor_feat.normal_()
+        m._scaling.normal_(-2.0, 0.3)
+        m._rotation.normal_()
+    return m
 
 
-def test_pairs_that_fit_the_cache_exactly_are_kept_for_backward(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A chunk's pairs are kept while they fit in ``_CACHE_BYTES`` (size <= what is left): with a cache of
-    exactly their size, backward reuses them (no second expansion); one byte less, it recomputes them;
-    the gradients agree."""
-    from controlgs_adapter.rendering import splatter
-
-    sizes: list[int] = []
-    expand = splatter._chunk_passes
-
-    def counting(*args):  # type: ignore[no-untyped-def]
-        passes, first = expand(*args)
-        sizes.append(sum(p.nbytes() for p in passes))
-        return passes, first
-
-    monkeypatch.setattr(splatter, "_chunk_passes", counting)
-    g = _one([0.0, 0.0, 2.0], [0.1, 0.05, 0.02], [0.9, 0.1, 0.2, 0.3], 0.8)
-    cam = _camera(width=12, height=10)  # one 16 px tile: one chunk
-
-    def grads(cache: int) -> tuple[int, torch.Tensor]:
-        monkeypatch.setattr(splatter, "_CACHE_BYTES", cache)
-        sizes.clear()
-        means = g[0].clone().requires_grad_(True)
-        out = rasterize(means, *g[1:], cam)
-        n_forward = len(sizes)
-        (grad,) = torch.autograd.grad(out.color.sum(), means)
-        return len(sizes) - n_forward, grad
-
-    grads(1 << 30)
-    size = sizes[0]
-    assert size > 0 and len(sizes) == 1
-    recomputed, exact_fit = grads(size)
-    assert recomputed == 0
-    recomputed, too_small = grads(size - 1)
-    assert recomputed == 1
-    torch.testing.assert_close(exact_fit, too_small, rtol=0, atol=0)
+def test_render_is_the_splat_of_the_decoded_gaussians_and_reaches_every_parameter():
+    m = _random_model(12, 8, 3)
+    cam = camera_looking_down_z(size=20, f=20.0)
+    out = m.render(cam, background=torch.tensor([0.2, 0.3, 0.4]))
+    g = m.decode(cam, m.visible_anchors(cam))
+    ref = rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, cam, torch.tensor([0.2, 0.3, 0.4]))
+    assert out.color.shape == (3, 20, 20) and torch.equal(out.color, ref.color)
+    out.color.sum().backward()
+    for name in ("_offset", "_anchor_feat", "_scaling", "mlp_opacity.0.weight", "mlp_cov.2.bias", "mlp_color.0.weight"):
+        p = dict(m.named_parameters())[name]
+        assert p.grad is not None and bool(p.grad.abs().sum() > 0), name
