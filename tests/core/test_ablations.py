@@ -1,4 +1,5 @@
-"""Tests of ``controlgs_adapter.ablations``."""
+"""Tests of ``controlgs_adapter.ablations``: the ablation table (stages kept, state-blind or not) is the
+paper's Tbl. 4."""
 
 from __future__ import annotations
 
