@@ -1,5 +1,5 @@
 """Tests of ``controlgs_adapter.distributed``: the process context (ranks, sharding, backend and device
-choice, refusals), the gradient exchange between two real gloo ranks (sums, bytes counted by hand), a
+choice, refusals), the gradient exchange between two real gloo ranks (sums, bytes counted from the buffer layout), a
 dead or late peer, and a torchrun job that loses a rank and resumes from its checkpoint on one process."""
 
 from __future__ import annotations
@@ -234,7 +234,7 @@ def test_gradients_are_the_sum_over_ranks(two_ranks, exchange):
     assert mine["v"] == [[0.0, 0.0]] * 3 and mine["w"] is None and mine["b"] is None
 
 
-def test_bytes_by_hand(two_ranks):
+def test_bytes_sent_by_each_exchange(two_ranks):
     # the all-reduce buffer: 12 dense values (a 6, b 4, c 2) + 8 flags + 5 tables x 2 ranks + 2 steps + loss
     # = 33 float64 = 264 bytes; a ring all-reduce on 2 ranks sends 2 (2-1)/2 n = n bytes.
     # t [6, 2, 3]: 3 rows at most (rank 1), a row is an int64 id + 6 float32 = 32 bytes -> 96 sparse, 144 dense;
@@ -495,7 +495,7 @@ def test_an_existing_one_process_gloo_group_is_used_as_it_is(one_process_group):
     assert dist.is_initialized()
 
 
-def test_dense_exchange_counts_rows_and_bytes_by_hand(one_process_group):
+def test_dense_exchange_counts_rows_and_bytes(one_process_group):
     # the context claims 2 ranks in a group of one: the all-reduce then sums this rank's buffer with nothing
     # (as if rank 1 had no gradient), which is all the dense exchange needs
     ctx = DistContext(rank=0, world_size=2, backend="gloo", exchange="dense")
@@ -549,7 +549,7 @@ def test_shards_of_a_batch_and_of_scenes_partition_it_round_robin(world):
         shard_scenes(["s0", "s1", "s1"], DistContext(rank=0, world_size=world))
 
 
-def test_shard_and_shard_scenes_by_hand():
+def test_shard_and_shard_scenes_examples():
     assert DistContext(rank=2, world_size=3).shard("abcdefg") == ["c", "f"]
     assert DistContext(rank=0, world_size=3).shard(list(range(7))) == [0, 3, 6]
     assert DistContext(rank=1, world_size=3).shard(list(range(7))) == [1, 4]

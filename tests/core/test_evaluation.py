@@ -226,7 +226,7 @@ def test_progress_bar_is_on_by_default_and_counts_every_scored_image(adapter_set
 
 
 # ------------------------------------------------------------------------------ scores and pipeline
-def test_scores_clamp_the_eye_image_by_hand():
+def test_scores_clamp_the_eye_image():
     """A saturated eye image is clamped to [0, 1] (what the display can hold) before PSNR, SSIM and the extra
     metrics, which get float64 images."""
     gt = torch.full((3, 11, 11), 0.5)
@@ -284,7 +284,7 @@ def test_make_pipeline_defaults_and_modes():
 
 
 # ------------------------------------------------------------------------------ GridResult
-def test_grid_result_accessors_by_hand():
+def test_grid_result_accessors():
     r = grid_result()
     assert r.methods == list(PSNR) and r.metrics == ["psnr", "flip"]
     assert torch.equal(r.grid("ss", "psnr"), torch.tensor(PSNR["ss"], dtype=F64))
@@ -309,7 +309,7 @@ def test_grid_result_equality_looks_at_every_part():
         assert a != c and c != a
 
 
-def test_grid_result_json_by_hand_and_round_trip():
+def test_grid_result_json_layout_and_round_trip():
     per_view = {"ss": {"psnr": torch.tensor([[[1.0, 3.0]]], dtype=F64)}}
     r = GridResult((2.0,), (0.4,), per_view, "exact", {"test_views": 2})
     assert r.to_json() == {"info": {"test_views": 2}, "downsample": [2.0], "power_saving": [0.4], "optics_mode": "exact",

@@ -1,5 +1,5 @@
 """Tests of ``controlgs_adapter.losses``: the loss weights of Eq. 14 and their refusals, and the image loss
-(L1 + MSE + 1 - SSIM) against sums written out by hand and the brute-force SSIM."""
+(L1 + MSE + 1 - SSIM) against its terms written out and the brute-force SSIM."""
 
 from __future__ import annotations
 
@@ -74,7 +74,7 @@ def test_image_loss_is_the_weighted_sum_of_its_terms(weights):
     assert float(image_loss(x, x, weights)) == pytest.approx(0.0, abs=1e-12)
 
 
-def test_image_loss_of_constant_images_by_hand():
+def test_image_loss_of_constant_images():
     pred = torch.full((2, 3, 12, 12), 0.5, dtype=D64)
     target = torch.full((2, 3, 12, 12), 0.25, dtype=D64)
     # L1 and MSE only: 0.8 * 0.25 + 10 * 0.25^2 = 0.2 + 0.625

@@ -105,7 +105,7 @@ def test_ssim_needs_both_sides_at_least_the_window():
         ssim(torch.rand(3, 6, 9), torch.rand(3, 6, 9), window_size=7)
 
 
-def test_gaussian_window_by_hand():
+def test_gaussian_window_values():
     # exp(-r^2 / 4.5) for r = -5..5, normalised (computed with math.exp)
     want = [0.00102838008447911, 0.007598758135239185, 0.03600077212843083, 0.10936068950970002, 0.2130055377112537,
             0.26601172486179436, 0.2130055377112537, 0.10936068950970002, 0.03600077212843083, 0.007598758135239185,
@@ -127,7 +127,7 @@ def test_gaussian_window_by_hand():
 
 
 # ------------------------------------------------------------------------------ PSNR
-def test_psnr_by_hand():
+def test_psnr_known_values():
     x = torch.zeros(3, 4, 4)
     assert float(psnr(x, x + 0.1)) == pytest.approx(20.0, abs=1e-4)
     assert float(psnr(x, x)) == float("inf")

@@ -1,5 +1,6 @@
-"""Tests of ``controlgs_adapter.report``: the Markdown tables, the seed summary and spread test, the findings
-(counts and differences read back from the text), the per-setting grids, the figures and results.json."""
+"""Tests of ``controlgs_adapter.report``: the Markdown tables, the seed summary and spread test, the lines
+saying what the numbers show (their counts and differences read back from the text), the per-setting
+grids, the figures and results.json."""
 
 from __future__ import annotations
 
@@ -110,7 +111,7 @@ def test_metric_formats_and_arrows():
     assert METHOD_LABELS["state_blind"] == "w/o State-Aware" and METHOD_LABELS["wo_resample"] == "w/o Resampling"
 
 
-def test_per_setting_grids_by_hand():
+def test_per_setting_grids():
     """One grid per method and metric, and ControlGS minus SS-backbone / the ideal render, signed; the
     difference grids need both methods, and two methods alone are enough."""
     lines = markdown_tables(grid_result()).splitlines()
@@ -135,8 +136,8 @@ def test_per_setting_grids_by_hand():
     assert not any("minus" in line for line in markdown_tables(grid_result(("no_ss", "ss"))).splitlines())
 
 
-# ------------------------------------------------------------------------------ findings
-def test_findings_by_hand():
+# ------------------------------------------------------------------------------ what the numbers show
+def test_what_the_numbers_show_counts_wins_ties_bounds_and_ablations():
     md = markdown_tables(grid_result())
     # ControlGS - SS = [[1, -1], [1, 2]]: 3 wins of 4, mean +0.75, worst cell -1
     assert _numbers(_line(md, "- PSNR:", "ControlGS", "SS-backbone")) == [3, 4, 0.75, -1]
@@ -156,14 +157,14 @@ def test_findings_by_hand():
     only = markdown_tables(grid_result(("no_ss", "ss")))
     _line(only, "needs ss and controlgs")
     assert "Differences against the seed spread" not in only and "Ablations" not in only
-    # exactly the two methods the findings need: no no-SS and no ideal lines
+    # exactly the two methods the comparison needs: no no-SS and no ideal lines
     two = markdown_tables(grid_result(("ss", "controlgs")))
     assert _numbers(_line(two, "- PSNR:", "ControlGS", "SS-backbone")) == [3, 4, 0.75, -1]
     assert "needs ss and controlgs" not in two and "no-SS" not in two and "Ideal render" not in two
     assert "ideal" not in "\n".join(line for line in two.splitlines() if line.startswith("- "))
 
 
-def test_findings_count_strict_wins_ties_and_worst_cells_by_hand():
+def test_what_the_numbers_show_counts_strict_wins_ties_and_worst_cells():
     """2 x 3 grid, one view. PSNR ControlGS - SS per cell: +1, 0, 0, -0.5, +2, 0 -> 2 wins of 6 (ties are
     not wins), mean +0.4167, worst -0.5. FLIP (lower is better) ControlGS - SS: -0.1, 0, +0.2, 0, 0, 0 ->
     1 win; printed in FLIP units: mean +0.01667, worst cell +0.2. SS vs no-SS PSNR: +1 in 4 cells, equal in 2."""
@@ -180,14 +181,14 @@ def test_findings_count_strict_wins_ties_and_worst_cells_by_hand():
     assert _numbers(_line(md, "- PSNR:", "ControlGS", "SS-backbone")) == [2, 6, 0.4167, -0.5]
     assert _numbers(_line(md, "- FLIP:", "ControlGS", "SS-backbone")) == [1, 6, 0.01667, 0.2]
     assert _numbers(_line(md, "- PSNR:", "no-SS")) == [4, 6, 2, 1, 0.6667]
-    # Tbl. 1: the best mean in bold (highest PSNR, lowest FLIP; ties all bold). Means by hand: PSNR 19.33,
+    # Tbl. 1: the best mean in bold (highest PSNR, lowest FLIP; ties all bold). Means: PSNR 19.33,
     # 20, 20.42; FLIP 0.5, 0.5, 3.1 / 6 = 0.5167
     assert "| Backbone (no SS) | 19.33 | **0.5000** |" in md, md
     assert "| SS-backbone | 20.00 | **0.5000** |" in md and "| ControlGS | **20.42** | 0.5167 |" in md, md
 
 
 # ------------------------------------------------------------------------------ seeds
-def test_seed_summary_pools_mean_and_sample_std_by_hand():
+def test_seed_summary_pools_mean_and_sample_std():
     r0 = grid_result(("ss", "controlgs", "wo_lens"), info={"seed": 5})
     r1 = grid_result(("ss", "controlgs", "wo_lens"), info={"seed": 6})
     r1.per_view["controlgs"]["psnr"] += 0.4  # ControlGS 19.75 and 20.15 over the seeds; the others equal
@@ -217,7 +218,7 @@ def test_seed_summary_of_runs_that_differ_is_refused():
             seed_summary([a, other])
 
 
-def test_differences_against_the_seed_spread_by_hand():
+def test_differences_against_the_seed_spread():
     """A difference of seed means exceeds the spread when strictly larger than SPREAD_FACTOR pooled std,
     sqrt((s_a^2 + s_b^2) / 2); ControlGS is compared with SS-backbone and each ablation with ControlGS."""
     assert SPREAD_FACTOR == 2.0
