@@ -1,4 +1,6 @@
-"""Tests of ``controlgs_adapter.backend``."""
+"""The Backend interface of a model family: dotted attribute paths, the mask -> anchor ids conversion,
+the defaults a family inherits (targets, first layers, rows, the decoder check against its input
+layout) and the backbone fingerprint."""
 
 from __future__ import annotations
 
@@ -63,7 +65,7 @@ def test_anchor_ids_from_mask():
     assert anchor_ids_from_mask(torch.zeros(3, dtype=torch.bool), 3).tolist() == []
     with pytest.raises(ShapeError, match="vis must have size 4"):
         anchor_ids_from_mask(mask, 4, name="vis")
-    with pytest.raises(InputValueError, match="visible_mask must have dtype"):
+    with pytest.raises(InputValueError, match="visible_mask.*dtype.*torch.int64"):
         anchor_ids_from_mask(mask.long())
 
 
@@ -76,14 +78,13 @@ def test_backend_defaults_and_check_decoder():
         b.rows_for(m, torch.tensor([True, False, True]))  # the mask must cover the model's 4 anchors
     assert b.make_hookable(m, "dec_a") is None and b.renderer(m) is None
     assert b.check_decoder(m, "dec_a") is m.dec_a[0]
-    with pytest.raises(TargetError, match="toy: first layer of 'dec_b' must be a Linear, got ReLU"):
+    with pytest.raises(TargetError, match="toy: .*'dec_b'.*Linear, got ReLU"):
         b.check_decoder(m, "dec_b")
-    with pytest.raises(TargetError, match="toy: decoder 'dec_c' has no first layer"):
+    with pytest.raises(TargetError, match="toy: .*'dec_c'.*first layer"):
         b.check_decoder(m, "dec_c")
     assert _Toy([("feat", 3), ("view", 2)]).check_decoder(m, "dec_a") is m.dec_a[0]
-    with pytest.raises(TargetError) as e:
+    with pytest.raises(TargetError, match=r"toy: dec_a\[0\] takes 5 inputs.*gives 6 \(\[\('feat', 3\), \('view', 3\)\]\)"):
         _Toy([("feat", 3), ("view", 3)]).check_decoder(m, "dec_a")
-    assert str(e.value) == "toy: dec_a[0] takes 5 inputs, the model's configuration gives 6 ([('feat', 3), ('view', 3)])"
     for name in ("matches", "decoder_paths", "anchor_positions"):
         with pytest.raises(NotImplementedError):
             getattr(Backend(), name)(m)

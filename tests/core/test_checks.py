@@ -1,4 +1,6 @@
-"""check_number and brief: numbers of any size and values of any shape give the library's error, in one short line."""
+"""The argument checks: numbers (bounds, open ends, ints of any size, hostile values), tensors (shapes
+with symbols, dtypes, finiteness), images and devices, each refusal one short line naming the argument;
+``brief`` shows any value in a few characters."""
 
 from __future__ import annotations
 
@@ -6,9 +8,11 @@ import fractions
 import math
 
 import pytest
+import torch
 
+from controlgs_adapter import checks
 from controlgs_adapter.checks import brief, check_number
-from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.errors import InputValueError, ShapeError
 
 
 @pytest.mark.parametrize("value", [10**400, -10**400, 10**5000, fractions.Fraction(10**400), math.nan, math.inf, -math.inf,
@@ -20,12 +24,15 @@ def test_check_number_refuses_what_is_not_a_finite_number_in_range(value: object
     assert "\n" not in str(e.value) and len(str(e.value)) < 200
 
 
-def test_check_number_takes_ints_of_any_size_within_the_range() -> None:
+def test_check_number_returns_ints_of_any_size_and_floats() -> None:
     assert check_number("n", 2**80, integer=True, low=0) == 2**80
     assert check_number("n", 2**80 + 1, integer=True, high=2**80 + 1) == 2**80 + 1
-    with pytest.raises(InputValueError, match="n must be an integer"):
+    with pytest.raises(InputValueError, match=rf"n must be an integer in \[-inf, 1\.20893e\+24\], got {2**80 + 2}$"):
         check_number("n", 2**80 + 2, integer=True, high=2**80 + 1)
     assert check_number("x", 10**300, low=0) == 1e300  # within float range: converted
+    np = pytest.importorskip("numpy")
+    assert type(check_number("x", np.int64(3), integer=True)) is int
+    assert check_number("x", 3) == 3.0 and type(check_number("x", 3)) is float
 
 
 def test_brief_never_raises_and_stays_short() -> None:
@@ -43,27 +50,21 @@ def test_brief_never_raises_and_stays_short() -> None:
     assert brief(Broken()).startswith("<Broken")
 
 
-import torch
-
-from controlgs_adapter import checks
-from controlgs_adapter.errors import ShapeError
-
-
 @pytest.mark.parametrize("kw, value, ok, words", [
     (dict(low=0.0), 0.0, True, None),  # closed lower bound takes the bound itself
-    (dict(low=0.0, low_open=True), 0.0, False, "in (0, inf)"),
+    (dict(low=0.0, low_open=True), 0.0, False, "in (0, inf), got 0.0"),
     (dict(low=0.0, low_open=True), 1e-300, True, None),
     (dict(high=1.0), 1.0, True, None),
-    (dict(low=0.0, high=1.0, high_open=True), 1.0, False, "in [0, 1)"),
+    (dict(low=0.0, high=1.0, high_open=True), 1.0, False, "in [0, 1), got 1.0"),
     (dict(low=0.0, high=1.0, high_open=True), 0.999, True, None),
-    (dict(low=-2.0), -2.5, False, "in [-2, inf)"),
-    (dict(high=3.0), 3.5, False, "in [-inf, 3]"),
-    (dict(), float("nan"), False, "a finite number, got nan"),
-    (dict(), float("inf"), False, "a finite number, got inf"),
+    (dict(low=-2.0), -2.5, False, "in [-2, inf), got -2.5"),
+    (dict(high=3.0), 3.5, False, "in [-inf, 3], got 3.5"),
+    (dict(), float("nan"), False, "got nan"),
+    (dict(), float("inf"), False, "got inf"),
     (dict(), True, False, "got True"),  # a bool is not a number here
     (dict(), "1", False, "got '1'"),
     (dict(integer=True, low=1), 1, True, None),
-    (dict(integer=True, low=1), 0, False, "an integer in [1, inf)"),
+    (dict(integer=True, low=1), 0, False, "in [1, inf), got 0"),
     (dict(integer=True), 2.0, False, "an integer, got 2.0"),  # a float is not an integer, even 2.0
 ])
 def test_check_number_bounds_and_messages(kw, value, ok, words):
@@ -73,13 +74,7 @@ def test_check_number_bounds_and_messages(kw, value, ok, words):
     else:
         with pytest.raises(InputValueError) as e:
             checks.check_number("x", value, **kw)
-        assert str(e.value).startswith("x must be ") and words in str(e.value)
-
-
-def test_check_number_converts_numpy_and_int_values():
-    np = pytest.importorskip("numpy")
-    assert type(checks.check_number("x", np.int64(3), integer=True)) is int
-    assert checks.check_number("x", 3) == 3.0 and type(checks.check_number("x", 3)) is float
+        assert str(e.value).startswith("x must be ") and str(e.value).endswith(words)
 
 
 def test_check_tensor_shapes_star_symbols_dtypes_and_bound_sizes():
@@ -109,7 +104,7 @@ def test_check_tensor_shapes_star_symbols_dtypes_and_bound_sizes():
 
 def test_check_finite_counts_and_value_checks_switch():
     x = torch.tensor([1.0, float("nan"), float("inf"), 2.0])
-    with pytest.raises(InputValueError, match=r"^x contains 2 non-finite value\(s\) \(NaN/Inf\) out of 4$"):
+    with pytest.raises(InputValueError, match=r"^x contains 2 non-finite.*out of 4$"):
         checks.check_finite("x", x)
     with pytest.raises(InputValueError, match="non-finite"):
         checks.check_tensor("x", x, finite=True)
@@ -143,5 +138,5 @@ def test_check_image_and_same_device():
         checks.check_image("img", bad)  # finite by default
     checks.check_image("img", bad, finite=False)
     checks.check_same_device(a=torch.zeros(1), b=torch.zeros(2), c=None)
-    with pytest.raises(InputValueError, match="tensors must be on one device, got a=cpu, b=meta"):
+    with pytest.raises(InputValueError, match="one device, got a=cpu, b=meta"):
         checks.check_same_device(a=torch.zeros(1), b=torch.zeros(1, device="meta"))

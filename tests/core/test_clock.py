@@ -1,4 +1,5 @@
-"""Tests of ``controlgs_adapter.clock``."""
+"""The training step's phase clock: laps add up per name between calls, ``clock_stage`` laps around a
+stage and removes its hooks; a clocked training step computes exactly what an unclocked one does."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import pytest
 import torch
 from torch import nn
 
-from controlgs_adapter.benchmarking import STEP_PHASES, ClockedRasterizer, PhaseClock, clock_stage
+import controlgs_adapter.clock as clock_mod
+from controlgs_adapter.benchmarking import ClockedRasterizer
+from controlgs_adapter.clock import STEP_PHASES, PhaseClock, clock_stage
 from controlgs_adapter.rendering.rasterizers import use_rasterizer
 from controlgs_adapter.training import TrainConfig, Trainer
 
@@ -47,26 +50,7 @@ def test_clocked_step_computes_the_same_and_times_every_phase(tiny):
         timed.cgs.unwrap()
 
 
-def test_laps_add_up_per_name():
-    clock = PhaseClock()
-    clock.start()
-    time.sleep(0.01)
-    clock.lap("a")
-    time.sleep(0.02)
-    clock.lap("b")
-    time.sleep(0.01)
-    clock.lap("a")
-    assert list(clock.laps) == ["a", "b"]
-    assert clock.laps["a"] >= 0.02 and clock.laps["b"] >= 0.02
-    assert clock.total == pytest.approx(clock.laps["a"] + clock.laps["b"])
-    clock.start()
-    assert clock.laps == {}
-
-
-# ---------------------------------------------------------------- the phase clock
-def test_phase_clock_laps_use_the_time_between_calls(monkeypatch: pytest.MonkeyPatch) -> None:
-    import controlgs_adapter.clock as clock_mod
-
+def test_phase_clock_laps_add_up_the_time_between_calls_per_name(monkeypatch: pytest.MonkeyPatch) -> None:
     now = [10.0]
     monkeypatch.setattr(clock_mod.time, "perf_counter", lambda: now[0])
     clock = PhaseClock()
@@ -80,6 +64,8 @@ def test_phase_clock_laps_use_the_time_between_calls(monkeypatch: pytest.MonkeyP
     now[0] = 13.75
     clock.lap("a")
     assert clock.laps == {"a": 0.75, "b": 2.0} and list(clock.laps) == ["a", "b"] and clock.total == 2.75
+    clock.start()  # starts over
+    assert clock.laps == {} and clock.total == 0
     assert PhaseClock("cpu").device == torch.device("cpu")
     assert STEP_PHASES == ("sample", "render", "pipeline", "loss", "backward", "optimizer")
 

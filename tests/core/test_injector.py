@@ -26,7 +26,7 @@ def _injector(widths=None, modules=("lens", "resample", "display"), n=3, a=5, se
     return inj
 
 
-def _by_hand(inj, ids, strengths, width):
+def _float64_injection(inj, ids, strengths, width):
     """sum_m lambda_m * C[ids, m] @ A_m^T in float64, module by module."""
     out = torch.zeros(len(ids), width, dtype=torch.float64)
     for m, lam in strengths.items():
@@ -52,7 +52,7 @@ def test_injector_init_layout_and_repr():
     assert big.condition("lens").shape == (1, 8)
 
 
-def test_injection_by_hand_shared_per_anchor_and_subset_strengths():
+def test_injection_in_float64_with_shared_per_anchor_and_subset_strengths():
     inj = _injector()
     ids = torch.tensor([4, 0, 0, 2])
     per = torch.tensor([0.0, 0.25, 1.0, 0.5], dtype=torch.float64)
@@ -62,7 +62,7 @@ def test_injection_by_hand_shared_per_anchor_and_subset_strengths():
                       {"resample": 2.0}):
         ctx = InjectionContext(ids, dict(strengths))
         got = inj.injection(ctx, 4)
-        assert torch.allclose(got, _by_hand(inj, ids, strengths, 4), rtol=0, atol=1e-13), strengths
+        assert torch.allclose(got, _float64_injection(inj, ids, strengths, 4), rtol=0, atol=1e-13), strengths
     assert inj.injection(InjectionContext(ids, {}), 4) is None
     assert torch.equal(per, torch.tensor([0.0, 0.25, 1.0, 0.5], dtype=torch.float64))  # not scaled in place
     before = inj.conditions.detach().clone()
@@ -82,7 +82,7 @@ def test_injection_cache_follows_versions_grad_mode_and_width():
         inj.conditions[1, 1] += 1.0  # an in-place change (an optimizer step) invalidates the cache
         inj.projections["resample"]["d4"].weight[0, 0] += 1.0
     again = inj.injection(ctx, 4)
-    assert again is not first and torch.allclose(again, _by_hand(inj, ids, {"resample": 0.5}, 4), atol=1e-13)
+    assert again is not first and torch.allclose(again, _float64_injection(inj, ids, {"resample": 0.5}, 4), atol=1e-13)
 
 
 def test_wrapped_decoders_see_a_fresh_injection_after_no_grad_and_after_an_optimizer_step():
@@ -137,7 +137,7 @@ def test_hook_adds_rows_per_anchor_groups_and_checks_row_count():
     assert ctx.rows == 6 and InjectionContext(ids, {}).rows == 3
     inj.activate(ctx)
     got = fc1(x).detach()
-    want = ref + _by_hand(inj, ids, strengths, 4).repeat_interleave(2, dim=0)  # rows 2i, 2i+1 = anchor ids[i]
+    want = ref + _float64_injection(inj, ids, strengths, 4).repeat_interleave(2, dim=0)  # rows 2i, 2i+1 = anchor ids[i]
     assert torch.allclose(got, want, rtol=0, atol=1e-13) and ctx.calls == {"t": 1}
     fc1(x)
     assert ctx.calls == {"t": 2}
