@@ -161,7 +161,7 @@ def scene_centre(cameras: list[Camera], points: torch.Tensor | None) -> torch.Te
             a, b = a + p, b + p @ cam.center.detach().double().cpu()
         if float(torch.linalg.cond(a)) < 1e4:
             x = torch.linalg.solve(a, b)
-            if all(float(cam.to_camera(x[None].to(cam.world_to_camera))[0, 2]) > 0 for cam in cameras):
+            if all(float(cam.to_camera(x[None].to(cam.world_to_camera)).detach()[0, 2]) > 0 for cam in cameras):
                 return x
     if points is not None and len(points):
         return points.detach().double().cpu().median(dim=0).values

@@ -1,17 +1,53 @@
-"""parse_state on hostile request values: numbers of any size, NaN / inf, wrong types and any nesting give
-the library's error naming the field, in one short line."""
+"""Tests of ``controlgs_adapter.viewer.session``: the view state (``parse_state`` on good, bad and hostile values),
+orbiting cameras about the scene centre, the strength heat overlay, PNG encoding, the render caches, and a session
+on the built-in scene (strengths, difference images, metrics, superseded work)."""
 
 from __future__ import annotations
 
+import base64
+import dataclasses
+import io
 import json
+import math
 from typing import Any
 
+import numpy as np
 import pytest
+import torch
+from helpers.viewer_sessions import SIZE, builtin_session, decode_png
+from PIL import Image
 
+from controlgs_adapter import plugins
 from controlgs_adapter.errors import InputValueError
-from controlgs_adapter.viewer.session import parse_state
+from controlgs_adapter.evaluation import evaluate_grid
+from controlgs_adapter.rendering import FunctionRenderer
+from controlgs_adapter.state import Camera
+from controlgs_adapter.viewer import OPTICS_MODES, STAGES, Superseded, ViewerSession
+from controlgs_adapter.viewer import session as vs
+from controlgs_adapter.viewer.session import (
+    ViewState,
+    _Cache,
+    _rotation,
+    _shared_copy,
+    encode_png,
+    heat_overlay,
+    orbit_camera,
+    parse_state,
+    scene_centre,
+)
+
+needs_optics = pytest.mark.skipif("optics" not in plugins.stages(), reason="optics stage not registered")
 
 HUGE = 10**400  # what json.loads makes of a 401-digit number
+K16 = torch.tensor([[10.0, 0.0, 8.0], [0.0, 10.0, 8.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """A 16 px session with the ControlGS adapter, its state-blind ablation and one on the foveation and display
+    modules."""
+    return builtin_session(tmp_path_factory.mktemp("viewer"), {"controlgs": {}, "blind": {"state_blind": True},
+                                                               "fov": {"modules": ("foveation", "display")}})
 
 
 def _nested(depth: int) -> Any:
@@ -19,6 +55,162 @@ def _nested(depth: int) -> Any:
     for _ in range(depth):
         out = [out]
     return out
+
+
+def _looking(centre: tuple[float, ...], forward: tuple[float, ...]) -> Camera:
+    """A 16 x 16 float64 camera at ``centre`` looking along the horizontal unit ``forward`` (OpenCV axes, y down)."""
+    f = torch.tensor(forward, dtype=torch.float64)
+    d = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    r = torch.linalg.cross(d, f)
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, :3] = torch.stack([r, d, f])
+    w2c[:3, 3] = -(w2c[:3, :3] @ torch.tensor(centre, dtype=torch.float64))
+    return Camera(w2c, K16.double(), 16, 16)
+
+
+def _look_at(eye: tuple[float, float, float], target: tuple[float, float, float], size: int = 12) -> Camera:
+    """A float32 pinhole camera at ``eye`` looking at ``target`` (OpenCV axes: x right, y down, z forward)."""
+    c, t = torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64)
+    z = (t - c) / (t - c).norm()
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    if abs(float(z[1])) > 0.9:
+        up = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    x = torch.linalg.cross(up, z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    r = torch.stack([x, y, z])
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, :3], w2c[:3, 3] = r, -(r @ c)
+    k = torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]])
+    return Camera(w2c.float(), k, size, size)
+
+
+def _cam_at_minus_z(dist: float = 4.0) -> Camera:
+    """Identity rotation (OpenCV: x right, y down, z forward) at world (0, 0, -dist): looks at the origin."""
+    w2c = torch.eye(4)
+    w2c[2, 3] = dist
+    k = torch.tensor([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
+    return Camera(w2c, k, 8, 8)
+
+
+def _pixel_point(cam: Camera, px: float, py: float, z: float = 1.0) -> list[float]:
+    """World point seen at pixel centre (px + 0.5, py + 0.5) by an identity camera (fx = fy = 8)."""
+    k = cam.intrinsics
+    return [(px + 0.5 - float(k[0, 2])) / float(k[0, 0]) * z, (py + 0.5 - float(k[1, 2])) / float(k[1, 1]) * z, z]
+
+
+def _heat_by_hand(pixels: list[tuple[int, int, float]], w: int, h: int) -> torch.Tensor:
+    """heat_overlay's documented map in float64 loops: per pixel the mean strength of the anchors in
+    the k x k window (k = 2 max(1, round(max(h, w) / 48)) + 1, clipped at the borders), coloured on the
+    4-stop heat map; alpha 0.55 min(1, 4 k^2 (anchors in the window) / (window pixels in the image))."""
+    heat = [[0.0, 0.0, 0.2], [0.45, 0.05, 0.55], [0.9, 0.35, 0.1], [1.0, 0.95, 0.3]]
+    r = max(1, round(max(h, w) / 48))
+    k = 2 * r + 1
+    out = torch.zeros(4, h, w, dtype=torch.float64)
+    for y in range(h):
+        for x in range(w):
+            inside = [(u, v) for v in range(y - r, y + r + 1) for u in range(x - r, x + r + 1) if 0 <= u < w and 0 <= v < h]
+            hits = [s for (u, v, s) in pixels if (u, v) in inside]
+            lam = min(max(sum(hits) / len(hits), 0.0), 1.0) if hits else 0.0
+            t = lam * 3
+            i = min(math.floor(t), 2)
+            for c in range(3):
+                out[c, y, x] = heat[i][c] + (t - i) * (heat[i + 1][c] - heat[i][c])
+            out[3, y, x] = 0.55 * min(1.0, k * k * 4.0 * len(hits) / len(inside))
+    return out
+
+
+# ----------------------------------------------------------------------------- the view state
+
+def test_view_state_defaults_and_constants() -> None:
+    d = parse_state({}, 3)
+    assert d == ViewState() and parse_state({}, 2) == ViewState()
+    assert (d.view, d.azimuth, d.elevation, d.downsample, d.power_saving, d.optics, d.stages, d.gaze) == (
+        0, 0.0, 0.0, 2.0, 0.4, "fast", STAGES, None)
+    assert STAGES == ("lens", "resample", "display", "oled", "optics") and OPTICS_MODES == ("distortion", "fast", "exact")
+    assert (vs.DOWNSAMPLE_RANGE, vs.POWER_SAVING_RANGE, vs.AZIMUTH_RANGE, vs.ELEVATION_RANGE, vs.DIFF_GAIN) == (
+        (1.0, 8.0), (0.0, 0.8), (-180.0, 180.0), (-80.0, 80.0), 2.0)
+    assert d.to_json() == {"view": 0, "azimuth": 0.0, "elevation": 0.0, "downsample": 2.0, "power_saving": 0.4,
+                           "optics": "fast", "stages": list(STAGES), "gaze": None}
+    assert not d.orbit and d.effects == {s: True for s in STAGES}
+    r = d.runtime
+    assert (r.downsample, r.power_saving, r.gaze) == (2.0, 0.4, None)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ViewState().view = 1  # type: ignore[misc]
+
+
+def test_parse_state_values_effects_and_json_round_trip() -> None:
+    """Stages in any order, duplicates kept once, in pipeline order (an empty list switches everything off); any
+    azimuth or elevation is an orbit; the JSON form (lists, not tuples) parses back to the same state."""
+    s = parse_state({"view": 1, "azimuth": -30, "elevation": 12.5, "downsample": 3.7, "power_saving": 0.25,
+                     "optics": "exact", "stages": ["optics", "lens"], "gaze": [0.5, -1]}, 2)
+    assert (s.view, s.azimuth, s.elevation, s.downsample, s.power_saving, s.optics) == (1, -30.0, 12.5, 3.7, 0.25, "exact")
+    assert s.stages == ("lens", "optics") and s.gaze == (0.5, -1.0) and s.orbit
+    assert s.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": True}
+    assert s.runtime.downsample == 3.7 and s.runtime.gaze == (0.5, -1.0)
+    js = s.to_json()
+    assert js["stages"] == ["lens", "optics"] and js["gaze"] == [0.5, -1.0]
+    assert parse_state(json.loads(json.dumps(js)), 2) == s
+    assert parse_state({"stages": ["optics", "lens", "optics"]}, 1).stages == ("lens", "optics")
+    assert parse_state({"stages": []}, 1).stages == ()
+    for optics in OPTICS_MODES:
+        assert parse_state({"optics": optics}, 1).optics == optics
+    assert parse_state({"elevation": 5}, 1).orbit and ViewState(azimuth=0.0, elevation=-5.0).orbit and ViewState(azimuth=3.0).orbit
+    lens = ViewState(stages=("lens",), gaze=(0.25, -0.5))
+    assert lens.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": False}
+    assert lens.runtime.gaze == (0.25, -0.5)
+
+
+def test_parse_state_bounds_are_inclusive() -> None:
+    lo = parse_state({"view": 0, "azimuth": -180, "elevation": -80, "downsample": 1, "power_saving": 0,
+                      "gaze": [-1, -1]}, 3)
+    hi = parse_state({"view": 2, "azimuth": 180, "elevation": 80, "downsample": 8, "power_saving": 0.8,
+                      "gaze": [1, 1]}, 3)
+    assert (lo.view, lo.azimuth, lo.elevation, lo.downsample, lo.power_saving, lo.gaze) == (0, -180.0, -80.0, 1.0, 0.0, (-1.0, -1.0))
+    assert (hi.view, hi.azimuth, hi.elevation, hi.downsample, hi.power_saving, hi.gaze) == (2, 180.0, 80.0, 8.0, 0.8, (1.0, 1.0))
+    assert isinstance(hi.view, int) and not isinstance(hi.view, bool)
+    for field, low, high in (("downsample", 1.0, 8.0), ("power_saving", 0.0, 0.8), ("azimuth", -180.0, 180.0),
+                             ("elevation", -80.0, 80.0)):
+        for v in (low - 1e-6, high + 1e-6):
+            with pytest.raises(InputValueError, match=f"^{field} "):
+                parse_state({field: v}, 1)
+
+
+@pytest.mark.parametrize("data, pattern", [
+    ({"view": -1}, r"^view .*\[0, 2\], got -1$"),
+    ({"view": 3}, r"^view .*\[0, 2\], got 3$"),
+    ({"view": 0.5}, r"^view must be an integer .*got 0\.5$"),
+    ({"azimuth": -180.5}, r"^azimuth .*\[-180, 180\], got -180\.5$"),
+    ({"azimuth": 200}, r"^azimuth .*got 200$"),
+    ({"elevation": 80.5}, r"^elevation .*\[-80, 80\], got 80\.5$"),
+    ({"elevation": -90}, r"^elevation .*got -90$"),
+    ({"power_saving": -0.1}, r"^power_saving .*\[0, 0\.8\], got -0\.1$"),
+    ({"power_saving": 0.9}, r"^power_saving .*got 0\.9$"),
+    ({"downsample": 8.01}, r"^downsample .*\[1, 8\], got 8\.01$"),
+    ({"downsample": 0.5}, r"^downsample .*got 0\.5$"),
+    ({"downsample": "2"}, r"^downsample .*got '2'$"),
+    ({"downsample": True}, r"^downsample .*got True$"),
+    ({"downsample": float("nan")}, r"^downsample .*got nan$"),
+    ({"stages": ["lens", 3]}, r"^stages must be a list .*got \['lens', 3\]$"),
+    ({"stages": ("lens",)}, r"^stages must be a list .*got \('lens',\)$"),
+    ({"stages": "lens"}, r"^stages must be a list .*got 'lens'$"),
+    ({"stages": ["lens", "bloom"]}, r"^stages: unknown \['bloom'\]"),
+    ({"gaze": "ab"}, r"^gaze .*got 'ab'$"),
+    ({"gaze": [0, 0, 0]}, r"^gaze .*got \[0, 0, 0\]$"),
+    ({"gaze": [0]}, r"^gaze .*got \[0\]$"),
+    ({"gaze": [0, 1.5]}, r"^gaze y .*got 1\.5$"),
+    ({"gaze": [-1.5, 0]}, r"^gaze x .*got -1\.5$"),
+    ({"gaze": [2, 0]}, r"^gaze x .*got 2$"),
+    ({"b": 1, "a": 2, "view": 0}, r"^unknown state field\(s\) \['a', 'b'\]; fields: view, azimuth, "),
+    ({"zoom": 2}, r"^unknown state field\(s\) \['zoom'\]"),
+    ({"optics": None}, r"^optics .*got None$"),
+    ({"optics": "blur"}, r"^optics .*got 'blur'$"),
+    ("view", r"^the state must be a JSON object .*got str$"),
+    ([1, 2], r"^the state must be a JSON object .*got list$"),
+])
+def test_parse_state_refusals_name_the_field_and_value(data: Any, pattern: str) -> None:
+    with pytest.raises(InputValueError, match=pattern):
+        parse_state(data, 3)
 
 
 @pytest.mark.parametrize("field", ["view", "azimuth", "elevation", "downsample", "power_saving"])
@@ -49,270 +241,9 @@ def test_parse_state_refuses_hostile_values_in_one_short_line(data: dict[str, An
     assert "\n" not in str(e.value) and len(str(e.value)) < 300
 
 
-import base64
-import http
-import io
-import math
-import threading
+# ----------------------------------------------------------------------------- orbit, rotation and scene centre
 
-import torch
-from helpers.adapters import random_adapter
-
-from controlgs_adapter import plugins
-from controlgs_adapter.evaluation import evaluate_grid
-from controlgs_adapter.scene import load_builtin_scene
-from controlgs_adapter.state import Camera
-from controlgs_adapter.viewer import OPTICS_MODES, STAGES, Superseded, ViewerSession, make_server
-from controlgs_adapter.viewer import session as vs
-from controlgs_adapter.viewer.server import Generations
-from controlgs_adapter.viewer.session import ViewState, _Cache, _shared_copy, heat_overlay, orbit_camera, scene_centre
-
-
-# ---------------------------------------------------------------- viewer state bounds
-@pytest.mark.parametrize("field, lo, hi", [("downsample", 1.0, 8.0), ("power_saving", 0.0, 0.8),
-                                           ("azimuth", -180.0, 180.0), ("elevation", -80.0, 80.0)])
-def test_parse_state_bounds_are_inclusive(field: str, lo: float, hi: float) -> None:
-    for v in (lo, hi):
-        assert getattr(parse_state({field: v}, 1), field) == v
-    for v in (lo - 1e-6, hi + 1e-6):
-        with pytest.raises(InputValueError, match=field):
-            parse_state({field: v}, 1)
-
-
-def test_parse_state_view_gaze_and_json_round_trip() -> None:
-    assert parse_state({"view": 2}, 3).view == 2
-    with pytest.raises(InputValueError, match=r"view must be an integer in \[0, 2\]"):
-        parse_state({"view": -1}, 3)
-    for gaze in ([1, -1], [-1, 1]):
-        assert parse_state({"gaze": gaze}, 1).gaze == tuple(float(g) for g in gaze)
-    with pytest.raises(InputValueError, match="gaze y must be"):
-        parse_state({"gaze": [0, 1.5]}, 1)
-    with pytest.raises(InputValueError, match="gaze must be null"):
-        parse_state({"gaze": [0, 0, 0]}, 1)
-    s = parse_state({"view": 1, "azimuth": 10, "stages": ["optics", "lens"], "gaze": [0.25, 0.5]}, 2)
-    js = s.to_json()
-    assert js["stages"] == ["lens", "optics"] and js["gaze"] == [0.25, 0.5]
-    assert parse_state(json.loads(json.dumps(js)), 2) == s
-    assert ViewState().to_json()["gaze"] is None and not ViewState().orbit
-    assert parse_state({"elevation": 5}, 1).orbit
-
-
-def _look_at(eye: tuple[float, float, float], target: tuple[float, float, float], size: int = 12) -> Camera:
-    """A pinhole camera at ``eye`` looking at ``target`` (OpenCV axes: x right, y down, z forward)."""
-    c, t = torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64)
-    z = (t - c) / (t - c).norm()
-    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
-    if abs(float(z[1])) > 0.9:
-        up = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-    x = torch.linalg.cross(up, z)
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    r = torch.stack([x, y, z])
-    w2c = torch.eye(4, dtype=torch.float64)
-    w2c[:3, :3], w2c[:3, 3] = r, -(r @ c)
-    k = torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]])
-    return Camera(w2c.float(), k, size, size)
-
-
-def test_scene_centre_is_where_the_axes_meet_and_never_joins_the_poses_graph():
-    """Cameras looking at one point: the centre is that point (least squares of the axes, exact here);
-    poses that require grad (a camera being optimised) give a plain tensor, the same as detached poses."""
-    target = (0.3, -0.2, 0.5)
-    cams = [_look_at(e, target) for e in ((0.0, 0.0, -3.0), (3.0, 0.5, 0.0), (-1.0, -2.0, 2.0))]
-    live = [Camera(c.world_to_camera.clone().requires_grad_(True), c.intrinsics, c.width, c.height) for c in cams]
-    got = scene_centre(live, None)
-    assert not got.requires_grad and got.grad_fn is None
-    assert got.dtype == torch.float64 and got.shape == (3,)
-    assert torch.allclose(got, torch.tensor(target, dtype=torch.float64), atol=1e-5)
-    assert torch.equal(got, scene_centre(cams, None))
-
-
-def _look_at_2(eye: tuple[float, float, float], size: int = 12) -> Camera:
-    """A pinhole camera at ``eye`` looking at the origin (OpenCV axes: x right, y down, z forward)."""
-    c = torch.tensor(eye, dtype=torch.float32)
-    z = -c / c.norm()
-    up = torch.tensor([0.0, 1.0, 0.0]) if abs(float(z[1])) < 0.9 else torch.tensor([1.0, 0.0, 0.0])
-    x = torch.linalg.cross(up, z)
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    r = torch.stack([x, y, z])
-    w2c = torch.eye(4)
-    w2c[:3, :3], w2c[:3, 3] = r, -(r @ c)
-    k = torch.tensor([[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]])
-    return Camera(w2c, k, size, size)
-
-
-def test_orbit_camera_never_attaches_the_camera_to_its_inputs_graph():
-    """Orbiting is a viewer move: a centre or camera pose that requires grad gives a camera whose pose does
-    not (and the same pose as from detached inputs)."""
-    cam = _look_at_2((0.0, 0.0, -3.0))
-    centre = torch.tensor([0.1, -0.2, 0.3], requires_grad=True)
-    w2c = cam.world_to_camera.clone().requires_grad_(True)
-    live = Camera(w2c, cam.intrinsics, cam.width, cam.height)
-    out = orbit_camera(live, centre, 30.0, -10.0)
-    want = orbit_camera(cam, centre.detach(), 30.0, -10.0)
-    assert not out.world_to_camera.requires_grad
-    assert torch.equal(out.world_to_camera, want.world_to_camera)
-
-
-def test_viewer_rotation_is_exact_in_float64():
-    """The viewer's Rodrigues rotation keeps its axis' float64: about z it is the closed form to 1e-15, and
-    about a skew axis orthonormal to 1e-14 with the axis fixed (float32 would leave ~1e-8 errors)."""
-    from controlgs_adapter.viewer.session import _rotation
-
-    t = math.radians(37.0)
-    want = torch.tensor([[math.cos(t), -math.sin(t), 0.0], [math.sin(t), math.cos(t), 0.0], [0.0, 0.0, 1.0]],
-                        dtype=torch.float64)
-    r = _rotation(torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64), 37.0)
-    assert r.dtype == torch.float64 and torch.allclose(r, want, rtol=0, atol=1e-15)
-    axis = torch.tensor([0.3, -0.7, 0.64], dtype=torch.float64)
-    r = _rotation(axis, 123.4)
-    assert torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-14)
-    assert torch.allclose(r @ axis, axis, rtol=0, atol=1e-14)
-
-
-SIZE = 16
-
-
-needs_optics = pytest.mark.skipif("optics" not in plugins.stages(), reason="optics stage not registered")
-
-
-# ----------------------------------------------------------------------------- the viewer
-@pytest.fixture(scope="module")
-def viewer_session() -> Any:
-    from controlgs_adapter.scene import load_builtin_backbone
-    from controlgs_adapter.viewer import ViewerSession
-
-    scene = load_builtin_scene("ar", SIZE, views=4, test_every=4, samples=1)
-    return ViewerSession(load_builtin_backbone("ar"), scene.views("test"), {}, name="tiny")
-
-
-@needs_optics
-def test_viewer_renders_with_the_optics_mode_of_the_state(viewer_session: Any) -> None:
-    """The state's ``optics`` (distortion, fast) is the optics stage's mode of that render: the
-    session's PSNR / SSIM are :func:`evaluate_grid`'s at the same mode (session.render's docstring: "as
-    evaluate_grid computes them"), and the modes give different eye images (the pipeline is cached per
-    stage set, so a mode that never reached it would leave every render at the first one's)."""
-    from controlgs_adapter.viewer import parse_state
-
-    eyes = {}
-    for mode in ("distortion", "fast"):
-        out = viewer_session.render(parse_state({"downsample": 2.0, "power_saving": 0.2, "optics": mode}, 1))
-        ss = next(m for m in out["methods"] if m["name"] == "ss")
-        grid = evaluate_grid(viewer_session.model, viewer_session.views, {}, downsample=[2.0], power_saving=[0.2],
-                             optics_mode=mode, baselines=("ss",), ideal=False, extra_metrics=False, progress=False)
-        for k in ("psnr", "ssim"):
-            assert ss["metrics"][k] == pytest.approx(float(grid.per_view["ss"][k][0, 0, 0]), abs=1e-9), (mode, k)
-        eyes[mode] = ss["eye"]
-    assert eyes["distortion"] != eyes["fast"]
-
-
-def _decode(b64: str) -> torch.Tensor:
-    """base64 PNG -> float ``[H, W, C]`` in 0..255."""
-    import numpy as np
-    from PIL import Image
-
-    img = np.asarray(Image.open(io.BytesIO(base64.b64decode(b64))), dtype=np.float32)
-    return torch.from_numpy(img).view(img.shape[0], img.shape[1], -1)
-
-
-# ---------------------------------------------------------------- orbit and centre
-def _cam_at_minus_z(dist: float = 4.0) -> Camera:
-    """Identity rotation (OpenCV: x right, y down, z forward) at world (0, 0, -dist): looks at the origin."""
-    w2c = torch.eye(4)
-    w2c[2, 3] = dist
-    k = torch.tensor([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
-    return Camera(w2c, k, 8, 8)
-
-
-# ---------------------------------------------------------------- heat overlay
-def _pixel_point(cam: Camera, px: float, py: float, z: float = 1.0) -> list[float]:
-    """World point seen at pixel centre (px + 0.5, py + 0.5) by an identity camera (fx = fy = 8)."""
-    k = cam.intrinsics
-    return [(px + 0.5 - float(k[0, 2])) / float(k[0, 0]) * z, (py + 0.5 - float(k[1, 2])) / float(k[1, 1]) * z, z]
-
-
-# ---------------------------------------------------------------- the session
-@pytest.fixture(scope="module")
-def small(tmp_path_factory: pytest.TempPathFactory) -> Any:
-    from controlgs_adapter.scene import load_builtin_backbone, render_planes
-
-    scene = load_builtin_scene("ar", SIZE, views=4, test_every=4, samples=1)
-    model = load_builtin_backbone("ar")
-    d = tmp_path_factory.mktemp("viewer-sweep")
-    adapters = {"controlgs": random_adapter(model, d / "a.controlgs.safetensors", 3),
-                "blind": random_adapter(model, d / "b.controlgs.safetensors", 3, state_blind=True),
-                "fov": random_adapter(model, d / "f.controlgs.safetensors", 3, modules=("foveation", "display"))}
-    session = ViewerSession(model, scene.views("test"), adapters, name="tiny",
-                            truth=lambda cam: render_planes(scene.planes, cam, samples=1)[0].float())
-    return session, scene
-
-
-# ---------------------------------------------------------------- parse_state
-def test_view_state_defaults_and_constants() -> None:
-    d = parse_state({}, 3)
-    assert (d.view, d.azimuth, d.elevation, d.downsample, d.power_saving, d.optics, d.stages, d.gaze) == (
-        0, 0.0, 0.0, 2.0, 0.4, "fast", STAGES, None)
-    assert STAGES == ("lens", "resample", "display", "oled", "optics") and OPTICS_MODES == ("distortion", "fast", "exact")
-    assert (vs.DOWNSAMPLE_RANGE, vs.POWER_SAVING_RANGE, vs.AZIMUTH_RANGE, vs.ELEVATION_RANGE, vs.DIFF_GAIN) == (
-        (1.0, 8.0), (0.0, 0.8), (-180.0, 180.0), (-80.0, 80.0), 2.0)
-    assert d.to_json() == {"view": 0, "azimuth": 0.0, "elevation": 0.0, "downsample": 2.0, "power_saving": 0.4,
-                           "optics": "fast", "stages": list(STAGES), "gaze": None}
-    assert not d.orbit and d.effects == {s: True for s in STAGES}
-    r = d.runtime
-    assert (r.downsample, r.power_saving, r.gaze) == (2.0, 0.4, None)
-
-
-def test_view_state_orbit_and_json() -> None:
-    assert ViewState(azimuth=0.0, elevation=-5.0).orbit and ViewState(azimuth=3.0).orbit
-    s = ViewState(stages=("lens",), gaze=(0.25, -0.5))
-    assert s.to_json()["gaze"] == [0.25, -0.5] and s.to_json()["stages"] == ["lens"]
-    assert json.dumps(s.to_json())  # JSON-ready: lists, not tuples only
-    assert s.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": False}
-    assert s.runtime.gaze == (0.25, -0.5)
-
-
-def test_parse_state_accepts_the_bounds() -> None:
-    lo = parse_state({"view": 0, "azimuth": -180, "elevation": -80, "downsample": 1, "power_saving": 0,
-                      "gaze": [-1, -1]}, 3)
-    hi = parse_state({"view": 2, "azimuth": 180, "elevation": 80, "downsample": 8, "power_saving": 0.8,
-                      "gaze": [1, 1]}, 3)
-    assert (lo.view, lo.azimuth, lo.elevation, lo.downsample, lo.power_saving, lo.gaze) == (0, -180.0, -80.0, 1.0, 0.0, (-1.0, -1.0))
-    assert (hi.view, hi.azimuth, hi.elevation, hi.downsample, hi.power_saving, hi.gaze) == (2, 180.0, 80.0, 8.0, 0.8, (1.0, 1.0))
-    assert isinstance(hi.view, int) and not isinstance(hi.view, bool)
-    # stages: any order, duplicates: kept once, in pipeline order; an empty list switches everything off
-    assert parse_state({"stages": ["optics", "lens", "optics"]}, 1).stages == ("lens", "optics")
-    assert parse_state({"stages": []}, 1).stages == ()
-    for optics in OPTICS_MODES:
-        assert parse_state({"optics": optics}, 1).optics == optics
-
-
-@pytest.mark.parametrize("data, message", [
-    ({"view": -1}, "view must be an integer in [0, 2]"),
-    ({"view": 3}, "view must be an integer in [0, 2]"),
-    ({"azimuth": -180.5}, "azimuth must be a finite number in [-180, 180]"),
-    ({"elevation": 80.5}, "elevation must be a finite number in [-80, 80]"),
-    ({"power_saving": -0.1}, "power_saving must be a finite number in [0, 0.8]"),
-    ({"downsample": 8.01}, "downsample must be a finite number in [1, 8]"),
-    ({"stages": ["lens", 3]}, "stages must be a list of stage names among lens, resample, display, oled, optics"),
-    ({"stages": ("lens",)}, "stages must be a list"),
-    ({"gaze": "ab"}, "gaze must be null or [x, y] in [-1, 1]"),
-    ({"gaze": [0, 0, 0]}, "gaze must be null or [x, y]"),
-    ({"gaze": [0, 1.5]}, "gaze y must be a finite number in [-1, 1]"),
-    ({"gaze": [-1.5, 0]}, "gaze x must be"),
-    ({"b": 1, "a": 2, "view": 0}, "unknown state field(s) ['a', 'b']; fields: view, azimuth, elevation, downsample, "
-                                  "power_saving, optics, stages, gaze"),
-    ({"optics": None}, "optics must be one of distortion, fast, exact, got None"),
-    ("view", "the state must be a JSON object with fields view, azimuth, elevation, downsample, power_saving, optics, "
-             "stages, gaze, got str"),
-])
-def test_parse_state_refusals(data: Any, message: str) -> None:
-    with pytest.raises(InputValueError) as e:
-        parse_state(data, 3)
-    assert message in str(e.value)
-
-
-def test_orbit_camera_directions_by_hand() -> None:
+def test_orbit_camera_directions() -> None:
     cam, o = _cam_at_minus_z(), torch.zeros(3, dtype=torch.float64)
     # azimuth 90 about the up axis -y (right-handed): (0, 0, -4) -> (4, 0, 0), to the scene's right (+x);
     # the camera keeps its up row (0, 1, 0) and now looks along -x; x row = y row cross z row = (0, 0, 1)
@@ -334,37 +265,101 @@ def test_orbit_camera_directions_by_hand() -> None:
     # azimuth then elevation: 90 right then 90 up from (0, 0, -4) ends above the centre
     both = orbit_camera(cam, o, 90.0, 90.0)
     assert torch.allclose(both.center.double(), torch.tensor([0.0, -4.0, 0.0], dtype=torch.float64), atol=1e-5)
+    # a float64 pose stays float64: 30 degrees about up (-y) takes (0, 0, -4) to 4 (sin 30, 0, -cos 30) exactly
+    cam64 = Camera(cam.world_to_camera.double(), cam.intrinsics, 8, 8)
+    turned = orbit_camera(cam64, o, 30.0, 0.0)
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    assert turned.world_to_camera.dtype == torch.float64
+    assert torch.allclose(turned.center.double(), torch.tensor([4 * s, 0.0, -4 * c], dtype=torch.float64), rtol=0, atol=1e-14)
 
 
-def test_rotation_rodrigues_by_hand() -> None:
-    r = vs._rotation(torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64), 90.0)  # axis normalised
-    want = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    assert torch.allclose(r, want, atol=1e-12)
-    r30 = vs._rotation(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), 30.0)
+def test_orbit_camera_never_attaches_the_camera_to_its_inputs_graph():
+    """Orbiting is a viewer move: a centre or camera pose that requires grad gives a camera whose pose does
+    not (and the same pose as from detached inputs)."""
+    cam = _look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0))
+    centre = torch.tensor([0.1, -0.2, 0.3], requires_grad=True)
+    w2c = cam.world_to_camera.clone().requires_grad_(True)
+    live = Camera(w2c, cam.intrinsics, cam.width, cam.height)
+    out = orbit_camera(live, centre, 30.0, -10.0)
+    want = orbit_camera(cam, centre.detach(), 30.0, -10.0)
+    assert not out.world_to_camera.requires_grad
+    assert torch.equal(out.world_to_camera, want.world_to_camera)
+
+
+def test_orbit_camera_turns_about_the_scene_centre(small: Any) -> None:
+    _, scene = small
+    cam = scene.test_cameras[0]
+    centre = scene_centre(scene.test_cameras + scene.train_cameras, None)
+    assert torch.allclose(centre, torch.tensor([0.0, 0.35, 0.0], dtype=torch.float64), atol=1e-4)  # the arc's target
+    same = orbit_camera(cam, centre, 0.0, 0.0)
+    assert torch.allclose(same.world_to_camera, cam.world_to_camera, atol=1e-6)
+    up = -cam.world_to_camera[1, :3].double()
+    for az, el in ((40.0, 0.0), (0.0, 30.0), (-120.0, -20.0)):
+        moved = orbit_camera(cam, centre, az, el)
+        c0, c1 = cam.center.double(), moved.center.double()
+        assert abs(float((c1 - centre).norm() - (c0 - centre).norm())) < 1e-4          # same distance
+        look = moved.to_camera(centre[None].float())[0]
+        assert abs(float(look[0])) < 1e-3 and abs(float(look[1])) < 1e-3                # still looks at it
+        if el:
+            assert (float((c1 - c0) @ up) > 0) == (el > 0)                               # elevation > 0: up
+
+
+def test_rotation_is_rodrigues_exact_in_float64():
+    """The viewer's Rodrigues rotation keeps its axis' float64: about z it is the closed form to 1e-15, and
+    about a skew axis orthonormal to 1e-14 with the axis fixed (float32 would leave ~1e-8 errors)."""
+    t = math.radians(37.0)
+    want = torch.tensor([[math.cos(t), -math.sin(t), 0.0], [math.sin(t), math.cos(t), 0.0], [0.0, 0.0, 1.0]],
+                        dtype=torch.float64)
+    r = _rotation(torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64), 37.0)
+    assert r.dtype == torch.float64 and torch.allclose(r, want, rtol=0, atol=1e-15)
+    r90 = _rotation(torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64), 90.0)  # the axis is normalised
+    assert torch.allclose(r90, torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64), atol=1e-12)
+    r30 = _rotation(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), 30.0)
     c, s = 3**0.5 / 2, 0.5
     assert torch.allclose(r30, torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64), atol=1e-12)
+    axis = torch.tensor([0.3, -0.7, 0.64], dtype=torch.float64)
+    r = _rotation(axis, 123.4)
+    assert torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-14)
+    assert torch.allclose(r @ axis, axis, rtol=0, atol=1e-14)
 
 
-def test_scene_centre_parallel_axes_and_one_camera_fall_back() -> None:
-    k = torch.tensor([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]])
+def test_scene_centre_is_where_the_axes_meet_and_never_joins_the_poses_graph():
+    """Cameras looking at one point: the centre is that point (least squares of the axes, exact here);
+    poses that require grad (a camera being optimised) give a plain tensor, the same as detached poses."""
+    target = (0.3, -0.2, 0.5)
+    cams = [_look_at(e, target) for e in ((0.0, 0.0, -3.0), (3.0, 0.5, 0.0), (-1.0, -2.0, 2.0))]
+    live = [Camera(c.world_to_camera.clone().requires_grad_(True), c.intrinsics, c.width, c.height) for c in cams]
+    got = scene_centre(live, None)
+    assert not got.requires_grad and got.grad_fn is None
+    assert got.dtype == torch.float64 and got.shape == (3,)
+    assert torch.allclose(got, torch.tensor(target, dtype=torch.float64), atol=1e-5)
+    assert torch.equal(got, scene_centre(cams, None))
 
-    def at(x: float) -> Camera:  # looking along +z from (x, 0, -4)
-        w2c = torch.eye(4)
-        w2c[0, 3], w2c[2, 3] = -x, 4.0
-        return Camera(w2c, k, 8, 8)
 
-    points = torch.tensor([[1.0, 2.0, 3.0], [3.0, 0.0, 5.0], [2.0, 1.0, 4.0]])
-    median = torch.tensor([2.0, 1.0, 4.0], dtype=torch.float64)
-    assert torch.equal(scene_centre([at(0.0), at(2.0)], points), median)  # parallel axes: singular, the median
-    assert torch.equal(scene_centre([at(0.0)], points), median)  # one camera: no intersection
-    assert torch.equal(scene_centre([at(0.0), at(2.0)], points[:0]), torch.zeros(3, dtype=torch.float64))  # no points
+def test_scene_centre_falls_back_to_the_median_then_the_origin():
+    """Axes meeting in front: their meeting point; meeting behind, parallel or one camera: the anchors'
+    per-axis median; no anchors either: the origin."""
+    t = (0.5, -1.0, 2.0)
+    front = [_looking((t[0] - 3, t[1], t[2]), (1.0, 0.0, 0.0)), _looking((t[0], t[1], t[2] - 3), (0.0, 0.0, 1.0))]
+    behind = [_looking((t[0] - 3, t[1], t[2]), (-1.0, 0.0, 0.0)), _looking((t[0], t[1], t[2] - 3), (0.0, 0.0, -1.0))]
+    parallel = [_looking((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)), _looking((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
+    points = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [5.0, -2.0, 3.0]])
+    median = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(scene_centre(front, points), torch.tensor(t, dtype=torch.float64), atol=1e-12, rtol=0)
+    for cams in (behind, parallel, front[:1]):
+        torch.testing.assert_close(scene_centre(cams, points), median, atol=0, rtol=0)
+        assert torch.equal(scene_centre(cams, None), torch.zeros(3, dtype=torch.float64))
+        assert torch.equal(scene_centre(cams, torch.zeros(0, 3)), torch.zeros(3, dtype=torch.float64))
+        assert scene_centre(cams, torch.ones(2, 3)).dtype == torch.float64
     # two converging cameras: (0, 0, -4) looking +z and (4, 0, 0) looking -x meet at the origin
     w2c = torch.tensor([[0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 4.0], [0.0, 0.0, 0.0, 1.0]])
-    got = scene_centre([_cam_at_minus_z(), Camera(w2c, k, 8, 8)], points)
+    got = scene_centre([_cam_at_minus_z(), Camera(w2c, _cam_at_minus_z().intrinsics, 8, 8)], points)
     assert torch.allclose(got, torch.zeros(3, dtype=torch.float64), atol=1e-6)
 
 
-def test_heat_overlay_pixels_by_hand() -> None:
+# ----------------------------------------------------------------------------- heat overlay and PNG encoding
+
+def test_heat_overlay_pixels() -> None:
     cam = Camera(torch.eye(4), torch.tensor([[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]]), 8, 8)
     # k = 2 max(1, round(8 / 48)) + 1 = 3: each anchor spreads over its 3x3 neighbourhood
     pos = torch.tensor([_pixel_point(cam, 2, 5), _pixel_point(cam, 6, 0), _pixel_point(cam, 2, 1), _pixel_point(cam, 2, 1),
@@ -389,9 +384,7 @@ def test_heat_overlay_pixels_by_hand() -> None:
     covered[4:7, 1:4] = covered[0:2, 5:8] = covered[0:3, 1:4] = True
     assert torch.equal(out[3] > 0, covered)  # nothing from the culled anchors
     assert torch.allclose(out[:3, ~covered], torch.tensor([[0.0], [0.0], [0.2]]), atol=1e-7)  # lam 0: the first colour
-
-
-def test_heat_overlay_window_grows_with_the_image() -> None:
+    # the window: k = 2 max(1, round(size / 48)) + 1 (72 / 48 = 1.5 -> 2)
     for size, half in ((72, 2), (96, 2), (8, 1), (144, 3)):  # k = 2 max(1, round(size / 48)) + 1; 72 / 48 = 1.5 -> 2
         cam = Camera(torch.eye(4), torch.tensor([[8.0, 0.0, size / 2], [0.0, 8.0, size / 2], [0.0, 0.0, 1.0]]), size, size)
         c = size // 2
@@ -400,19 +393,62 @@ def test_heat_overlay_window_grows_with_the_image() -> None:
         assert row.tolist() == list(range(c - half, c + half + 1)), size
 
 
-# ---------------------------------------------------------------- cache and shared copy
-def test_cache_is_least_recently_used() -> None:
+@pytest.mark.parametrize("w,h", [(20, 12), (100, 30)])  # k = 3 and k = 5
+def test_heat_overlay_against_loops(w, h):
+    f, cx, cy = 10.0, w / 2, h / 2
+    cam = Camera(torch.eye(4), torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]), w, h)
+    landing = [(0, 0, 0.2), (3, 2, 0.9), (3, 2, 0.5), (w - 1, h - 1, 1.0), (w // 2, h // 2, 0.35), (7, 5, 1.7)]
+    pts = [[(u + 0.5 - cx) / f * z, (v + 0.5 - cy) / f * z, z] for (u, v, _), z in zip(landing, (1.0, 2.0, 1.0, 3.0, 1.0, 1.0))]
+    strength = [s for (_, _, s) in landing]
+    # dropped: behind the camera, left of / below the image, a NaN strength
+    pts += [[0.0, 0.0, -1.0], [(-0.5 - cx) / f, 0.0, 1.0], [0.0, (h + 0.5 - cy) / f, 1.0], [(5.5 - cx) / f, (5.5 - cy) / f, 1.0]]
+    strength += [1.0, 1.0, 1.0, float("nan")]
+    got = heat_overlay(torch.tensor(pts, dtype=torch.float64), torch.tensor(strength), cam)
+    assert got.shape == (4, h, w)
+    torch.testing.assert_close(got.double(), _heat_by_hand(landing, w, h), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("channels,mode", [(3, "RGB"), (4, "RGBA")])
+def test_encode_png_rounds_to_nearest_and_clamps(channels, mode):
+    import base64
+
+
+    # x * 255: 127.5 -> 128, 127.49 -> 127, 0.51 -> 1, 0.49 -> 0, 254.6 -> 255; out of [0, 1] clamps
+    values = torch.tensor([127.5, 127.49, 0.51, 0.49, 254.6, -20.0, 300.0, 255.0]) / 255.0
+    image = values.view(1, 2, 4).expand(channels, 2, 4).clone()
+    image[0, 0, 0] = 1.0  # channels differ: the channel order shows
+    png = Image.open(io.BytesIO(base64.b64decode(encode_png(image))))
+    assert png.mode == mode and png.size == (4, 2)
+    got = torch.from_numpy(np.asarray(png).astype(np.int64)).permute(2, 0, 1)
+    want = torch.tensor([128, 127, 1, 0, 255, 0, 255, 255]).view(1, 2, 4).expand(channels, 2, 4).clone()
+    want[0, 0, 0] = 255
+    assert torch.equal(got, want)
+    rgba = torch.cat([torch.full((3, 2, 3), 0.5), torch.full((1, 2, 3), 0.2)])
+    assert torch.equal(decode_png(encode_png(rgba))[..., 3], torch.full((2, 3), 51.0))  # round(0.2 * 255)
+
+
+def test_encode_png_compresses() -> None:
+    """Low compression (level 1), not none: a flat 64 x 64 image is well under its 12 kB of raw pixels."""
+    png = base64.b64decode(encode_png(torch.full((3, 64, 64), 0.5)))
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) < 1000
+    assert len(base64.b64decode(encode_png(torch.full((3, 64, 64), 0.5), level=0))) > 12000  # stored: raw size
+
+
+# ----------------------------------------------------------------------------- caches and copies
+
+def test_cache_evicts_the_least_recently_used():
+
     made: list[str] = []
+    cache = _Cache(2)
 
-    def make(v: str) -> Any:
-        return lambda: made.append(v) or v
+    def get(key: str) -> str:
+        return cache.get_or(key, lambda: made.append(key) or key.upper())
 
-    c = _Cache(2)
-    assert c.get_or("a", make("A")) == "A" and c.get_or("b", make("B")) == "B"
-    assert c.get_or("a", make("X")) == "A"  # a hit: not made again, and now the most recent
-    assert c.get_or("c", make("C")) == "C"  # evicts b, the least recently used
-    assert list(c) == ["a", "c"] and made == ["A", "B", "C"]
-    assert c.get_or("b", make("B2")) == "B2" and list(c) == ["c", "b"]
+    assert [get("a"), get("b"), get("a")] == ["A", "B", "A"] and made == ["a", "b"]  # a hit makes nothing
+    get("c")  # over the size: b (used least recently) goes, a (just used) stays
+    assert list(cache) == ["a", "c"] and made == ["a", "b", "c"]
+    get("b")
+    assert list(cache) == ["c", "b"] and made == ["a", "b", "c", "b"]
 
 
 def test_shared_copy_shares_tensors_not_modules() -> None:
@@ -432,28 +468,15 @@ def test_shared_copy_shares_tensors_not_modules() -> None:
     assert q is not p and q.t is p.t and q.mlp is not p.mlp
 
 
-def test_session_info(small: Any) -> None:
-    """``info()`` lists the views, the methods (baselines, then the adapters; an adapter without a label of
-    its own shows its name), stages, optics modes, defaults, ranges and device."""
-    session, _ = small
-    info = session.info()
-    assert info["name"] == "tiny" and info["views"] == [f"test view 0 ({SIZE}x{SIZE})"]
-    assert [m["name"] for m in info["methods"]] == ["no_ss", "ss", "controlgs", "blind", "fov"]
-    assert info["methods"][3] == {"name": "blind", "label": "blind"}
-    assert info["stages"] == list(STAGES) and info["optics_modes"] == list(OPTICS_MODES)
-    assert info["defaults"] == ViewState().to_json() and info["diff_gain"] == 2.0
-    assert info["ranges"] == {"downsample": (1.0, 8.0), "power_saving": (0.0, 0.8), "azimuth": (-180.0, 180.0),
-                              "elevation": (-80.0, 80.0)}
-    assert info["orbit_truth"] is True and info["device"] == "cpu"
-    assert info["extra_metrics"] == list(session.extra_metrics)
+# ----------------------------------------------------------------------------- the session
 
-
-def test_session_refusals(small: Any) -> None:
-    session, scene = small
-    with pytest.raises(InputValueError, match=r"adapter names \['ss'\] clash with the baselines"):
-        ViewerSession(session.model, scene.views("test"), {"ss": "x"})
+def test_small_refuses_baseline_names_and_no_views():
+    with pytest.raises(InputValueError, match=r"adapter names \['ss'\] clash with the baselines \('no_ss', 'ss'\)"):
+        ViewerSession(None, [object()], {"controlgs": "a.safetensors", "ss": "b.safetensors"})
+    with pytest.raises(InputValueError, match=r"adapter names \['no_ss'\] clash"):
+        ViewerSession(None, [object()], {"no_ss": "a.safetensors"})
     with pytest.raises(InputValueError, match="the viewer needs at least one view"):
-        ViewerSession(session.model, [], {})
+        ViewerSession(None, [], {})
 
 
 def test_session_render_strengths_diffs_and_extra(small: Any) -> None:
@@ -472,13 +495,13 @@ def test_session_render_strengths_diffs_and_extra(small: Any) -> None:
     fov = by["fov"]["strengths"]
     assert set(fov) == {"foveation", "display"} and isinstance(fov["foveation"], dict)
     for name in ("controlgs", "blind", "fov"):  # the lens (else foveation) strength as an RGBA overlay
-        assert _decode(by[name]["overlay"]).shape == (SIZE, SIZE, 4)
+        assert decode_png(by[name]["overlay"]).shape == (SIZE, SIZE, 4)
     # difference image: |eye - gt| x 2, clipped, within one PNG level
     tag, eyes, gt = session._last
     assert tag == 11 and gt is not None
     for name, eye in eyes.items():
         want = ((eye - gt).abs() * 2.0).clamp(0, 1).permute(1, 2, 0) * 255
-        assert (_decode(by[name]["diff"]) - want).abs().max() <= 0.51, name
+        assert (decode_png(by[name]["diff"]) - want).abs().max() <= 0.51, name
         assert float(eye.min()) >= 0 and float(eye.max()) <= 1
     extra = session.extra(11)
     assert set(extra) == set(by) if session.extra_metrics else extra == {}
@@ -505,48 +528,28 @@ def test_session_extra_without_truth_or_metrics(small: Any) -> None:
         session.truth, session.extra_metrics = truth, metrics
 
 
-def test_frame_cache_keeps_the_16_most_recent_cameras(small: Any) -> None:
+def test_strengths_of_a_camera_that_sees_no_anchor(small: Any) -> None:
+    """Looking away from the scene: no visible anchor; per-anchor strengths report 0 (mean, min, max), the
+    state-blind ablation its constant 1, global ones their value; no overlay pixel."""
     session, _ = small
-    session._frames.clear()
-    first = session._frame(parse_state({"azimuth": 1.0}, 1))
-    for az in range(2, 18):  # 16 more cameras: the first one is evicted by the 17th
-        session._frame(parse_state({"azimuth": float(az)}, 1))
-    assert len(session._frames) == 16
-    assert (0, 1.0, 0.0) not in session._frames and (0, 2.0, 0.0) in session._frames
-    again = session._frame(parse_state({"azimuth": 1.0}, 1))
-    assert again is not first and torch.equal(again[2], first[2])  # rendered anew, the same image
-    assert session._frame(parse_state({"azimuth": 1.0}, 1)) is again  # now cached
-
-
-def test_view_state_is_frozen_and_orbit_keeps_float64() -> None:
-    import dataclasses
-
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        ViewState().view = 1  # type: ignore[misc]
-    cam = _cam_at_minus_z()
-    cam64 = Camera(cam.world_to_camera.double(), cam.intrinsics, 8, 8)
-    turned = orbit_camera(cam64, torch.zeros(3, dtype=torch.float64), 30.0, 0.0)
-    assert turned.world_to_camera.dtype == torch.float64
-    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
-    # 30 degrees about up (-y): centre (0, 0, -4) -> 4 (sin 30, 0, -cos 30), exactly in float64
-    assert torch.allclose(turned.center.double(), torch.tensor([4 * s, 0.0, -4 * c], dtype=torch.float64), rtol=0, atol=1e-14)
-    assert torch.equal(scene_centre([cam], None), torch.zeros(3, dtype=torch.float64))
-    assert scene_centre([cam], None).dtype == torch.float64
-    assert scene_centre([cam], torch.ones(2, 3)).dtype == torch.float64
-
-
-def test_encode_png_compresses() -> None:
-    """Low compression (level 1), not none: a flat 64 x 64 image is well under its 12 kB of raw pixels."""
-    from controlgs_adapter.viewer.session import encode_png
-
-    png = base64.b64decode(encode_png(torch.full((3, 64, 64), 0.5)))
-    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) < 1000
-    assert len(base64.b64decode(encode_png(torch.full((3, 64, 64), 0.5), level=0))) > 12000  # stored: raw size
+    cam = session.cameras[0]
+    w2c = cam.world_to_camera.clone()  # turned half a circle about its own y axis: the scene is behind it
+    w2c[:3, :3] = torch.diag(torch.tensor([-1.0, 1.0, -1.0])) @ w2c[:3, :3]
+    w2c[:3, 3] = -(w2c[:3, :3] @ cam.center)
+    blind_cam = Camera(w2c, cam.intrinsics, cam.width, cam.height)
+    rs = parse_state({"downsample": 4.0, "power_saving": 0.4}, 1).runtime
+    copy_, cgs = session.adapters["controlgs"]
+    assert int(torch.as_tensor(session.renderer.visible(copy_, blind_cam)).sum()) == 0  # the case under test
+    strengths, overlay = session._strengths(cgs, copy_, blind_cam, rs)
+    assert strengths["lens"] == {"mean": 0.0, "min": 0.0, "max": 0.0}
+    assert strengths["resample"] == pytest.approx(2 / 3, abs=1e-6) and strengths["display"] == pytest.approx(0.5, abs=1e-6)
+    assert float(decode_png(overlay)[..., 3].max()) == 0.0
+    copy_, cgs = session.adapters["blind"]
+    strengths, _ = session._strengths(cgs, copy_, blind_cam, rs)
+    assert strengths == {"lens": 1.0, "resample": 1.0, "display": 1.0}
 
 
 def test_session_with_a_renderer_of_its_own_and_no_adapter(small: Any) -> None:
-    from controlgs_adapter.rendering import FunctionRenderer
-
     session, scene = small
     calls: list[int] = []
 
@@ -563,260 +566,8 @@ def test_session_with_a_renderer_of_its_own_and_no_adapter(small: Any) -> None:
     assert plain.background is not None and torch.equal(plain.background, scene.views("test").background)
 
 
-def test_strengths_of_a_camera_that_sees_no_anchor(small: Any) -> None:
-    """Looking away from the scene: no visible anchor; per-anchor strengths report 0 (mean, min, max), the
-    state-blind ablation its constant 1, global ones their value; no overlay pixel."""
+def test_state_independent_renders_are_cached(small: Any) -> None:
     session, _ = small
-    cam = session.cameras[0]
-    w2c = cam.world_to_camera.clone()  # turned half a circle about its own y axis: the scene is behind it
-    w2c[:3, :3] = torch.diag(torch.tensor([-1.0, 1.0, -1.0])) @ w2c[:3, :3]
-    w2c[:3, 3] = -(w2c[:3, :3] @ cam.center)
-    blind_cam = Camera(w2c, cam.intrinsics, cam.width, cam.height)
-    rs = parse_state({"downsample": 4.0, "power_saving": 0.4}, 1).runtime
-    copy_, cgs = session.adapters["controlgs"]
-    assert int(torch.as_tensor(session.renderer.visible(copy_, blind_cam)).sum()) == 0  # the case under test
-    strengths, overlay = session._strengths(cgs, copy_, blind_cam, rs)
-    assert strengths["lens"] == {"mean": 0.0, "min": 0.0, "max": 0.0}
-    assert strengths["resample"] == pytest.approx(2 / 3, abs=1e-6) and strengths["display"] == pytest.approx(0.5, abs=1e-6)
-    assert float(_decode(overlay)[..., 3].max()) == 0.0
-    copy_, cgs = session.adapters["blind"]
-    strengths, _ = session._strengths(cgs, copy_, blind_cam, rs)
-    assert strengths == {"lens": 1.0, "resample": 1.0, "display": 1.0}
-
-
-def test_no_ss_cache_keeps_the_32_most_recent_renders(small: Any) -> None:
-    session, scene = small
-    plain = ViewerSession(session.model, scene.views("test"), {})  # the two baselines only: cheap renders
-    for az in range(1, 34):  # 33 orbit cameras, one no-SS render each: the first is evicted by the 33rd
-        plain.render(parse_state({"azimuth": float(az), "stages": []}, 1))
-    assert len(plain._small) == 32
-    keys = [k[:3] for k in plain._small]
-    assert (0, 1.0, 0.0) not in keys and (0, 2.0, 0.0) in keys and (0, 33.0, 0.0) in keys
-
-
-def _heat_by_hand(pixels: list[tuple[int, int, float]], w: int, h: int) -> torch.Tensor:
-    """heat_overlay's documented map in float64 loops: per pixel the mean strength of the anchors in
-    the k x k window (k = 2 max(1, round(max(h, w) / 48)) + 1, clipped at the borders), coloured on the
-    4-stop heat map; alpha 0.55 min(1, 4 k^2 (anchors in the window) / (window pixels in the image))."""
-    heat = [[0.0, 0.0, 0.2], [0.45, 0.05, 0.55], [0.9, 0.35, 0.1], [1.0, 0.95, 0.3]]
-    r = max(1, round(max(h, w) / 48))
-    k = 2 * r + 1
-    out = torch.zeros(4, h, w, dtype=torch.float64)
-    for y in range(h):
-        for x in range(w):
-            inside = [(u, v) for v in range(y - r, y + r + 1) for u in range(x - r, x + r + 1) if 0 <= u < w and 0 <= v < h]
-            hits = [s for (u, v, s) in pixels if (u, v) in inside]
-            lam = min(max(sum(hits) / len(hits), 0.0), 1.0) if hits else 0.0
-            t = lam * 3
-            i = min(math.floor(t), 2)
-            for c in range(3):
-                out[c, y, x] = heat[i][c] + (t - i) * (heat[i + 1][c] - heat[i][c])
-            out[3, y, x] = 0.55 * min(1.0, k * k * 4.0 * len(hits) / len(inside))
-    return out
-
-
-def _looking(centre: tuple[float, ...], forward: tuple[float, ...]):
-    """An OpenCV camera at ``centre`` looking along the horizontal unit ``forward`` (y down)."""
-    from controlgs_adapter.state import Camera
-
-    f = torch.tensor(forward, dtype=torch.float64)
-    d = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
-    r = torch.linalg.cross(d, f)
-    w2c = torch.eye(4, dtype=torch.float64)
-    w2c[:3, :3] = torch.stack([r, d, f])
-    w2c[:3, 3] = -(w2c[:3, :3] @ torch.tensor(centre, dtype=torch.float64))
-    return Camera(w2c, torch.tensor([[10.0, 0.0, 8.0], [0.0, 10.0, 8.0], [0.0, 0.0, 1.0]], dtype=torch.float64), 16, 16)
-
-
-def test_viewer_session_refuses_baseline_names_and_no_views():
-    from controlgs_adapter.errors import InputValueError
-    from controlgs_adapter.viewer.session import ViewerSession
-
-    with pytest.raises(InputValueError, match=r"adapter names \['ss'\] clash with the baselines \('no_ss', 'ss'\)"):
-        ViewerSession(None, [object()], {"controlgs": "a.safetensors", "ss": "b.safetensors"})
-    with pytest.raises(InputValueError, match=r"adapter names \['no_ss'\] clash"):
-        ViewerSession(None, [object()], {"no_ss": "a.safetensors"})
-    with pytest.raises(InputValueError, match="the viewer needs at least one view"):
-        ViewerSession(None, [], {})
-
-
-def test_viewer_cache_evicts_the_least_recently_used():
-    from controlgs_adapter.viewer.session import _Cache
-
-    made: list[str] = []
-    cache = _Cache(2)
-
-    def get(key: str) -> str:
-        return cache.get_or(key, lambda: made.append(key) or key.upper())
-
-    assert [get("a"), get("b"), get("a")] == ["A", "B", "A"] and made == ["a", "b"]  # a hit makes nothing
-    get("c")  # over the size: b (used least recently) goes, a (just used) stays
-    assert list(cache) == ["a", "c"] and made == ["a", "b", "c"]
-    get("b")
-    assert list(cache) == ["c", "b"] and made == ["a", "b", "c", "b"]
-
-
-@pytest.mark.parametrize("w,h", [(20, 12), (100, 30)])  # k = 3 and k = 5
-def test_heat_overlay_against_loops(w, h):
-    from controlgs_adapter.state import Camera
-    from controlgs_adapter.viewer.session import heat_overlay
-
-    f, cx, cy = 10.0, w / 2, h / 2
-    cam = Camera(torch.eye(4), torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]), w, h)
-    landing = [(0, 0, 0.2), (3, 2, 0.9), (3, 2, 0.5), (w - 1, h - 1, 1.0), (w // 2, h // 2, 0.35), (7, 5, 1.7)]
-    pts = [[(u + 0.5 - cx) / f * z, (v + 0.5 - cy) / f * z, z] for (u, v, _), z in zip(landing, (1.0, 2.0, 1.0, 3.0, 1.0, 1.0))]
-    strength = [s for (_, _, s) in landing]
-    # dropped: behind the camera, left of / below the image, a NaN strength
-    pts += [[0.0, 0.0, -1.0], [(-0.5 - cx) / f, 0.0, 1.0], [0.0, (h + 0.5 - cy) / f, 1.0], [(5.5 - cx) / f, (5.5 - cy) / f, 1.0]]
-    strength += [1.0, 1.0, 1.0, float("nan")]
-    got = heat_overlay(torch.tensor(pts, dtype=torch.float64), torch.tensor(strength), cam)
-    assert got.shape == (4, h, w)
-    torch.testing.assert_close(got.double(), _heat_by_hand(landing, w, h), atol=1e-5, rtol=0)
-
-
-@pytest.mark.parametrize("channels,mode", [(3, "RGB"), (4, "RGBA")])
-def test_encode_png_rounds_to_nearest_and_clamps(channels, mode):
-    import base64
-    import io
-
-    from PIL import Image
-
-    from controlgs_adapter.viewer.session import encode_png
-
-    # x * 255: 127.5 -> 128, 127.49 -> 127, 0.51 -> 1, 0.49 -> 0, 254.6 -> 255; out of [0, 1] clamps
-    values = torch.tensor([127.5, 127.49, 0.51, 0.49, 254.6, -20.0, 300.0, 255.0]) / 255.0
-    image = values.view(1, 2, 4).expand(channels, 2, 4).clone()
-    image[0, 0, 0] = 1.0  # channels differ: the channel order shows
-    png = Image.open(io.BytesIO(base64.b64decode(encode_png(image))))
-    assert png.mode == mode and png.size == (4, 2)
-    got = torch.tensor(list(png.getdata())).T.reshape(channels, 2, 4)
-    want = torch.tensor([128, 127, 1, 0, 255, 0, 255, 255]).view(1, 2, 4).expand(channels, 2, 4).clone()
-    want[0, 0, 0] = 255
-    assert torch.equal(got, want)
-
-
-def test_scene_centre_each_branch():
-    """Axes meeting in front: their meeting point; meeting behind, parallel or one camera: the anchors'
-    per-axis median; no anchors either: the origin."""
-    from controlgs_adapter.viewer.session import scene_centre
-
-    t = (0.5, -1.0, 2.0)
-    front = [_looking((t[0] - 3, t[1], t[2]), (1.0, 0.0, 0.0)), _looking((t[0], t[1], t[2] - 3), (0.0, 0.0, 1.0))]
-    behind = [_looking((t[0] - 3, t[1], t[2]), (-1.0, 0.0, 0.0)), _looking((t[0], t[1], t[2] - 3), (0.0, 0.0, -1.0))]
-    parallel = [_looking((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)), _looking((1.0, 0.0, 0.0), (0.0, 0.0, 1.0))]
-    points = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [5.0, -2.0, 3.0]])
-    median = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
-    torch.testing.assert_close(scene_centre(front, points), torch.tensor(t, dtype=torch.float64), atol=1e-12, rtol=0)
-    for cams in (behind, parallel, front[:1]):
-        torch.testing.assert_close(scene_centre(cams, points), median, atol=0, rtol=0)
-        assert torch.equal(scene_centre(cams, None), torch.zeros(3, dtype=torch.float64))
-        assert torch.equal(scene_centre(cams, torch.zeros(0, 3)), torch.zeros(3, dtype=torch.float64))
-
-
-SIZE_2 = 48
-
-
-@pytest.fixture(scope="module")
-def scene() -> Any:
-
-    return load_builtin_scene("ar", SIZE_2, views=8, test_every=4, samples=1)
-
-
-@pytest.fixture(scope="module")
-def session(scene: Any, tmp_path_factory: pytest.TempPathFactory) -> ViewerSession:
-    from controlgs_adapter.scene import load_builtin_backbone, render_planes
-
-    model = load_builtin_backbone("ar")
-    adapter = random_adapter(model, tmp_path_factory.mktemp("viewer") / "controlgs.controlgs.safetensors")
-    return ViewerSession(model, scene.views("test"), {"controlgs": adapter}, name="test scene",
-                         truth=lambda cam: render_planes(scene.planes, cam, samples=1)[0].float())
-
-
-def decode(b64: str) -> torch.Tensor:
-    import numpy as np
-    from PIL import Image
-
-    img = np.asarray(Image.open(io.BytesIO(base64.b64decode(b64))), dtype=np.float32)
-    return torch.from_numpy(img).view(img.shape[0], img.shape[1], -1)
-
-
-# ---------------------------------------------------------------- the server
-@pytest.fixture(scope="module")
-def server(session: ViewerSession) -> Any:
-    srv = make_server(session)
-    thread = threading.Thread(target=srv.serve_forever, daemon=True)
-    thread.start()
-    yield srv
-    srv.shutdown()
-    srv.server_close()
-
-
-def request(srv: Any, method: str, path: str, body: Any = None, headers: dict[str, str] | None = None,
-            raw: bytes | None = None) -> tuple[int, bytes]:
-    conn = http.client.HTTPConnection(*srv.server_address[:2], timeout=60)
-    data = raw if raw is not None else None if body is None else json.dumps(body).encode()
-    conn.request(method, path, body=data, headers=headers or {})
-    resp = conn.getresponse()
-    out = resp.status, resp.read()
-    conn.close()
-    return out
-
-
-# ---------------------------------------------------------------- state parsing
-def test_parse_state_defaults_and_values() -> None:
-    assert parse_state({}, 2) == ViewState()
-    s = parse_state({"view": 1, "azimuth": -30, "elevation": 12.5, "downsample": 3.7, "power_saving": 0.25,
-                     "optics": "exact", "stages": ["optics", "lens"], "gaze": [0.5, -1]}, 2)
-    assert (s.view, s.azimuth, s.elevation, s.downsample, s.power_saving, s.optics) == (1, -30.0, 12.5, 3.7, 0.25, "exact")
-    assert s.stages == ("lens", "optics") and s.gaze == (0.5, -1.0) and s.orbit
-    assert s.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": True}
-    assert s.runtime.downsample == 3.7 and s.runtime.gaze == (0.5, -1.0)
-
-
-@pytest.mark.parametrize("data, message", [
-    ({"downsample": 0.5}, "downsample must be a finite number in [1, 8]"),
-    ({"downsample": 9}, "downsample must be a finite number in [1, 8]"),
-    ({"downsample": "2"}, "downsample must be"),
-    ({"downsample": True}, "downsample must be"),
-    ({"downsample": float("nan")}, "downsample must be"),
-    ({"power_saving": 0.9}, "power_saving must be a finite number in [0, 0.8]"),
-    ({"azimuth": 200}, "azimuth must be"),
-    ({"elevation": -90}, "elevation must be"),
-    ({"view": 2}, "view must be an integer in [0, 1]"),
-    ({"view": 0.5}, "view must be an integer"),
-    ({"optics": "blur"}, "optics must be one of distortion, fast, exact"),
-    ({"stages": "lens"}, "stages must be a list"),
-    ({"stages": ["lens", "bloom"]}, "stages: unknown ['bloom']"),
-    ({"gaze": [2, 0]}, "gaze x must be"),
-    ({"gaze": [0]}, "gaze must be null or [x, y]"),
-    ({"zoom": 2}, "unknown state field(s) ['zoom']"),
-    ([1, 2], "the state must be a JSON object"),
-])
-def test_parse_state_refuses_bad_values(data: Any, message: str) -> None:
-    with pytest.raises(InputValueError) as e:
-        parse_state(data, 2)
-    assert message in str(e.value)
-
-
-# ---------------------------------------------------------------- orbit
-def test_orbit_camera_turns_about_the_centre(scene: Any) -> None:
-    cam = scene.test_cameras[0]
-    centre = scene_centre(scene.test_cameras + scene.train_cameras, None)
-    assert torch.allclose(centre, torch.tensor([0.0, 0.35, 0.0], dtype=torch.float64), atol=1e-4)  # the arc's target
-    same = orbit_camera(cam, centre, 0.0, 0.0)
-    assert torch.allclose(same.world_to_camera, cam.world_to_camera, atol=1e-6)
-    up = -cam.world_to_camera[1, :3].double()
-    for az, el in ((40.0, 0.0), (0.0, 30.0), (-120.0, -20.0)):
-        moved = orbit_camera(cam, centre, az, el)
-        c0, c1 = cam.center.double(), moved.center.double()
-        assert abs(float((c1 - centre).norm() - (c0 - centre).norm())) < 1e-4          # same distance
-        look = moved.to_camera(centre[None].float())[0]
-        assert abs(float(look[0])) < 1e-3 and abs(float(look[1])) < 1e-3                # still looks at it
-        if el:
-            assert (float((c1 - c0) @ up) > 0) == (el > 0)                               # elevation > 0: up
-
-
-def test_state_independent_renders_are_cached(session: ViewerSession) -> None:
     session.render(parse_state({"downsample": 2.0}, 2))
     frames, small = len(session._frames), len(session._small)
     a = session.render(parse_state({"downsample": 2.01, "power_saving": 0.7}, 2))  # same display size, same view
@@ -825,10 +576,11 @@ def test_state_independent_renders_are_cached(session: ViewerSession) -> None:
     assert a["methods"][1]["rendered"] == b["methods"][1]["rendered"] and a["methods"][1]["eye"] != b["methods"][1]["eye"]
 
 
-def test_stages_off_and_orbit(session: ViewerSession) -> None:
+def test_stages_off_and_orbit(small: Any) -> None:
+    session, _ = small
     out = session.render(parse_state({"stages": ["resample", "display"], "downsample": 3}, 2))
     assert out["methods"][1]["stages_run"] == ["resample", "display"]
-    assert decode(out["methods"][1]["eye"]).shape == (SIZE_2, SIZE_2, 3)  # oled off: boxes at S for the metrics
+    assert decode_png(out["methods"][1]["eye"]).shape == (SIZE, SIZE, 3)  # oled off: boxes at S for the metrics
     orbit = session.render(parse_state({"azimuth": 25, "elevation": 10}, 2))
     assert orbit["has_truth"] and orbit["methods"][0]["metrics"] is not None
     truth, session.truth = session.truth, None
@@ -839,7 +591,8 @@ def test_stages_off_and_orbit(session: ViewerSession) -> None:
     assert not blind["has_truth"] and blind["gt"] is None and all(m["metrics"] is None for m in blind["methods"])
 
 
-def test_check_drops_work_between_methods(session: ViewerSession) -> None:
+def test_check_drops_work_between_methods(small: Any) -> None:
+    session, _ = small
     calls = []
 
     def check() -> None:
@@ -852,97 +605,43 @@ def test_check_drops_work_between_methods(session: ViewerSession) -> None:
     assert len(calls) == 2  # stopped after the first method
 
 
-def test_serves_page_and_static_files_only(server: Any) -> None:
-    assert server.url.startswith("http://127.0.0.1:")
-    status, body = request(server, "GET", "/")
-    assert status == 200 and b"<title>ControlGS viewer</title>" in body
-    for name in ("viewer.js", "viewer.css", "index.html"):
-        assert request(server, "GET", f"/static/{name}")[0] == 200
-    for path in ("/static/../session.py", "/static/%2e%2e/session.py", "/static/..%2fsession.py", "/etc/passwd",
-                 "/static/", "/static/viewer.js/", "//etc/passwd", "/static/../../../../etc/passwd", "/api/render",
-                 "/controlgs_adapter/viewer/session.py"):
-        status, body = request(server, "GET", path)
-        assert status == 404, path
-        assert b"no such page" in body
+def test_frame_cache_keeps_the_16_most_recent_cameras(small: Any) -> None:
+    session, _ = small
+    session._frames.clear()
+    first = session._frame(parse_state({"azimuth": 1.0}, 1))
+    for az in range(2, 18):  # 16 more cameras: the first one is evicted by the 17th
+        session._frame(parse_state({"azimuth": float(az)}, 1))
+    assert len(session._frames) == 16
+    assert (0, 1.0, 0.0) not in session._frames and (0, 2.0, 0.0) in session._frames
+    again = session._frame(parse_state({"azimuth": 1.0}, 1))
+    assert again is not first and torch.equal(again[2], first[2])  # rendered anew, the same image
+    assert session._frame(parse_state({"azimuth": 1.0}, 1)) is again  # now cached
 
 
-def test_refuses_other_hosts_and_bad_bodies(server: Any) -> None:
-    status, body = request(server, "GET", "/api/info", headers={"Host": "evil.example:80"})
-    assert status == 403 and b"loopback" in body
-    status, body = request(server, "POST", "/api/render", {"downsample": 12})
-    assert status == 400 and "downsample must be a finite number in [1, 8]" in json.loads(body)["error"]
-    status, body = request(server, "POST", "/api/render", raw=b"{not json", headers={"Content-Type": "application/json"})
-    assert status == 400 and "not JSON" in json.loads(body)["error"]
-    status, body = request(server, "POST", "/api/render", raw=b"x" * (65 * 1024))
-    assert status == 400 and "at most" in json.loads(body)["error"]
-    status, body = request(server, "POST", "/api/extra", {"generation": "1"})
-    assert status == 400
-    assert request(server, "POST", "/api/other", {})[0] == 404
+def test_no_ss_cache_keeps_the_32_most_recent_renders(small: Any) -> None:
+    session, scene = small
+    plain = ViewerSession(session.model, scene.views("test"), {})  # the two baselines only: cheap renders
+    for az in range(1, 34):  # 33 orbit cameras, one no-SS render each: the first is evicted by the 33rd
+        plain.render(parse_state({"azimuth": float(az), "stages": []}, 1))
+    assert len(plain._small) == 32
+    keys = [k[:3] for k in plain._small]
+    assert (0, 1.0, 0.0) not in keys and (0, 2.0, 0.0) in keys and (0, 33.0, 0.0) in keys
 
 
-def test_render_and_extra_endpoints(server: Any, session: ViewerSession) -> None:
-    info = json.loads(request(server, "GET", "/api/info")[1])
-    assert [m["name"] for m in info["methods"]] == ["no_ss", "ss", "controlgs"] and info["stages"] == list(STAGES)
-    status, body = request(server, "POST", "/api/render", {"downsample": 4, "power_saving": 0.2})
-    assert status == 200
-    out = json.loads(body)
-    g = out["generation"]
-    assert out["state"]["downsample"] == 4.0 and len(out["methods"]) == 3
-    status, body = request(server, "POST", "/api/extra", {"generation": g})
-    assert status == 200 and set(json.loads(body)["metrics"]) == {"no_ss", "ss", "controlgs"}
-    request(server, "POST", "/api/render", {"downsample": 4.5})
-    assert request(server, "POST", "/api/extra", {"generation": g})[0] == 409  # stale
-
-
-def test_generations() -> None:
-    g = Generations()
-    a = g.next()
-    g.check(a)
-    b = g.next()
-    with pytest.raises(Superseded):
-        g.check(a)
-    g.check(b)
-
-
-def test_loopback_only(session: ViewerSession) -> None:
-    with pytest.raises(InputValueError, match="loopback"):
-        make_server(session, host="0.0.0.0")
-
-
-def test_encode_png_rounds_to_the_nearest_level() -> None:
-    from controlgs_adapter.viewer.session import encode_png
-
-    img = torch.tensor([0.0, 0.5, 1.0, 1.5, -0.2, 0.3]).view(1, 2, 3).expand(3, 2, 3)  # values outside [0, 1] clip
-    got = decode(encode_png(img))
-    want = torch.tensor([0, 128, 255, 255, 0, 77], dtype=torch.float32).view(2, 3)  # round(v * 255)
-    assert got.shape == (2, 3, 3) and torch.equal(got[..., 0], want) and torch.equal(got[..., 2], want)
-    rgba = torch.cat([img, torch.full((1, 2, 3), 0.2)])
-    assert torch.equal(decode(encode_png(rgba))[..., 3], torch.full((2, 3), 51.0))
-
-
-def test_scene_centre_fallbacks_and_axes_by_hand() -> None:
-    from controlgs_adapter.state import Camera
-
-    k = torch.tensor([[10.0, 0.0, 8.0], [0.0, 10.0, 8.0], [0.0, 0.0, 1.0]])
-
-    def looking_at_origin_from(c: list[float], sign: float = 1.0) -> Camera:  # sign -1: looking away from it
-        z = -sign * torch.tensor(c, dtype=torch.float64)
-        z = z / z.norm()
-        x = torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), z)
-        x = x / x.norm()
-        r = torch.stack([x, torch.linalg.cross(z, x), z])
-        w2c = torch.eye(4, dtype=torch.float64)
-        w2c[:3, :3], w2c[:3, 3] = r, -(r @ torch.tensor(c, dtype=torch.float64))
-        return Camera(w2c.float(), k, 16, 16)
-
-    cams = [looking_at_origin_from([4.0, 0.0, 0.0]), looking_at_origin_from([0.0, 0.0, 4.0])]
-    assert torch.allclose(scene_centre(cams, None), torch.zeros(3, dtype=torch.float64), atol=1e-5)
-    points = torch.tensor([[0.0, 1.0, 2.0], [10.0, -1.0, 3.0], [2.0, 5.0, 9.0]])
-    assert torch.equal(scene_centre(cams[:1], points), torch.tensor([2.0, 1.0, 3.0], dtype=torch.float64))  # median
-    assert torch.equal(scene_centre(cams[:1], None), torch.zeros(3, dtype=torch.float64))
-    away = [looking_at_origin_from([4.0, 0.0, 0.0], -1.0), looking_at_origin_from([0.0, 0.0, 4.0], -1.0)]
-    # the axes meet at the origin, behind both cameras: the points' median is taken
-    assert torch.equal(scene_centre(away, points), torch.tensor([2.0, 1.0, 3.0], dtype=torch.float64))
-
-
-pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+@needs_optics
+def test_viewer_renders_with_the_optics_mode_of_the_state(small: Any) -> None:
+    """The state's ``optics`` (distortion, fast) is the optics stage's mode of that render: the
+    session's PSNR / SSIM are :func:`evaluate_grid`'s at the same mode (session.render's docstring: "as
+    evaluate_grid computes them"), and the modes give different eye images (the pipeline is cached per
+    stage set, so a mode that never reached it would leave every render at the first one's)."""
+    session, _ = small
+    eyes = {}
+    for mode in ("distortion", "fast"):
+        out = session.render(parse_state({"downsample": 2.0, "power_saving": 0.2, "optics": mode}, 1))
+        ss = next(m for m in out["methods"] if m["name"] == "ss")
+        grid = evaluate_grid(session.model, session.views, {}, downsample=[2.0], power_saving=[0.2],
+                             optics_mode=mode, baselines=("ss",), ideal=False, extra_metrics=False, progress=False)
+        for k in ("psnr", "ssim"):
+            assert ss["metrics"][k] == pytest.approx(float(grid.per_view["ss"][k][0, 0, 0]), abs=1e-9), (mode, k)
+        eyes[mode] = ss["eye"]
+    assert eyes["distortion"] != eyes["fast"]
