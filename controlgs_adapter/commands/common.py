@@ -79,7 +79,8 @@ def _run_fields() -> dict[str, tuple[str, Callable[[Any], bool]]]:
     effects = ", ".join(DEFAULT_EFFECTS)
     return {
         "model": ("a folder path (string)", text), "data": ("a folder path (string)", text),
-        "images": ("a folder name (string)", text),
+        "images": ("a folder under the dataset (a relative path without '..')",
+                   lambda v: text(v) and not Path(v).is_absolute() and ".." not in Path(v).parts),
         "renderer": ("MODULE:ATTR or path/to/file.py:ATTR (string)", text), "rasterizer": ("a rasterizer name", text),
         "family": (f"one of {', '.join(FAMILIES)}", lambda v: isinstance(v, str) and v in FAMILIES),
         "format": (f"one of {', '.join(FORMATS)}", lambda v: isinstance(v, str) and v in FORMATS),
@@ -110,6 +111,8 @@ def read_run(run_dir: Path) -> dict[str, Any] | None:
         if path.stat().st_size > RUN_FILE_MAX_BYTES:
             raise InputValueError(f"{path}: not a controlgs run file (larger than {RUN_FILE_MAX_BYTES} bytes)")
         run = json.loads(path.read_text(encoding="utf-8"))
+    except InputValueError:
+        raise
     except (OSError, ValueError, RecursionError) as e:
         raise InputValueError(f"{path}: not a controlgs run file ({type(e).__name__}: {e})") from None
     if not isinstance(run, dict):
