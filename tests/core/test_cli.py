@@ -1,5 +1,6 @@
 """Tests of ``controlgs_adapter.cli``: every option of every command (name, default, type, choices, help text),
-and a refused command in a fresh process (one line, no traceback)."""
+a refused command in a fresh process (one line, no traceback), and warnings printed as one line for the
+duration of a command; library warnings point at the Python caller's line."""
 
 from __future__ import annotations
 
@@ -7,12 +8,15 @@ import argparse
 import functools
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from controlgs_adapter import cli
+from controlgs_adapter.commands import plugins as plugins_command
+from controlgs_adapter.errors import warn_user
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -333,3 +337,58 @@ def test_every_command_action_and_option_has_a_help_text():
     assert walk(cli.build_parser(), []) > 150  # every command, action and option was visited
     assert undocumented == []
 
+
+# ------------------------------------------------------------------------------ warnings
+def test_warnings_are_one_line_naming_the_command_in_a_fresh_process():
+    """Run from a shell (a fresh interpreter, no test harness recording warnings), ``controlgs plugins``
+    whose run warns twice prints each warning as one line ``controlgs plugins: warning: <message>``: a
+    multi-line message joined, a library warning without its file; the formatting is put back after."""
+    code = ("import sys, warnings\n"
+            "from controlgs_adapter import cli\n"
+            "from controlgs_adapter.commands import plugins\n"
+            "from controlgs_adapter.errors import warn_user\n"
+            "plugins.run = lambda args: (warnings.warn('first line\\n  second line', RuntimeWarning),\n"
+            "                            warn_user('the capture is odd', UserWarning), 0)[-1]\n"
+            "before = warnings.formatwarning\n"
+            "code = cli.main(['plugins'])\n"
+            "assert warnings.formatwarning is before\n"
+            "sys.exit(code)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == ("controlgs plugins: warning: first line second line\n"
+                           "controlgs plugins: warning: the capture is odd\n")
+
+
+def test_a_caller_recording_warnings_still_gets_them(monkeypatch, capsys):
+    def run(args: argparse.Namespace) -> int:
+        warnings.warn("kept", RuntimeWarning)
+        return 0
+
+    monkeypatch.setattr(plugins_command, "run", run)
+    with pytest.warns(RuntimeWarning, match="kept"):
+        assert cli.main(["plugins"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_warn_user_skips_only_the_librarys_own_folders():
+    from controlgs_adapter.errors import _OWN, _between
+
+    assert any(p.endswith("controlgs_adapter/") for p in _OWN)
+    assert _between(cli.__file__) and not _between(__file__)
+
+
+def test_library_warnings_land_on_the_users_line():
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        PSFOptics(stretch=True)
+    assert [w.category for w in caught] == [DeprecationWarning] and caught[0].filename == __file__
+
+
+@pytest.mark.parametrize("category", [RuntimeWarning, UserWarning])
+def test_warn_user_keeps_the_category(category):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warn_user("x", category)
+    assert caught[0].category is category and caught[0].filename == __file__
