@@ -11,7 +11,6 @@ import re
 import warnings
 from importlib.util import find_spec
 from pathlib import Path
-from typing import Any
 
 import pytest
 import torch
@@ -31,6 +30,7 @@ from helpers.wrapping import (
     conditioned_decode,
     decode,
     model_record,
+    refusing_stand_in,
     stand_in,
 )
 from torch import nn
@@ -71,10 +71,6 @@ STATE = RuntimeState(downsample=5.0, power_saving=0.55)
 
 needs_builtin_scene = pytest.mark.skipif(find_spec("skimage") is None,
                                          reason="the built-in scene's textures come from scikit-image")
-
-
-def _hooks(model: Any) -> list[int]:
-    return [len(getattr(model, d)[0]._forward_hooks) for d in DECODERS]
 
 
 # ------------------------------------------------------------------------------ the injection
@@ -528,7 +524,7 @@ def test_bad_arguments_of_save_load_and_conditioned_are_refused(cgs, tmp_path, c
 ], ids=["modules a string", "empty name", "name 3", "backend 5", "unknown backend"])
 @pytest.mark.parametrize("kind", ["eager", "script"])
 def test_bad_names_and_backends_are_refused_before_the_model_changes(kind, kw, error, pattern):
-    model = stand_in(kind)
+    model = refusing_stand_in(kind)
     before = model_record(model)
     with pytest.raises(error, match=pattern):
         ControlGS.wrap(model, **kw)

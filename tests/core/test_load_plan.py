@@ -37,7 +37,7 @@ def _problems(path: Path, model: Any, **load: Any) -> list[str]:
         ControlGS.load(path, model, **load)
     head, *lines = str(e.value).splitlines()
     assert head.startswith(str(path))
-    assert not any(getattr(model, d)[0]._forward_hooks for d in DECODERS)
+    assert _unhooked(model)
     return [line.removeprefix("  - ") for line in lines]
 
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 from helpers.scaffold_standin import ScaffoldStandIn, make_camera
 from helpers.strength_oracle import STATES, reference_strengths
-from helpers.wrapping import assert_unchanged, decode, model_record, stand_in
+from helpers.wrapping import assert_unchanged, decode, model_record, refusing_stand_in
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -157,11 +157,12 @@ def test_state_blind_strength_is_one_whatever_the_state():
     (dict(endpoints={"lens": (1.0, 1.0)}), r"'lens'.*differ.*1\.0"),
     (dict(endpoints={"lens": (0.1, 0.5, 0.9)}), r"endpoints\['lens'\].*\(lo, hi\).*\(0\.1, 0\.5, 0\.9\)"),
     (dict(endpoints={"display": (0, 1)}, modules=("lens",)), r"endpoints.*\['display'\].*\['lens'\]"),
-], ids=lambda v: str(v) if isinstance(v, dict) else "")
+], ids=["unknown module", "no module", "lens twice", "display twice", "modules 5", "cond_dim 0", "cond_dim -2",
+        "cond_dim True", "cond_dim 2.0", "lo = hi", "three endpoints", "endpoints of another module"])
 @pytest.mark.parametrize("kind", ["eager", "script"])
 def test_modules_cond_dim_and_endpoints_are_checked_before_the_model_changes(kind: str, kw: dict[str, Any],
                                                                              pattern: str) -> None:
-    model = stand_in(kind)
+    model = refusing_stand_in(kind)
     before = model_record(model)
     with pytest.raises(InputValueError, match=pattern):
         ControlGS.wrap(model, **kw)

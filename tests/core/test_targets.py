@@ -11,7 +11,7 @@ from typing import Any, Callable
 import pytest
 import torch
 from helpers.scaffold_standin import ScaffoldStandIn
-from helpers.wrapping import DECODERS, assert_unchanged, model_record, stand_in
+from helpers.wrapping import DECODERS, assert_unchanged, model_record, refusing_stand_in, stand_in
 from torch import nn
 
 from controlgs_adapter import ControlGS
@@ -78,7 +78,7 @@ def test_decoders_with_tied_weights_but_their_own_layers_wrap() -> None:
 ], ids=["unknown", "repeated", "a string", "empty"])
 @pytest.mark.parametrize("kind", ["eager", "script"])
 def test_bad_targets_are_refused_before_the_model_changes(kind: str, targets: Any, pattern: str) -> None:
-    model = stand_in(kind)
+    model = refusing_stand_in(kind)
     before = model_record(model)
     with pytest.raises(TargetError, match=pattern):
         ControlGS.wrap(model, targets=targets)

@@ -4,6 +4,7 @@ everything wrapping may change on a model (module objects, hooks, tensors and th
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import torch
@@ -23,6 +24,13 @@ def stand_in(kind: str = "eager", **kw: Any) -> ScaffoldStandIn:
     """``ScaffoldStandIn(**kw)``; ``kind="script"``: its decoders as TorchScript modules (a Scaffold-GS checkpoint)."""
     model = ScaffoldStandIn(**kw)
     return script_decoders(model) if kind == "script" else model
+
+
+@functools.lru_cache(maxsize=None)
+def refusing_stand_in(kind: str) -> ScaffoldStandIn:
+    """One default stand-in per kind, shared by the tests of refusals: they must leave it unchanged
+    (the TorchScript one is built once)."""
+    return stand_in(kind)
 
 
 def decode(model: Any, x: torch.Tensor) -> dict[str, torch.Tensor]:
