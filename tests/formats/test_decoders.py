@@ -1,4 +1,6 @@
-"""Tests of ``controlgs_adapter.formats.decoders``."""
+"""Decoders stored as state dicts or TorchScript traces (``formats.decoders``): the Scaffold-family MLPs
+rebuilt from their weights, the appearance embedding, the first layer's width, and both on-disk modes
+with every refusal naming the file and entry."""
 
 from __future__ import annotations
 
@@ -7,6 +9,15 @@ import torch
 from torch import nn
 
 from controlgs_adapter.errors import FileFormatError
+from controlgs_adapter.formats.decoders import (
+    Decoders,
+    build_mlp,
+    check_first_width,
+    decoders_from_state_dicts,
+    embedding_from_state,
+)
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 
 def _sd(*shapes: tuple[int, int], at: tuple[int, ...] | None = None, bias: bool = True) -> dict[str, torch.Tensor]:
@@ -20,8 +31,6 @@ def _sd(*shapes: tuple[int, int], at: tuple[int, ...] | None = None, bias: bool 
 
 
 def test_build_mlp_computes_the_family_decoders_by_hand():
-    from controlgs_adapter.formats.decoders import build_mlp
-
     x = torch.randn(5, 3, dtype=torch.float64)
     sd = {k: v.double() for k, v in _sd((4, 3), (2, 4)).items()}
     h = torch.relu(x @ sd["0.weight"].T + sd["0.bias"])
@@ -44,24 +53,22 @@ def test_build_mlp_computes_the_family_decoders_by_hand():
     (_sd((4, 3), (2, 4), at=(0, 4)), "s: 'n' has no layer at index 2 (keys: "),
 ])
 def test_mlp_from_state_dict_refusals(state, words):
-    from controlgs_adapter.formats.decoders import build_mlp
-
     with pytest.raises(FileFormatError) as e:
         build_mlp("mlp_opacity", state, name="n", source="s")
     assert words in str(e.value)
 
 
-def test_decoders_from_state_dicts_optional_embedding_and_first_width():
-    from torch import nn
-
-    from controlgs_adapter.formats.decoders import check_first_width, decoders_from_state_dicts, embedding_from_state
-
+def test_decoders_from_state_dicts_optional_entries_embedding_and_first_width():
     sd = {"op": _sd((4, 3), (1, 4)), "cov": _sd((4, 3), (7, 4))}
     got = decoders_from_state_dicts(sd, {"mlp_opacity": "op", "mlp_cov": "cov", "mlp_color": "col"}, source="f.pth",
                                     optional=("mlp_color",))
     assert sorted(got) == ["mlp_cov", "mlp_opacity"] and isinstance(got["mlp_opacity"][3], nn.Tanh)
     with pytest.raises(FileFormatError, match=r"^f.pth: missing entry 'col' \(has \['cov', 'op'\]\)$"):
-        decoders_from_state_dicts(sd, {"mlp_color": "col"}, source="f.pth")
+        decoders_from_state_dicts(sd, {"mlp_color": "col"}, source="f.pth")  # nothing is optional unless said
+    x = torch.randn(5, 3, dtype=torch.float64)
+    w = {k: v.double() for k, v in sd["op"].items()}
+    want = torch.tanh(torch.relu(x @ w["0.weight"].T + w["0.bias"]) @ w["2.weight"].T + w["2.bias"])  # ReLU between, Tanh after
+    torch.testing.assert_close(got["mlp_opacity"].double()(x), want)
     table = torch.arange(6.0).view(3, 2)
     emb = embedding_from_state({"embedding.weight": table.double()}, source="e")
     assert emb(torch.tensor([2, 0])).tolist() == [[4.0, 5.0], [0.0, 1.0]] and emb.weight.dtype == torch.float32
@@ -75,8 +82,6 @@ def test_decoders_from_state_dicts_optional_embedding_and_first_width():
 
 
 def test_decoders_unite_file_modes_and_refusals(tmp_path):
-    from controlgs_adapter.formats.decoders import Decoders
-
     with pytest.raises(FileFormatError, match=r"missing MLPs: neither the TorchScript traces \['opacity_mlp.pt', "
                                               r"'cov_mlp.pt', 'color_mlp.pt'\] nor checkpoints.pth is there"):
         Decoders(tmp_path)
@@ -103,10 +108,6 @@ def test_decoders_unite_file_modes_and_refusals(tmp_path):
 
 
 def test_decoders_split_mode_from_traces(tmp_path):
-    from torch import nn
-
-    from controlgs_adapter.formats.decoders import Decoders
-
     torch.manual_seed(0)
     nets = {"opacity_mlp.pt": nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.Linear(4, 1), nn.Tanh()),
             "cov_mlp.pt": nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.Linear(4, 7))}
@@ -124,17 +125,3 @@ def test_decoders_split_mode_from_traces(tmp_path):
     mods = dec.modules()
     for attr, file in [("mlp_opacity", "opacity_mlp.pt"), ("mlp_cov", "cov_mlp.pt"), ("mlp_color", "color_mlp.pt")]:
         assert torch.equal(mods[attr](x), nets[file](x))
-
-
-def test_decoders_from_state_dicts_default_nothing_optional():
-    from controlgs_adapter.formats.decoders import decoders_from_state_dicts
-
-    lin = nn.Sequential(nn.Linear(4, 3), nn.ReLU(), nn.Linear(3, 2))
-    sd = {"mlp_opacity": lin.state_dict()}
-    keys = {"mlp_opacity": "mlp_opacity", "mlp_cov": "mlp_cov"}
-    with pytest.raises(FileFormatError, match=r"^ckpt.pth: missing entry 'mlp_cov' \(has \['mlp_opacity'\]\)$"):
-        decoders_from_state_dicts(sd, keys, source="ckpt.pth")
-    out = decoders_from_state_dicts(sd, keys, source="ckpt.pth", optional=("mlp_cov",))
-    assert list(out) == ["mlp_opacity"]
-    x = torch.randn(5, 4)
-    torch.testing.assert_close(out["mlp_opacity"](x), torch.tanh(lin(x)))  # Scaffold-GS: ReLU between, Tanh after
