@@ -58,7 +58,7 @@ def test_attr_paths_on_modules_lists_and_plain_objects():
         get_attr_path(obj, "layers.2")
 
 
-def test_anchor_ids_from_mask():
+def test_anchor_ids_from_mask_are_its_true_positions_in_order():
     mask = torch.tensor([False, True, True, False, True])
     assert anchor_ids_from_mask(mask).tolist() == [1, 2, 4]
     assert anchor_ids_from_mask(mask, 5).tolist() == [1, 2, 4]

@@ -135,7 +135,7 @@ class _StagePlugin:
         return [self.stage]
 
 
-def test_a_name_registered_twice(fresh_plugins, monkeypatch, tmp_path):
+def test_a_stage_name_registered_twice_replaces_a_builtin_or_is_refused(fresh_plugins, monkeypatch, tmp_path):
     lens = _StagePlugin("lens")  # a third-party stage named as a built-in one replaces it, with a warning
     plugins.register_plugin(lens, name="my_lens")
     with pytest.warns(UserWarning, match="stage 'lens' from my_lens \\(runtime\\) replaces the built-in"):
@@ -156,7 +156,7 @@ def test_a_name_registered_twice(fresh_plugins, monkeypatch, tmp_path):
 
 
 @pytest.mark.parametrize("value, strict", [("0", False), ("", False), ("1", True), ("yes", True)])
-def test_strict_plugins_environment_variable(fresh_plugins, monkeypatch, value, strict):
+def test_strict_plugins_variable_makes_a_broken_plugin_fatal(fresh_plugins, monkeypatch, value, strict):
     _fake_distributions(monkeypatch, _FakeDistribution("broken-xr", "0.1", [
         _FakeEntryPoint("broken", ModuleNotFoundError("No module named 'cupy'"))]))
     monkeypatch.setenv("CONTROLGS_STRICT_PLUGINS", value)
