@@ -470,7 +470,7 @@ def test_active_passes_the_native_size_to_the_stages():
 BOTH = [rasterize, rasterize_reference]
 
 
-def _camera_4(f: float = 20.0, width: int = 24, height: int = 16) -> Camera:
+def _splat_camera(f: float = 20.0, width: int = 24, height: int = 16) -> Camera:
     """Identity pose, principal point at the image centre."""
     k = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=F64)
     return Camera(torch.eye(4, dtype=F64), k, width, height)
@@ -496,7 +496,7 @@ def _closed_form_alpha(cov: torch.Tensor, u0: float, v0: float, o: float, width:
 
 @pytest.mark.parametrize("fn", BOTH)
 def test_near_plane_is_a_strict_cut_at_0_2(fn) -> None:  # type: ignore[no-untyped-def]
-    cam = _camera_4()
+    cam = _splat_camera()
     for z, seen in ((0.2, False), (0.2 + 1e-9, True), (0.21, True), (0.19, False)):
         out = fn(*_one([0.0, 0.0, z], [0.001, 0.001, 0.001], [1.0, 0, 0, 0], 0.9), cam)
         assert bool(out.visible[0]) is seen, z
@@ -508,7 +508,7 @@ def test_jacobian_is_clamped_to_the_widened_frustum(fn) -> None:  # type: ignore
     """A wide Gaussian whose mean lies outside the image: x/z = 1 and y/z = 0.7 enter the Jacobian clamped
     to the image widened by 15 % per side, (12 + 0.15 * 24) / 20 = 0.78 and (8 + 0.15 * 16) / 20 = 0.52;
     ``cov = s^2 (f/z)^2 [[1 + tx^2, tx ty], [tx ty, 1 + ty^2]] + 0.3 I`` (isotropic Sigma = s^2 I)."""
-    cam, f, z, s, o = _camera_4(), 20.0, 2.0, 0.3, 0.9
+    cam, f, z, s, o = _splat_camera(), 20.0, 2.0, 0.3, 0.9
     out = fn(*_one([1.0 * z, 0.7 * z, z], [s, s, s], [1.0, 0, 0, 0], o), cam)
     tx, ty = 0.78, 0.52
     g = (s * f / z) ** 2
@@ -526,7 +526,7 @@ def test_jacobian_is_clamped_to_the_widened_frustum(fn) -> None:  # type: ignore
 def test_quaternion_is_w_x_y_z_and_normalised(fn) -> None:  # type: ignore[no-untyped-def]
     """(cos 45, 0, 0, sin 45) turns the local x axis onto y: the long axis (sx) lies along the image's
     rows' direction v; times 3 (unnormalised) is the same rotation."""
-    cam, f, z, o = _camera_4(), 20.0, 2.0, 0.8
+    cam, f, z, o = _splat_camera(), 20.0, 2.0, 0.8
     sx, sy = 0.15, 0.04
     h = math.sqrt(0.5)
     want = _closed_form_alpha(torch.tensor([[(sy * f / z) ** 2 + 0.3, 0.0], [0.0, (sx * f / z) ** 2 + 0.3]], dtype=F64),
@@ -546,7 +546,7 @@ def test_alpha_clamp_and_default_early_termination_by_hand(fn) -> None:  # type:
     """Three splats centred on pixel (12, 8)'s centre (G = 1 there), opacity 0.9878, at z = 2, 3, 4:
     alpha 0.9878 each, T after two = 0.0122^2 = 1.4884e-4 >= 1e-4 (drawn), after three 1.8e-6 < 1e-4:
     the third is not drawn by default; with transmittance_min = 0 it is. Opacity 1 is clamped to 0.99."""
-    cam = _camera_4()
+    cam = _splat_camera()
     u, v = 12.5, 8.5  # pixel (12, 8)'s centre: x / z = (12.5 - 12) / 20
     zs = [2.0, 3.0, 4.0]
     means = torch.tensor([[(u - 12) / 20 * z, (v - 8) / 20 * z, z] for z in zs], dtype=F64)
@@ -575,7 +575,7 @@ def test_opacity_exactly_at_the_clamp_keeps_its_gradient() -> None:
     """Opacity 0.99 centred on a pixel centre: alpha = 0.99 there exactly (G = 1), on the clamp's kink. As
     ``torch.clamp`` (the reference), the clamp passes the gradient at equality: d alpha / d o = G = 1; only
     an alpha above 0.99 is frozen (zero gradient)."""
-    cam = _camera_4(f=20.0, width=16, height=16)  # principal point (8, 8): pixel (8, 8)'s centre is x / z = 0.5 / 20
+    cam = _splat_camera(f=20.0, width=16, height=16)  # principal point (8, 8): pixel (8, 8)'s centre is x / z = 0.5 / 20
     z = 2.0
     for o, want in ((0.99, 1.0), (0.995, 0.0)):
         for fn in BOTH:
