@@ -55,7 +55,7 @@ OPTIONS: list[tuple[str, str, str, str, str, list[str] | None, Any, Any, Any, bo
     ('optics bench', '--doc', 'out', 'const', 'str', None, None, None, 0, False),
     ('optics fit-prewarp', '--bank', 'bank', 'store', 'Path', None, None, None, None, False),
     ('optics fit-prewarp', '--out', 'out', 'store', 'Path', None, None, None, None, True),
-    ('optics fit-prewarp', '--size', 'size', 'store', 'int', None, 256, None, None, False),
+    ('optics fit-prewarp', '--size', 'size', 'store', 'int', None, [64, 96, 128, 192, 256], None, '+', False),
     ('optics fit-prewarp', '--modes', 'modes', 'store', 'str', ['distortion', 'exact', 'fast'], ['distortion', 'exact'], None, '+', False),
     ('optics fit-prewarp', '--radiometry', 'radiometry', 'store', 'str', ['radiance', 'energy'], 'radiance', None, None, False),
     ('backbone train', '--data', 'data', 'store', 'str', None, None, None, None, True),
