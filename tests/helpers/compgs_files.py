@@ -1,4 +1,5 @@
-"""Shared test helpers: compgs files."""
+"""CompGS test data (its MipNeRF360 widths): random anchor arrays, a model holding them, and its training
+checkpoint folder written in CompGS's layout."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Shared test helpers: contextgs files."""
+"""ContextGS test data (feat_dim 50, n_offsets 10, a bound): decoded (zero-padded) or raw anchor arrays,
+decoders, a model holding them, and its output folder written in ContextGS's layout."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
-"""Checks shared by the family-backend tests (tests/test_backend_*.py): wrap a model, verify
-identity at init, that one anchor's condition reaches exactly its rows, and the adapter round trip."""
+"""Checks shared by the backbone-family tests: wrap a model, verify identity at init, that one anchor's
+condition reaches exactly its rows, and the adapter round trip; cameras, reference Scaffold-GS models and
+Gaussian comparisons for them (``helpers.family_contract`` builds the family contract on these)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Shared test helpers: hac files."""
+"""HAC++ / HAC test data (feat_dim 50, n_offsets 10): decoded or raw anchor arrays, decoders, and the output
+folder written in their layout."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Shared test helpers: octree files."""
+"""Octree-GS / Octree-AnyGS test data (levels, level and distance inputs): anchor arrays, decoders, a model
+holding them, and output folders written in Octree-GS's and Octree-AnyGS's layouts."""
 
 from __future__ import annotations
 
