@@ -233,7 +233,7 @@ def test_the_bound_is_needed_by_raw_models_and_must_be_a_pair(tmp_path):
         ContextGSModel(x_bound_min=LO, decoded_version=False, **kw)
     with pytest.raises(FileFormatError, match="x_bound_min and x_bound_max must be given together"):
         ContextGSModel(x_bound_max=HI, decoded_version=True, **kw)
-    with pytest.raises(FileFormatError, match="a not-decoded ContextGS model needs x_bound_min/x_bound_max"):
+    with pytest.raises(FileFormatError, match="not-decoded .*x_bound_min/x_bound_max"):
         ContextGSModel(decoded_version=False, **kw)
     decoded = ContextGSModel(decoded_version=True, **kw)  # a decoded model needs no bound: positions as stored
     assert torch.equal(decoded.get_anchor, kw["anchor"])

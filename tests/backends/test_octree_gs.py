@@ -492,8 +492,7 @@ def test_two_anchors_hold_voxel_size_and_standard_dist_in_info(tmp_path):
     assert m.voxel_size == pytest.approx(VOXEL, rel=1e-6)
     assert m.standard_dist == pytest.approx(STD_DIST, rel=1e-6)
     write_ply(ply, {n: c[:1] for n, c in fields.items()})
-    with pytest.raises(FileFormatError, match=r"'info' column holds voxel_size and standard_dist in rows 0 and 1; the "
-                                              r"file has 1 anchors"):
+    with pytest.raises(FileFormatError, match=r"'info'.*voxel_size and standard_dist in rows 0 and 1.*1 anchors"):
         load_octree_gs_dir(root)
 
 
@@ -616,5 +615,5 @@ def test_anygs_config_refusals_name_the_key(tmp_path):
     with pytest.raises(FileFormatError, match=r"config.yaml: key 'feat_dim' has several values \[32, 16\]"):
         load_octree_gs_dir(root)
     (root / "config.yaml").write_text("a: {\n  base_model: 'gaussians',\n}\n")
-    with pytest.raises(FileFormatError, match="base_model 'gaussians': only Octree-AnyGS's Scaffold-GS base model"):
+    with pytest.raises(FileFormatError, match="config.yaml.*base_model 'gaussians'"):
         load_octree_gs_dir(root)

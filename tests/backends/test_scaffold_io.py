@@ -146,7 +146,7 @@ def test_octree_folders_are_refused_naming_the_octree_loader(tmp_path):
         load_scaffold_dir(root)
     write_scaffold_dir_by_hand(tmp_path / "m", make_raw_model(5, 4, 2, seed=2), iteration=3)
     (tmp_path / "m" / "config.yaml").write_text("model_params: {\n  feat_dim: 4,\n}\n")
-    with pytest.raises(FileFormatError, match=r"m: an Octree-GS / Octree-AnyGS output folder \(config.yaml\), not a flat"):
+    with pytest.raises(FileFormatError, match=r"m: .*Octree-AnyGS.*\(config.yaml\)"):
         load_scaffold_dir(tmp_path / "m")
 
 

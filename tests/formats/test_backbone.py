@@ -233,7 +233,7 @@ def test_ply_columns_take_every_numbered_field_in_order():
     got = ply_columns(fields, "f_", source="a.ply")
     assert got.dtype == np.float32 and got.tolist() == [[1.0, 3.0, 5.0], [2.0, 4.0, 6.0]]
     assert ply_columns(fields, "f_", source="a.ply", count=2).tolist() == [[1.0, 3.0], [2.0, 4.0]]
-    with pytest.raises(FileFormatError, match=r"^a.ply: PLY fields f_\* are not numbered 0..n-1 \(missing f_1\)$"):
+    with pytest.raises(FileFormatError, match=r"^a\.ply: PLY fields f_\* .*\(missing f_1\)$"):
         ply_columns({"f_0": fields["f_0"], "f_2": fields["f_2"]}, "f_", source="a.ply")
     with pytest.raises(FileFormatError, match=r"a.ply: PLY fields f_\* are not numbered 0..n-1 \(a number used twice\)"):
         ply_columns({"f_0": fields["f_0"], "f_00": fields["f_0"]}, "f_", source="a.ply")

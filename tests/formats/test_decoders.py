@@ -74,7 +74,7 @@ def test_decoders_from_state_dicts_optional_entries_embedding_and_first_width():
     assert emb(torch.tensor([2, 0])).tolist() == [[4.0, 5.0], [0.0, 1.0]] and emb.weight.dtype == torch.float32
     assert not emb.weight.requires_grad
     for bad in ({}, {"a.weight": table, "b.weight": table}, {"weight": torch.zeros(3)}):
-        with pytest.raises(FileFormatError, match=r"^e: expected one \[num_cameras, appearance_dim\] embedding table$"):
+        with pytest.raises(FileFormatError, match=r"^e: .*\[num_cameras, appearance_dim\]"):
             embedding_from_state(bad, source="e")
     check_first_width(got["mlp_cov"], 3, name="mlp_cov", source="f", layout="L")
     with pytest.raises(FileFormatError, match=r"^f: mlp_cov takes 3 inputs, the configuration gives 5 \(L\)$"):
