@@ -43,3 +43,21 @@ def synthetic_bank(K=7, G=4, L=2, pitch_px=1.0, width_px=16, uniform=True, ident
     return PSFBank(psf=psf, psf_pitch_mm=torch.full((L, G, G), pitch_px * 24 / width_px, dtype=D64), field_x=f,
                    field_y=f, chief=chief, chief_x=c, chief_y=c, wavelengths_nm=(600.0, 500.0)[:L],
                    display_mm=(24.0, 24.0))
+
+
+def random_bank(L=3, G=3, K=5, pitch_mm=1.0, chief=None, C=9, seed=0, pincushion=0.0, flip_x=False):
+    """A bank on a 24 x 24 mm display: seeded random PSFs (squared uniform noise) on a ``G x G`` field grid,
+    pitch ``pitch_mm``; chief rays on a ``C x C`` grid, ``chief(d)`` per axis (default: the identity) times
+    ``1 + pincushion r^2``, x mirrored if ``flip_x``; wavelengths the first ``L`` of 656 / 550 / 486 / 420 nm."""
+    g = torch.Generator().manual_seed(seed)
+    psf = torch.rand(L, G, G, K, K, dtype=D64, generator=g) ** 2
+    psf /= psf.sum((-1, -2), keepdim=True)
+    c = torch.linspace(-1, 1, C, dtype=D64)
+    cy, cx = torch.meshgrid(c, c, indexing="ij")
+    axis = chief or (lambda d: d)
+    s = 1 + pincushion * (cx ** 2 + cy ** 2)
+    x, y = axis(cx) * s, axis(cy) * s
+    ch = torch.stack([-x if flip_x else x, y], -1).expand(L, C, C, 2).clone()
+    f = -1 + (2 * torch.arange(G, dtype=D64) + 1) / G
+    return PSFBank(psf=psf, psf_pitch_mm=torch.full((L, G, G), pitch_mm, dtype=D64), field_x=f, field_y=f, chief=ch,
+                   chief_x=c, chief_y=c, wavelengths_nm=(656.0, 550.0, 486.0, 420.0)[:L], display_mm=(24.0, 24.0))

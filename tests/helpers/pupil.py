@@ -26,3 +26,19 @@ def aim_rays(rx: Any, lam: float, r: float, v0: float, tx: np.ndarray, ty: np.nd
         det = a * d - b * c
         u, v = u + (d * ex - b * ey) / det, v + (a * ey - c * ex) / det
     return trace(rx, lam, 0.0, r, u, v)
+
+
+def aim_at_pupil_grid(rx: Any, lam: float, r: float, n: int = 64, iterations: int = 10) -> tuple[np.ndarray, ...]:
+    """Rays from display height ``r`` mm (on +y) at ``lam`` nm aimed at the points of a uniform ``n x n`` grid
+    over the exit pupil disc (equal pupil area each, from the chief ray's slope); returns :func:`trace`'s
+    ``(xp, yp, X, Y, ok)`` of the aimed rays after checking they cross the pupil at their points (1e-9 mm)."""
+    from controlgs_adapter.downstream.optics.raytrace import chief_ray
+
+    v0, _, _ = chief_ray(rx, lam, np.array([r]))
+    g = (np.arange(n) + 0.5) / n * 2 - 1
+    px, py = np.meshgrid(g, g)
+    inside = px ** 2 + py ** 2 <= 1
+    tx, ty = px[inside] * rx.pupil_radius, py[inside] * rx.pupil_radius
+    rays = aim_rays(rx, lam, r, v0[0], tx, ty, iterations)
+    assert np.abs(rays[0] - tx).max() < 1e-9 and np.abs(rays[1] - ty).max() < 1e-9
+    return rays
