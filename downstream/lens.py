@@ -67,12 +67,14 @@ __all__ = [
 Basis = Literal["primaries", "rgb"]
 #: colour bases of the warp: the display primaries (default) or the RGB channels (the paper's)
 BASES: tuple[str, ...] = ("primaries", "rgb")
+#: samples per display pixel along each axis of the fitted pre-warp (:meth:`LensPrewarp.for_optics`)
+FITTED_SUPERSAMPLE = 2
 LUT_KIND = "controlgs-prewarp-lut"
 LUT_FORMAT_VERSION = 1
 
 
 def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | None = None,
-                 basis: Basis = "rgb") -> torch.Tensor:
+                 basis: Basis = "rgb", supersample: int = 1) -> torch.Tensor:
     """Per-channel bilinear warp and gain.
 
     Args:
@@ -84,10 +86,16 @@ def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | N
             ``"primaries"``: the image is converted to the display primaries (656 / 550 / 486 nm,
             :func:`.color.rgb_to_primaries`), each primary is warped with its own grid and gain,
             and the result converted back to linear RGB (what the panel's subpixels emit).
+        supersample: ``n``: each output pixel averages ``n x n`` bilinear samples spread over its
+            footprint in ``image`` (the grid's steps to the neighbouring output pixels): an area
+            sample where the warp minifies, so a detail finer than an output pixel is not aliased
+            (1: one sample at the grid point).
     Returns:
         ``[..., 3, Ho, Wo]``, ``out_c = gain_c * image_c(grid_c)`` in the chosen basis.
     """
     check_image("image", image, finite=False)
+    if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
+        raise InputValueError(f"supersample must be an int >= 1, got {supersample!r}")
     b = check_tensor("grid", grid, [3, "Ho", "Wo", 2], dtypes=(image.dtype,))
     check_same_device(image=image, grid=grid)
     if gain is not None:
@@ -100,12 +108,25 @@ def lens_prewarp(image: torch.Tensor, grid: torch.Tensor, gain: torch.Tensor | N
     h, w = image.shape[-2:]
     lead = image.shape[:-3]
     per_channel = image.reshape(-1, 3, h, w).transpose(0, 1)  # [3, B, H, W]: channels as the batch
-    warped = F.grid_sample(per_channel, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    warped = _area_sample(per_channel, grid, supersample)
     if gain is not None:
         warped = warped * gain[:, None]
     out = warped.transpose(0, 1).reshape(*lead, 3, b["Ho"], b["Wo"])
     return primaries_to_rgb(out) if basis == "primaries" else out
 
+
+def _area_sample(channels: torch.Tensor, grid: torch.Tensor, n: int) -> torch.Tensor:
+    """``[3, B, Ho, Wo]``: the mean of ``n x n`` bilinear samples of ``channels`` ``[3, B, H, W]``
+    over each output pixel's footprint (the parallelogram of the grid's central differences)."""
+    if n == 1:
+        return F.grid_sample(channels, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    steps = [torch.gradient(grid, dim=d)[0] if grid.shape[d] > 1 else torch.zeros_like(grid) for d in (2, 1)]
+    offsets = [((i + 0.5) / n - 0.5, (j + 0.5) / n - 0.5) for i in range(n) for j in range(n)]
+    total = channels.new_zeros(channels.shape[:2] + grid.shape[1:3])
+    for oy, ox in offsets:
+        total = total + F.grid_sample(channels, grid + ox * steps[0] + oy * steps[1], mode="bilinear",
+                                      padding_mode="zeros", align_corners=False)
+    return total / (n * n)
 
 
 class LensPrewarp(Stage):
@@ -119,6 +140,7 @@ class LensPrewarp(Stage):
         coefficients: ``[3, K]`` radial coefficients, only when ``prewarp_map`` is None.
         basis: ``"primaries"`` (default: each display primary warped with its own map, see
             :func:`lens_prewarp`) or ``"rgb"`` (the paper's per-RGB-channel warp).
+        supersample: samples per output pixel along each axis (:func:`lens_prewarp`; 1: one).
     """
 
     name = "lens"
@@ -126,19 +148,22 @@ class LensPrewarp(Stage):
     order = 10.0
 
     def __init__(self, prewarp_map: PrewarpMap | None = None, *, coefficients: Sequence[Sequence[float]] | torch.Tensor | None = None,
-                 basis: Basis = "primaries") -> None:
+                 basis: Basis = "primaries", supersample: int = 1) -> None:
         super().__init__()
+        if isinstance(supersample, bool) or not isinstance(supersample, int) or supersample < 1:
+            raise InputValueError(f"supersample must be an int >= 1, got {supersample!r}")
         if prewarp_map is not None and coefficients is not None:
             raise InputValueError("give either prewarp_map or coefficients, not both")
         if basis not in BASES:
             raise InputValueError(f"basis must be one of {BASES}, got {basis!r}")
         self.map = prewarp_map if prewarp_map is not None else RadialMap(CARDBOARD_RADIAL if coefficients is None else coefficients)
         self.basis = basis
+        self.supersample = supersample
 
     @classmethod
     def for_optics(
         cls, optics: nn.Module, *, source: Literal["fitted", "chief_rays"] = "fitted", basis: Basis = "primaries",
-        lut: str | os.PathLike | None = None, gain: Literal["jacobian"] | None = None,
+        lut: str | os.PathLike | None = None, gain: Literal["jacobian"] | None = None, supersample: int | None = None,
     ) -> "LensPrewarp":
         """The pre-warp that compensates an optics stage (its ``bank``, ``placement`` and, for a
         fitted LUT, its current ``mode``).
@@ -152,11 +177,13 @@ class LensPrewarp(Stage):
                 (:class:`BankMap`, gain ``gain``).
             basis: see :class:`LensPrewarp`.
             lut: a file written by :meth:`DisplayLUTMap.save` (``controlgs optics fit-prewarp``).
+            supersample: see :class:`LensPrewarp`; None: :data:`FITTED_SUPERSAMPLE` for a fitted LUT (the
+                fit places each primary of a dot within 0.1 px with it), 1 for the chief rays.
         """
         bank = _optics_bank(optics)
         placement = _optics_placement(optics)
         if source == "chief_rays":
-            return cls(BankMap(bank, placement, gain), basis=basis)
+            return cls(BankMap(bank, placement, gain), basis=basis, supersample=supersample or 1)
         if source != "fitted":
             raise InputValueError(f"source must be 'fitted' or 'chief_rays', got {source!r}")
         if gain is not None:
@@ -170,7 +197,7 @@ class LensPrewarp(Stage):
                 warn_user(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
                           f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "
                           "and pass it as {'lens': {'lut': LUT}}", UserWarning)
-                return cls(BankMap(bank, placement, fallback), basis=basis)
+                return cls(BankMap(bank, placement, fallback), basis=basis, supersample=supersample or 1)
         else:
             fitted = DisplayLUTMap.load(lut, placement)
             if fitted.meta.get("bank") != bank_fingerprint(bank):
@@ -179,7 +206,7 @@ class LensPrewarp(Stage):
             if fitted.meta.get("radiometry") != getattr(optics, "radiometry", None):
                 raise InputValueError(f"{lut}: this pre-warp LUT was fitted for radiometry {fitted.meta.get('radiometry')!r}, "
                                       f"the optics use {getattr(optics, 'radiometry', None)!r}")
-        return cls(fitted.follow(optics), basis=basis)
+        return cls(fitted.follow(optics), basis=basis, supersample=FITTED_SUPERSAMPLE if supersample is None else supersample)
 
     @classmethod
     def radial(cls, coefficients: Sequence[Sequence[float]] | torch.Tensor, learnable: bool = False) -> "LensPrewarp":
@@ -300,7 +327,7 @@ class LensPrewarp(Stage):
 
     def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         grid, gain = self.map(tuple(image.shape[-2:]), image.dtype, image.device)
-        return lens_prewarp(image, grid, gain, self.basis)
+        return lens_prewarp(image, grid, gain, self.basis, self.supersample)
 
     def extra_repr(self) -> str:
-        return f"basis={self.basis!r}"
+        return f"basis={self.basis!r}, supersample={self.supersample}"

@@ -42,7 +42,7 @@ __all__ = ["Pipeline", "PHYSICAL_STAGES"]
 #: ordered before the first of them is post-processing.
 PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
 #: options of ``{"lens": {...}}`` that build the lens from the optics (:meth:`LensPrewarp.for_optics`)
-_LENS_FOR_OPTICS = frozenset({"source", "basis", "lut", "gain"})
+_LENS_FOR_OPTICS = frozenset({"source", "basis", "lut", "gain", "supersample"})
 
 
 def _registered_stages() -> dict[str, type[Stage]]:

@@ -49,7 +49,10 @@ from .warp import _interp_regular, chief_ray_grid, pixel_grid
 if TYPE_CHECKING:  # pragma: no cover
     from .optics.bank import PSFBank
 
-__all__ = ["fit_prewarp", "fit_bank_prewarp", "PREWARP_LOSS"]
+__all__ = ["fit_prewarp", "fit_bank_prewarp", "PREWARP_LOSS", "FIT_SIZES"]
+
+#: Display sizes (pixels along the shorter side) :func:`fit_bank_prewarp` fits a table at by default.
+FIT_SIZES: tuple[int, ...] = (64, 96, 128, 192, 256)
 
 #: The 3DGS loss the paper names for the pre-warp: 0.8 L1 + 0.2 (1 - SSIM).
 PREWARP_LOSS = LossWeights(l1=0.8, ssim=0.2, mse=0.0)
@@ -216,7 +219,7 @@ def _fit_mode(optics: torch.nn.Module, bank: "PSFBank", size: tuple[int, int], g
 
 def fit_bank_prewarp(
     optics: "torch.nn.Module | PSFBank | None" = None,
-    size: int = 256,
+    size: int | Sequence[int] = FIT_SIZES,
     *,
     modes: Sequence[str] = ("distortion", "exact"),
     gain_iterations: int = 4,
@@ -230,11 +233,15 @@ def fit_bank_prewarp(
             replaced by each of ``modes``), a :class:`PSFBank` (default optics options) or None (the
             shipped Cardboard bank).
         size: display pixels along the display's shorter side (the tables' resolution; the fit is
-            exact for the operator at this pixel pitch).
+            exact for the operator at this pixel pitch), or several: one table per size and mode,
+            an image is served by those of the two sizes whose pitch brackets its own (the
+            operators place light at their pixel pitch, which moves a dot's centroid by up to
+            ~0.1 px between 96 and 256 px; :class:`~.bank_maps.DisplayLUTMap`). Default
+            :data:`FIT_SIZES`.
         modes: optics modes to fit a table for (``"fast"`` uses the ``"exact"`` table).
         gain_iterations: fixed-point iterations of the gain (0: the lens's own fall-off, unit gain).
         pool: the tables are stored at ``size / pool`` (``pool x pool`` averages: the fitted tables
-            resampled bilinearly at the coarser pixel centres; 2 places dots within 0.1 px at 128-512 px).
+            resampled bilinearly at the coarser pixel centres).
         dtype: working precision.
     Returns:
         A :class:`DisplayLUTMap` over the whole display (``meta`` holds the bank's fingerprint,
@@ -251,27 +258,37 @@ def fit_bank_prewarp(
     if not hasattr(optics, "mode"):
         raise InputValueError(f"optics must be an optics stage or a PSFBank, got {type(optics).__name__}")
     bank, placement = _optics_bank(optics), _optics_placement(optics)
-    if not isinstance(size, int) or size < 8:
-        raise InputValueError(f"size must be an int >= 8, got {size!r}")
-    if not isinstance(pool, int) or pool < 1 or size % pool or size // pool < 4:
-        raise InputValueError(f"pool must be an int >= 1 dividing size into >= 4 samples, got {pool!r}")
+    sizes = [size] if isinstance(size, int) else list(size) if isinstance(size, Sequence) else [size]
+    if not sizes or any(isinstance(n, bool) or not isinstance(n, int) or n < 8 for n in sizes) or len(set(sizes)) < len(sizes):
+        raise InputValueError(f"size must be an int >= 8 or a sequence of different ones, got {size!r}")
+    if not isinstance(pool, int) or pool < 1 or any(n % pool or n // pool < 4 for n in sizes):
+        raise InputValueError(f"pool must be an int >= 1 dividing size into >= 4 samples (size {size!r}), got {pool!r}")
     if isinstance(gain_iterations, bool) or not isinstance(gain_iterations, int) or gain_iterations < 0:
         raise InputValueError(f"gain_iterations must be an int >= 0, got {gain_iterations!r}")
     if not modes or any(m not in ("distortion", "exact", "fast") for m in modes):
         raise InputValueError(f"modes must be a non-empty subset of ('distortion', 'exact', 'fast'), got {modes!r}")
     dw, dh = bank.display_mm
-    long = pool * max(1, round(size * max(dw, dh) / min(dw, dh) / pool))
-    fit_size = (size, long) if dw >= dh else (long, size)
-    tables, residuals = {}, {}
+    main = max(sizes)
+
+    def fit_size(n: int) -> tuple[int, int]:
+        long = pool * max(1, round(n * max(dw, dh) / min(dw, dh) / pool))
+        return (n, long) if dw >= dh else (long, n)
+
+    tables: dict[int, dict[str, tuple[torch.Tensor, torch.Tensor]]] = {n: {} for n in sizes}
+    residuals: dict[int, dict[str, dict[str, float]]] = {n: {} for n in sizes}
     start = time.perf_counter()
     for m in modes:
         stage = copy.copy(optics)  # the caller's options, with the display spanned by the fit image
         # nn.Module's stubs type every attribute as a tensor or module; mode and placement are plain ones
         stage.mode, stage.placement = m, "stretch"  # type: ignore[assignment]
-        disp, gain, res = _fit_mode(stage, bank, fit_size, gain_iterations, dtype)
-        disp = F.avg_pool2d(disp.permute(0, 3, 1, 2), pool).permute(0, 2, 3, 1)
-        tables[m], residuals[m] = (disp, F.avg_pool2d(gain[:, None], pool)[:, 0]), res
-    meta = {"bank": bank_fingerprint(bank), "radiometry": getattr(optics, "radiometry", None), "size": list(fit_size),
-            "pool": pool, "gain_iterations": gain_iterations, "optics": repr(optics), "residuals": residuals,
+        for n in sizes:
+            disp, gain, res = _fit_mode(stage, bank, fit_size(n), gain_iterations, dtype)
+            disp = F.avg_pool2d(disp.permute(0, 3, 1, 2), pool).permute(0, 2, 3, 1)
+            tables[n][m], residuals[n][m] = (disp, F.avg_pool2d(gain[:, None], pool)[:, 0]), res
+    meta = {"bank": bank_fingerprint(bank), "radiometry": getattr(optics, "radiometry", None), "size": list(fit_size(main)),
+            "pool": pool, "gain_iterations": gain_iterations, "optics": repr(optics), "residuals": residuals[main],
             "seconds": round(time.perf_counter() - start, 2)}
-    return DisplayLUTMap(tables, bank.display_mm, placement, meta=meta)
+    if len(sizes) > 1:
+        meta.update(sizes=sorted(sizes), residuals_by_size={str(n): residuals[n] for n in sorted(sizes)})
+    more = {m: {n: tables[n][m] for n in sizes if n != main} for m in modes} if len(sizes) > 1 else None
+    return DisplayLUTMap(tables[main], bank.display_mm, placement, meta=meta, size=main, sizes=more)

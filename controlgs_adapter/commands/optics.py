@@ -50,7 +50,9 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a bank's optics")
     w.add_argument("--bank", type=Path, default=None, help="PSF bank .safetensors (default: the shipped Cardboard bank)")
     w.add_argument("--out", type=Path, required=True, help="output LUT .safetensors ({'lens': {'lut': OUT}})")
-    w.add_argument("--size", type=int, default=256, help="display pixels along its shorter side for the fit")
+    w.add_argument("--size", type=int, nargs="+", default=[64, 96, 128, 192, 256],
+                   help="display pixels along its shorter side for the fit; several: one table per size, an image uses "
+                        "those bracketing its pixel pitch (default: 64 96 128 192 256)")
     w.add_argument("--modes", nargs="+", default=["distortion", "exact"], choices=["distortion", "exact", "fast"],
                    help="optics modes to fit the pre-warp for (default: distortion exact)")
     w.add_argument("--radiometry", choices=["radiance", "energy"], default="radiance", help="the optics' radiometry")
@@ -138,9 +140,10 @@ def run_fit_prewarp(args: argparse.Namespace) -> int:
     from controlgs_adapter.errors import InputValueError
 
     check_out_path(args.out, "--out", folder=False)
-    if args.size < 8 or args.size % 2:
-        raise InputValueError(f"--size must be an even integer >= 8, got {args.size}")
-    lut = fit_bank_prewarp(PSFOptics(args.bank, radiometry=args.radiometry), args.size, modes=tuple(args.modes))
+    bad = [n for n in args.size if n < 8 or n % 2]
+    if bad or len(set(args.size)) < len(args.size):
+        raise InputValueError(f"--size must be different even integers >= 8, got {' '.join(map(str, args.size))}")
+    lut = fit_bank_prewarp(PSFOptics(args.bank, radiometry=args.radiometry), list(args.size), modes=tuple(args.modes))
     lut.save(args.out)
     print(json.dumps(lut.meta, indent=2))
     print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.2f} MB)")

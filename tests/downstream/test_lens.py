@@ -249,6 +249,57 @@ def test_prewarp_matches_brute_force_bilinear():
                     assert out[b, c, i, j].item() == pytest.approx(ref, abs=1e-12)
 
 
+def test_supersampling_averages_bilinear_samples_over_each_output_pixels_footprint():
+    """``supersample=n``: the mean of ``n x n`` brute-force bilinear samples at ``grid + o_x dx + o_y dy``
+    (``dx``, ``dy`` the grid's central differences, one-sided at the border; offsets ``(i + 0.5) / n - 0.5``)."""
+    g = torch.Generator().manual_seed(1)
+    img = torch.rand(3, 6, 7, dtype=torch.float64, generator=g)
+    grid = pixel_grid((4, 5), torch.float64).expand(3, -1, -1, -1) * 1.3 + 0.05 * torch.rand(3, 4, 5, 2, dtype=torch.float64, generator=g)
+    out = lens_prewarp(img, grid, supersample=3)
+    for c, i, j in ((0, 0, 0), (1, 2, 3), (2, 3, 4), (0, 1, 4)):
+        dx = grid[c, i, min(j + 1, 4)] - grid[c, i, max(j - 1, 0)]
+        dx = dx / (min(j + 1, 4) - max(j - 1, 0))
+        dy = grid[c, min(i + 1, 3), j] - grid[c, max(i - 1, 0), j]
+        dy = dy / (min(i + 1, 3) - max(i - 1, 0))
+        offs = [(k + 0.5) / 3 - 0.5 for k in range(3)]
+        ref = sum(_bilinear_reference(img[c].numpy(), *(grid[c, i, j] + ox * dx + oy * dy).tolist()) for oy in offs for ox in offs) / 9
+        assert out[c, i, j].item() == pytest.approx(ref, abs=1e-12)
+    assert torch.equal(lens_prewarp(img, grid, supersample=1), lens_prewarp(img, grid))
+    row = grid[:, :1]  # one output row: no step along y
+    step = torch.gradient(row, dim=2)[0]
+    want = (lens_prewarp(img, row - 0.25 * step) + lens_prewarp(img, row + 0.25 * step)) / 2
+    assert torch.allclose(lens_prewarp(img, row, supersample=2), want, atol=1e-12)
+    for bad in (0, 2.0, True):
+        with pytest.raises(InputValueError, match=f"supersample must be an int >= 1, got {bad!r}"):
+            lens_prewarp(img, grid, supersample=bad)
+        with pytest.raises(InputValueError, match="supersample must be an int >= 1"):
+            LensPrewarp(supersample=bad)
+
+
+def test_the_fitted_lens_averages_two_by_two_samples_per_display_pixel_the_chief_rays_one():
+    optics = Pipeline.from_config({"optics": {"mode": "distortion"}})["optics"]
+    assert lens.FITTED_SUPERSAMPLE == 2
+    assert LensPrewarp.for_optics(optics).supersample == 2
+    assert LensPrewarp.for_optics(optics, supersample=1).supersample == 1
+    assert LensPrewarp.for_optics(optics, source="chief_rays").supersample == 1
+    assert Pipeline.from_config({"lens": True, "optics": {"mode": "distortion"}})["lens"].supersample == 2
+    assert Pipeline.from_config({"lens": {"supersample": 3}, "optics": {"mode": "distortion"}})["lens"].supersample == 3
+    assert Pipeline.from_config({"lens": True})["lens"].supersample == 1  # no optics: the radial map, one sample
+
+
+def test_supersampling_removes_the_aliasing_of_a_minifying_warp():
+    """Columns alternating 1, 0 shown through a warp that takes 2 image columns per output pixel, every
+    grid point on a bright column: one sample per pixel shows a flat 1 (the pattern aliased to its
+    bright phase), the footprint average shows the pattern's mean 0.5."""
+    img = (torch.arange(64) % 2 == 0).double().expand(3, 4, 64).contiguous()
+    grid = pixel_grid((4, 32), torch.float64).expand(3, -1, -1, -1).clone()
+    grid[..., 0] = (2 * torch.arange(32, dtype=torch.float64) + 0.5) / 32 - 1  # image x = 2 j + 0.5 px: column 2 j's centre
+    point, two, three = (lens_prewarp(img, grid, supersample=n)[:, 1:3, 1:-1] for n in (1, 2, 3))
+    assert torch.allclose(point, torch.ones_like(point)) and torch.allclose(two, torch.full_like(two, 0.5))
+    assert float((three - 0.5).abs().max()) < 0.06
+    assert LensPrewarp(supersample=3).supersample == 3 and "supersample=3" in repr(LensPrewarp(supersample=3))
+
+
 @settings(max_examples=15, deadline=None)
 @given(st.integers(2, 12), st.integers(2, 12), st.sampled_from([torch.float32, torch.float64]))
 def test_identity_maps_reproduce_input_and_are_identity(h, w, dtype):

@@ -298,3 +298,39 @@ def test_reach_of_a_display_pixels_light_by_hand():
     assert torch.allclose(reach, 1.5 * bank.psf_pitch_mm.double() * 16.5 / 12.0, rtol=1e-5)
     dist = _reach("distortion", bank, pixel_grid((30, 40), D), D)
     assert dist.shape == (3, 30, 40) and float(dist.min()) == float(dist.max()) == 0.1
+
+
+def test_fit_bank_prewarp_fits_a_table_per_display_size():
+    """Several sizes: one table per size and mode, each the single-size fit's; the largest is the main
+    table (``size``, ``meta["size"]``); the residuals of every size are kept."""
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
+    from controlgs_adapter.downstream.prewarp_fit import FIT_SIZES, fit_bank_prewarp
+    from controlgs_adapter.errors import InputValueError
+
+    optics = PSFOptics(mode="distortion")
+    lut = fit_bank_prewarp(optics, [32, 16], modes=("distortion",), gain_iterations=1)
+    assert (lut.size, lut.sizes, lut.meta["size"], lut.meta["sizes"]) == (32, {"distortion": (16, 32)}, [32, 32], [16, 32])
+    assert sorted(lut.meta["residuals_by_size"]) == ["16", "32"] and lut.meta["residuals"] == lut.meta["residuals_by_size"]["32"]
+    for n, sfx in ((16, "_16"), (32, "")):
+        alone = fit_bank_prewarp(optics, n, modes=("distortion",), gain_iterations=1)
+        assert alone.sizes == {"distortion": (n,)} and "sizes" not in alone.meta
+        assert torch.equal(getattr(lut, f"displacement_distortion{sfx}"), alone.displacement_distortion)
+        assert torch.equal(getattr(lut, f"gain_distortion{sfx}"), alone.gain_distortion)
+    assert FIT_SIZES == (64, 96, 128, 192, 256)
+    for size in ([16, 16], [], [16, 7]):
+        with pytest.raises(InputValueError, match="size must be an int >= 8 or a sequence of different ones"):
+            fit_bank_prewarp(optics, size)
+    with pytest.raises(InputValueError, match=r"pool must be an int >= 1 dividing size into >= 4 samples \(size \[16, 18\]\), got 4"):
+        fit_bank_prewarp(optics, [16, 18], pool=4)
+
+
+def test_the_shipped_lut_holds_a_table_per_fitted_size_for_the_shipped_bank():
+    from controlgs_adapter.downstream.lens import DisplayLUTMap, LensPrewarp, bank_fingerprint
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+    from controlgs_adapter.downstream.optics.stage import PSFOptics
+    from controlgs_adapter.downstream.prewarp_fit import FIT_SIZES
+
+    lut = LensPrewarp.for_optics(PSFOptics(mode="exact")).map
+    assert isinstance(lut, DisplayLUTMap) and lut.meta["bank"] == bank_fingerprint(PSFBank.default())
+    assert lut.sizes == {"distortion": FIT_SIZES, "exact": FIT_SIZES} and lut.meta["pool"] == 2
+    assert lut.displacement_exact.shape == (3, 128, 128, 2) and lut.displacement_exact_64.shape == (3, 32, 32, 2)
