@@ -881,3 +881,10 @@ def test_every_public_name_resolves() -> None:
         assert getattr(controlgs_adapter, name) is not None, name
     assert controlgs_adapter.Trainer is Trainer and controlgs_adapter.GridResult is GridResult
     assert issubclass(controlgs_adapter.StateRangeError, controlgs_adapter.StateError)
+
+
+@pytest.mark.parametrize("name", ["iterations", "cond_dim", "checkpoint_every", "batch_size"])
+def test_train_config_counts_fit_int64(name: str) -> None:
+    with pytest.raises(InputValueError, match=f"TrainConfig.{name} must be an integer in"):
+        TrainConfig(**{name: 10**400})
+    assert getattr(TrainConfig(**{name: 2**40}), name) == 2**40

@@ -400,8 +400,6 @@ GEN = torch.Generator().manual_seed(14)
 
 
 FIELD = [(0.0, 0.0), (0.85, 0.85), (-0.85, -0.85), (0.85, -0.85), (-0.85, 0.0), (0.0, 0.85), (0.5, 0.5)]
-#: every point of a 0.1 grid over [-0.8, 0.8]^2, and the corners of FIELD
-GRID_FIELD = [(round(0.1 * i, 1), round(0.1 * j, 1)) for j in range(-8, 9) for i in range(-8, 9)] + FIELD[1:4]
 
 
 # ----------------------------------------------------------------------------- dots per primary
@@ -413,8 +411,7 @@ def _dot_centroid_errors(pipe: Pipeline, size: tuple[int, int], field=FIELD) -> 
     centres = [((u + 1) / 2 * w, (v + 1) / 2 * h) for u, v in field]
     dots = torch.stack([0.5 * torch.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / 2).expand(3, h, w) for cx, cy in centres])
     with torch.no_grad():
-        prim = torch.cat([rgb_to_primaries(srgb_to_linear(pipe(linear_to_srgb(chunk), RuntimeState())))   # [dots, 3, H, W]
-                          for chunk in dots.split(64)])
+        prim = rgb_to_primaries(srgb_to_linear(pipe(linear_to_srgb(dots), RuntimeState())))   # [dots, 3, H, W]
     r = max(6, min(h, w) // 8)
     errs = []
     for k, (cx, cy) in enumerate(centres):
@@ -448,34 +445,6 @@ def test_active_sees_the_reference():
     gt = torch.rand(3, 8, 8)
     assert pipe.active(RuntimeState()) == []
     assert pipe.active(RuntimeState(), reference=gt) == ["display"]
-
-
-@needs_optics
-@pytest.mark.parametrize("mode", ["distortion", "exact"])
-@pytest.mark.parametrize("size", [(96, 96), (54, 96)])
-def test_every_primary_of_a_white_dot_lands_within_a_tenth_of_a_pixel(mode, size):
-    """Over the whole field (a 0.1 grid, (0.6, -0.5) included), each primary's eye centroid of a white dot
-    is within 0.1 px of where it was rendered, so no two primaries are 0.2 px apart anywhere."""
-    pipe = Pipeline.from_config({"lens": True, "optics": {"mode": mode}}).double()
-    assert isinstance(pipe["lens"].map, DisplayLUTMap) and pipe["lens"].basis == "primaries"
-    field = GRID_FIELD if size[0] == size[1] else [(u, v * 0.5) for u, v in GRID_FIELD]
-    assert ((0.6, -0.5) if size[0] == size[1] else (0.6, -0.25)) in field
-    err = _dot_centroid_errors(pipe, size, field)
-    worst = int(err.amax(1).argmax())
-    assert float(err.max()) < 0.1, (field[worst], err[worst])
-
-
-@needs_optics
-@pytest.mark.parametrize("mode", ["distortion", "exact"])
-def test_one_sample_per_display_pixel_and_one_fitted_size_miss_the_tenth_of_a_pixel(mode):
-    """Sensitivity: point-sampling the image at each display pixel (supersample 1) and the table of one
-    fitted size (256) leave a primary of some dot on the grid more than 0.1 px off at 96 px."""
-    pipe = Pipeline.from_config({"lens": {"supersample": 1}, "optics": {"mode": mode}}).double()
-    lut = pipe["lens"].map
-    assert pipe["lens"].supersample == 1 and lut.sizes[mode] == (64, 96, 128, 192, 256)
-    main = {mode: (getattr(lut, f"displacement_{mode}"), getattr(lut, f"gain_{mode}"))}  # fitted at 256 px
-    pipe["lens"].map = DisplayLUTMap(main, lut.display_mm, meta=lut.meta).follow(pipe["optics"]).double()
-    assert float(_dot_centroid_errors(pipe, (96, 96), GRID_FIELD).max()) > 0.1
 
 
 @needs_optics
