@@ -58,11 +58,11 @@ def _check(args: argparse.Namespace) -> Path:
     from ..errors import InputValueError
     from .common import check_out_path, parse_device
 
-    check_number("--resolution", args.resolution, integer=True, low=2)
-    check_number("--iterations", args.iterations, integer=True, low=1)
-    check_number("--max-anchors", args.max_anchors, integer=True, low=1)
+    check_number("--resolution", args.resolution, integer=True, low=2, high=2**63 - 1)
+    check_number("--iterations", args.iterations, integer=True, low=1, high=2**63 - 1)
+    check_number("--max-anchors", args.max_anchors, integer=True, low=1, high=2**63 - 1)
     check_number("--seed", args.seed, integer=True, low=0, high=2**63 - 1)
-    check_number("--holdout", args.holdout, integer=True, low=0)
+    check_number("--holdout", args.holdout, integer=True, low=0, high=2**63 - 1)
     parse_device(args.device)
     out = check_out_path(args.out, "--out", folder=True)
     if out.is_dir():

@@ -34,7 +34,7 @@ def run_build(args: argparse.Namespace) -> int:
 
     for option, value in (("--resolution", args.resolution), ("--iterations", args.iterations),
                           ("--max-anchors", args.max_anchors), ("--n-offsets", args.n_offsets)):
-        check_number(option, value, integer=True, low=1)
+        check_number(option, value, integer=True, low=1, high=2**63 - 1)
     check_number("--seed", args.seed, integer=True, low=0, high=2**63 - 1)
     check_out_path(args.out, "--out", folder=True)  # before the training
     path = build_builtin_backbone(args.variant, resolution=args.resolution, iterations=args.iterations,
@@ -52,7 +52,7 @@ def run_export(args: argparse.Namespace) -> int:
 
     from .common import check_out_path
 
-    check_number("--resolution", args.resolution, integer=True, low=1)
+    check_number("--resolution", args.resolution, integer=True, low=1, high=2**63 - 1)
     out = check_out_path(args.out, "--out", folder=True)
     for split in ("train", "test"):
         check_out_path(out / split, "--out", folder=True)

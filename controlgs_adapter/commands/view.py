@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     check_number("--port", args.port, integer=True, low=0, high=65535)
     check_options(args)
     if args.threads is not None:
-        torch.set_num_threads(int(check_number("--threads", args.threads, integer=True, low=1)))
+        torch.set_num_threads(int(check_number("--threads", args.threads, integer=True, low=1, high=4096)))
     run_dir = None if args.run is None else Path(args.run)
     if run_dir is not None:
         if not run_dir.is_dir():
@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
             views = builtin.data.views("test", first=args.test_views)
             truth = _exact_truth(builtin)
             if run_dir is None:
-                check_number("--iterations", args.iterations, integer=True, low=1)
+                check_number("--iterations", args.iterations, integer=True, low=1, high=2**63 - 1)
                 print(f"no --run: training a quick ControlGS adapter ({args.iterations} iterations) on {name}; "
                       "`controlgs demo --out report` then `controlgs view --run report` shows a fully trained one")
                 train = load_builtin_scene(args.variant, DEFAULT_RESOLUTION, cache=True).views("train")  # the demo's size

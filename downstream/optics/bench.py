@@ -128,6 +128,11 @@ def run(sizes: Sequence[int | str] = SIZES, exact_max: int = 1024, threads: int 
     """Time and compare the operators on the shipped bank, per size (``N`` or ``"HxW"``) and
     radiometry; ``out``: folder for ``optics_bench.md`` / ``.png`` (None: print only). Returns the
     operator rows; build rows carry ``op="tables"``."""
+    from controlgs_adapter.checks import check_number
+
+    check_number("repeat", repeat, integer=True, low=1, high=10**6)
+    check_number("zone", zone, integer=True, low=1, high=2**31 - 1)
+    check_number("threads", threads, integer=True, low=1, high=4096)
     torch.set_num_threads(threads)
     env = {k: os.environ.get(k) or "unset" for k in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY")}
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")

@@ -25,6 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
+from controlgs_adapter.checks import brief
 from controlgs_adapter.errors import InputValueError
 
 from .bank import PSFBank
@@ -157,7 +158,10 @@ def lens_figures(rx: Prescription) -> dict[str, Any]:
 
 def _check_int(name: str, value: Any, low: int, *, odd: bool = False) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low or (odd and value % 2 == 0):
-        raise InputValueError(f"{name} must be {'an odd' if odd else 'an'} integer >= {low}, got {value!r}")
+        raise InputValueError(f"{name} must be {'an odd' if odd else 'an'} integer >= {low}, got {brief(value)}")
+    if value > 2**31 - 1:  # a sample count or grid side; beyond int32 it overflows the float and int maths
+        raise InputValueError(f"{name} must be {'an odd' if odd else 'an'} integer >= {low} and <= 2147483647, "
+                              f"got {brief(value)}")
 
 
 def build_bank(prescription: Mapping[str, Any] | Prescription | None = None, *, grid: tuple[int, int] = (30, 30),

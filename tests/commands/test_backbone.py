@@ -247,3 +247,12 @@ def test_the_views_call_is_checked():
 def test_the_module_documents_both_calls():
     doc = train_backbone.train_reference_model.__doc__ or ""
     assert "views" in doc and "[V, 3, H, W]" in doc and "default 0" in doc
+
+
+@pytest.mark.parametrize("option", ["--iterations", "--max-anchors", "--holdout", "--resolution"])
+def test_a_count_beyond_int64_is_one_line_before_the_data_is_read(tmp_path, capsys, option):
+    out = tmp_path / "out"
+    assert main(["backbone", "train", "--data", str(tmp_path / "nodata"), "--out", str(out), option, "9" * 400]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"controlgs backbone: error: {option} must be an integer in "), err
+    assert "401 digits" in err[0] and not out.exists()

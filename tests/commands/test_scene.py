@@ -199,3 +199,16 @@ def test_scene_help_names_its_actions(capsys):
     assert e.value.code == 0
     usage = capsys.readouterr().out.split("\n\n")[0]
     assert usage.split() == ["usage:", "controlgs", "scene", "[-h]", "ACTION", "..."]
+
+
+@pytest.mark.parametrize("argv", [
+    ["scene", "build-backbone", "--iterations", "9" * 400], ["scene", "build-backbone", "--max-anchors", "9" * 400],
+    ["scene", "export", "--resolution", "9" * 400],
+])
+def test_a_count_beyond_int64_is_one_line_before_the_work(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          argv: list[str]) -> None:
+    out = tmp_path / "out"
+    assert main([*argv, "--out", str(out)]) == 2
+    line = error_line(capsys, "scene")
+    assert line.startswith(f"{argv[2]} must be an integer in ") and "401 digits" in line, line
+    assert not out.exists()

@@ -333,3 +333,12 @@ def test_cli_view_on_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch
     assert dataset["size"] == [32, 24] and dataset["has_truth"] and dataset["methods"][2]["metrics"]["psnr"] > 10
     assert decode(dataset["methods"][2]["eye"]).shape == (24, 32, 3)
     assert not orbit["has_truth"] and orbit["methods"][2]["metrics"] is None  # your data: no ground truth off the views
+
+
+@pytest.mark.parametrize("value", ["0", "9" * 40])
+def test_threads_out_of_range_is_one_line(capsys: pytest.CaptureFixture[str], value: str) -> None:
+    from controlgs_adapter.cli import main
+
+    assert main(["view", "--threads", value]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("controlgs view: error: --threads must be an integer in [1, 4096], got "), err

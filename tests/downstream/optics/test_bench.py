@@ -163,3 +163,13 @@ def test_bench_figure_lines_labels_and_exact_marker():
         assert (ax.get_xscale(), ax.get_yscale()) == ("log", "log")
     finally:
         plt.close(fig)
+
+
+@pytest.mark.parametrize("kw, name", [(dict(repeat=0), "repeat"), (dict(repeat=-1), "repeat"), (dict(zone=0), "zone"),
+                                      (dict(threads=0), "threads"), (dict(threads=10**40), "threads")])
+def test_run_refuses_bad_counts_before_timing(kw, name, capsys):
+    from controlgs_adapter.errors import InputValueError
+
+    with pytest.raises(InputValueError, match=f"^{name} must be an integer in "):
+        bench.run(sizes=[8], **kw)
+    assert capsys.readouterr().out == ""
