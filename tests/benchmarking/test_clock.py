@@ -1,4 +1,5 @@
-"""Tests of ``controlgs_adapter.benchmarking.clock``."""
+"""Tests of ``controlgs_adapter.benchmarking.clock``: the rasterizer that laps the phase clock around the splat and
+renders like the rasterizer it wraps."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Tests of ``controlgs_adapter.benchmarking.report``."""
+"""Tests of ``controlgs_adapter.benchmarking.report``: the accuracy-vs-time page (every cell of its tables, its units
+and sections) and writing it."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ from controlgs_adapter.benchmarking.accuracy_time import BenchResult
 from controlgs_adapter.benchmarking.report import PART_DOCS, format_report, write_report
 
 
-# ---------------------------------------------------------------- the report
 def _result() -> BenchResult:
     phases = {
         "distortion": {"sample": 0.001, "decode": 0.002, "splat": 0.003, "stages": 0.004, "psf": 0.0005,
@@ -29,7 +29,7 @@ def _result() -> BenchResult:
     return BenchResult(phases=phases, knobs=knobs, ss=ss, overhead=overhead, info=info)
 
 
-def test_format_report_cells_by_hand() -> None:
+def test_format_report_cells() -> None:
     text = format_report(_result(), "controlgs bench --x")
     lines = text.splitlines()
     assert lines[0] == "# Benchmarks: accuracy vs time"

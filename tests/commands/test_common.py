@@ -1,21 +1,46 @@
-"""The pieces the commands share for run folders: ``read_run`` (every run.json field checked, naming
-the file and the field), ``apply_run_defaults`` (a run's renderer only with the user's say),
-``parse_device`` (a device that can hold data) and ``check_out_path`` (creates nothing)."""
+"""Tests of ``controlgs_adapter.commands.common``, the pieces the commands share: ``read_run`` (every run.json field
+checked, naming the file and the field), ``apply_run_defaults`` (a run's renderer only with the user's say),
+``--model``/``--data``, ``parse_device``, ``check_out_path`` (creates nothing), ``--cache-mib``, the scene-check
+line, loading a user's scene, and ``--renderer``/``--rasterizer`` (``load_renderer``, ``make_renderer``)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import sys
+import textwrap
 from pathlib import Path
 from typing import Any
 
 import pytest
+import torch
+from helpers.cli_runs import MODEL, needs_backbone
+from helpers.scene_writers import write_colmap
 
-from controlgs_adapter.commands.common import apply_run_defaults, check_out_path, parse_device, read_run
+from controlgs_adapter import ControlGS
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.commands.common import (
+    RasterizerRenderer,
+    anchor_positions,
+    apply_run_defaults,
+    cache_bytes,
+    check_line,
+    check_out_path,
+    check_rasterizer_name,
+    load_renderer,
+    load_user_scene,
+    make_renderer,
+    parse_device,
+    read_run,
+    render_record,
+    user_scene,
+)
 from controlgs_adapter.errors import ControlGSError, FileWriteError, InputValueError
+from controlgs_adapter.rendering.protocol import FunctionRenderer, render_view, renderer_for
+from controlgs_adapter.rendering.rasterizers import _CHOICE
+from controlgs_adapter.scene import load_builtin_scene
 
-#: every field ``controlgs train`` writes for a user's scene, each with a valid value
 FULL = {"model": "/m", "data": "/d", "family": "scaffold_gs", "model_iteration": 30000, "allow_unquantized": False,
         "format": "colmap", "images": "images_4", "holdout": 8, "white_background": False, "resolution": 256,
         "effects": ["display", "lens"], "iterations": 1000, "seed": 0, "seeds": 2, "adapters": ["controlgs", "no_lens"],
@@ -27,6 +52,67 @@ def _write(folder: Path, record: Any) -> Path:
     (folder / "run.json").write_text(json.dumps(record))
     return folder / "run.json"
 
+
+def _ns(**kw: Any) -> argparse.Namespace:
+    return argparse.Namespace(**kw)
+
+
+#: the options apply_run_defaults fills, unset
+RUN_ARGS: dict[str, Any] = {"model": None, "data": None, "renderer": None, "rasterizer": None, "resolution": None}
+
+
+#: a module whose ``renderer`` says which folder it was found in
+_RENDERER_MODULE = textwrap.dedent('''
+    class _R:
+        origin = {origin!r}
+
+        def visible(self, model, camera):
+            return None
+
+        def render(self, model, camera, visible, background):
+            return None
+
+
+    renderer = _R()
+''')
+
+
+#: a renderer that records the rasterizer chosen around each of its calls
+_RENDERER_FILE = '''
+from controlgs_adapter.rendering.rasterizers import _CHOICE
+
+class Recorder:
+    def __init__(self):
+        self.seen = []
+
+    def visible(self, model, camera):
+        self.seen.append(("visible", _CHOICE.get()))
+        return "VIS"
+
+    def render(self, model, camera, visible, background):
+        self.seen.append(("render", _CHOICE.get(), visible))
+        return "IMG"
+
+recorder = Recorder()
+'''
+
+
+@pytest.fixture(scope="module")
+def setup(tiny, tmp_path_factory):
+    """The tiny scene's first two training views and an adapter file with random (non-zero) conditions."""
+    scene, model = tiny
+    views = scene.data.views("train", first=2)
+    cgs = ControlGS.wrap(model, cond_dim=4)
+    with torch.no_grad(), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(3)
+        for p in cgs.trainable_parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    path = cgs.save(tmp_path_factory.mktemp("adapter") / "a.controlgs.safetensors")
+    cgs.unwrap()
+    return model, views, path
+
+
+# ----------------------------------------------------------------------------- run.json
 
 def test_read_run_takes_a_full_record_and_nothing(tmp_path: Path) -> None:
     assert read_run(tmp_path) is None
@@ -61,34 +147,59 @@ def test_a_run_file_that_is_not_a_json_object(tmp_path: Path) -> None:
         read_run(tmp_path)
 
 
-def _ns(**kw: Any) -> argparse.Namespace:
-    base: dict[str, Any] = {"model": None, "data": None, "renderer": None, "rasterizer": None, "resolution": None}
-    return argparse.Namespace(**(base | kw))
+def test_run_defaults_fill_only_unset_listed_options(tmp_path: Path) -> None:
+    assert apply_run_defaults(_ns(model=None), tmp_path) is None  # no run.json: nothing filled
+    run = {"model": "/m", "data": "/d", "holdout": 4, "resolution": 32, "format": None, "iterations": 7,
+           "rasterizer": "torch"}
+    (tmp_path / "run.json").write_text(json.dumps(run))
+    args = _ns(model=None, data="/mine", holdout=None, resolution=None, format="colmap", iterations=None, rasterizer=None)
+    assert apply_run_defaults(args, tmp_path) == run
+    assert (args.model, args.data, args.holdout, args.resolution) == ("/m", "/mine", 4, 32)
+    assert args.format == "colmap"  # set by the user: kept; a null in run.json never overrides
+    assert args.iterations is None  # not an eval option: run.json does not set it
+    assert args.rasterizer == "torch"
+    (tmp_path / "run.json").write_text('{"model": "m", "data": "d", "holdout": 4, "resolution": null, "seed": 3}')
+    ns = _ns(model=None, data="mine", holdout=None, resolution=None)
+    assert apply_run_defaults(ns, tmp_path) == {"model": "m", "data": "d", "holdout": 4, "resolution": None, "seed": 3}
+    assert (ns.model, ns.data, ns.holdout, ns.resolution) == ("m", "mine", 4, None) and not hasattr(ns, "seed")
+    (tmp_path / "run.json").write_text("{not json")
+    with pytest.raises(InputValueError, match=f"{tmp_path / 'run.json'}: not a controlgs run file"):
+        apply_run_defaults(_ns(model=None), tmp_path)
 
 
 def test_a_run_renderer_needs_the_users_say(tmp_path: Path) -> None:
     spec = "/elsewhere/evil.py:renderer"
     _write(tmp_path, {"model": "/m", "data": "/d", "renderer": spec})
-    args = _ns()
+    args = _ns(**RUN_ARGS)
     with pytest.raises(InputValueError) as e:
         apply_run_defaults(args, tmp_path)
     assert f"--renderer {spec}" in str(e.value) and "--trust-run-renderer" in str(e.value)
     assert args.renderer is None
-    args = _ns(renderer="mine:render")  # named on the command line: the user's, not the run's
+    args = _ns(**{**RUN_ARGS, "renderer": "mine:render"})  # named on the command line: the user's, not the run's
     assert apply_run_defaults(args, tmp_path) is not None and args.renderer == "mine:render"
-    args = _ns(trust_run_renderer=True)
+    args = _ns(**RUN_ARGS, trust_run_renderer=True)
     assert apply_run_defaults(args, tmp_path) is not None
     assert (args.renderer, args.model, args.data) == (spec, "/m", "/d")
 
 
-@pytest.mark.parametrize("name", ["meta", "cuda:99", "nodevice", "xla"])
-def test_a_device_that_cannot_hold_data(name: str) -> None:
-    with pytest.raises(InputValueError, match=f"^--device '?{name}'?: "):
-        parse_device(name)
+# ----------------------------------------------------------------------------- options
+
+def test_user_scene_needs_both_or_neither() -> None:
+    assert user_scene(_ns(model=None, data=None)) is False
+    assert user_scene(_ns(model="m", data="d")) is True
+    for model, data in (("m", None), (None, "d")):
+        with pytest.raises(InputValueError, match="--model.*--data"):
+            user_scene(_ns(model=model, data=data))
 
 
-def test_parse_device_cpu() -> None:
-    assert str(parse_device("cpu")) == "cpu"
+def test_a_device_that_cannot_hold_data_is_refused_naming_it() -> None:
+    assert parse_device("cpu") == torch.device("cpu") and str(parse_device("cpu")) == "cpu"
+    for name in ("meta", "cuda:99", "nodevice", "xla", "gpu0"):
+        with pytest.raises(InputValueError, match=f"^--device '?{name}'?: "):
+            parse_device(name)
+    if not torch.cuda.is_available():
+        with pytest.raises(InputValueError, match="--device cuda:1: CUDA is not available"):
+            parse_device("cuda:1")
 
 
 def test_check_out_path_creates_nothing(tmp_path: Path) -> None:
@@ -116,63 +227,50 @@ def test_check_out_path_refuses_a_read_only_folder(tmp_path: Path) -> None:
         locked.chmod(0o700)
 
 
-import sys
-import textwrap
-
-import torch
-
-from controlgs_adapter import ControlGS
-from controlgs_adapter.commands.common import cache_bytes, check_rasterizer_name, load_renderer, render_record, user_scene
-from controlgs_adapter.rendering.protocol import FunctionRenderer, render_view
-
-
-def _ns_2(**kw: Any) -> argparse.Namespace:
-    return argparse.Namespace(**kw)
-
-
-# ---------------------------------------------------------------- --model / --data
-def test_user_scene_needs_both_or_neither() -> None:
-    assert user_scene(_ns_2(model=None, data=None)) is False
-    assert user_scene(_ns_2(model="m", data="d")) is True
-    for model, data in (("m", None), (None, "d")):
-        with pytest.raises(InputValueError, match="give both --model MODEL_DIR and --data DATA_DIR"):
-            user_scene(_ns_2(model=model, data=data))
-
-
-# ---------------------------------------------------------------- run.json defaults
-def test_run_defaults_fill_only_unset_listed_options(tmp_path: Path) -> None:
-    assert apply_run_defaults(_ns_2(model=None), tmp_path) is None  # no run.json: nothing filled
-    run = {"model": "/m", "data": "/d", "holdout": 4, "resolution": 32, "format": None, "iterations": 7,
-           "rasterizer": "torch"}
-    (tmp_path / "run.json").write_text(json.dumps(run))
-    args = _ns_2(model=None, data="/mine", holdout=None, resolution=None, format="colmap", iterations=None, rasterizer=None)
-    assert apply_run_defaults(args, tmp_path) == run
-    assert (args.model, args.data, args.holdout, args.resolution) == ("/m", "/mine", 4, 32)
-    assert args.format == "colmap"  # set by the user: kept; a null in run.json never overrides
-    assert args.iterations is None  # not an eval option: run.json does not set it
-    assert args.rasterizer == "torch"
-    (tmp_path / "run.json").write_text("{not json")
-    with pytest.raises(InputValueError, match=r"run\.json: not a controlgs run file"):
-        apply_run_defaults(_ns_2(model=None), tmp_path)
-
-
-# ---------------------------------------------------------------- --device, --cache-mib, --effects, --rasterizer
-def test_parse_device() -> None:
-    assert parse_device("cpu") == torch.device("cpu")
-    with pytest.raises(InputValueError, match="--device 'gpu0'"):
-        parse_device("gpu0")
-    if not torch.cuda.is_available():
-        with pytest.raises(InputValueError, match="--device cuda:1: CUDA is not available"):
-            parse_device("cuda:1")
-
-
 def test_cache_bytes_is_mib_times_2_to_the_20() -> None:
-    assert cache_bytes(_ns_2(cache_mib=3)) == 3 * 1024 * 1024
-    assert cache_bytes(_ns_2(cache_mib=0)) == 0
+    assert cache_bytes(_ns(cache_mib=3)) == 3 * 1024 * 1024
+    assert cache_bytes(_ns(cache_mib=0)) == 0
     for bad in (-1, 1.5, "8"):
-        with pytest.raises(InputValueError, match=r"--cache-mib must be an int >= 0 \(MiB\), got"):
-            cache_bytes(_ns_2(cache_mib=bad))
+        with pytest.raises(InputValueError, match=rf"--cache-mib.*got {bad!r}$"):
+            cache_bytes(_ns(cache_mib=bad))
 
+
+# ----------------------------------------------------------------------------- the scene check and a user's scene
+
+def test_check_line() -> None:
+    report = {"format": "colmap", "source": "/d", "splits": {"train": 7, "test": 1}, "points": 12,
+              "in_front": {"a": 0.9, "b": 0.1, "c": 0.5, "d": 0.7}, "blind": ["b"]}
+    assert check_line(report) == ("scene check: colmap /d: 7 train, 1 test views, image sizes match their cameras; "
+                                  "the model's 12 anchors are in view of 3/4 cameras (median 70% inside the image)")
+    report.update(format=None, in_front={})
+    assert check_line(report) == "scene check: dataset /d: 7 train, 1 test views, image sizes match their cameras"
+
+
+@needs_backbone
+def test_user_scene_defaults_every_8th_view_held_out(tmp_path: Path) -> None:
+    model = MODEL
+    scene = load_builtin_scene("ar", 16, views=9, test_every=9, samples=1)
+    cams = scene.test_cameras + scene.train_cameras
+    write_colmap(tmp_path / "data", cams, list(torch.cat([scene.test_images, scene.train_images])))
+    args = _ns(model=str(model), data=str(tmp_path / "data"), family=None, model_iteration=None, allow_unquantized=None,
+               format=None, images=None, holdout=None, white_background=None, resolution=None, device="cpu")
+    user = load_user_scene(args)
+    assert [f.name for f in user.data.splits["test"]] == ["v00.png", "v08.png"]  # 9 views, every 8th: 0 and 8
+    assert len(user.data.splits["train"]) == 7 and user.family == "scaffold_gs"
+    rec = user.record(args, iterations=3)
+    assert rec["holdout"] == 8 and rec["model"] == str(model.resolve()) and rec["data"] == str((tmp_path / "data").resolve())
+    assert (rec["allow_unquantized"], rec["white_background"], rec["format"], rec["iterations"]) == (False, False, "colmap", 3)
+
+
+def test_anchor_positions_are_plain_cpu_values(setup):
+    model, _, _ = setup
+    pos = anchor_positions(model)
+    assert pos.dtype == torch.float32 and pos.device.type == "cpu" and pos.shape[1] == 3
+    assert not pos.requires_grad and pos.grad_fn is None  # no autograd graph back into the model
+    assert anchor_positions(object()) is None  # no backend recognises it
+
+
+# ----------------------------------------------------------------------------- --renderer and --rasterizer
 
 def test_rasterizer_names() -> None:
     for ok in (None, "auto", "torch"):
@@ -183,15 +281,13 @@ def test_rasterizer_names() -> None:
 
 def test_render_record(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
-    assert render_record(_ns_2(rasterizer=None, renderer=None)) == {"rasterizer": "auto", "renderer": None}
-    assert render_record(_ns_2(rasterizer="torch", renderer="pkg.mod:fn")) == {"rasterizer": "torch", "renderer": "pkg.mod:fn"}
-    rec = render_record(_ns_2(rasterizer=None, renderer="sub/r.py:fn"))
+    assert render_record(_ns(rasterizer=None, renderer=None)) == {"rasterizer": "auto", "renderer": None}
+    assert render_record(_ns(rasterizer="torch", renderer="pkg.mod:fn")) == {"rasterizer": "torch", "renderer": "pkg.mod:fn"}
+    rec = render_record(_ns(rasterizer=None, renderer="sub/r.py:fn"))
     assert rec["renderer"] == f"{tmp_path.resolve() / 'sub' / 'r.py'}:fn"
 
 
 def test_load_renderer_from_files_and_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from controlgs_adapter.commands.common import load_renderer
-
     (tmp_path / "r.py").write_text(
         "def fn(model, camera, visible, background):\n    return 'image'\n\n"
         "class Obj:\n    def visible(self, model, camera):\n        return 'mask'\n\n"
@@ -206,33 +302,15 @@ def test_load_renderer_from_files_and_modules(tmp_path: Path, monkeypatch: pytes
     with pytest.raises(ModuleNotFoundError) as e:  # a module the renderer's module imports: not hidden
         load_renderer("inner_fail:render")
     assert e.value.name == "xyz_missing_pkg_for_test"
-    for spec, message in ((":fn", "must be MODULE:ATTR"), ("r.py:1fn", "must be MODULE:ATTR"),
-                          ("r.py:nope", "r.py has no attribute 'nope'")):
-        with pytest.raises(InputValueError, match=message):
-            load_renderer(spec)
-
-
-# ------------------------------------------------------------------------------ --renderer MODULE:ATTR
-_RENDERER_MODULE = textwrap.dedent('''
-    class _R:
-        origin = {origin!r}
-
-        def visible(self, model, camera):
-            return None
-
-        def render(self, model, camera, visible, background):
-            return None
-
-
-    renderer = _R()
-''')
+    with pytest.raises(InputValueError, match="r.py has no attribute 'nope'"):
+        load_renderer("r.py:nope")
 
 
 def test_load_renderer_finds_the_current_folders_module_first_and_leaves_sys_path_as_it_was(tmp_path, monkeypatch):
     """``--renderer MODULE:ATTR`` looks in the current folder first, as ``python -m`` would: a module of
     the same name elsewhere on the path (even first on it) does not shadow it; and the lookup leaves
     ``sys.path`` as it found it, however often it runs."""
-    name = "cgs_sweep4_user_renderer"
+    name = "cgs_user_renderer_lookup"
     here, elsewhere = tmp_path / "here", tmp_path / "elsewhere"
     for folder in (here, elsewhere):
         folder.mkdir()
@@ -252,8 +330,6 @@ def test_load_renderer_finds_the_current_folders_module_first_and_leaves_sys_pat
 
 
 def test_load_renderer_refusals(tmp_path, monkeypatch):
-    from controlgs_adapter.commands.common import RasterizerRenderer, load_renderer
-
     (tmp_path / "rr.py").write_text(
         "class K:\n    pass\n\nnumber = 3\n\ndef few(model):\n    return None\n\n"
         "class BadVisible:\n    def visible(self, model):\n        return None\n\n"
@@ -269,8 +345,9 @@ def test_load_renderer_refusals(tmp_path, monkeypatch):
     assert load_renderer(f"{f}:builtin") is not None  # no signature to inspect: accepted
     with pytest.raises(InputValueError, match=f"no such file {tmp_path / 'none.py'}"):
         load_renderer(f"{tmp_path / 'none.py'}:fn")
-    with pytest.raises(InputValueError, match="must be MODULE:ATTR"):
-        load_renderer("nocolon")
+    for spec in ("nocolon", ":fn", "rr.py:1fn"):
+        with pytest.raises(InputValueError, match="must be MODULE:ATTR"):
+            load_renderer(spec)
     monkeypatch.chdir(tmp_path)
     with pytest.raises(InputValueError, match=r"no module named 'no_such_mod_xyz' .*path/to/file.py:fn\)"):
         load_renderer("no_such_mod_xyz:fn")
@@ -281,118 +358,36 @@ def test_load_renderer_refusals(tmp_path, monkeypatch):
     assert repr(r).endswith(" with rasterizer 'torch'")
 
 
-def test_apply_run_defaults_refuses_a_broken_run_file(tmp_path):
-    from controlgs_adapter.commands.common import apply_run_defaults
-
-    ns: Any = argparse.Namespace(model=None, data="mine", holdout=None, resolution=None)
-    assert apply_run_defaults(ns, tmp_path) is None and ns.model is None
-    (tmp_path / "run.json").write_text('{"model": "m", "data": "d", "holdout": 4, "resolution": null, "seed": 3}')
-    assert apply_run_defaults(ns, tmp_path) == {"model": "m", "data": "d", "holdout": 4, "resolution": None, "seed": 3}
-    assert (ns.model, ns.data, ns.holdout, ns.resolution) == ("m", "mine", 4, None)
-    assert not hasattr(ns, "seed")
-    (tmp_path / "run.json").write_text("{oops")
-    with pytest.raises(InputValueError, match=f"{tmp_path / 'run.json'}: not a controlgs run file"):
-        apply_run_defaults(ns, tmp_path)
-
-
-@pytest.fixture(scope="module")
-def setup(tiny, tmp_path_factory):
-    """The tiny scene's first two training views and an adapter file with random (non-zero) conditions."""
-    scene, model = tiny
-    views = scene.data.views("train", first=2)
-    cgs = ControlGS.wrap(model, cond_dim=4)
-    with torch.no_grad(), torch.random.fork_rng(devices=[]):
-        torch.manual_seed(3)
-        for p in cgs.trainable_parameters():
-            p.add_(0.5 * torch.randn_like(p))
-    path = cgs.save(tmp_path_factory.mktemp("adapter") / "a.controlgs.safetensors")
-    cgs.unwrap()
-    return model, views, path
-
-
-def test_make_renderer_of_the_options(setup):
-    import argparse
-
-    from controlgs_adapter.commands.common import RasterizerRenderer, make_renderer
-
-    model, views, _ = setup
-    ns = lambda **kw: argparse.Namespace(**{"rasterizer": None, "renderer": None, **kw})  # noqa: E731
-    assert make_renderer(ns(), model) is None and make_renderer(ns(rasterizer="auto"), model) is None
-    r = make_renderer(ns(rasterizer="torch"), model)
-    assert isinstance(r, RasterizerRenderer) and r.rasterizer == "torch"
-    cam, _ = views[0]
-    with torch.no_grad():
-        assert torch.equal(render_view(None, model, cam, None, views.background, renderer=r),
-                           render_view(None, model, cam, None, views.background))
-    with pytest.raises(InputValueError, match=r"--rasterizer gsplat cannot render on cpu: .*; it needs --device cuda "
-                                              r"and the gsplat extra: pip install 'controlgs-adapter\[gsplat\]'"):
-        make_renderer(ns(rasterizer="gsplat"), model)
-    with pytest.raises(InputValueError, match="--rasterizer 'nope' is not registered; available: gsplat, torch, auto"):
-        make_renderer(ns(rasterizer="nope"), model)
-
-
-def test_anchor_positions_are_plain_cpu_values(setup):
-    from controlgs_adapter.commands.common import anchor_positions
-
-    model, _, _ = setup
-    pos = anchor_positions(model)
-    assert pos.dtype == torch.float32 and pos.device.type == "cpu" and pos.shape[1] == 3
-    assert not pos.requires_grad and pos.grad_fn is None  # no autograd graph back into the model
-    assert anchor_positions(object()) is None  # no backend recognises it
-
-
-_RENDERER_FILE = '''
-from controlgs_adapter.rendering.rasterizers import _CHOICE
-
-class Recorder:
-    def __init__(self):
-        self.seen = []
-
-    def visible(self, model, camera):
-        self.seen.append(("visible", _CHOICE.get()))
-        return "VIS"
-
-    def render(self, model, camera, visible, background):
-        self.seen.append(("render", _CHOICE.get(), visible))
-        return "IMG"
-
-recorder = Recorder()
-'''
-
-
-def test_make_renderer_wraps_the_chosen_rasterizer(tmp_path):
-    from argparse import Namespace
-
-    from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
-    from controlgs_adapter.commands.common import RasterizerRenderer, make_renderer
-    from controlgs_adapter.errors import InputValueError
-    from controlgs_adapter.rendering.protocol import renderer_for
-
+def test_make_renderer_wraps_the_chosen_rasterizer(tmp_path, setup):
+    """No option (or auto): the model's own renderer; ``--rasterizer torch`` renders the same image through the
+    chosen rasterizer; a user's renderer is wrapped, the rasterizer chosen around its render only; an unknown or
+    unusable rasterizer is refused naming it and what it needs."""
+    built_in, views, _ = setup
     model = NeuralGaussianModel(6, feat_dim=8, n_offsets=2)
-    assert make_renderer(Namespace(rasterizer=None, renderer=None), model) is None  # the model's own
-    assert make_renderer(Namespace(rasterizer="auto", renderer=None), model) is None
-    plain = make_renderer(Namespace(rasterizer="torch", renderer=None), model)
+    assert make_renderer(_ns(rasterizer=None, renderer=None), model) is None  # the model's own
+    assert make_renderer(_ns(rasterizer="auto", renderer=None), model) is None
+    plain = make_renderer(_ns(rasterizer="torch", renderer=None), model)
     assert isinstance(plain, RasterizerRenderer) and plain.rasterizer == "torch"
     assert type(plain.renderer) is type(renderer_for(model))
+    r = make_renderer(_ns(rasterizer="torch", renderer=None), built_in)
+    cam, _ = views[0]
+    with torch.no_grad():
+        assert torch.equal(render_view(None, built_in, cam, None, views.background, renderer=r),
+                           render_view(None, built_in, cam, None, views.background))
 
     (tmp_path / "rec.py").write_text(_RENDERER_FILE)
-    wrapped = make_renderer(Namespace(rasterizer="torch", renderer=f"{tmp_path / 'rec.py'}:recorder"), model)
+    wrapped = make_renderer(_ns(rasterizer="torch", renderer=f"{tmp_path / 'rec.py'}:recorder"), model)
     assert isinstance(wrapped, RasterizerRenderer) and wrapped.rasterizer == "torch"
     assert wrapped.visible(model, None) == "VIS" and wrapped.render(model, None, "VIS", None) == "IMG"
     # the user's object itself is wrapped; the rasterizer is chosen around render only, for that call
     assert wrapped.renderer.seen == [("visible", None), ("render", "torch", "VIS")]
-    from controlgs_adapter.rendering.rasterizers import _CHOICE
     assert _CHOICE.get() is None
 
-    with pytest.raises(InputValueError, match=r"--rasterizer 'nope' is not registered; available: .*torch.*, auto"):
-        make_renderer(Namespace(rasterizer="nope", renderer=None), model)
-    with pytest.raises(InputValueError) as info:
-        make_renderer(Namespace(rasterizer="gsplat", renderer=None), model)
-    msg = str(info.value)
-    assert msg.startswith("--rasterizer gsplat cannot render on cpu: ") and "pip install 'controlgs-adapter[gsplat]'" in msg
-
-
-pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+    with pytest.raises(InputValueError, match=r"--rasterizer 'nope' is not registered; available: gsplat, torch, auto"):
+        make_renderer(_ns(rasterizer="nope", renderer=None), model)
+    with pytest.raises(InputValueError, match=r"^--rasterizer gsplat cannot render on cpu: .*--device cuda .*"
+                                              r"pip install 'controlgs-adapter\[gsplat\]'"):
+        make_renderer(_ns(rasterizer="gsplat", renderer=None), model)
 
 
 @pytest.mark.parametrize("images", ["../../etc", "/abs/images", "images/../../x"])

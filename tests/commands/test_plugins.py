@@ -1,4 +1,6 @@
-"""Tests of ``controlgs_adapter.commands.plugins``."""
+"""Tests of ``controlgs_adapter.commands.plugins``: ``controlgs plugins`` lists what is registered (aligned columns,
+one block per kind, a short description of each), an installed plug-in that works, and a broken one (listed as
+failed and skipped, or fatal with ``--strict``)."""
 
 from __future__ import annotations
 
@@ -11,7 +13,10 @@ import torch
 from helpers.fake_plugins import _fake_distributions, _FakeDistribution, _FakeEntryPoint, _GoodPlugin
 
 from controlgs_adapter import ControlGS, RuntimeState, cli, plugins
+from controlgs_adapter.commands.plugins import _what, run
+from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import PluginLoadError
+from controlgs_adapter.plugins import PluginInfo
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "third_party_plugin.py"
 
@@ -22,6 +27,65 @@ def example():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def test_plugins_listing(capsys):
+    """A header, a rule, one block per kind separated by one blank line, every column starting where its header
+    does (each as wide as its longest cell plus two spaces), and the note on the order backends are tried in."""
+    assert cli.build_parser().parse_args(["plugins"]).strict is False
+    assert run(argparse.Namespace(strict=False)) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split() == ["kind", "name", "plugin", "source", "what"]
+    assert set(out[1].replace(" ", "")) == {"-"}
+    assert any(line.startswith("stage") and "[order" in line for line in out)
+    assert "built-in" in "\n".join(out)
+    assert out[-1].startswith("backends and rasterizers are tried in the order listed") or any(
+        line.startswith("FAILED: ") for line in out)
+    # one blank line between kinds, none inside a kind
+    body = out[2:]
+    rows = body[:next(i for i, line in enumerate(body) if line.startswith("backends and rasterizers")) - 1]
+    items = [line for line in rows if line]
+    want: list[str] = []
+    for i, line in enumerate(items):
+        if i and line.split()[0] != items[i - 1].split()[0]:
+            want.append("")
+        want.append(line)
+    assert rows == want and want.count("") == 3  # backend | stage | schedule | rasterizer
+    lines = out
+    head = lines[0]
+    starts = [head.index(h) for h in ("name", "plugin", "source", "what")]
+    rows = [line for line in lines[2:] if line and not line.startswith(("backends and rasterizers", "FAILED"))]
+    assert rows
+    for line in rows:
+        for s in starts:  # a new cell starts after two spaces of padding
+            assert line[s - 2:s] == "  " and line[s] != " ", (line, s)
+    # the first column is exactly as wide as its longest cell
+    kinds = [line.split()[0] for line in rows]
+    assert starts[0] == max(len(k) for k in [*kinds, "kind"]) + 2
+
+
+def test_plugins_what_line():
+    class Short:
+        """Does one thing with :class:`~a.B` and ``code``.
+
+        More text that is not shown."""
+
+    class Long:
+        """A very long first paragraph that goes on and on beyond sixty characters for sure,
+        over two lines."""
+
+    assert _what(PluginInfo("backend", "s", "p", "src", Short)) == "Does one thing with a.B and code."
+    assert _what(PluginInfo("backend", "s", "p", "src", Short())) == "Does one thing with a.B and code."
+    long = _what(PluginInfo("rasterizer", "l", "p", "src", Long))
+    assert long == "A very long first paragraph that goes on and on beyond si..."  # 57 characters + "..."
+    assert _what(PluginInfo("backend", "l", "p", "src", Long), width=200).endswith("over two lines.")
+    assert len(_what(PluginInfo("backend", "l", "p", "src", Long), width=60)) <= 60
+    exact = type("Exact", (), {"__doc__": "x" * 60})
+    assert _what(PluginInfo("backend", "e", "p", "src", exact)) == "x" * 60
+    assert _what(PluginInfo("backend", "e", "p", "src", type("E", (), {"__doc__": "x" * 61}))) == "x" * 57 + "..."
+    # a cut after a space: the space is dropped before the dots
+    spaced = type("S", (), {"__doc__": "x" * 56 + " yyyyyy"})
+    assert _what(PluginInfo("backend", "e", "p", "src", spaced)) == "x" * 56 + "..."
 
 
 def test_example_plugin_registers_lists_and_works(fresh_plugins, example, capsys):
@@ -50,8 +114,6 @@ def test_example_plugin_registers_lists_and_works(fresh_plugins, example, capsys
     cgs.unwrap()
 
     # the custom stage runs in the pipeline, inserted by its order
-    from controlgs_adapter.downstream.pipeline import Pipeline
-
     stage_cls = plugins.stages()["vignette"].obj
     assert stage_cls is example.VignetteStage
     pipeline = Pipeline.from_config({"lens": True, "vignette": {"strength": 0.5}, "resample": True, "oled": False})
@@ -70,8 +132,17 @@ def test_a_broken_plugin_is_reported_and_skipped_or_fatal_in_strict_mode(fresh_p
     with pytest.warns(RuntimeWarning, match="'broken' from broken-xr 0.1 failed to load"):
         plugins.get_plugin_manager()
     assert "sharpen_test" in plugins.stages() and "scaffold_gs" in plugins.backends()  # the host still works
-    assert cli.main(["plugins"]) == 0
+    capsys.readouterr()
+    assert cli.main(["plugins"]) == 0  # listed as failed; the warning was given when the manager was built
     assert "FAILED: plug-in 'broken' from broken-xr 0.1 failed to load: ModuleNotFoundError" in capsys.readouterr().out
+    plugins.reset_plugin_manager()
+    with pytest.warns(RuntimeWarning, match=r"'broken' from broken-xr 0\.1 failed to load.*CONTROLGS_STRICT_PLUGINS=1"):
+        assert cli.main(["plugins"]) == 0  # the command warns too (one printed line outside a test's recording)
+    assert "FAILED: plug-in 'broken' from broken-xr 0.1" in capsys.readouterr().out
+    plugins.reset_plugin_manager()
+    assert cli.main(["plugins", "--strict"]) == 1  # "fail if an installed plug-in does not load"
+    captured = capsys.readouterr()
+    assert "'broken' from broken-xr 0.1 failed to load" in captured.err and captured.out == ""
 
     plugins.reset_plugin_manager()
     with pytest.raises(PluginLoadError, match="'broken' from broken-xr 0.1.*cupy"):
@@ -81,99 +152,3 @@ def test_a_broken_plugin_is_reported_and_skipped_or_fatal_in_strict_mode(fresh_p
     capsys.readouterr()
     assert cli.main(["plugins"]) == 1
     assert "'broken' from broken-xr 0.1 failed to load" in capsys.readouterr().err
-
-
-# ------------------------------------------------------------------------------ plugins
-def test_plugins_strict_option_fails_on_a_broken_plugin(monkeypatch, capsys):
-    """``controlgs plugins --strict``: "fail if an installed plug-in does not load" (its help); without
-    it the failure is listed and the command succeeds."""
-    from helpers.fake_plugins import _fake_distributions, _FakeDistribution, _FakeEntryPoint
-
-    from controlgs_adapter import plugins
-
-    monkeypatch.delenv("CONTROLGS_DISABLE_PLUGIN_AUTOLOAD", raising=False)
-    monkeypatch.delenv("CONTROLGS_STRICT_PLUGINS", raising=False)
-    _fake_distributions(monkeypatch, _FakeDistribution("broken-xr", "0.1", [
-        _FakeEntryPoint("broken", ModuleNotFoundError("No module named 'cupy'"))]))
-    plugins.reset_plugin_manager()
-    try:
-        assert cli.main(["plugins", "--strict"]) == 1
-        captured = capsys.readouterr()
-        assert "'broken' from broken-xr 0.1 failed to load" in captured.err and captured.out == ""
-        plugins.reset_plugin_manager()
-        with pytest.warns(RuntimeWarning, match="'broken' from broken-xr 0.1 failed to load"):
-            assert cli.main(["plugins"]) == 0
-        assert "FAILED: plug-in 'broken' from broken-xr 0.1" in capsys.readouterr().out
-    finally:
-        plugins.reset_plugin_manager()
-
-
-def test_plugins_listing_columns_line_up(capsys):
-    """Every column of the listing starts where its header does: each column is as wide as its
-    longest cell (header included) plus two spaces."""
-    import argparse
-
-    from controlgs_adapter.commands.plugins import run
-
-    assert run(argparse.Namespace(strict=False)) == 0
-    lines = capsys.readouterr().out.splitlines()
-    head = lines[0]
-    starts = [head.index(h) for h in ("name", "plugin", "source", "what")]
-    rows = [line for line in lines[2:] if line and not line.startswith(("backends and rasterizers", "FAILED"))]
-    assert rows
-    for line in rows:
-        for s in starts:  # a new cell starts after two spaces of padding
-            assert line[s - 2:s] == "  " and line[s] != " ", (line, s)
-    # the first column is exactly as wide as its longest cell
-    kinds = [line.split()[0] for line in rows]
-    assert starts[0] == max(len(k) for k in [*kinds, "kind"]) + 2
-
-
-def test_plugins_what_line():
-    from controlgs_adapter.commands.plugins import _what
-    from controlgs_adapter.plugins import PluginInfo
-
-    class Short:
-        """Does one thing with :class:`~a.B` and ``code``.
-
-        More text that is not shown."""
-
-    class Long:
-        """A very long first paragraph that goes on and on beyond sixty characters for sure,
-        over two lines."""
-
-    assert _what(PluginInfo("backend", "s", "p", "src", Short)) == "Does one thing with a.B and code."
-    assert _what(PluginInfo("backend", "s", "p", "src", Short())) == "Does one thing with a.B and code."
-    long = _what(PluginInfo("rasterizer", "l", "p", "src", Long))
-    assert long == "A very long first paragraph that goes on and on beyond si..."  # 57 characters + "..."
-    assert _what(PluginInfo("backend", "l", "p", "src", Long), width=200).endswith("over two lines.")
-    assert len(_what(PluginInfo("backend", "l", "p", "src", Long), width=60)) <= 60
-    exact = type("Exact", (), {"__doc__": "x" * 60})
-    assert _what(PluginInfo("backend", "e", "p", "src", exact)) == "x" * 60
-    assert _what(PluginInfo("backend", "e", "p", "src", type("E", (), {"__doc__": "x" * 61}))) == "x" * 57 + "..."
-    # a cut after a space: the space is dropped before the dots
-    spaced = type("S", (), {"__doc__": "x" * 56 + " yyyyyy"})
-    assert _what(PluginInfo("backend", "e", "p", "src", spaced)) == "x" * 56 + "..."
-
-
-def test_plugins_listing(capsys):
-    from controlgs_adapter.commands.plugins import run
-
-    assert run(argparse.Namespace(strict=False)) == 0
-    out = capsys.readouterr().out.splitlines()
-    assert out[0].split() == ["kind", "name", "plugin", "source", "what"]
-    assert set(out[1].replace(" ", "")) == {"-"}
-    assert any(line.startswith("stage") and "[order" in line for line in out)
-    assert "built-in" in "\n".join(out)
-    assert out[-1].startswith("backends and rasterizers are tried in the order listed") or any(
-        line.startswith("FAILED: ") for line in out)
-    # one blank line between kinds, none inside a kind
-    body = out[2:]
-    rows = body[:next(i for i, line in enumerate(body) if line.startswith("backends and rasterizers")) - 1]
-    items = [line for line in rows if line]
-    want: list[str] = []
-    for i, line in enumerate(items):
-        if i and line.split()[0] != items[i - 1].split()[0]:
-            want.append("")
-        want.append(line)
-    assert rows == want and want.count("") == 3  # backend | stage | schedule | rasterizer

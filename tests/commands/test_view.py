@@ -1,7 +1,7 @@
-"""``controlgs view --run RUN`` loads a run without running its code: a renderer RUN/run.json names is
-used only when named again (``--renderer``) or trusted (``--trust-run-renderer``); a hand-edited run
-file and bad options are one line before the viewer is built. The server's loop is replaced: what
-is checked is the session the command builds."""
+"""Tests of ``controlgs_adapter.commands.view``: its defaults, the adapters and ground truth it serves, the session it
+builds for the built-in scene or a user's run (the server's loop replaced by renders), and what it refuses in one
+line before the viewer is built: a renderer the run names unless named again or trusted, a hand-edited run file,
+bad options."""
 
 from __future__ import annotations
 
@@ -10,12 +10,22 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers.cli_runs import MARKER_MODULE, error_line, needs_backbone, snapshot, untrained_run
+import torch
+from helpers.adapters import random_adapter
+from helpers.cli_runs import MARKER_MODULE, MODEL, error_line, needs_backbone, snapshot, untrained_run
+from helpers.scene_writers import write_colmap
+from helpers.viewer_sessions import decode_png
 
+from controlgs_adapter import ControlGS, cli
+from controlgs_adapter.backends import load_model_dir
 from controlgs_adapter.cli import main
+from controlgs_adapter.commands.view import QUICK_ITERATIONS, VIEW_RESOLUTION, _adapters, _exact_truth
+from controlgs_adapter.errors import InputValueError
+from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
+from controlgs_adapter.state import Camera
+from controlgs_adapter.viewer import parse_state
 from controlgs_adapter.viewer.server import ViewerServer
 
-pytestmark = needs_backbone
 RECORD = {"variant": "ar", "effects": ["display"], "iterations": 7, "seed": 0, "seeds": 1, "adapters": ["controlgs"],
           "rasterizer": "auto"}
 FAST = ["--threads", "1", "--resolution", "16", "--test-views", "1"]
@@ -42,29 +52,76 @@ def marked_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, st
     return untrained_run(root / "run", {**RECORD, "renderer": spec}), root / "view_marker.ran", spec
 
 
-def test_the_run_renderer_is_not_run_without_the_users_say(marked_run: tuple[Path, Path, str], served: list[Any],
-                                                           capsys: pytest.CaptureFixture[str]) -> None:
-    run, marker, spec = marked_run
-    marker.unlink(missing_ok=True)
-    before = snapshot(run)
-    assert main(["view", "--run", str(run), *FAST]) == 2
+# ----------------------------------------------------------------------------- options, adapters and ground truth
+
+def test_view_defaults() -> None:
+    v = cli.build_parser().parse_args(["view"])
+    assert (v.run, v.port, v.iterations, v.threads, v.resolution, v.test_views) == (None, 0, 150, None, None, None)
+    args = cli.build_parser().parse_args(["view", "--port", "0", "--run", "somewhere"])
+    assert args.command == "view" and args.port == 0 and args.run == "somewhere"
+    assert (QUICK_ITERATIONS, VIEW_RESOLUTION) == (150, 128)
+
+
+def test_view_adapters_of_a_run_folder(tmp_path):
+    with pytest.raises(InputValueError, match=f"{tmp_path}: no controlgs.controlgs.safetensors"):
+        _adapters(tmp_path)
+    for n in ("controlgs", "state_blind", "other"):
+        (tmp_path / f"{n}.controlgs.safetensors").write_text("")
+    assert _adapters(tmp_path) == {"controlgs": tmp_path / "controlgs.controlgs.safetensors",
+                                   "state_blind": tmp_path / "state_blind.controlgs.safetensors"}
+
+
+def test_view_exact_truth_is_the_dataset_image():
+    """``_exact_truth``: "the built-in scene's exact ground truth of any camera (ray cast, as its
+    dataset's images)": a test camera's truth is its test image (float32, [3, H, W])."""
+    for variant in ("ar", "vr"):
+        builtin = load_builtin_scene(variant, 16, views=4, test_every=4)
+        truth = _exact_truth(builtin)
+        got = truth(builtin.test_cameras[0])
+        assert got.dtype == torch.float32 and torch.equal(got, builtin.test_images[0]), variant
+
+
+# ----------------------------------------------------------------------------- refusals before the viewer is built
+
+@pytest.mark.parametrize("argv, start", [
+    (["--threads", "0"], "--threads must be an integer in [1, "),
+    (["--port", "65536"], "--port must be an integer in [0, 65535], got 65536"),
+    (["--port", "70000"], "--port must be an integer in [0, 65535], got 70000"),
+    (["--port", "-1"], "--port must be an integer in [0, 65535], got -1"),
+    (["--model", "m", "--data", "d"], "--model/--data need --run RUN"),
+    (["--rasterizer", "nope"], "--rasterizer 'nope' is not registered"),
+    (["--run", "{d}/none"], "--run {d}/none: no such folder"),
+    (["--run", "{d}", "--test-views", "1"], "{d}: no controlgs.controlgs.safetensors"),
+])
+def test_bad_options_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], start: str) -> None:
+    d = str(tmp_path)
+    assert main(["view", *[a.replace("{d}", d) for a in argv]]) == 2
+    assert error_line(capsys, "view").startswith(start.replace("{d}", d))
+
+
+@needs_backbone
+def test_view_refuses_zero_quick_iterations(tmp_path, monkeypatch, capsys):
+    """Without ``--run`` the built-in scene's quick adapter needs ``--iterations`` >= 1: refused on one
+    line before any training (the server is never started)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(ViewerServer, "serve_forever", lambda self, poll_interval=0.5: None)
+    assert main(["view", "--resolution", "16", "--iterations", "0"]) == 2
+    assert error_line(capsys, "view").startswith("--iterations must be an integer in [1, ")
+
+
+@needs_backbone
+@pytest.mark.parametrize("option, value", [("--test-views", "0"), ("--test-views", "-3"), ("--resolution", "0"),
+                                           ("--device", "meta"), ("--cache-mib", "-1")])
+def test_a_bad_option_is_one_line_before_loading(tmp_path: Path, served: list[Any], capsys: pytest.CaptureFixture[str],
+                                                 option: str, value: str) -> None:
+    run = untrained_run(tmp_path / "run", RECORD)
+    assert main(["view", "--run", str(run), *FAST, option, value]) == 2
     line = error_line(capsys, "view")
-    assert str(run / "run.json") in line and f"--renderer {spec}" in line and "--trust-run-renderer" in line, line
-    assert not marker.exists() and served == [] and snapshot(run) == before
+    assert line.startswith(f"{option} ") and value in line, line
+    assert served == []
 
 
-@pytest.mark.parametrize("how", [["--trust-run-renderer"], ["--renderer", "SPEC"]])
-def test_the_run_renderer_is_used_when_trusted_or_named(marked_run: tuple[Path, Path, str], served: list[Any],
-                                                        capsys: pytest.CaptureFixture[str], how: list[str]) -> None:
-    run, marker, spec = marked_run
-    marker.unlink(missing_ok=True)
-    assert main(["view", "--run", str(run), *FAST, *[spec if a == "SPEC" else a for a in how]]) == 0
-    assert marker.exists()
-    (session,) = served
-    assert type(session.renderer).__name__ == "OwnRenderer" and session.methods[-1] == "controlgs"
-    assert "serving on http://127.0.0.1:" in capsys.readouterr().out
-
-
+@needs_backbone
 @pytest.mark.parametrize("record, field", [({**RECORD, "effects": 5}, "'effects'"),
                                            ({**RECORD, "resolution": -4}, "'resolution'"),
                                            ([RECORD], "a JSON list")])
@@ -78,82 +135,38 @@ def test_a_hand_edited_run_file_is_one_line(tmp_path: Path, served: list[Any], c
     assert served == []
 
 
-@pytest.mark.parametrize("option, value", [("--test-views", "0"), ("--test-views", "-3"), ("--resolution", "0"),
-                                           ("--device", "meta"), ("--cache-mib", "-1")])
-def test_a_bad_option_is_one_line_before_loading(tmp_path: Path, served: list[Any], capsys: pytest.CaptureFixture[str],
-                                                 option: str, value: str) -> None:
-    run = untrained_run(tmp_path / "run", RECORD)
-    assert main(["view", "--run", str(run), *FAST, option, value]) == 2
+@needs_backbone
+def test_the_run_renderer_is_not_run_without_the_users_say(marked_run: tuple[Path, Path, str], served: list[Any],
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    run, marker, spec = marked_run
+    marker.unlink(missing_ok=True)
+    before = snapshot(run)
+    assert main(["view", "--run", str(run), *FAST]) == 2
     line = error_line(capsys, "view")
-    assert line.startswith(f"{option} ") and value in line, line
-    assert served == []
+    assert str(run / "run.json") in line and f"--renderer {spec}" in line and "--trust-run-renderer" in line, line
+    assert not marker.exists() and served == [] and snapshot(run) == before
 
 
-import base64
-import io
-
-import torch
-from helpers.adapters import random_adapter
-
-from controlgs_adapter import ControlGS, cli
-from controlgs_adapter.errors import InputValueError
-from controlgs_adapter.evaluation import evaluate_grid
-from controlgs_adapter.scene import builtin_backbone_dir
-from controlgs_adapter.viewer import Superseded, ViewerSession
-from controlgs_adapter.viewer.session import parse_state
-
-
-def _eval_run(tmp_path: Path, seeds: dict[str, tuple[str, ...]]) -> Path:
-    run = tmp_path / "run"
-    for folder, names in seeds.items():
-        (run / folder).mkdir(parents=True, exist_ok=True)
-        for n in names:
-            (run / folder / f"{n}.controlgs.safetensors").write_text("")  # checked for presence before any load
-    return run
+@needs_backbone
+@pytest.mark.parametrize("how", [["--trust-run-renderer"], ["--renderer", "SPEC"]])
+def test_the_run_renderer_is_used_when_trusted_or_named(marked_run: tuple[Path, Path, str], served: list[Any],
+                                                        capsys: pytest.CaptureFixture[str], how: list[str]) -> None:
+    run, marker, spec = marked_run
+    marker.unlink(missing_ok=True)
+    assert main(["view", "--run", str(run), *FAST, *[spec if a == "SPEC" else a for a in how]]) == 0
+    assert marker.exists()
+    (session,) = served
+    assert type(session.renderer).__name__ == "OwnRenderer" and session.methods[-1] == "controlgs"
+    assert "serving on http://127.0.0.1:" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["view", "--threads", "0"], "--threads must be an integer in [1, "),
-    (["view", "--model", "m", "--data", "d"], "--model/--data need --run RUN"),
-    (["view", "--rasterizer", "nope"], "--rasterizer 'nope' is not registered"),
-    (["optics", "fit-prewarp", "--size", "9", "--out", "{d}/lut.safetensors"], "--size must be an even integer >= 8, got 9"),
-    (["optics", "fit-prewarp", "--size", "6", "--out", "{d}/lut.safetensors"], "--size must be an even integer >= 8, got 6"),
-    (["optics", "fit-prewarp", "--out", "{d}"], "--out {d}: is a folder"),
-    (["optics", "build-bank", "--out", "{d}"], "--out {d}: is a folder"),
-    (["optics", "build-bank", "--prescription", "{d}/big.json", "--out", "{d}/b.safetensors"], "big.json: 1048577 bytes, too large"),
-    (["optics", "bench", "--sizes", "256", "1x4"], "--sizes: size must be N or HxW with N, H, W >= 2, got '1x4'"),
-    (["eval", "--run", "{d}/run"], "seed-2: no controlgs.controlgs.safetensors"),
-])
-def test_command_refusals_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
-                                       message: str) -> None:
-    (tmp_path / "big.json").write_bytes(b" " * ((1 << 20) + 1))
-    _eval_run(tmp_path, {"seed-1": ("controlgs",), "seed-2": ("wo_lens",)})
-    d = str(tmp_path)
-    assert cli.main([a.replace("{d}", d) for a in argv]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"controlgs {argv[0]}: error: ") and message.replace("{d}", d) in err[0], err
+# ----------------------------------------------------------------------------- the session it serves
 
-
-needs_backbone_2 = pytest.mark.skipif(not (builtin_backbone_dir("ar") / "point_cloud").is_dir(),
-                                    reason="built-in backbone not baked")
-
-
-def _err(capsys: pytest.CaptureFixture[str], command: str) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"controlgs {command}: error: "), err
-    return err[0][len(f"controlgs {command}: error: "):]
-
-
-# ------------------------------------------------------------------------------ view
-@needs_backbone_2
+@needs_backbone
 def test_view_of_the_built_in_scene_with_a_run(tmp_path, monkeypatch, capsys):
     """``controlgs view --run RUN`` on the built-in scene (RUN has no run.json): ``--resolution`` and
     ``--test-views`` reach the session, which carries the scene's name and the exact ground truth of any
     camera (an orbit view has one too, unlike a user's data); the server's loop is replaced by two renders."""
-    from controlgs_adapter.scene import load_builtin_backbone
-    from controlgs_adapter.viewer import parse_state
-    from controlgs_adapter.viewer.server import ViewerServer
-
     run = tmp_path / "run"
     run.mkdir()
     cgs = ControlGS.wrap(load_builtin_backbone("ar"), cond_dim=2)  # zero conditions: renders as the backbone
@@ -168,7 +181,7 @@ def test_view_of_the_built_in_scene_with_a_run(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     monkeypatch.setattr(ViewerServer, "serve_forever", two_renders)
-    assert cli.main(["view", "--run", str(run), "--resolution", "16", "--test-views", "1"]) == 0
+    assert main(["view", "--run", str(run), "--resolution", "16", "--test-views", "1"]) == 0
     out = capsys.readouterr().out
     assert "controlgs view: builtin-ar, methods no_ss, ss, controlgs on cpu" in out
     (session, dataset, orbit), = seen
@@ -179,135 +192,13 @@ def test_view_of_the_built_in_scene_with_a_run(tmp_path, monkeypatch, capsys):
     assert all(v is not None and v > 5 for v in psnr.values()), orbit["methods"]
 
 
-def test_view_exact_truth_is_the_dataset_image():
-    """``_exact_truth``: "the built-in scene's exact ground truth of any camera (ray cast, as its
-    dataset's images)": a test camera's truth is its test image (float32, [3, H, W])."""
-    from controlgs_adapter.commands.view import _exact_truth
-    from controlgs_adapter.scene import load_builtin_scene
-
-    for variant in ("ar", "vr"):
-        builtin = load_builtin_scene(variant, 16, views=4, test_every=4)
-        truth = _exact_truth(builtin)
-        got = truth(builtin.test_cameras[0])
-        assert got.dtype == torch.float32 and torch.equal(got, builtin.test_images[0]), variant
-
-
-def test_view_refuses_zero_quick_iterations(tmp_path, monkeypatch, capsys):
-    """Without ``--run`` the built-in scene's quick adapter needs ``--iterations`` >= 1: refused on one
-    line before any training (the server is never started)."""
-    from controlgs_adapter.viewer.server import ViewerServer
-
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    monkeypatch.setattr(ViewerServer, "serve_forever", lambda self, poll_interval=0.5: None)
-    assert cli.main(["view", "--resolution", "16", "--iterations", "0"]) == 2
-    assert _err(capsys, "view").startswith("--iterations must be an integer in [1, ")
-
-
-def test_view_adapters_of_a_run_folder(tmp_path):
-    from controlgs_adapter.commands.view import QUICK_ITERATIONS, VIEW_RESOLUTION, _adapters
-
-    assert (QUICK_ITERATIONS, VIEW_RESOLUTION) == (150, 128)
-    with pytest.raises(InputValueError, match=f"{tmp_path}: no controlgs.controlgs.safetensors"):
-        _adapters(tmp_path)
-    for n in ("controlgs", "state_blind", "other"):
-        (tmp_path / f"{n}.controlgs.safetensors").write_text("")
-    assert _adapters(tmp_path) == {"controlgs": tmp_path / "controlgs.controlgs.safetensors",
-                                   "state_blind": tmp_path / "state_blind.controlgs.safetensors"}
-
-
-def test_view_refusals(capsys, tmp_path):
-    assert cli.main(["view", "--port", "65536"]) == 2
-    assert "--port" in _err(capsys, "view")
-    assert cli.main(["view", "--port", "-1"]) == 2
-    assert "--port" in _err(capsys, "view")
-    assert cli.main(["view", "--run", str(tmp_path / "none")]) == 2
-    assert _err(capsys, "view") == f"--run {tmp_path / 'none'}: no such folder"
-    assert cli.main(["view", "--run", str(tmp_path)]) == 2
-    assert "no controlgs.controlgs.safetensors" in _err(capsys, "view")
-
-
-SIZE = 48
-
-
-@pytest.fixture(scope="module")
-def scene() -> Any:
-    from controlgs_adapter.scene import load_builtin_scene
-
-    return load_builtin_scene("ar", SIZE, views=8, test_every=4, samples=1)
-
-
-@pytest.fixture(scope="module")
-def session(scene: Any, tmp_path_factory: pytest.TempPathFactory) -> ViewerSession:
-    from controlgs_adapter.scene import load_builtin_backbone, render_planes
-
-    model = load_builtin_backbone("ar")
-    adapter = random_adapter(model, tmp_path_factory.mktemp("viewer") / "controlgs.controlgs.safetensors")
-    return ViewerSession(model, scene.views("test"), {"controlgs": adapter}, name="test scene",
-                         truth=lambda cam: render_planes(scene.planes, cam, samples=1)[0].float())
-
-
-def decode(b64: str) -> torch.Tensor:
-    import numpy as np
-    from PIL import Image
-
-    img = np.asarray(Image.open(io.BytesIO(base64.b64decode(b64))), dtype=np.float32)
-    return torch.from_numpy(img).view(img.shape[0], img.shape[1], -1)
-
-
-# ---------------------------------------------------------------- the session
-def test_render_matches_evaluate_grid(session: ViewerSession, scene: Any) -> None:
-    state = parse_state({"view": 1, "downsample": 2.6, "power_saving": 0.3}, 2)
-    out = session.render(state, tag=7)
-    assert [m["name"] for m in out["methods"]] == ["no_ss", "ss", "controlgs"] and out["has_truth"]
-    grid = evaluate_grid(session.model, session.views, session.adapter_files, downsample=[2.6], power_saving=[0.3],
-                         ideal=False, progress=False)
-    extra = session.extra(7)
-    for m in out["methods"]:
-        for k in ("psnr", "ssim"):
-            assert m["metrics"][k] == pytest.approx(float(grid.per_view[m["name"]][k][0, 0, 1]), abs=1e-9)
-        for k, v in extra[m["name"]].items():
-            assert v == pytest.approx(float(grid.per_view[m["name"]][k][0, 0, 1]), abs=1e-9)
-        assert decode(m["eye"]).shape == (SIZE, SIZE, 3) and decode(m["diff"]).shape == (SIZE, SIZE, 3)
-    no_ss, _, cgs = out["methods"]
-    assert decode(no_ss["rendered"]).shape == (round(SIZE / 2.6), round(SIZE / 2.6), 3)
-    assert cgs["strengths"]["resample"] == pytest.approx(torch.log2(torch.tensor(2.6)).item() / 3, abs=1e-6)
-    assert cgs["strengths"]["display"] == pytest.approx(0.3 / 0.8, abs=1e-6)
-    assert 0.0 <= cgs["strengths"]["lens"]["min"] <= cgs["strengths"]["lens"]["mean"] <= cgs["strengths"]["lens"]["max"] <= 1
-    overlay = decode(cgs["overlay"])
-    assert overlay.shape == (SIZE, SIZE, 4) and overlay[..., 3].max() > 0
-    with pytest.raises(Superseded):
-        session.extra(6)
-
-
-def test_cli_view_registered() -> None:
-    from controlgs_adapter.cli import build_parser
-
-    args = build_parser().parse_args(["view", "--port", "0", "--run", "somewhere"])
-    assert args.command == "view" and args.port == 0 and args.run == "somewhere"
-
-
-def test_cli_view_user_errors(tmp_path: Any, capsys: pytest.CaptureFixture[str]) -> None:
-    from controlgs_adapter.cli import main
-
-    assert main(["view", "--run", str(tmp_path / "nope")]) == 2
-    assert "--run" in capsys.readouterr().err
-    assert main(["view", "--run", str(tmp_path), "--test-views", "1"]) == 2
-    assert "no controlgs.controlgs.safetensors" in capsys.readouterr().err
-    assert main(["view", "--port", "70000"]) == 2
-    assert "--port must be an integer in [0, 65535]" in capsys.readouterr().err
-
-
-def test_cli_view_on_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+@needs_backbone
+def test_view_of_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     """``controlgs view --run RUN`` on a COLMAP capture of non-square views and the built-in backbone's
     Scaffold-GS folder (model and data from RUN/run.json); the server's loop is replaced by two renders."""
-    from helpers.scene_writers import write_colmap
 
-    from controlgs_adapter.backends import load_model_dir
     from controlgs_adapter.cli import main
-    from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
-    from controlgs_adapter.state import Camera
-    from controlgs_adapter.viewer.server import ViewerServer
-
+    from controlgs_adapter.scene import load_builtin_scene
     scene = load_builtin_scene("ar", 32, views=8, test_every=8, samples=1)
     cams, images = [], []
     for c, img in zip(scene.test_cameras + scene.train_cameras, torch.cat([scene.test_images, scene.train_images])):
@@ -315,7 +206,7 @@ def test_cli_view_on_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch
         k[1, 2] -= 4
         cams.append(Camera(c.world_to_camera, k, 32, 24))
         images.append(img[:, 4:28].contiguous())
-    data, run, model_dir = write_colmap(tmp_path / "colmap", cams, images), tmp_path / "run", builtin_backbone_dir("ar")
+    data, run, model_dir = write_colmap(tmp_path / "colmap", cams, images), tmp_path / "run", MODEL
     run.mkdir()
     random_adapter(load_model_dir(model_dir), run / "controlgs.controlgs.safetensors")
     (run / "run.json").write_text(json.dumps({"model": str(model_dir), "data": str(data), "resolution": 32}))
@@ -331,7 +222,7 @@ def test_cli_view_on_a_user_scene(tmp_path: Any, monkeypatch: pytest.MonkeyPatch
     assert "serving on http://127.0.0.1:" in out and "methods no_ss, ss, controlgs" in out
     dataset, orbit = seen
     assert dataset["size"] == [32, 24] and dataset["has_truth"] and dataset["methods"][2]["metrics"]["psnr"] > 10
-    assert decode(dataset["methods"][2]["eye"]).shape == (24, 32, 3)
+    assert decode_png(dataset["methods"][2]["eye"]).shape == (24, 32, 3)
     assert not orbit["has_truth"] and orbit["methods"][2]["metrics"] is None  # your data: no ground truth off the views
 
 

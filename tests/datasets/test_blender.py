@@ -150,7 +150,7 @@ def _one_frame(root, angle=math.pi / 2, frames=None) -> dict:
     return meta
 
 
-def test_one_frame_by_hand(tmp_path):
+def test_one_frame_camera_and_pose(tmp_path):
     """fov 90 deg over 8 px: f = 4, centre (4, 2); an OpenGL camera at (0.5, 0, 2) looking down -z is the
     OpenCV world-to-camera with y and z flipped, t = -R^T c; the scene records the folder, no points."""
     _one_frame(tmp_path)

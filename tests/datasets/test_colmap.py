@@ -1,4 +1,4 @@
-"""Tests of ``controlgs_adapter.datasets.colmap``: cameras, poses and points against pycolmap and by hand, the
+"""Tests of ``controlgs_adapter.datasets.colmap``: cameras, poses and points against pycolmap and worked-out values, the
 image folder picked for a resolution, the split, and refusals naming the file and line (text) or record (binary):
 paths leading outside the scene, repeated ids, malformed or truncated records, values beyond float32."""
 
@@ -84,9 +84,9 @@ def _binary_scene(tmp_path, cameras, images, points=None):
     return root
 
 
-# ----------------------------------------------------------------------------- reading by hand
+# ----------------------------------------------------------------------------- reading
 
-def test_colmap_text_by_hand_pose_intrinsics_split_and_points(tmp_path):
+def test_text_model_pose_intrinsics_split_and_points(tmp_path):
     root = _colmap_txt(tmp_path, _CAM, _IMGS, sizes={"a.png": (4, 3), "b.png": (4, 3)})
     scene = read_colmap(root, holdout=2, images="images")
     test, train = scene.splits["test"], scene.splits["train"]
@@ -108,7 +108,7 @@ def test_colmap_text_image_names_may_hold_spaces(tmp_path):
     """COLMAP's ``images.txt`` line is ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`` with NAME last (COLMAP's
     "Output format" page): the name is the rest of the line, and a photo named ``my photo 2.png`` (spaces
     are common in users' file names; the binary format stores it as a C string) must be read as that name,
-    with its pose and camera, not refused as a line with too many fields. Written by hand: identity
+    with its pose and camera, not refused as a line with too many fields. Written directly: identity
     rotation, t = (0.25, -0.5, 3), a PINHOLE 4 x 3 camera."""
     name = "my photo 2.png"
     sparse = tmp_path / "sparse" / "0"
@@ -176,7 +176,7 @@ def test_colmap_focal_length_below_one_pixel_is_accepted(tmp_path):
     """``read_colmap`` refuses a camera whose focal lengths are not > 0 (its error says "must be > 0"); any
     positive focal length is a valid pinhole camera, including one under a pixel (an extreme fisheye-like
     crop, or a model written in normalised units): PINHOLE fx = 0.5, fy = 0.75 on a 4 x 3 camera and image
-    (scale 1) gives K = [[0.5, 0, 2], [0, 0.75, 1.5], [0, 0, 1]] (by hand). fx = 0 is refused."""
+    (scale 1) gives K = [[0.5, 0, 2], [0, 0.75, 1.5], [0, 0, 1]]. fx = 0 is refused."""
     scene = read_colmap(_one_image(tmp_path / "ok", 0.5, 0.75), holdout=0)
     (frame,) = scene.splits["train"]
     assert torch.equal(frame.camera.intrinsics, torch.tensor([[0.5, 0.0, 2.0], [0.0, 0.75, 1.5], [0.0, 0.0, 1.0]]))
@@ -199,7 +199,7 @@ def test_colmap_image_size_must_be_the_camera_divided_by_one_factor(tmp_path, si
             read_colmap(root, holdout=0)
 
 
-def test_qvec_rotation_by_hand():
+def test_qvec_to_rotation():
     # q = (cos 45deg, 0, 0, sin 45deg): 90 degrees about z, x -> y
     s = math.sqrt(0.5)
     assert torch.allclose(qvec_to_rotation([s, 0.0, 0.0, s]),

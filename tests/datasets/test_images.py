@@ -1,5 +1,5 @@
 """Tests of ``controlgs_adapter.datasets.images``: decoding image files, the frame image checks, and the OpenCV
-radial-tangential distortion (by hand, against OpenCV, and its Newton inverse ``undistort_points``)."""
+radial-tangential distortion (worked out per coefficient, against OpenCV, and its Newton inverse ``undistort_points``)."""
 
 from __future__ import annotations
 
@@ -87,7 +87,7 @@ def test_load_frame_image_refusals_name_the_frame():
 
 # ----------------------------------------------------------------------------- distortion
 
-def test_distortion_each_coefficient_by_hand():
+def test_distortion_of_each_coefficient():
     x, y = 0.3, -0.2
     r2 = x * x + y * y
     xy = torch.tensor([[x, y]], dtype=torch.float64)

@@ -120,7 +120,7 @@ def test_ngp_intrinsics_scale_to_downscaled_images(tmp_path):
         np.testing.assert_allclose(uv.numpy(), uv_full * 0.5, atol=1e-3)
 
 
-def test_ngp_intrinsics_defaults_and_group_overrides_by_hand(tmp_path):
+def test_ngp_intrinsics_defaults_and_group_overrides(tmp_path):
     meta = {"fl_y": 6.0, "w": 8, "h": 4, "k1": 0.0, "k2": 0.0}
     frames = [{"file_path": "a.png"},
               {"file_path": "b.png", "camera_angle_x": math.pi / 2, "cx": 1.0, "k3": 0.01},

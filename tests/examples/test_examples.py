@@ -1,4 +1,4 @@
-"""Tests of ``controlgs_adapter.examples.examples``."""
+"""The scripts in ``examples/`` run end to end: the quick start, and training with one's own renderer."""
 
 from __future__ import annotations
 

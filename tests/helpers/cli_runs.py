@@ -79,3 +79,11 @@ def snapshot(folder: Path) -> dict[str, bytes]:
 
 
 needs_backbone = pytest.mark.skipif(not (MODEL / "point_cloud").is_dir(), reason="built-in backbone not baked")
+
+
+def timings_within(info: dict[str, Any], keys: tuple[str, ...], wall: float) -> None:
+    """The durations a command reports (seconds, one decimal) are each >= 0 and together at most the command's
+    wall time (measured around it), allowing for the rounding of each."""
+    got = [info[k] for k in keys]
+    assert all(isinstance(v, float) and v >= 0 for v in got), info
+    assert sum(got) <= wall + 0.05 * len(keys), (got, wall)

@@ -1,4 +1,4 @@
-"""Tiny dataset folders written by hand (COLMAP text and binary, Blender, instant-ngp) for the readers'
+"""Tiny dataset folders written directly (COLMAP text and binary, Blender, instant-ngp) for the readers'
 refusal tests, a sentinel image outside them, and a record of every file the process opens.
 
 The record is one audit hook (``sys.addaudithook``; hooks cannot be removed) that appends the path of

@@ -1,4 +1,5 @@
-"""Shared test helpers: splat scenes."""
+"""Random Gaussian scenes in front of a float64 camera, for the splatter tests (some Gaussians culled, some
+drawn, some straddling the image borders)."""
 
 from __future__ import annotations
 

@@ -195,7 +195,7 @@ def test_wide_image_borders_background_and_small_chunks_match_the_reference(limi
         for name in ("color", "alpha", "depth"):
             assert torch.allclose(getattr(got, name), getattr(ref, name), atol=1e-10), (name, t_min)
         assert torch.equal(got.visible, ref.visible)
-    # visibility by hand: off-screen right (45, 5) and behind the near plane (z = 0.15) are not visible
+    # visibility: off-screen right (45, 5) and behind the near plane (z = 0.15) are not visible
     assert not got.visible[6] and not got.visible[8] and got.visible[[0, 1, 7, 9]].all()
     # where nothing is drawn the pixel is the background colour exactly, with T = 1 - alpha elsewhere
     empty = got.alpha[0] == 0

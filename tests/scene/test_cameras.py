@@ -21,7 +21,7 @@ def _t(*v: float) -> torch.Tensor:
 
 
 def _arc_eye(s: float) -> tuple[float, float, float]:
-    """The documented defaults by hand: azimuth in [-32, 32] deg, elevation 8..24 deg with five
+    """The documented defaults worked out: azimuth in [-32, 32] deg, elevation 8..24 deg with five
     half-periods, radius 5.2 -> 4.2 with three half-periods, target (0, 0.35, 0)."""
     az = math.radians(-32.0 + 64.0 * s)
     el = math.radians(8.0 + 16.0 * (0.5 - 0.5 * math.cos(5.0 * math.pi * s)))

@@ -230,7 +230,7 @@ def test_plane_points_grid_and_colour():
 
 def test_plane_points_and_render_warn_nothing():
     """The built-in scene's plane sampler and renderer run silently: no deprecation or user warning from
-    torch (e.g. ``meshgrid`` without ``indexing=``) reaches a user's console. The grid is by hand: a 2 x 1
+    torch (e.g. ``meshgrid`` without ``indexing=``) reaches a user's console. The grid, worked out: a 2 x 1
     plane sampled every 0.5 gives 4 x 2 points at the cell centres, row by row (down) then across (right)."""
     tex = torch.rand(3, 4, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     plane = TexturedPlane("p", torch.tensor([0.0, 0.0, 2.0]), torch.tensor([1.0, 0.0, 0.0]),
@@ -410,4 +410,4 @@ def test_mip_level_follows_the_sub_sample_footprint(yaw, tex_hw, samples):
         assert float(cov[0, row, col]) == 1.0
         assert abs(float(img[0, row, col]) - float(np.mean(vals))) < 1e-6, (row, col)
     if yaw == 0.0 and tex_hw == (8, 32):
-        assert abs(float(img[0, 4, 4]) - 0.3) < 1e-9  # by hand: footprints 32/4 = 8 and 8/2 = 4 texels
+        assert abs(float(img[0, 4, 4]) - 0.3) < 1e-9  # footprints 32/4 = 8 and 8/2 = 4 texels

@@ -99,7 +99,7 @@ def _pixel_point(cam: Camera, px: float, py: float, z: float = 1.0) -> list[floa
     return [(px + 0.5 - float(k[0, 2])) / float(k[0, 0]) * z, (py + 0.5 - float(k[1, 2])) / float(k[1, 1]) * z, z]
 
 
-def _heat_by_hand(pixels: list[tuple[int, int, float]], w: int, h: int) -> torch.Tensor:
+def _heat_in_loops(pixels: list[tuple[int, int, float]], w: int, h: int) -> torch.Tensor:
     """heat_overlay's documented map in float64 loops: per pixel the mean strength of the anchors in
     the k x k window (k = 2 max(1, round(max(h, w) / 48)) + 1, clipped at the borders), coloured on the
     4-stop heat map; alpha 0.55 min(1, 4 k^2 (anchors in the window) / (window pixels in the image))."""
@@ -405,7 +405,7 @@ def test_heat_overlay_against_loops(w, h):
     strength += [1.0, 1.0, 1.0, float("nan")]
     got = heat_overlay(torch.tensor(pts, dtype=torch.float64), torch.tensor(strength), cam)
     assert got.shape == (4, h, w)
-    torch.testing.assert_close(got.double(), _heat_by_hand(landing, w, h), atol=1e-5, rtol=0)
+    torch.testing.assert_close(got.double(), _heat_in_loops(landing, w, h), atol=1e-5, rtol=0)
 
 
 @pytest.mark.parametrize("channels,mode", [(3, "RGB"), (4, "RGBA")])
@@ -477,6 +477,34 @@ def test_small_refuses_baseline_names_and_no_views():
         ViewerSession(None, [object()], {"no_ss": "a.safetensors"})
     with pytest.raises(InputValueError, match="the viewer needs at least one view"):
         ViewerSession(None, [], {})
+
+
+def test_render_matches_evaluate_grid(small: Any) -> None:
+    """Each method's PSNR / SSIM and extra metrics are evaluate_grid's at the same state; the images have the
+    display size (the no-SS render the reduced one); global strengths are their closed forms, the lens strength
+    a per-anchor range; extra metrics of an older render are superseded."""
+    session, _ = small
+    state = parse_state({"view": 0, "downsample": 2.6, "power_saving": 0.3}, 1)
+    out = session.render(state, tag=7)
+    assert [m["name"] for m in out["methods"]] == ["no_ss", "ss", "controlgs", "blind", "fov"] and out["has_truth"]
+    grid = evaluate_grid(session.model, session.views, session.adapter_files, downsample=[2.6], power_saving=[0.3],
+                         ideal=False, progress=False)
+    extra = session.extra(7)
+    for m in out["methods"]:
+        for k in ("psnr", "ssim"):
+            assert m["metrics"][k] == pytest.approx(float(grid.per_view[m["name"]][k][0, 0, 0]), abs=1e-9)
+        for k, v in extra[m["name"]].items():
+            assert v == pytest.approx(float(grid.per_view[m["name"]][k][0, 0, 0]), abs=1e-9)
+        assert decode_png(m["eye"]).shape == (SIZE, SIZE, 3) and decode_png(m["diff"]).shape == (SIZE, SIZE, 3)
+    no_ss, _, cgs = out["methods"][:3]
+    assert decode_png(no_ss["rendered"]).shape == (round(SIZE / 2.6), round(SIZE / 2.6), 3)
+    assert cgs["strengths"]["resample"] == pytest.approx(torch.log2(torch.tensor(2.6)).item() / 3, abs=1e-6)
+    assert cgs["strengths"]["display"] == pytest.approx(0.3 / 0.8, abs=1e-6)
+    assert 0.0 <= cgs["strengths"]["lens"]["min"] <= cgs["strengths"]["lens"]["mean"] <= cgs["strengths"]["lens"]["max"] <= 1
+    overlay = decode_png(cgs["overlay"])
+    assert overlay.shape == (SIZE, SIZE, 4) and overlay[..., 3].max() > 0
+    with pytest.raises(Superseded):
+        session.extra(6)
 
 
 def test_session_render_strengths_diffs_and_extra(small: Any) -> None:
