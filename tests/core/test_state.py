@@ -586,3 +586,15 @@ def test_opacity_exactly_at_the_clamp_keeps_its_gradient() -> None:
             (grad,) = torch.autograd.grad(out.alpha[0, 8, 8], op)
             assert float(grad) == pytest.approx(want, abs=1e-12), (fn.__name__, o)
 
+
+
+def test_camera_refuses_meta_tensors_and_a_pose_beyond_float32() -> None:
+    k = torch.tensor([[10.0, 0.0, 4.0], [0.0, 10.0, 3.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(InputValueError, match="^intrinsics is on the meta device"):
+        Camera(torch.eye(4), k.to("meta"), 8, 6)
+    with pytest.raises(InputValueError, match="^world_to_camera is on the meta device"):
+        Camera(torch.eye(4, device="meta"), k, 8, 6)
+    far = torch.eye(4, dtype=torch.float64)
+    far[0, 3] = 1e300
+    with pytest.raises(InputValueError, match="^world_to_camera holds values beyond float32"):
+        Camera(far, k.double(), 8, 6)

@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 import torch
+from helpers.render_stubs import Renders, small_camera
 from helpers.scaffold_standin import ScaffoldStandIn
 from torch import nn
 
@@ -23,11 +24,6 @@ needs_skimage = pytest.mark.skipif(importlib.util.find_spec("skimage") is None, 
 
 STATE = RuntimeState(downsample=2, power_saving=0.4)
 CAM = Camera(torch.eye(4), torch.tensor([[4.0, 0.0, 2.5], [0.0, 4.0, 1.0], [0.0, 0.0, 1.0]]), 5, 2)
-
-
-def _camera(width: int = 4, height: int = 3) -> Camera:
-    k = torch.tensor([[4.0, 0.0, width / 2], [0.0, 4.0, height / 2], [0.0, 0.0, 1.0]])
-    return Camera(torch.eye(4), k, width, height)
 
 
 def _returns(image: torch.Tensor) -> FunctionRenderer:
@@ -43,21 +39,6 @@ class _PlainModel:
     def __init__(self, dtype: torch.dtype) -> None:
         self.counts = torch.zeros(3, dtype=torch.long)
         self._xyz = torch.zeros(4, 3, dtype=dtype)
-
-
-class Renders:
-    """Brings its own visible_anchors / render; render returns ``self.out`` (whatever a test sets)."""
-
-    def __init__(self, out: Any) -> None:
-        self.out = out
-        self.seen: list[Any] = []
-
-    def visible_anchors(self, camera: Camera) -> torch.Tensor:
-        return torch.tensor([True, False, True])
-
-    def render(self, camera: Camera, visible: Any, background: Any = None) -> Any:
-        self.seen.append((visible, background))
-        return self.out
 
 
 def _perturb(cgs: ControlGS, seed: int) -> None:
@@ -118,8 +99,8 @@ def test_as_renderer_keeps_protocol_objects_wraps_functions_and_refuses_the_rest
         return torch.ones(3, 3, 4)
 
     wrapped = as_renderer(fn, None)
-    assert type(wrapped) is FunctionRenderer and wrapped.visible(None, _camera()) is None
-    assert torch.equal(wrapped.render(None, _camera(), None, None), torch.ones(3, 3, 4))
+    assert type(wrapped) is FunctionRenderer and wrapped.visible(None, small_camera()) is None
+    assert torch.equal(wrapped.render(None, small_camera(), None, None), torch.ones(3, 3, 4))
 
     # attributes named visible / render that are not callable: neither a Renderer nor a function
     with pytest.raises(InputValueError, match="renderer must be None, a Renderer .* got SimpleNamespace"):
@@ -142,7 +123,7 @@ def test_as_renderer_keeps_protocol_objects_wraps_functions_and_refuses_the_rest
 # ----------------------------------------------------------------------------- render_view
 
 def test_render_view_refuses_what_is_not_an_image() -> None:
-    cam = _camera(width=5, height=2)
+    cam = small_camera(width=5, height=2)
     with pytest.raises(ShapeError, match=r"returned dict for a 5x2 camera; expected an sRGB image \[3, 2, 5\]"):
         render_view(None, None, cam, None, renderer=lambda m, c, v, bg: {"image": 0})
     with pytest.raises(ShapeError, match=r"returned \[2, 5, 3\] for a 5x2 camera"):  # height and width swapped

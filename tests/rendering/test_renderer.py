@@ -8,32 +8,12 @@ from typing import Any
 
 import pytest
 import torch
+from helpers.render_stubs import Renders, small_camera
 from helpers.scaffold_standin import ScaffoldStandIn
 from torch import nn
 
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.rendering.renderer import FunctionRenderer, ModelRenderer, Renderer, model_device
-from controlgs_adapter.state import Camera
-
-
-def _camera(width: int = 4, height: int = 3) -> Camera:
-    k = torch.tensor([[4.0, 0.0, width / 2], [0.0, 4.0, height / 2], [0.0, 0.0, 1.0]])
-    return Camera(torch.eye(4), k, width, height)
-
-
-class Renders:
-    """Brings its own visible_anchors / render; render returns ``self.out`` (whatever a test sets)."""
-
-    def __init__(self, out: Any) -> None:
-        self.out = out
-        self.seen: list[Any] = []
-
-    def visible_anchors(self, camera: Camera) -> torch.Tensor:
-        return torch.tensor([True, False, True])
-
-    def render(self, camera: Camera, visible: Any, background: Any = None) -> Any:
-        self.seen.append((visible, background))
-        return self.out
 
 
 def test_renderer_protocol_is_runtime_checkable() -> None:
@@ -58,9 +38,9 @@ def test_model_renderer_unwraps_color_and_passes_visible_and_background() -> Non
     for out in (image, SimpleNamespace(color=image, alpha=None)):  # a plain image or a RasterOutput-like object
         model = Renders(out)
         r = ModelRenderer()
-        vis = r.visible(model, _camera())
+        vis = r.visible(model, small_camera())
         assert torch.equal(vis, torch.tensor([True, False, True]))
-        assert r.render(model, _camera(), vis, bg) is image
+        assert r.render(model, small_camera(), vis, bg) is image
         assert model.seen[0][0] is vis and model.seen[0][1] is bg
 
 
@@ -76,7 +56,7 @@ def test_function_renderer_unwraps_every_documented_return_form() -> None:
             return result
         return render
 
-    cam, bg, vis = _camera(), torch.zeros(3), torch.tensor([0, 2])
+    cam, bg, vis = small_camera(), torch.zeros(3), torch.tensor([0, 2])
     assert FunctionRenderer(fn(image)).render("m", cam, vis, bg) is image
     assert FunctionRenderer(fn(SimpleNamespace(color=image))).render("m", cam, vis, bg) is image
     assert FunctionRenderer(fn({"render": image, "viewspace_points": 0})).render("m", cam, vis, bg) is image
@@ -88,7 +68,7 @@ def test_function_renderer_unwraps_every_documented_return_form() -> None:
 
 
 def test_function_renderer_visible_default_and_given() -> None:
-    cam = _camera()
+    cam = small_camera()
     assert FunctionRenderer(lambda *a: None).visible("m", cam) is None  # no prefilter: every anchor
     ids = torch.tensor([3, 1])
     r = FunctionRenderer(lambda *a: None, visible=lambda m, c: ids if (m, c) == ("m", cam) else None)
