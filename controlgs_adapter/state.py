@@ -117,6 +117,9 @@ class Camera:
 
     def __post_init__(self) -> None:
         self.width, self.height = _positive_int("width", self.width), _positive_int("height", self.height)
+        for name, t in (("world_to_camera", self.world_to_camera), ("intrinsics", self.intrinsics)):
+            if isinstance(t, torch.Tensor) and t.is_meta:
+                raise InputValueError(f"{name} is on the meta device, which holds no values")
         check_tensor("world_to_camera", self.world_to_camera, [4, 4], finite=True)
         check_tensor("intrinsics", self.intrinsics, [3, 3], finite=True)
         if not self.world_to_camera.is_floating_point() or not self.intrinsics.is_floating_point():
@@ -124,6 +127,9 @@ class Camera:
                                   f"{self.world_to_camera.dtype} and {self.intrinsics.dtype}")
         _check_intrinsics(self.intrinsics.detach().double().cpu(), self.width, self.height)
         _check_rigid(self.world_to_camera.detach().double().cpu())
+        if float(self.world_to_camera.detach().double().abs().max()) > torch.finfo(torch.float32).max:
+            raise InputValueError("world_to_camera holds values beyond float32 (|value| > 3.4e38); the "
+                                  "renderers compute in float32")
 
     @property
     def fov(self) -> tuple[float, float]:
