@@ -101,6 +101,19 @@ def test_build_backbone_numbers_are_checked_first(tmp_path: Path, capsys: pytest
     assert not (tmp_path / "bb").exists()
 
 
+@pytest.mark.parametrize("argv", [
+    ["scene", "build-backbone", "--iterations", "9" * 400], ["scene", "build-backbone", "--max-anchors", "9" * 400],
+    ["scene", "export", "--resolution", "9" * 400],
+])
+def test_a_count_beyond_int64_is_one_line_before_the_work(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          argv: list[str]) -> None:
+    out = tmp_path / "out"
+    assert main([*argv, "--out", str(out)]) == 2
+    line = error_line(capsys, "scene")
+    assert line.startswith(f"{argv[2]} must be an integer in ") and "401 digits" in line, line  # the value, shortened
+    assert not out.exists()
+
+
 # ----------------------------------------------------------------------------- what the actions write
 
 def test_scene_build_backbone_exits_zero_and_writes_the_backbone(tmp_path, monkeypatch, capsys):
@@ -187,16 +200,3 @@ def test_ideal_row_in_results_json_and_report(tmp_path):
     assert "LPIPS was not computed" in md and "--lpips-weights" in md
     assert (tmp_path / "heatmap.png").stat().st_size > 0
     assert read_results(data)[0] == GridResult.from_json(data)
-
-
-@pytest.mark.parametrize("argv", [
-    ["scene", "build-backbone", "--iterations", "9" * 400], ["scene", "build-backbone", "--max-anchors", "9" * 400],
-    ["scene", "export", "--resolution", "9" * 400],
-])
-def test_a_count_beyond_int64_is_one_line_before_the_work(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                          argv: list[str]) -> None:
-    out = tmp_path / "out"
-    assert main([*argv, "--out", str(out)]) == 2
-    line = error_line(capsys, "scene")
-    assert line.startswith(f"{argv[2]} must be an integer in ") and "401 digits" in line, line
-    assert not out.exists()
