@@ -98,8 +98,9 @@ def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: Runtim
     Raises:
         InjectionMissedError: a conditioned render never called the wrapped decoders.
         ShapeError: the renderer returned something else than ``[3, H, W]``.
-        InputValueError: the image is not on the model's device (:func:`model_device`) or not of its
-            floating-point dtype (float32 or float64 when the model has no floating-point tensor).
+        InputValueError: the image is not on the model's device (:func:`model_device`), not of its
+            floating-point dtype (float32 or float64 when the model has no floating-point tensor), not a
+            dense tensor, or holds NaN/Inf.
     """
     r = as_renderer(renderer, model)
     visible = r.visible(model, camera)
@@ -108,6 +109,8 @@ def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: Runtim
     else:
         with cgs.conditioned(state, camera, visible, modules=modules, on_miss="raise"):
             image = r.render(model, camera, visible, background)
+    if isinstance(image, torch.Tensor) and image.layout != torch.strided:
+        raise InputValueError(f"renderer {r!r} returned a {image.layout} image; expected a dense (strided) tensor")
     if not isinstance(image, torch.Tensor) or tuple(image.shape) != (3, camera.height, camera.width):
         got = list(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
         raise ShapeError(f"renderer {r!r} returned {got} for a {camera.width}x{camera.height} camera; "
@@ -120,4 +123,7 @@ def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: Runtim
     if image.dtype not in wanted:
         raise InputValueError(f"renderer {r!r} returned a {image.dtype} image; expected "
                               f"{' or '.join(map(str, wanted))} (the model's floating-point dtype)")
+    bad = int((~torch.isfinite(image.detach())).sum())  # one host sync per view: the step syncs on its loss anyway
+    if bad:
+        raise InputValueError(f"renderer {r!r} returned an image with {bad} non-finite value(s) (NaN or Inf)")
     return image
