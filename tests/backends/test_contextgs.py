@@ -8,9 +8,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import contextgs_files
 from helpers.anchor_oracle import D, assert_gaussians, camera_centre, gaussian64, mlp, mlp64, oblique_camera, visible64
 from helpers.contextgs_files import HI, LO, PAD, A, _arrays, _decoders, _model, _write_dir
 from helpers.family_checks import make_camera, outputs, write_cfg_args
+from helpers.family_checks import outputs as decoder_outputs
 from torch import nn
 
 from controlgs_adapter import RuntimeState
@@ -21,7 +23,7 @@ from controlgs_adapter.backends.models.anchor_model import anchor_visibility
 from controlgs_adapter.backends.octree_gs import OctreeGSBackend
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.controlgs import ControlGS
-from controlgs_adapter.errors import FileFormatError, InputValueError
+from controlgs_adapter.errors import FileFormatError, IncompatibleAdapterError, InputValueError
 from controlgs_adapter.formats.backbone import read_ply, write_ply
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -260,3 +262,48 @@ def test_cfg_args_without_widths_takes_feat_dim_50_and_n_offsets_10(tmp_path):
     write_cfg_args(root / "cfg_args", hyper_divisor=4, use_feat_bank=False)
     m = load_contextgs_dir(root)
     assert (m.feat_dim, m.n_offsets) == (50, 10)
+
+
+# ------------------------------------------------------------------------------ the adapter on the backbone families
+def test_adapter_maps_between_live_padded_model_and_loaded_folder(tmp_path):
+    """An adapter trained on the live (zero-padded) decoded ContextGS model loads onto the stand-in of
+    its folder (which drops invalid anchors; source_index maps the rows) and back, with equal outputs."""
+    a, pad = contextgs_files.A, contextgs_files.PAD
+    arr, decs = contextgs_files._arrays(7, decoded=True), contextgs_files._decoders(7)
+    arr["mask"][3] = 0.0  # an invalid anchor among the valid ones
+    root = contextgs_files._write_dir(tmp_path / "scene", arr, decs)
+    live, loaded = contextgs_files._model(arr, decs, decoded=True), load_contextgs_dir(root)
+    rows = [i for i in range(a - pad) if i != 3]
+    assert loaded.source_index.tolist() == rows
+    cam, state = torch.tensor([0.0, 0.5, -6.0]), RuntimeState(downsample=4, power_saving=0.4)
+    cgs = ControlGS.wrap(live, modules=("resample", "display"), cond_dim=4)
+    with torch.no_grad():
+        cgs.injector.conditions.normal_(generator=torch.Generator().manual_seed(0))
+    cgs.save(tmp_path / "live.safetensors")
+    pick = torch.arange(0, len(rows), 2)
+    with cgs.conditioned(state, anchor_ids=loaded.source_index[pick]):
+        want = decoder_outputs(live, live.decoder_inputs(cam, loaded.source_index[pick]))
+    conditions = cgs.injector.conditions.detach().clone()
+    cgs.unwrap()
+    on_loaded = ControlGS.load(tmp_path / "live.safetensors", loaded)
+    assert torch.equal(on_loaded.injector.conditions.detach(), conditions[loaded.source_index])
+    with on_loaded.conditioned(state, anchor_ids=pick):
+        got = decoder_outputs(loaded, loaded.decoder_inputs(cam, pick))
+    for p in want:
+        assert torch.equal(got[p], want[p]), p
+    on_loaded.save(tmp_path / "loaded.safetensors")
+    on_loaded.unwrap()
+    back = ControlGS.load(tmp_path / "loaded.safetensors", live)
+    assert torch.equal(back.injector.conditions.detach()[rows], conditions[rows])
+    assert not back.injector.conditions.detach()[[3, *range(a - pad, a)]].any()  # invalid rows stay at zero
+    back.unwrap()
+    other = load_contextgs_dir(contextgs_files._write_dir(tmp_path / "other", contextgs_files._arrays(8, decoded=True), decs))
+    with pytest.raises(IncompatibleAdapterError, match="anchor count"):
+        ControlGS.load(tmp_path / "live.safetensors", other)
+    # another scene with the same counts (valid anchors included) is no reason to scatter the rows onto it
+    arr8 = contextgs_files._arrays(8, decoded=True)
+    arr8["mask"][3] = 0.0
+    live8 = contextgs_files._model(arr8, decs, decoded=True)
+    assert int(ContextGSBackend().valid_anchors(live8).sum()) == len(rows)
+    with pytest.raises(IncompatibleAdapterError, match="anchor count"):
+        ControlGS.load(tmp_path / "loaded.safetensors", live8)

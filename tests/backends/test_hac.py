@@ -7,13 +7,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from helpers import hac_files
 from helpers.anchor_oracle import D, assert_gaussians, gaussian64, mlp64, visible64
+from helpers.scaffold_standin import make_camera as standin_camera
+from helpers.family_checks import STATE as DISPLAY_STATE
 from helpers.family_checks import check_wrap_identity_and_rows, make_camera, outputs, write_cfg_args
 from helpers.family_dirs import rewrite_ply
 from helpers.family_models import hac_kwargs
 from helpers.hac_files import VOXEL, A, F, K, _arrays, _decoders, _write_dir
 from torch import nn
 
+from controlgs_adapter import ControlGS
 from controlgs_adapter.backends import load_model_dir
 from controlgs_adapter.backends.compgs import CompGSBackend
 from controlgs_adapter.backends.contextgs import ContextGSBackend
@@ -375,3 +379,24 @@ def test_bitstreams_only_folder_is_refused_by_both_loaders(tmp_path):
     for load in (load_hac_dir, load_model_dir):
         with pytest.raises(FileFormatError, match="bitstreams/ was found, but it cannot be decoded"):
             load(root)
+
+
+def test_invalid_hac_anchor_condition_rows_get_no_gradient():
+    """An HAC++ anchor with every offset masked off reaches the decoders but emits no Gaussian, so its
+    condition row receives no gradient (it stays inert at zero), while valid anchors' rows do."""
+    arr = hac_files._arrays(6, decoded=False, mask_cols=hac_files.K + 1, invalid=(2,))
+    model = HACModel(voxel_size=hac_files.VOXEL, variant="hac++", decoded_version=False,
+                     anchor=torch.from_numpy(arr["anchor"]), offset=torch.from_numpy(arr["offset"]),
+                     mask=torch.from_numpy(arr["mask"])[:, :, None], anchor_feat=torch.from_numpy(arr["feat"]),
+                     scaling=torch.from_numpy(arr["scale"]), **hac_files._decoders(6))
+    cam = standin_camera()
+    cgs = ControlGS.wrap(model, modules=("display",), cond_dim=4)
+    ids = torch.tensor([0, 1, 2, 3])
+    with cgs.conditioned(DISPLAY_STATE, anchor_ids=ids):
+        g = model.decode(cam, torch.isin(torch.arange(hac_files.A), ids))
+    (g.colors.sum() + g.opacities.sum() + g.scales.sum()).backward()
+    grad = cgs.injector.conditions.grad[:, 0]  # [A, N] of the display module
+    assert bool((grad[2] == 0).all()) and 2 not in g.anchor_of.tolist()
+    assert all(bool(grad[a].abs().sum() > 0) for a in (0, 1, 3))
+    assert bool((grad[4:] == 0).all())  # anchors not in the view
+    cgs.unwrap()

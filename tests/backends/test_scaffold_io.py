@@ -27,6 +27,7 @@ from helpers.scaffold_oracle import (
 )
 from torch import nn
 
+from controlgs_adapter import ControlGS, RuntimeState
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.scaffold_io import latest_iteration, load_scaffold_dir, save_scaffold_dir
 from controlgs_adapter.errors import FileFormatError, InputValueError
@@ -502,3 +503,25 @@ def test_saved_folders_get_the_umask_mode(tmp_path):
         assert all(p.stat().st_mode & 0o777 == 0o644 for p in final.iterdir())
     finally:
         os.umask(old)
+
+
+def test_loaded_scaffold_folder_is_wrappable_and_rows_map_to_visible_anchors(tmp_path):
+    raw = make_raw_model(30, 8, 3, seed=11)
+    write_scaffold_dir_by_hand(tmp_path, raw)
+    model = load_scaffold_dir(tmp_path)
+    cam = camera_looking_down_z()
+    visible = torch.arange(30) % 3 != 1
+    before = model.decode(cam, visible)
+    cgs = ControlGS.wrap(model, modules=("resample",))
+    with torch.no_grad(), cgs.conditioned(RuntimeState(downsample=8.0), camera=cam, anchor_ids=visible):
+        same = model.decode(cam, visible)  # conditions are zero at init: bit-identical
+        cgs.injector.conditions[12].normal_(generator=torch.Generator().manual_seed(0))  # anchor 12 (visible) only
+        moved = model.decode(cam, visible)
+    for name in ("means", "scales", "rotations", "opacities", "colors"):
+        assert torch.equal(getattr(same, name), getattr(before, name)), name
+    # only anchor 12's rows change (the mask may drop/keep some of its Gaussians)
+    keep_b, keep_m = before.anchor_of != 12, moved.anchor_of != 12
+    assert torch.equal(before.colors[keep_b], moved.colors[keep_m])
+    changed = (moved.neural_opacity - before.neural_opacity).reshape(-1, 3).abs().sum(1) > 0
+    assert torch.equal(before.visible_ids[changed], torch.tensor([12]))
+    cgs.unwrap()

@@ -5,23 +5,14 @@ adapter as evaluation, the command line and the backbone families use it."""
 
 from __future__ import annotations
 
-import json
 import math
 import re
 import warnings
-from importlib.util import find_spec
-from pathlib import Path
 
 import pytest
 import torch
-from helpers import contextgs_files, hac_files
 from helpers.adapter_files import saved_adapter, trained
-from helpers.family_checks import STATE as DISPLAY_STATE
-from helpers.family_checks import outputs as decoder_outputs
-from helpers.rawfiles import write_raw
-from helpers.scaffold_oracle import camera_looking_down_z, make_raw_model, write_scaffold_dir_by_hand
 from helpers.scaffold_standin import ScaffoldStandIn, make_camera, script_decoders
-from helpers.scene_writers import write_blender, write_colmap, write_instant_ngp
 from helpers.wrapping import (
     DECODERS,
     FULL,
@@ -37,19 +28,13 @@ from torch import nn
 
 from controlgs_adapter import ControlGS, RuntimeState, __version__
 from controlgs_adapter.backend import get_attr_path, set_attr_path
-from controlgs_adapter.backends import load_model_dir
-from controlgs_adapter.backends.contextgs import ContextGSBackend, load_contextgs_dir
-from controlgs_adapter.backends.hac import HACModel
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
-from controlgs_adapter.backends.scaffold_io import load_scaffold_dir
-from controlgs_adapter.cli import main
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND, DEFAULT_ADAPTER, DEFAULT_MODULES, _backbone_tensors
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import (
     FileFormatError,
     FileWriteError,
-    IncompatibleAdapterError,
     InjectionMissedError,
     InputValueError,
     LifecycleError,
@@ -58,19 +43,13 @@ from controlgs_adapter.errors import (
     ShapeError,
     TargetError,
 )
-from controlgs_adapter.evaluation import IDEAL, condition_response, evaluate_grid, side_by_side
 from controlgs_adapter.formats.safetensors import load_tensors, read_header
-from controlgs_adapter.metrics import ssim
 from controlgs_adapter.rendering.protocol import FunctionRenderer, render_view
-from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
 from controlgs_adapter.state import Camera
 from controlgs_adapter.training import DEFAULT_EFFECTS
 
 #: a state in the middle of every shared schedule
 STATE = RuntimeState(downsample=5.0, power_saving=0.55)
-
-needs_builtin_scene = pytest.mark.skipif(find_spec("skimage") is None,
-                                         reason="the built-in scene's textures come from scikit-image")
 
 
 # ------------------------------------------------------------------------------ the injection
@@ -732,72 +711,8 @@ def test_adapter_names_are_checked_and_switching_moves_the_hooks(tmp_path):
     cgs.unwrap()
 
 
-# ------------------------------------------------------------------------------ the adapter in evaluation
-@needs_builtin_scene
-def test_grid_invariants_zero_adapter_equals_ss(tmp_path):
-    """An adapter at initialisation (zero conditions) is the backbone: its grid equals the
-    SS-backbone's exactly; at d = 1 the no-SS render is the SS render."""
-    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=1)
-    xyz, rgb = scene.points(0.3)
-    with torch.random.fork_rng(devices=[]):  # decoder weights: a fixed draw whose Gaussians are visible
-        torch.manual_seed(1)
-        model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.4, color_fit_steps=10).eval()
-        with torch.no_grad():
-            model.mlp_opacity[2].bias.fill_(1.0)
-    with torch.no_grad():
-        assert float(model.render(scene.test_cameras[0]).alpha.mean()) > 0.05
-    cgs = ControlGS.wrap(model, cond_dim=4)
-    path = cgs.save(tmp_path / "zero.safetensors")
-    cgs.unwrap()
-    r = evaluate_grid(model, scene.views("test"), {"controlgs": path}, downsample=(1.0, 4.0),
-                      power_saving=(0.0, 0.6), optics_mode="fast", extra_metrics=False, progress=False)
-    for k in ("psnr", "ssim"):
-        assert torch.equal(r.per_view["controlgs"][k], r.per_view["ss"][k])
-        assert torch.equal(r.per_view["no_ss"][k][0], r.per_view["ss"][k][0])
-        assert not torch.equal(r.per_view["no_ss"][k][1], r.per_view["ss"][k][1])
-
-
-@needs_builtin_scene
-def test_side_by_side_scores_against_the_unclamped_ground_truth(tiny, tmp_path):
-    scene, model = tiny
-    views = scene.data.views("train", first=1)
-    cgs = ControlGS.wrap(model, cond_dim=4)
-    path = cgs.save(tmp_path / "a.controlgs.safetensors")
-    cgs.unwrap()
-    cam, gt = views[0]
-    bright = gt + 0.5  # a reference brighter than a display shows: only the eye image is clamped to [0, 1]
-    assert float(bright.max()) > 1.2
-    out = side_by_side(model, path, cam, bright, settings=[(1.0, 0.0)], background=views.background,
-                       effects={"lens": True, "resample": True, "display": True})
-    for method, row in out["rows"].items():
-        _, eye, p, q = row[0]
-        assert float(eye.max()) <= 1.0
-        mse = float((eye.double() - bright.double()).square().mean())  # float64 PSNR against the unclamped gt
-        assert p == pytest.approx(10 * math.log10(1.0 / mse), abs=1e-9), method
-        assert q == pytest.approx(float(ssim(eye.double(), bright.double())), abs=1e-9), method
-        clamped = float((eye.double() - bright.double().clamp(0, 1)).square().mean())
-        assert abs(10 * math.log10(1.0 / clamped) - p) > 0.1  # the clamped reference would score differently
-
-
-D, P = (1.0, 2.0), (0.0, 0.3, 0.6)
-
 #: the cheap downstream path (no optics) of the every-cell test
 CHEAP = {"lens": True, "resample": True, "display": True}
-
-
-@pytest.fixture(scope="module")
-def setup(tiny, tmp_path_factory):
-    """The tiny scene's first two training views and an adapter file with random (non-zero) conditions."""
-    scene, model = tiny
-    views = scene.data.views("train", first=2)
-    cgs = ControlGS.wrap(model, cond_dim=4)
-    with torch.no_grad(), torch.random.fork_rng(devices=[]):
-        torch.manual_seed(3)
-        for p in cgs.trainable_parameters():
-            p.add_(0.5 * torch.randn_like(p))
-    path = cgs.save(tmp_path_factory.mktemp("adapter") / "a.controlgs.safetensors")
-    cgs.unwrap()
-    return model, views, path
 
 
 def _pipe(mode: str = "fast", effects: dict | None = None) -> Pipeline:
@@ -806,295 +721,4 @@ def _pipe(mode: str = "fast", effects: dict | None = None) -> Pipeline:
         pipe["optics"].mode = mode
     return pipe.eval()
 
-
-def _psnr64(eye: torch.Tensor, gt: torch.Tensor) -> float:
-    mse = float((eye.clamp(0, 1).double() - gt.double()).square().mean())
-    return 10 * math.log10(1.0 / mse)
-
-
-@needs_builtin_scene
-def test_every_cell_recomputed_by_hand(setup):
-    model, views, path = setup
-    r = evaluate_grid(model, views, {"mine": path}, downsample=(1, 2), power_saving=P, extra_metrics=False,
-                      progress=False, effects=CHEAP)
-    assert ControlGS.attached(model) is None  # the adapter is removed afterwards
-    assert r.methods == ["no_ss", "ss", IDEAL, "mine"] and r.metrics == ["psnr", "ssim"]
-    assert (r.downsample, r.power_saving, r.optics_mode) == (D, P, "fast")
-    assert r.info == {"test_views": 2, "test_sizes": ["16x16"]}
-    assert all(t.shape == (2, 3, 2) and t.dtype == torch.float64 for mv in r.per_view.values() for t in mv.values())
-    pipe, bg = _pipe(effects=CHEAP), views.background
-    cgs = ControlGS.load(path, model)
-    try:
-        with torch.no_grad():
-            for v in range(2):
-                cam, gt = views[v]
-                for i, d in enumerate(D):
-                    for j, rho in enumerate(P):
-                        state = RuntimeState(downsample=d, power_saving=rho)
-                        renders = {"no_ss": render_view(None, model, cam.scaled(d), None, bg),
-                                   "ss": render_view(None, model, cam, None, bg), IDEAL: gt,
-                                   "mine": render_view(cgs, model, cam, state, bg)}
-                        for m, img in renders.items():
-                            eye = pipe(img, state, reference=gt)
-                            assert float(r.per_view[m]["psnr"][i, j, v]) == pytest.approx(_psnr64(eye, gt), abs=1e-9), (m, d, rho, v)
-                            want_ssim = float(ssim(eye.clamp(0, 1).double(), gt.double()))
-                            assert float(r.per_view[m]["ssim"][i, j, v]) == pytest.approx(want_ssim, abs=1e-12)
-    finally:
-        cgs.unwrap()
-    # the adapter and the state matter: not the SS-backbone's numbers, not the same in every cell
-    assert not torch.allclose(r.per_view["mine"]["psnr"], r.per_view["ss"]["psnr"])
-    assert torch.equal(r.per_view["no_ss"]["psnr"][0], r.per_view["ss"]["psnr"][0])  # d = 1: the same render
-
-
-@needs_builtin_scene
-def test_side_by_side_by_hand(setup):
-    model, views, path = setup
-    cam, gt = views[0]
-    out = side_by_side(model, path, cam, gt, background=views.background)
-    assert ControlGS.attached(model) is None
-    assert out["settings"] == [(1.0, 0.0), (8.0, 0.8)] and out["gt"] is gt
-    assert list(out["rows"]) == ["no_ss", "ss", "controlgs"]
-    pipe = _pipe()
-    cgs = ControlGS.load(path, model)
-    try:
-        with torch.no_grad():
-            for s, (d, rho) in enumerate(out["settings"]):
-                state = RuntimeState(downsample=d, power_saving=rho)
-                want = {"no_ss": render_view(None, model, cam.scaled(d), None, views.background),
-                        "ss": render_view(None, model, cam, None, views.background),
-                        "controlgs": render_view(cgs, model, cam, state, views.background)}
-                for m, img in want.items():
-                    rendered, eye, p, q = out["rows"][m][s]
-                    assert torch.equal(rendered, img), (m, d)
-                    ref = pipe(img, state, reference=gt).clamp(0, 1)
-                    assert torch.allclose(eye, ref, atol=1e-6) and float(eye.min()) >= 0 and float(eye.max()) <= 1
-                    assert p == pytest.approx(_psnr64(ref, gt), abs=1e-6)
-                    assert q == pytest.approx(float(ssim(ref.double(), gt.double())), abs=1e-6)
-    finally:
-        cgs.unwrap()
-    assert out["rows"]["no_ss"][1][0].shape == (3, 2, 2)  # rendered at 16 / 8
-    one = side_by_side(model, path, cam, gt, settings=[(2, 0.5)], background=views.background)
-    assert one["settings"] == [(2.0, 0.5)] and all(len(v) == 1 for v in one["rows"].values())
-
-
-@needs_builtin_scene
-def test_condition_response_by_hand(setup):
-    model, views, path = setup
-    cam, _ = views[0]
-    bg = views.background
-    strips = condition_response(model, path, cam, background=bg)
-    assert ControlGS.attached(model) is None
-    assert list(strips) == ["resample", "display", "lens"]
-    assert [k for k, _ in strips["resample"]] == ["d=1", "d=2", "d=4", "d=8"]
-    assert [k for k, _ in strips["display"]] == ["ρ=0%", "ρ=20%", "ρ=40%", "ρ=60%", "ρ=80%"]
-    assert [k for k, _ in strips["lens"]] == ["off", "on", "|on - off| x 10"]
-    cgs = ControlGS.load(path, model)
-    try:
-        with torch.no_grad():
-            for (_, img), d in zip(strips["resample"], (1.0, 2.0, 4.0, 8.0)):
-                assert torch.equal(img, render_view(cgs, model, cam, RuntimeState(downsample=d), bg, modules=("resample",)))
-            for (_, img), rho in zip(strips["display"], (0.0, 0.2, 0.4, 0.6, 0.8)):
-                assert torch.equal(img, render_view(cgs, model, cam, RuntimeState(power_saving=rho), bg, modules=("display",)))
-            off = render_view(None, model, cam, None, bg)
-            on = render_view(cgs, model, cam, RuntimeState(), bg, modules=("lens",))
-    finally:
-        cgs.unwrap()
-    assert torch.equal(strips["lens"][0][1], off) and torch.equal(strips["lens"][1][1], on)
-    diff = strips["lens"][2][1]
-    assert torch.allclose(diff, ((on - off).abs() * 10).clamp(0, 1)) and float(diff.max()) > 0
-    # the strips differ along d (the adapter is not zero)
-    assert not torch.equal(strips["resample"][0][1], strips["resample"][3][1])
-    assert not torch.equal(strips["display"][0][1], strips["display"][4][1])
-
-
-@needs_builtin_scene
-def test_an_adapter_with_fewer_modules_shows_only_those(setup, tmp_path: Path):
-    model, views, _ = setup
-    cgs = ControlGS.wrap(model, modules=("display",), cond_dim=2)
-    path = cgs.save(tmp_path / "d.controlgs.safetensors")
-    cgs.unwrap()
-    strips = condition_response(model, path, views[0][0], background=views.background)
-    assert list(strips) == ["display"]
-
-
-# ------------------------------------------------------------------------------ the adapter through the CLI
-MODEL = builtin_backbone_dir("ar")
-
-# cheap downstream path (the PSF optics cost ~0.5 s per image whatever its size)
-FAST = ["--effects", "resample,display", "--no-progress", "--checkpoint-every", "0"]
-
-needs_cli_run = pytest.mark.skipif(find_spec("skimage") is None or find_spec("matplotlib") is None
-                                   or not (MODEL / "point_cloud").is_dir(),
-                                   reason="needs the demo extra (scikit-image, matplotlib) and the baked built-in backbone")
-
-
-def _capture(size: int = 32, crop: tuple[int, int] | None = None) -> tuple[list[Camera], list[torch.Tensor]]:
-    """8 views of the built-in scene (view 0 is the test view in every format); ``crop = (w, h)``
-    cuts a centred window out of each image with matching intrinsics."""
-    scene = load_builtin_scene("ar", size, views=8, test_every=8, samples=1)
-    cams = scene.test_cameras + scene.train_cameras
-    images = list(torch.cat([scene.test_images, scene.train_images]))
-    if crop is None:
-        return cams, images
-    w, h = crop
-    x0, y0 = (size - w) // 2, (size - h) // 2
-    out = []
-    for c in cams:
-        k = c.intrinsics.clone()
-        k[0, 2] -= x0
-        k[1, 2] -= y0
-        out.append(Camera(c.world_to_camera, k, w, h))
-    return out, [img[:, y0:y0 + h, x0:x0 + w].contiguous() for img in images]
-
-
-def _train_eval(tmp_path, data, name: str, *extra: str) -> dict:
-    run, report = tmp_path / f"run-{name}", tmp_path / f"report-{name}"
-    assert main(["train", "--model", str(MODEL), "--data", str(data), "--out", str(run), "--iterations", "3",
-                 "--no-ablations", *FAST, *extra]) == 0
-    record = json.loads((run / "run.json").read_text())
-    assert record["family"] == "scaffold_gs" and record["iterations"] == 3 and record["effects"] == ["display", "resample"]
-    assert (record["seeds"], record["seed"], record["holdout"]) == (1, 0, 8)  # one seed, the defaults
-    assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress"]) == 0
-    for f in ("results.json", "report.md", "heatmap.png", "comparison.png", "condition_response.png"):
-        assert (report / f).is_file() and (report / f).stat().st_size > 0, f
-    cgs = ControlGS.load(run / "controlgs.controlgs.safetensors", load_model_dir(MODEL))
-    assert set(cgs.modules) == {"resample", "display"}
-    cgs.unwrap()
-    return json.loads((report / "results.json").read_text())
-
-
-@needs_cli_run
-def test_three_formats_train_eval_and_agree(tmp_path, capsys):
-    cams, images = _capture()
-    folders = {"colmap": write_colmap(tmp_path / "colmap", cams, images),
-               "blender": write_blender(tmp_path / "blender", cams, images, test=[0]),
-               "instant_ngp": write_instant_ngp(tmp_path / "ngp", cams, images)}
-    results = {fmt: _train_eval(tmp_path, path, fmt, "--resolution", "32") for fmt, path in folders.items()}
-    out = capsys.readouterr().out
-    assert out.count("scene check: ") == 3 and "anchors are in view of 8/8 cameras" in out
-    ref = results["colmap"]
-    assert ref["info"]["test_sizes"] == ["32x32"] and set(ref["methods"]) == {"no_ss", "ss", "ideal", "controlgs"}
-    for fmt, r in results.items():
-        assert r["info"]["test_views"] == 1, fmt
-        for m, metrics in ref["methods"].items():
-            for k, v in metrics.items():
-                assert r["methods"][m][k]["mean"] == pytest.approx(v["mean"], abs=1e-6), (fmt, m, k)
-
-
-@needs_cli_run
-def test_non_square_capture(tmp_path):
-    cams, images = _capture(48, crop=(48, 28))
-    data = write_instant_ngp(tmp_path / "ngp", cams, images)
-    r = _train_eval(tmp_path, data, "wide")
-    assert r["info"]["test_sizes"] == ["48x28"]
-    assert all(torch.isfinite(torch.tensor(m["psnr"]["grid"])).all() for m in r["methods"].values())
-
-
-# ------------------------------------------------------------------------------ the adapter on the backbone families
-def test_adapter_maps_between_live_padded_model_and_loaded_folder(tmp_path):
-    """An adapter trained on the live (zero-padded) decoded ContextGS model loads onto the stand-in of
-    its folder (which drops invalid anchors; source_index maps the rows) and back, with equal outputs."""
-    a, pad = contextgs_files.A, contextgs_files.PAD
-    arr, decs = contextgs_files._arrays(7, decoded=True), contextgs_files._decoders(7)
-    arr["mask"][3] = 0.0  # an invalid anchor among the valid ones
-    root = contextgs_files._write_dir(tmp_path / "scene", arr, decs)
-    live, loaded = contextgs_files._model(arr, decs, decoded=True), load_contextgs_dir(root)
-    rows = [i for i in range(a - pad) if i != 3]
-    assert loaded.source_index.tolist() == rows
-    cam, state = torch.tensor([0.0, 0.5, -6.0]), RuntimeState(downsample=4, power_saving=0.4)
-    cgs = ControlGS.wrap(live, modules=("resample", "display"), cond_dim=4)
-    with torch.no_grad():
-        cgs.injector.conditions.normal_(generator=torch.Generator().manual_seed(0))
-    cgs.save(tmp_path / "live.safetensors")
-    pick = torch.arange(0, len(rows), 2)
-    with cgs.conditioned(state, anchor_ids=loaded.source_index[pick]):
-        want = decoder_outputs(live, live.decoder_inputs(cam, loaded.source_index[pick]))
-    conditions = cgs.injector.conditions.detach().clone()
-    cgs.unwrap()
-    on_loaded = ControlGS.load(tmp_path / "live.safetensors", loaded)
-    assert torch.equal(on_loaded.injector.conditions.detach(), conditions[loaded.source_index])
-    with on_loaded.conditioned(state, anchor_ids=pick):
-        got = decoder_outputs(loaded, loaded.decoder_inputs(cam, pick))
-    for p in want:
-        assert torch.equal(got[p], want[p]), p
-    on_loaded.save(tmp_path / "loaded.safetensors")
-    on_loaded.unwrap()
-    back = ControlGS.load(tmp_path / "loaded.safetensors", live)
-    assert torch.equal(back.injector.conditions.detach()[rows], conditions[rows])
-    assert not back.injector.conditions.detach()[[3, *range(a - pad, a)]].any()  # invalid rows stay at zero
-    back.unwrap()
-    other = load_contextgs_dir(contextgs_files._write_dir(tmp_path / "other", contextgs_files._arrays(8, decoded=True), decs))
-    with pytest.raises(IncompatibleAdapterError, match="anchor count"):
-        ControlGS.load(tmp_path / "live.safetensors", other)
-    # another scene with the same counts (valid anchors included) is no reason to scatter the rows onto it
-    arr8 = contextgs_files._arrays(8, decoded=True)
-    arr8["mask"][3] = 0.0
-    live8 = contextgs_files._model(arr8, decs, decoded=True)
-    assert int(ContextGSBackend().valid_anchors(live8).sum()) == len(rows)
-    with pytest.raises(IncompatibleAdapterError, match="anchor count"):
-        ControlGS.load(tmp_path / "loaded.safetensors", live8)
-
-
-def test_invalid_hac_anchor_condition_rows_get_no_gradient():
-    """An HAC++ anchor with every offset masked off reaches the decoders but emits no Gaussian, so its
-    condition row receives no gradient (it stays inert at zero), while valid anchors' rows do."""
-    arr = hac_files._arrays(6, decoded=False, mask_cols=hac_files.K + 1, invalid=(2,))
-    model = HACModel(voxel_size=hac_files.VOXEL, variant="hac++", decoded_version=False,
-                     anchor=torch.from_numpy(arr["anchor"]), offset=torch.from_numpy(arr["offset"]),
-                     mask=torch.from_numpy(arr["mask"])[:, :, None], anchor_feat=torch.from_numpy(arr["feat"]),
-                     scaling=torch.from_numpy(arr["scale"]), **hac_files._decoders(6))
-    cam = make_camera()
-    cgs = ControlGS.wrap(model, modules=("display",), cond_dim=4)
-    ids = torch.tensor([0, 1, 2, 3])
-    with cgs.conditioned(DISPLAY_STATE, anchor_ids=ids):
-        g = model.decode(cam, torch.isin(torch.arange(hac_files.A), ids))
-    (g.colors.sum() + g.opacities.sum() + g.scales.sum()).backward()
-    grad = cgs.injector.conditions.grad[:, 0]  # [A, N] of the display module
-    assert bool((grad[2] == 0).all()) and 2 not in g.anchor_of.tolist()
-    assert all(bool(grad[a].abs().sum() > 0) for a in (0, 1, 3))
-    assert bool((grad[4:] == 0).all())  # anchors not in the view
-    cgs.unwrap()
-
-
-def test_loaded_scaffold_folder_is_wrappable_and_rows_map_to_visible_anchors(tmp_path):
-    raw = make_raw_model(30, 8, 3, seed=11)
-    write_scaffold_dir_by_hand(tmp_path, raw)
-    model = load_scaffold_dir(tmp_path)
-    cam = camera_looking_down_z()
-    visible = torch.arange(30) % 3 != 1
-    before = model.decode(cam, visible)
-    cgs = ControlGS.wrap(model, modules=("resample",))
-    with torch.no_grad(), cgs.conditioned(RuntimeState(downsample=8.0), camera=cam, anchor_ids=visible):
-        same = model.decode(cam, visible)  # conditions are zero at init: bit-identical
-        cgs.injector.conditions[12].normal_(generator=torch.Generator().manual_seed(0))  # anchor 12 (visible) only
-        moved = model.decode(cam, visible)
-    for name in ("means", "scales", "rotations", "opacities", "colors"):
-        assert torch.equal(getattr(same, name), getattr(before, name)), name
-    # only anchor 12's rows change (the mask may drop/keep some of its Gaussians)
-    keep_b, keep_m = before.anchor_of != 12, moved.anchor_of != 12
-    assert torch.equal(before.colors[keep_b], moved.colors[keep_m])
-    changed = (moved.neural_opacity - before.neural_opacity).reshape(-1, 3).abs().sum(1) > 0
-    assert torch.equal(before.visible_ids[changed], torch.tensor([12]))
-    cgs.unwrap()
-
-
-# ------------------------------------------------------------------------------ adapter file headers
-HEADER_CASES = [
-    ("format_version true", {"format_version": True}, "format_version.*True"),
-    ("format_version '1'", {"format_version": "1"}, "format_version.*'1'"),
-    ("format_version 0", {"format_version": 0}, "format_version.*0"),
-    ("format_version 1.0", {"format_version": 1.0}, r"format_version.*1\.0"),
-    ("format_version 99", {"format_version": 99}, "format_version 99"),
-    ("header a list", {"raw_header": "[1, 2]"}, "JSON object"),
-    ("header not JSON", {"raw_header": "{oops"}, "corrupt"),
-    ("header deep JSON", {"raw_header": "[" * 100000 + "]" * 100000}, "corrupt"),
-    ("other kind", {"kind": "psf_bank"}, "'psf_bank'"),
-]
-
-
-@pytest.mark.parametrize("kw, pattern", [c[1:] for c in HEADER_CASES], ids=[c[0] for c in HEADER_CASES])
-def test_bad_adapter_file_headers_are_file_format_errors(tmp_path, kw, pattern):
-    p = write_raw(tmp_path / "f.safetensors", {"w": torch.zeros(2)}, {}, **{"kind": ADAPTER_KIND, **kw})
-    with pytest.raises(FileFormatError, match=f"f.safetensors.*{pattern}"):
-        load_tensors(p, kind=ADAPTER_KIND, max_version=1)
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+from importlib.util import find_spec
+from pathlib import Path
 
 import pytest
 import torch
@@ -14,6 +16,7 @@ from helpers.lpips_weights import random_lpips_weights
 from helpers.progress import record_bars
 
 from controlgs_adapter import ControlGS, RuntimeState, evaluation
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.evaluation import (
@@ -22,13 +25,16 @@ from controlgs_adapter.evaluation import (
     GRID_POWER_SAVING,
     IDEAL,
     GridResult,
+    condition_response,
     evaluate_grid,
     make_pipeline,
     scores,
+    side_by_side,
 )
 from controlgs_adapter.metrics import flip, psnr, ssim
 from controlgs_adapter.perceptual import LPIPS
 from controlgs_adapter.rendering.protocol import render_view
+from controlgs_adapter.scene import load_builtin_scene
 from controlgs_adapter.state import Camera
 from controlgs_adapter.training import DEFAULT_EFFECTS
 
@@ -369,3 +375,167 @@ def test_evaluate_seeds_shares_the_baselines(adapter_setup, tmp_path):
     cam, gt = views[0]
     assert torch.equal(comparison["gt"], gt) and list(response) == ["resample", "display", "lens"]
     assert torch.equal(response["lens"][0][1], render_view(None, model, cam, None, views.background))
+
+
+needs_builtin_scene = pytest.mark.skipif(find_spec("skimage") is None,
+                                         reason="the built-in scene's textures come from scikit-image")
+
+
+# ------------------------------------------------------------------------------ the adapter in evaluation
+@needs_builtin_scene
+def test_grid_invariants_zero_adapter_equals_ss(tmp_path):
+    """An adapter at initialisation (zero conditions) is the backbone: its grid equals the
+    SS-backbone's exactly; at d = 1 the no-SS render is the SS render."""
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=1)
+    xyz, rgb = scene.points(0.3)
+    with torch.random.fork_rng(devices=[]):  # decoder weights: a fixed draw whose Gaussians are visible
+        torch.manual_seed(1)
+        model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.4, color_fit_steps=10).eval()
+        with torch.no_grad():
+            model.mlp_opacity[2].bias.fill_(1.0)
+    with torch.no_grad():
+        assert float(model.render(scene.test_cameras[0]).alpha.mean()) > 0.05
+    cgs = ControlGS.wrap(model, cond_dim=4)
+    path = cgs.save(tmp_path / "zero.safetensors")
+    cgs.unwrap()
+    r = evaluate_grid(model, scene.views("test"), {"controlgs": path}, downsample=(1.0, 4.0),
+                      power_saving=(0.0, 0.6), optics_mode="fast", extra_metrics=False, progress=False)
+    for k in ("psnr", "ssim"):
+        assert torch.equal(r.per_view["controlgs"][k], r.per_view["ss"][k])
+        assert torch.equal(r.per_view["no_ss"][k][0], r.per_view["ss"][k][0])
+        assert not torch.equal(r.per_view["no_ss"][k][1], r.per_view["ss"][k][1])
+
+
+@needs_builtin_scene
+def test_side_by_side_scores_against_the_unclamped_ground_truth(tiny, tmp_path):
+    scene, model = tiny
+    views = scene.data.views("train", first=1)
+    cgs = ControlGS.wrap(model, cond_dim=4)
+    path = cgs.save(tmp_path / "a.controlgs.safetensors")
+    cgs.unwrap()
+    cam, gt = views[0]
+    bright = gt + 0.5  # a reference brighter than a display shows: only the eye image is clamped to [0, 1]
+    assert float(bright.max()) > 1.2
+    out = side_by_side(model, path, cam, bright, settings=[(1.0, 0.0)], background=views.background,
+                       effects={"lens": True, "resample": True, "display": True})
+    for method, row in out["rows"].items():
+        _, eye, p, q = row[0]
+        assert float(eye.max()) <= 1.0
+        mse = float((eye.double() - bright.double()).square().mean())  # float64 PSNR against the unclamped gt
+        assert p == pytest.approx(10 * math.log10(1.0 / mse), abs=1e-9), method
+        assert q == pytest.approx(float(ssim(eye.double(), bright.double())), abs=1e-9), method
+        clamped = float((eye.double() - bright.double().clamp(0, 1)).square().mean())
+        assert abs(10 * math.log10(1.0 / clamped) - p) > 0.1  # the clamped reference would score differently
+
+
+D, P = (1.0, 2.0), (0.0, 0.3, 0.6)
+
+
+def _psnr64(eye: torch.Tensor, gt: torch.Tensor) -> float:
+    mse = float((eye.clamp(0, 1).double() - gt.double()).square().mean())
+    return 10 * math.log10(1.0 / mse)
+
+
+@needs_builtin_scene
+def test_every_cell_recomputed_by_hand(adapter_setup):
+    model, views, path = adapter_setup
+    r = evaluate_grid(model, views, {"mine": path}, downsample=(1, 2), power_saving=P, extra_metrics=False,
+                      progress=False, effects=CHEAP)
+    assert ControlGS.attached(model) is None  # the adapter is removed afterwards
+    assert r.methods == ["no_ss", "ss", IDEAL, "mine"] and r.metrics == ["psnr", "ssim"]
+    assert (r.downsample, r.power_saving, r.optics_mode) == (D, P, "fast")
+    assert r.info == {"test_views": 2, "test_sizes": ["16x16"]}
+    assert all(t.shape == (2, 3, 2) and t.dtype == torch.float64 for mv in r.per_view.values() for t in mv.values())
+    pipe, bg = _pipe(effects=CHEAP), views.background
+    cgs = ControlGS.load(path, model)
+    try:
+        with torch.no_grad():
+            for v in range(2):
+                cam, gt = views[v]
+                for i, d in enumerate(D):
+                    for j, rho in enumerate(P):
+                        state = RuntimeState(downsample=d, power_saving=rho)
+                        renders = {"no_ss": render_view(None, model, cam.scaled(d), None, bg),
+                                   "ss": render_view(None, model, cam, None, bg), IDEAL: gt,
+                                   "mine": render_view(cgs, model, cam, state, bg)}
+                        for m, img in renders.items():
+                            eye = pipe(img, state, reference=gt)
+                            assert float(r.per_view[m]["psnr"][i, j, v]) == pytest.approx(_psnr64(eye, gt), abs=1e-9), (m, d, rho, v)
+                            want_ssim = float(ssim(eye.clamp(0, 1).double(), gt.double()))
+                            assert float(r.per_view[m]["ssim"][i, j, v]) == pytest.approx(want_ssim, abs=1e-12)
+    finally:
+        cgs.unwrap()
+    # the adapter and the state matter: not the SS-backbone's numbers, not the same in every cell
+    assert not torch.allclose(r.per_view["mine"]["psnr"], r.per_view["ss"]["psnr"])
+    assert torch.equal(r.per_view["no_ss"]["psnr"][0], r.per_view["ss"]["psnr"][0])  # d = 1: the same render
+
+
+@needs_builtin_scene
+def test_side_by_side_by_hand(adapter_setup):
+    model, views, path = adapter_setup
+    cam, gt = views[0]
+    out = side_by_side(model, path, cam, gt, background=views.background)
+    assert ControlGS.attached(model) is None
+    assert out["settings"] == [(1.0, 0.0), (8.0, 0.8)] and out["gt"] is gt
+    assert list(out["rows"]) == ["no_ss", "ss", "controlgs"]
+    pipe = _pipe()
+    cgs = ControlGS.load(path, model)
+    try:
+        with torch.no_grad():
+            for s, (d, rho) in enumerate(out["settings"]):
+                state = RuntimeState(downsample=d, power_saving=rho)
+                want = {"no_ss": render_view(None, model, cam.scaled(d), None, views.background),
+                        "ss": render_view(None, model, cam, None, views.background),
+                        "controlgs": render_view(cgs, model, cam, state, views.background)}
+                for m, img in want.items():
+                    rendered, eye, p, q = out["rows"][m][s]
+                    assert torch.equal(rendered, img), (m, d)
+                    ref = pipe(img, state, reference=gt).clamp(0, 1)
+                    assert torch.allclose(eye, ref, atol=1e-6) and float(eye.min()) >= 0 and float(eye.max()) <= 1
+                    assert p == pytest.approx(_psnr64(ref, gt), abs=1e-6)
+                    assert q == pytest.approx(float(ssim(ref.double(), gt.double())), abs=1e-6)
+    finally:
+        cgs.unwrap()
+    assert out["rows"]["no_ss"][1][0].shape == (3, 2, 2)  # rendered at 16 / 8
+    one = side_by_side(model, path, cam, gt, settings=[(2, 0.5)], background=views.background)
+    assert one["settings"] == [(2.0, 0.5)] and all(len(v) == 1 for v in one["rows"].values())
+
+
+@needs_builtin_scene
+def test_condition_response_by_hand(adapter_setup):
+    model, views, path = adapter_setup
+    cam, _ = views[0]
+    bg = views.background
+    strips = condition_response(model, path, cam, background=bg)
+    assert ControlGS.attached(model) is None
+    assert list(strips) == ["resample", "display", "lens"]
+    assert [k for k, _ in strips["resample"]] == ["d=1", "d=2", "d=4", "d=8"]
+    assert [k for k, _ in strips["display"]] == ["ρ=0%", "ρ=20%", "ρ=40%", "ρ=60%", "ρ=80%"]
+    assert [k for k, _ in strips["lens"]] == ["off", "on", "|on - off| x 10"]
+    cgs = ControlGS.load(path, model)
+    try:
+        with torch.no_grad():
+            for (_, img), d in zip(strips["resample"], (1.0, 2.0, 4.0, 8.0)):
+                assert torch.equal(img, render_view(cgs, model, cam, RuntimeState(downsample=d), bg, modules=("resample",)))
+            for (_, img), rho in zip(strips["display"], (0.0, 0.2, 0.4, 0.6, 0.8)):
+                assert torch.equal(img, render_view(cgs, model, cam, RuntimeState(power_saving=rho), bg, modules=("display",)))
+            off = render_view(None, model, cam, None, bg)
+            on = render_view(cgs, model, cam, RuntimeState(), bg, modules=("lens",))
+    finally:
+        cgs.unwrap()
+    assert torch.equal(strips["lens"][0][1], off) and torch.equal(strips["lens"][1][1], on)
+    diff = strips["lens"][2][1]
+    assert torch.allclose(diff, ((on - off).abs() * 10).clamp(0, 1)) and float(diff.max()) > 0
+    # the strips differ along d (the adapter is not zero)
+    assert not torch.equal(strips["resample"][0][1], strips["resample"][3][1])
+    assert not torch.equal(strips["display"][0][1], strips["display"][4][1])
+
+
+@needs_builtin_scene
+def test_an_adapter_with_fewer_modules_shows_only_those(adapter_setup, tmp_path: Path):
+    model, views, _ = adapter_setup
+    cgs = ControlGS.wrap(model, modules=("display",), cond_dim=2)
+    path = cgs.save(tmp_path / "d.controlgs.safetensors")
+    cgs.unwrap()
+    strips = condition_response(model, path, views[0][0], background=views.background)
+    assert list(strips) == ["display"]

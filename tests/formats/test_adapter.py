@@ -11,10 +11,12 @@ import pytest
 import torch
 from helpers.adapter_files import rewrite, trained
 from helpers.contextgs_files import PAD, A, _arrays, _decoders, _model, _write_dir
+from helpers.rawfiles import write_raw
 from helpers.scaffold_standin import ScaffoldStandIn
 
 from controlgs_adapter import ControlGS
 from controlgs_adapter.backends.contextgs import ContextGSBackend, load_contextgs_dir
+from controlgs_adapter.controlgs import ADAPTER_KIND
 from controlgs_adapter.errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.adapter import (
     check_header,
@@ -27,6 +29,7 @@ from controlgs_adapter.formats.adapter import (
     valid_fingerprint,
     write_adapter,
 )
+from controlgs_adapter.formats.safetensors import load_tensors
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -157,3 +160,24 @@ def test_row_map_bounds_the_source_index_by_the_saved_rows(tmp_path):
     assert row_map(loaded, backend, {**spec, "valid_fingerprint": 1}) is None
     loaded.source_index = source
     assert row_map(loaded, backend, {**spec, "num_anchors": A - PAD - 1}) is None  # same count: nothing to map
+
+
+# ------------------------------------------------------------------------------ adapter file headers
+HEADER_CASES = [
+    ("format_version true", {"format_version": True}, "format_version.*True"),
+    ("format_version '1'", {"format_version": "1"}, "format_version.*'1'"),
+    ("format_version 0", {"format_version": 0}, "format_version.*0"),
+    ("format_version 1.0", {"format_version": 1.0}, r"format_version.*1\.0"),
+    ("format_version 99", {"format_version": 99}, "format_version 99"),
+    ("header a list", {"raw_header": "[1, 2]"}, "JSON object"),
+    ("header not JSON", {"raw_header": "{oops"}, "corrupt"),
+    ("header deep JSON", {"raw_header": "[" * 100000 + "]" * 100000}, "corrupt"),
+    ("other kind", {"kind": "psf_bank"}, "'psf_bank'"),
+]
+
+
+@pytest.mark.parametrize("kw, pattern", [c[1:] for c in HEADER_CASES], ids=[c[0] for c in HEADER_CASES])
+def test_bad_adapter_file_headers_are_file_format_errors(tmp_path, kw, pattern):
+    p = write_raw(tmp_path / "f.safetensors", {"w": torch.zeros(2)}, {}, **{"kind": ADAPTER_KIND, **kw})
+    with pytest.raises(FileFormatError, match=f"f.safetensors.*{pattern}"):
+        load_tensors(p, kind=ADAPTER_KIND, max_version=1)

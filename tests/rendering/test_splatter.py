@@ -674,3 +674,120 @@ def test_render_is_the_splat_of_the_decoded_gaussians_and_reaches_every_paramete
     for name in ("_offset", "_anchor_feat", "_scaling", "mlp_opacity.0.weight", "mlp_cov.2.bias", "mlp_color.0.weight"):
         p = dict(m.named_parameters())[name]
         assert p.grad is not None and bool(p.grad.abs().sum() > 0), name
+
+
+
+
+# ------------------------------------------------------------------------------ the splatter
+BOTH = [rasterize, rasterize_reference]
+
+
+def _splat_camera(f: float = 20.0, width: int = 24, height: int = 16) -> Camera:
+    """Identity pose, principal point at the image centre."""
+    k = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]], dtype=F64)
+    return Camera(torch.eye(4, dtype=F64), k, width, height)
+
+
+def _closed_form_alpha(cov: torch.Tensor, u0: float, v0: float, o: float, width: int, height: int) -> torch.Tensor:
+    """``[H, W]`` alpha of one Gaussian with 2D covariance ``cov`` (low-pass included) at ``(u0, v0)``:
+    ``o exp(-d^T cov^-1 d / 2)``, zero outside the 3 sqrt(lambda_max) square and below 1/255, clamped at 0.99."""
+    xs = torch.arange(width, dtype=F64) + 0.5 - u0
+    ys = torch.arange(height, dtype=F64) + 0.5 - v0
+    d = torch.stack(torch.broadcast_tensors(xs[None, :], ys[:, None]), dim=-1)  # [H, W, 2]
+    maha = torch.einsum("hwi,ij,hwj->hw", d, torch.linalg.inv(cov), d)
+    alpha = (o * torch.exp(-0.5 * maha)).clamp(max=0.99)
+    r = 3 * math.sqrt(float(torch.linalg.eigvalsh(cov)[-1]))
+    return alpha * (d.abs() <= r).all(-1) * (alpha >= 1 / 255)
+
+
+@pytest.mark.parametrize("fn", BOTH)
+def test_near_plane_is_a_strict_cut_at_0_2(fn) -> None:  # type: ignore[no-untyped-def]
+    cam = _splat_camera()
+    for z, seen in ((0.2, False), (0.2 + 1e-9, True), (0.21, True), (0.19, False)):
+        out = fn(*_one([0.0, 0.0, z], [0.001, 0.001, 0.001], [1.0, 0, 0, 0], 0.9), cam)
+        assert bool(out.visible[0]) is seen, z
+        assert (float(out.alpha.max()) > 0) is seen, z
+
+
+@pytest.mark.parametrize("fn", BOTH)
+def test_jacobian_is_clamped_to_the_widened_frustum(fn) -> None:  # type: ignore[no-untyped-def]
+    """A wide Gaussian whose mean lies outside the image: x/z = 1 and y/z = 0.7 enter the Jacobian clamped
+    to the image widened by 15 % per side, (12 + 0.15 * 24) / 20 = 0.78 and (8 + 0.15 * 16) / 20 = 0.52;
+    ``cov = s^2 (f/z)^2 [[1 + tx^2, tx ty], [tx ty, 1 + ty^2]] + 0.3 I`` (isotropic Sigma = s^2 I)."""
+    cam, f, z, s, o = _splat_camera(), 20.0, 2.0, 0.3, 0.9
+    out = fn(*_one([1.0 * z, 0.7 * z, z], [s, s, s], [1.0, 0, 0, 0], o), cam)
+    tx, ty = 0.78, 0.52
+    g = (s * f / z) ** 2
+    cov = torch.tensor([[g * (1 + tx * tx) + 0.3, g * tx * ty], [g * tx * ty, g * (1 + ty * ty) + 0.3]], dtype=F64)
+    want = _closed_form_alpha(cov, f * 1.0 + 12, f * 0.7 + 8, o, 24, 16)
+    assert int((want > 0).sum()) >= 10 and bool(out.visible[0])  # the footprint reaches into the image
+    torch.testing.assert_close(out.alpha[0], want, rtol=1e-11, atol=1e-12)
+    # the same on the other sides (x/z = -1, y/z = -0.7): the lower limits
+    out = fn(*_one([-1.0 * z, -0.7 * z, z], [s, s, s], [1.0, 0, 0, 0], o), cam)
+    want = _closed_form_alpha(cov, 12 - f * 1.0, 8 - f * 0.7, o, 24, 16)
+    torch.testing.assert_close(out.alpha[0], want, rtol=1e-11, atol=1e-12)
+
+
+@pytest.mark.parametrize("fn", BOTH)
+def test_quaternion_is_w_x_y_z_and_normalised(fn) -> None:  # type: ignore[no-untyped-def]
+    """(cos 45, 0, 0, sin 45) turns the local x axis onto y: the long axis (sx) lies along the image's
+    rows' direction v; times 3 (unnormalised) is the same rotation."""
+    cam, f, z, o = _splat_camera(), 20.0, 2.0, 0.8
+    sx, sy = 0.15, 0.04
+    h = math.sqrt(0.5)
+    want = _closed_form_alpha(torch.tensor([[(sy * f / z) ** 2 + 0.3, 0.0], [0.0, (sx * f / z) ** 2 + 0.3]], dtype=F64),
+                              12.0, 8.0, o, 24, 16)
+    for q in ([h, 0.0, 0.0, h], [3 * h, 0.0, 0.0, 3 * h]):
+        out = fn(*_one([0.0, 0.0, z], [sx, sy, 0.01], q, o), cam)
+        torch.testing.assert_close(out.alpha[0], want, rtol=1e-11, atol=1e-12)
+    # about x by 90 degrees: (cos 45, sin 45, 0, 0) turns local y onto z (depth): only sx shows, along u
+    out = fn(*_one([0.0, 0.0, z], [sx, sy, 0.01], [h, h, 0.0, 0.0], o), cam)
+    want = _closed_form_alpha(torch.tensor([[(sx * f / z) ** 2 + 0.3, 0.0], [0.0, (0.01 * f / z) ** 2 + 0.3]], dtype=F64),
+                              12.0, 8.0, o, 24, 16)
+    torch.testing.assert_close(out.alpha[0], want, rtol=1e-11, atol=1e-12)
+
+
+@pytest.mark.parametrize("fn", BOTH)
+def test_alpha_clamp_and_default_early_termination_by_hand(fn) -> None:  # type: ignore[no-untyped-def]
+    """Three splats centred on pixel (12, 8)'s centre (G = 1 there), opacity 0.9878, at z = 2, 3, 4:
+    alpha 0.9878 each, T after two = 0.0122^2 = 1.4884e-4 >= 1e-4 (drawn), after three 1.8e-6 < 1e-4:
+    the third is not drawn by default; with transmittance_min = 0 it is. Opacity 1 is clamped to 0.99."""
+    cam = _splat_camera()
+    u, v = 12.5, 8.5  # pixel (12, 8)'s centre: x / z = (12.5 - 12) / 20
+    zs = [2.0, 3.0, 4.0]
+    means = torch.tensor([[(u - 12) / 20 * z, (v - 8) / 20 * z, z] for z in zs], dtype=F64)
+    scales = torch.full((3, 3), 0.01, dtype=F64)
+    rot = torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=F64)
+    colors = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
+    a = 0.9878
+    out = fn(means, scales, rot, torch.full((3,), a, dtype=F64), colors, cam)
+    w = [a, a * (1 - a), a * (1 - a) ** 2]
+    assert float(out.color[0, 8, 12]) == pytest.approx(w[0], abs=1e-12)
+    assert float(out.color[1, 8, 12]) == pytest.approx(w[1], abs=1e-12)
+    assert float(out.color[2, 8, 12]) == 0.0  # terminated before the third
+    assert float(out.alpha[0, 8, 12]) == pytest.approx(1 - (1 - a) ** 2, abs=1e-12)
+    assert float(out.depth[0, 8, 12]) == pytest.approx(2 * w[0] + 3 * w[1], abs=1e-11)
+    exact = fn(means, scales, rot, torch.full((3,), a, dtype=F64), colors, cam, transmittance_min=0.0)
+    assert float(exact.color[2, 8, 12]) == pytest.approx(w[2], abs=1e-12)
+    assert float(exact.alpha[0, 8, 12]) == pytest.approx(1 - (1 - a) ** 3, abs=1e-12)
+    # opacity 1: alpha clamped to 0.99, T = 0.01 of the background shows
+    out = fn(means[:1], scales[:1], rot[:1], torch.ones(1, dtype=F64), colors[:1], cam,
+             torch.tensor([0.0, 0.0, 1.0], dtype=F64))
+    assert float(out.alpha[0, 8, 12]) == pytest.approx(0.99, abs=1e-12)
+    assert float(out.color[2, 8, 12]) == pytest.approx(0.01, abs=1e-12)  # 1 % of the blue background shows
+
+
+def test_opacity_exactly_at_the_clamp_keeps_its_gradient() -> None:
+    """Opacity 0.99 centred on a pixel centre: alpha = 0.99 there exactly (G = 1), on the clamp's kink. As
+    ``torch.clamp`` (the reference), the clamp passes the gradient at equality: d alpha / d o = G = 1; only
+    an alpha above 0.99 is frozen (zero gradient)."""
+    cam = _splat_camera(f=20.0, width=16, height=16)  # principal point (8, 8): pixel (8, 8)'s centre is x / z = 0.5 / 20
+    z = 2.0
+    for o, want in ((0.99, 1.0), (0.995, 0.0)):
+        for fn in BOTH:
+            op = torch.tensor([o], dtype=F64, requires_grad=True)
+            g = _one([0.5 / 20 * z, 0.5 / 20 * z, z], [0.05] * 3, [1.0, 0, 0, 0], o)
+            out = fn(g[0], g[1], g[2], op, g[4], cam)
+            assert float(out.alpha[0, 8, 8].detach()) == pytest.approx(0.99, abs=1e-14)
+            (grad,) = torch.autograd.grad(out.alpha[0, 8, 8], op)
+            assert float(grad) == pytest.approx(want, abs=1e-12), (fn.__name__, o)

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from helpers.scaffold_cameras import scaffold_camera
 import torch
 from helpers.anchor_oracle import camera_centre, oblique_camera, visible64
 from helpers.scaffold_oracle import camera_looking_down_z, decode_by_hand
@@ -23,7 +24,7 @@ from controlgs_adapter.state import Camera
 from controlgs_adapter.training import TrainConfig, Trainer
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-D = torch.float64
+D = F64 = torch.float64
 
 
 def _random_model(a=20, f=8, k=4, seed=0, **opts) -> NeuralGaussianModel:
@@ -522,3 +523,22 @@ def test_trainer_seconds_is_zero_before_training_then_the_wall_time_of_train():
         assert t.iteration == 1 and 0.0 < t.seconds <= wall
     finally:
         t.cgs.unwrap()
+
+
+# ------------------------------------------------------------------------------ Camera.from_scaffold
+def test_the_cameras_uid_picks_the_appearance_code():
+    """A Scaffold-GS camera's ``uid`` travels in ``Camera.extra`` and selects the reference model's
+    appearance embedding (another uid decodes other colours)."""
+    cam = Camera.from_scaffold(scaffold_camera(32, 24, 1.0, 0.8, uid=3))
+    torch.manual_seed(0)
+    model = NeuralGaussianModel(6, feat_dim=8, n_offsets=2, appearance_dim=4, num_cameras=5)
+    with torch.no_grad():
+        model._anchor.copy_(torch.randn(6, 3) * 0.3)
+        model._anchor_feat.copy_(torch.randn(6, 8))
+        model.embedding_appearance.embedding.weight.copy_(torch.randn(5, 4) * 3)
+        model.mlp_opacity[2].bias.fill_(5.0)  # every Gaussian kept
+    want = model.decode(Camera(cam.world_to_camera, cam.intrinsics, 32, 24, {"uid": 3})).colors
+    code0 = model.decode(Camera(cam.world_to_camera, cam.intrinsics, 32, 24)).colors
+    got = model.decode(cam).colors
+    assert torch.equal(got, want)
+    assert (got - code0).abs().max() > 1e-2  # the code matters: uid 0 would decode other colours
