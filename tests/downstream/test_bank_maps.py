@@ -1,5 +1,6 @@
 """Tests of ``controlgs_adapter.downstream.bank_maps``: the pre-warp maps tied to a PSF bank. The display
-LUT map (its tables, evaluation over the image region, cache, mode choice, file format and refusals),
+LUT map (its tables, evaluation over the image region, tables fitted at several display sizes served by
+pixel pitch, cache, mode choice, file format and refusals),
 the chief-ray map, the bank fingerprint, and both compensating the optics: the dots of an image land
 where they were rendered."""
 

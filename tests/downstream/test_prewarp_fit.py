@@ -1,7 +1,7 @@
 """Tests of ``controlgs_adapter.downstream.prewarp_fit``: training a learned pre-warp through the pipeline
 (the paper's loss and recipe, baking), and fitting a bank's display pre-warp table through the optics
 (centroids measured by brute force, the flat-field gain, the map beyond the measured pixels, refusals),
-with its helpers checked by hand."""
+with its helpers checked on worked-out values."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ import pytest
 import torch
 
 from controlgs_adapter.downstream.color import primaries_to_rgb_matrix, rgb_to_primaries_matrix
-from controlgs_adapter.downstream.lens import BankMap, LensPrewarp, LUTMap, bank_fingerprint, chief_ray_grid, pixel_grid
+from controlgs_adapter.downstream.lens import BankMap, DisplayLUTMap, LensPrewarp, LUTMap, bank_fingerprint, chief_ray_grid, pixel_grid
 from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.downstream.optics.stage import PSFOptics
 from controlgs_adapter.downstream.pipeline import Pipeline
-from controlgs_adapter.downstream.prewarp_fit import _fill_invalid, _psf_centroids, _reach, fit_bank_prewarp, fit_prewarp
+from controlgs_adapter.downstream.prewarp_fit import FIT_SIZES, _fill_invalid, _psf_centroids, _reach, fit_bank_prewarp, fit_prewarp
 from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.losses import image_loss
@@ -221,6 +221,36 @@ def test_exact_mode_fit_measures_centroids_and_flattens_by_brute_force():
     assert float(gain.min()) > 1.0  # brightens everywhere against the fall-off
 
 
+def test_fit_bank_prewarp_fits_a_table_per_display_size():
+    """Several sizes: one table per size and mode, each the single-size fit's; the largest is the main
+    table (``size``, ``meta["size"]``); the residuals of every size are kept. Repeated or too small sizes, and
+    a pool that does not divide every size, are refused."""
+    optics = PSFOptics(mode="distortion")
+    lut = fit_bank_prewarp(optics, [32, 16], modes=("distortion",), gain_iterations=1)
+    assert (lut.size, lut.sizes, lut.meta["size"], lut.meta["sizes"]) == (32, {"distortion": (16, 32)}, [32, 32], [16, 32])
+    assert sorted(lut.meta["residuals_by_size"]) == ["16", "32"] and lut.meta["residuals"] == lut.meta["residuals_by_size"]["32"]
+    for n, sfx in ((16, "_16"), (32, "")):
+        alone = fit_bank_prewarp(optics, n, modes=("distortion",), gain_iterations=1)
+        assert alone.sizes == {"distortion": (n,)} and "sizes" not in alone.meta
+        assert torch.equal(getattr(lut, f"displacement_distortion{sfx}"), alone.displacement_distortion)
+        assert torch.equal(getattr(lut, f"gain_distortion{sfx}"), alone.gain_distortion)
+    for size in ([16, 16], [], [16, 7]):
+        with pytest.raises(InputValueError, match=r"size must be an int >= 8 or a sequence of different ones, got \["):
+            fit_bank_prewarp(optics, size)
+    with pytest.raises(InputValueError, match=r"pool must be an int >= 1 dividing size into >= 4 samples \(size \[16, 18\]\), got 4"):
+        fit_bank_prewarp(optics, [16, 18], pool=4)
+
+
+def test_the_shipped_lut_holds_a_table_per_fitted_size_for_the_shipped_bank():
+    """The LUT shipped for the Cardboard bank (its fingerprint) has distortion and exact tables at every
+    default fit size (64 to 256 px, pooled 2 x 2: 128 x 128 samples at 256 px, 32 x 32 at 64 px)."""
+    assert FIT_SIZES == (64, 96, 128, 192, 256)
+    lut = LensPrewarp.for_optics(PSFOptics(mode="exact")).map
+    assert isinstance(lut, DisplayLUTMap) and lut.meta["bank"] == bank_fingerprint(PSFBank.default())
+    assert lut.sizes == {"distortion": FIT_SIZES, "exact": FIT_SIZES} and lut.meta["pool"] == 2
+    assert lut.displacement_exact.shape == (3, 128, 128, 2) and lut.displacement_exact_64.shape == (3, 32, 32, 2)
+
+
 def test_fit_continues_the_measured_residual_beyond_the_psf_centroids_where_the_frame_cuts_the_light():
     """Where a display pixel's light leaves the eye frame its centroid cannot be measured, and the map there
     is the chief ray plus the bank PSF's own centroid offset plus the *measured* discretisation residual
@@ -244,7 +274,7 @@ def test_fit_continues_the_measured_residual_beyond_the_psf_centroids_where_the_
 
 
 # ----------------------------------------------------------------------------- helpers of the fit
-def test_fill_invalid_by_hand_and_nothing_measured():
+def test_fill_invalid_spreads_the_measured_values_outwards():
     """3 x 3, valid (0, 0) = 1 and (0, 2) = 3. Round 1 (3 x 3 means of valid neighbours): (0, 1) = 2,
     (1, 0) = 1, (1, 1) = 2, (1, 2) = 3; round 2: (2, 0) = (1 + 2) / 2, (2, 1) = (1 + 2 + 3) / 3, (2, 2) = 2.5;
     an invalid pixel's value is never used; channels and components are filled independently."""
@@ -287,7 +317,7 @@ def test_psf_centroids_are_the_bilinear_first_moments_of_the_field_psfs():
     assert float(c.abs().max()) > 1e-4  # the moments are not all zero (coma off axis)
 
 
-def test_reach_of_a_display_pixels_light_by_hand():
+def test_reach_of_a_display_pixels_light():
     """Exact mode: 1.5 x the PSF window's half-width (33 // 2 + 0.5 = 16.5 samples at the bank's pitch) over
     the 12 mm half display, at the 30 field samples (the pixel centres of a 30-pixel grid); distortion mode:
     3 / min(H, W) everywhere."""
@@ -298,39 +328,3 @@ def test_reach_of_a_display_pixels_light_by_hand():
     assert torch.allclose(reach, 1.5 * bank.psf_pitch_mm.double() * 16.5 / 12.0, rtol=1e-5)
     dist = _reach("distortion", bank, pixel_grid((30, 40), D), D)
     assert dist.shape == (3, 30, 40) and float(dist.min()) == float(dist.max()) == 0.1
-
-
-def test_fit_bank_prewarp_fits_a_table_per_display_size():
-    """Several sizes: one table per size and mode, each the single-size fit's; the largest is the main
-    table (``size``, ``meta["size"]``); the residuals of every size are kept."""
-    from controlgs_adapter.downstream.optics.stage import PSFOptics
-    from controlgs_adapter.downstream.prewarp_fit import FIT_SIZES, fit_bank_prewarp
-    from controlgs_adapter.errors import InputValueError
-
-    optics = PSFOptics(mode="distortion")
-    lut = fit_bank_prewarp(optics, [32, 16], modes=("distortion",), gain_iterations=1)
-    assert (lut.size, lut.sizes, lut.meta["size"], lut.meta["sizes"]) == (32, {"distortion": (16, 32)}, [32, 32], [16, 32])
-    assert sorted(lut.meta["residuals_by_size"]) == ["16", "32"] and lut.meta["residuals"] == lut.meta["residuals_by_size"]["32"]
-    for n, sfx in ((16, "_16"), (32, "")):
-        alone = fit_bank_prewarp(optics, n, modes=("distortion",), gain_iterations=1)
-        assert alone.sizes == {"distortion": (n,)} and "sizes" not in alone.meta
-        assert torch.equal(getattr(lut, f"displacement_distortion{sfx}"), alone.displacement_distortion)
-        assert torch.equal(getattr(lut, f"gain_distortion{sfx}"), alone.gain_distortion)
-    assert FIT_SIZES == (64, 96, 128, 192, 256)
-    for size in ([16, 16], [], [16, 7]):
-        with pytest.raises(InputValueError, match="size must be an int >= 8 or a sequence of different ones"):
-            fit_bank_prewarp(optics, size)
-    with pytest.raises(InputValueError, match=r"pool must be an int >= 1 dividing size into >= 4 samples \(size \[16, 18\]\), got 4"):
-        fit_bank_prewarp(optics, [16, 18], pool=4)
-
-
-def test_the_shipped_lut_holds_a_table_per_fitted_size_for_the_shipped_bank():
-    from controlgs_adapter.downstream.lens import DisplayLUTMap, LensPrewarp, bank_fingerprint
-    from controlgs_adapter.downstream.optics.bank import PSFBank
-    from controlgs_adapter.downstream.optics.stage import PSFOptics
-    from controlgs_adapter.downstream.prewarp_fit import FIT_SIZES
-
-    lut = LensPrewarp.for_optics(PSFOptics(mode="exact")).map
-    assert isinstance(lut, DisplayLUTMap) and lut.meta["bank"] == bank_fingerprint(PSFBank.default())
-    assert lut.sizes == {"distortion": FIT_SIZES, "exact": FIT_SIZES} and lut.meta["pool"] == 2
-    assert lut.displacement_exact.shape == (3, 128, 128, 2) and lut.displacement_exact_64.shape == (3, 32, 32, 2)

@@ -22,7 +22,8 @@ from controlgs_adapter.downstream.resample import AreaResample, area_resample
 
 def _lens(stage: LensPrewarp) -> dict[str, Any]:
     def twin(x, s, c):
-        return lens_prewarp(x, *stage.map(tuple(x.shape[-2:]), x.dtype, x.device), basis=stage.basis)
+        return lens_prewarp(x, *stage.map(tuple(x.shape[-2:]), x.dtype, x.device), basis=stage.basis,
+                            supersample=stage.supersample)
 
     return dict(stage=stage, functional=twin)
 
@@ -47,6 +48,7 @@ CASES: dict[str, list[tuple[str, Callable[[], dict[str, Any]]]]] = {
         ("lens-cardboard-primaries", lambda: _lens(LensPrewarp())),
         ("lens-cardboard-rgb", lambda: _lens(LensPrewarp(basis="rgb"))),
         ("lens-display-lut", lambda: _lens(_display_lut())),
+        ("lens-supersampled", lambda: _lens(LensPrewarp(basis="rgb", supersample=2))),
         ("lens-identity-map", lambda: {**_lens(LensPrewarp(coefficients=[[0.0]] * 3)), "off_state": RuntimeState()}),
     ],
     "resample": [

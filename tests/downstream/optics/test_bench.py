@@ -106,7 +106,7 @@ def test_bench_ratio_tables():
     assert bench._ratio_lines([]) == []
 
 
-def test_bench_report_tables_by_hand(tmp_path):
+def test_bench_report_tables(tmp_path):
     rows = [dict(size="8x8", radiometry="radiance", op="tables", knob="-", resample_s=1.0, resample_cpu=2.0,
                  exact_s=3.0, exact_cpu=4.0, fast_s={0.02: 0.5}, fast_cpu={0.02: 0.25}),
             dict(size="8x8", radiometry="radiance", op="fast", knob="tol=0.02, zone=5", fwd_s=0.125, fwd_cpu=0.25,

@@ -99,7 +99,7 @@ def test_pure_magnification_gives_a_uniform_flat_field_analytically():
 
 def test_vignetting_is_the_traced_transmission_blended_where_the_light_arrives():
     """A distortion-free bank with transmission falling towards the edge: a flat field equals the
-    bilinear interpolation of the transmission at the output pixel centres (computed here by hand);
+    bilinear interpolation of the transmission at the output pixel centres (computed here);
     the energy form has no vignetting."""
     G, S = 5, 30
     f = -1 + (2 * torch.arange(G, dtype=D64) + 1) / G

@@ -22,7 +22,7 @@ def _is_7_smooth(m: int) -> bool:
     return m == 1
 
 
-def test_fast_fft_lengths_by_hand():
+def test_fast_fft_lengths():
     # 11 -> 12 = 2^2 3; 13 -> 14 = 2 7; 97 (prime) -> 98 = 2 7^2; 121 = 11^2 -> 125 = 5^3 (122 = 2 61,
     # 123 = 3 41, 124 = 4 31); smooth numbers stay
     assert [fast_len(n) for n in (1, 8, 11, 13, 97, 121, 210)] == [1, 8, 12, 14, 98, 125, 210]
@@ -31,7 +31,7 @@ def test_fast_fft_lengths_by_hand():
 def test_ladder_len_rounds_up_to_a_coarse_ladder_of_fast_fft_sizes():
     """``ladder_len`` docstring: ``n`` rounded up to a coarse ladder of fast FFT sizes (factors 2, 3, 5, 7),
     in steps of ~12 %, so nearby lengths share one size; the ladder starts at 8 (every n <= 8 gives 8) and
-    pads at most 20 % above it (10 -> 12). By hand, from 8 by steps of 1.12: 8, 8.96 -> 9, 10.04 -> 11 -> 12,
+    pads at most 20 % above it (10 -> 12). From 8 by steps of 1.12: 8, 8.96 -> 9, 10.04 -> 11 -> 12,
     11.24 -> 12 (kept once), 12.59 -> 13 -> 14, 14.10 -> 15, 15.79 -> 16, 17.68 -> 18, 19.81 -> 20. Up to 16384
     a ladder growing by 1.12 per step from 1 has at most log(16384) / log(1.12) + 1 ~ 86.6 rungs, far fewer than
     the 400 fast sizes (brute force); beyond the ladder (2^16) it is the next fast size."""

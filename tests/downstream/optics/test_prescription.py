@@ -1,5 +1,5 @@
 """Tests of ``controlgs_adapter.downstream.optics.prescription``: a lens prescription is checked (every
-refusal names the field and the value), copied and frozen; the Cardboard geometry by hand; the Cauchy
+refusal names the field and the value), copied and frozen; the Cardboard geometry; the Cauchy
 dispersion law against its defining conditions and catalogue data."""
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def test_bad_prescriptions_are_refused_by_name(spec, match):
         Prescription(spec)
 
 
-def test_cardboard_geometry_by_hand():
+def test_cardboard_geometry():
     rx = Prescription.cardboard()
     assert rx.display_mm == (24.0, 24.0) and rx.pupil_radius == 2.0 and rx.image_distance == 667.0
     assert rx.object_distance == 39.07 and rx.wavelengths == (656.0, 550.0, 486.0) and rx.reference_wavelength == 550.0
@@ -115,7 +115,7 @@ def test_cauchy_index_meets_the_abbe_number_definition(nd, vd):
 
 def test_cauchy_index_against_catalogue_data():
     """PMMA: within 5e-5 of a Buchdahl fit at 486 / 550 / 656 nm. N-BK7: two-term Cauchy through the
-    two conditions, solved by hand: B = 0.5168 / 64.17 / (1/0.48613^2 - 1/0.65627^2) = 0.00421731 um^2,
+    two conditions, solved here: B = 0.5168 / 64.17 / (1/0.48613^2 - 1/0.65627^2) = 0.00421731 um^2,
     A = 1.5168 - B / 0.58756^2 = 1.504584, n(550) = A + B / 0.55^2 = 1.518525; within 6e-5 of the SCHOTT
     catalogue's Sellmeier formula (B1..3, C1..3 in um^2) from F to C (3e-6 at 550 nm)."""
     for lam, n in ((486.0, 1.49799), (550.0, 1.49383), (656.0, 1.48940)):

@@ -195,7 +195,7 @@ def test_plane_parallel_slab_displaces_rays_and_clips_at_its_semi_diameter():
             assert abs(X - (exit_x + u * (rx.image_z - (d + 5.0)))).max() < 1e-9
 
 
-def test_slab_paraxial_image_by_hand():
+def test_slab_paraxial_image_is_the_apparent_depth():
     """A plane-parallel slab has no power: magnification 1; the display is seen at
     object distance + t / n + the air gap from the pupil (apparent depth of the slab)."""
     glass = {"nd": 1.6, "vd": 40.0}

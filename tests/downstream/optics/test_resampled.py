@@ -19,7 +19,7 @@ D64 = torch.float64
 
 
 # ----------------------------------------------------------------------------- geometric helpers
-def test_box_matrix_by_hand():
+def test_box_matrix_splits_cells_between_taps():
     """Cells of half an output pixel, K = 5 (centres -1 .. 1 px), taps -1 .. 1: a cell centred on a
     tap edge splits in half between its two taps."""
     got = R._box_matrix(torch.tensor([0.5], dtype=D64), 5, 1)[0]
@@ -28,7 +28,7 @@ def test_box_matrix_by_hand():
     assert torch.allclose(R._box_matrix(torch.tensor([1.0], dtype=D64), 3, 1)[0], torch.eye(3, dtype=D64))
 
 
-def test_mean_relu_and_pixel_overlaps_by_hand():
+def test_mean_relu_and_pixel_overlaps():
     g0 = torch.tensor([-1.0, 1.0, -3.0, 2.0, -1.0, 3.0], dtype=D64)
     g1 = torch.tensor([1.0, 3.0, -1.0, 2.0, 3.0, -1.0], dtype=D64)
     # mean of max(g, 0) over a line: 1/4; 2; 0; 2; triangle 3 * 3 / 2 over 4 = 9/8; the same reversed
