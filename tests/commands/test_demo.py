@@ -5,12 +5,8 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 import time
-import types
 from pathlib import Path
-from typing import Any, Callable
 
 import pytest
 import torch
@@ -20,19 +16,10 @@ from safetensors.torch import load_file
 from controlgs_adapter import cli
 from controlgs_adapter.cli import main
 from controlgs_adapter.commands.demo import seed_runs
-from controlgs_adapter.errors import ControlGSError, InputValueError, RunLockedError
+from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.evaluation import GridResult
-from controlgs_adapter.lock import run_lock
-from controlgs_adapter.report import markdown_tables
 
-ROOT = Path(__file__).resolve().parents[2]
 GRID = ((1.0, 2.0, 4.0, 8.0), (0.0, 0.2, 0.4, 0.6, 0.8))
-
-
-def _seed_result(seed: int, values: dict[str, float]) -> GridResult:
-    """Every view and cell of a method holds one known PSNR (so its overall mean is that number)."""
-    per_view = {m: {"psnr": torch.full((4, 5, 2), v, dtype=torch.float64)} for m, v in values.items()}
-    return GridResult(*GRID, per_view, info={"seed": seed})
 
 
 # ----------------------------------------------------------------------------- options
@@ -40,10 +27,6 @@ def _seed_result(seed: int, values: dict[str, float]) -> GridResult:
 def test_demo_defaults() -> None:
     d = cli.build_parser().parse_args(["demo"])
     assert (d.out, d.ablations, d.iterations, d.resolution, d.variant) == ("report", True, 1000, None, "ar")
-
-
-def test_commands_are_registered_in_order() -> None:
-    assert cli.COMMANDS == ("plugins", "optics", "scene", "backbone", "train", "eval", "demo", "bench", "view")
 
 
 @pytest.mark.parametrize("option, value", [("--iterations", "-1"), ("--seed", "-1"), ("--lr", "nan"),
@@ -126,72 +109,4 @@ def test_demo_with_two_seeds(tmp_path, monkeypatch, capsys):
 
 # ----------------------------------------------------------------------------- pooling seeds, the run-folder lock and optional packages
 
-def test_pooled_seeds_must_hold_the_same_methods() -> None:
-    with pytest.raises(InputValueError, match="pooled"):
-        markdown_tables([_seed_result(0, {"ss": 1.0}), _seed_result(1, {"controlgs": 1.0})])
 
-
-#: a process that holds a run folder's lock for two minutes
-_HOLDER = """
-import sys, time
-from controlgs_adapter.lock import run_lock
-with run_lock(sys.argv[1]):
-    print("held", flush=True)
-    time.sleep(120)
-"""
-
-
-def _raises(fn: Callable[[], Any], error: type[BaseException] | tuple[type[BaseException], ...], *names: str) -> str:
-    """Call ``fn``; it must raise ``error`` (a ControlGSError) whose message holds every one of ``names``."""
-    with pytest.raises(error) as info:
-        fn()
-    assert isinstance(info.value, ControlGSError), type(info.value)
-    msg = str(info.value)
-    for n in names:
-        assert n in msg, f"{n!r} not in {msg!r}"
-    return msg
-
-
-def test_run_folder_lock_refuses_a_second_process_naming_the_holder(tmp_path, capsys):
-    run = tmp_path / "run"
-    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(run)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
-    try:
-        assert holder.stdout.readline().strip() == "held"
-        msg = _raises(lambda: run_lock(run).__enter__(), RunLockedError, str(run), f"pid {holder.pid}")
-        assert "since" in msg
-        assert main(["demo", "--out", str(run)]) == 2  # the CLI too: one line naming the holder
-        line = error_line(capsys, "demo")
-        assert f"pid {holder.pid}" in line
-        second = subprocess.run([sys.executable, "-c", _HOLDER, str(run)], capture_output=True, text=True, cwd=ROOT,
-                                timeout=120)
-        assert second.returncode != 0 and f"pid {holder.pid}" in second.stderr
-    finally:
-        holder.kill()  # SIGKILL: the kernel drops the lock, the stale .lock file does not block
-        holder.wait()
-    with run_lock(run):
-        assert json.loads((run / ".lock").read_text())["pid"] == os.getpid()
-
-
-_DEMO_HINT = "which is not installed: pip install 'controlgs-adapter[demo]'"
-
-
-@pytest.mark.parametrize("stand_in", [types.ModuleType, None], ids=["no-file", "no-import"])
-@pytest.mark.parametrize("argv,blocked,purpose,missing", [
-    (["demo"], "skimage", "controlgs demo (the built-in scene and the report's plots)", "scikit-image"),
-    (["optics", "bench"], "skimage", "controlgs optics bench (the optics benchmark's test image and plot)",
-     "scikit-image"),
-    (["scene", "export"], "skimage", "controlgs scene export (exporting the built-in scene's views as PNG)",
-     "scikit-image"),
-    (["eval", "--run", "RUN"], "matplotlib", "controlgs eval (the report's plots)", "matplotlib"),
-    (["demo"], "matplotlib", "controlgs demo (the built-in scene and the report's plots)", "matplotlib"),
-])
-def test_a_missing_extra_is_refused_before_any_work(tmp_path, monkeypatch, capsys, argv, blocked, purpose, missing,
-                                                    stand_in):
-    """A package that does not import, or a stand-in module without a file (extras.py), counts as missing: the
-    command stops before its work naming the extra to install."""
-    monkeypatch.setitem(sys.modules, blocked, None if stand_in is None else stand_in(blocked))
-    out = tmp_path / "out"
-    argv = [str(tmp_path / "run") if a == "RUN" else a for a in argv] + ["--out", str(out)]
-    assert main(argv) == 2
-    assert error_line(capsys, argv[0]) == f"{purpose} needs {missing}, {_DEMO_HINT}"
-    assert not out.exists()

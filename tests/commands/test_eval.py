@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import sys
 import time
-import types
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +16,6 @@ import torch
 from helpers.cli_runs import MARKER_MODULE, error_line, needs_backbone, snapshot, timings_within, untrained_run
 
 import controlgs_adapter.commands.eval as eval_command
-import controlgs_adapter.report as report_module
 from controlgs_adapter import cli
 from controlgs_adapter.cli import main
 from controlgs_adapter.commands.eval import seed_folders
@@ -254,38 +252,4 @@ def test_eval_of_a_built_in_run(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 # ----------------------------------------------------------------------------- optional packages
 
-def test_eval_needs_matplotlib_only(capsys, monkeypatch, tmp_path):
-    """eval's entry in the table of optional packages names matplotlib alone: without scikit-image it goes on to
-    its own check of the run folder; optics figures needs neither."""
-    for stand_in in (types.ModuleType("skimage"), None):  # a module without a file, or one that does not import
-        monkeypatch.setitem(sys.modules, "skimage", stand_in)
-        assert main(["eval", "--run", str(tmp_path / "no-run"), "--out", str(tmp_path / "out")]) == 2
-        line = error_line(capsys, "eval")
-        assert "scikit-image" not in line and "no-run" in line, line
-    assert main(["eval", "--run", str(tmp_path)]) == 2
-    assert error_line(capsys, "eval") == (f"{tmp_path}: no controlgs.controlgs.safetensors (train one with "
-                                          f"`controlgs train --out {tmp_path}`)")
-    # optics figures needs neither
-    assert main(["optics", "figures", "--prescription", str(tmp_path / "none.json")]) == 2
-    assert error_line(capsys, "optics") == f"--prescription {tmp_path / 'none.json'}: no such file"
-    monkeypatch.setitem(sys.modules, "matplotlib", types.ModuleType("matplotlib"))
-    assert main(["eval", "--run", str(tmp_path)]) == 2
-    assert error_line(capsys, "eval").startswith("controlgs eval (the report's plots) needs matplotlib")
 
-
-def test_cli_import_errors_outside_the_table_are_one_line(tmp_path, monkeypatch, capsys):
-    """A package missing at the command's own import (not in REQUIRES) and a broken install (a name
-    missing from a module) each end in one line and exit code 2, never a traceback."""
-    pytest.importorskip("matplotlib")
-    argv = ["eval", "--run", str(tmp_path / "run"), "--out", str(tmp_path / "out")]
-    with monkeypatch.context() as mp:
-        mp.setitem(sys.modules, "controlgs_adapter.report", None)
-        assert main(argv) == 2
-    err = capsys.readouterr().err
-    assert err == ("controlgs eval: error: needs the Python package 'controlgs_adapter.report', which is not installed "
-                   "(pip install 'controlgs-adapter[demo]' installs the optional ones)\n"), err
-    monkeypatch.delattr(report_module, "write_report")
-    assert main(argv) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("controlgs eval: error: cannot import name 'write_report' from 'controlgs_adapter.report'"), err
-    assert err.endswith(" (pip install 'controlgs-adapter[demo]' installs the optional ones)\n") and err.count("\n") == 1

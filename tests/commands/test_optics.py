@@ -8,8 +8,6 @@ import errno
 import json
 import re
 import shlex
-import sys
-import types
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +16,6 @@ from helpers.banks import tiny_bank
 from helpers.cli_runs import error_line
 
 from controlgs_adapter import cli
-from controlgs_adapter._version import __version__
 from controlgs_adapter.cli import main
 from controlgs_adapter.downstream.optics.bank import PSFBank
 
@@ -177,28 +174,4 @@ def test_a_full_disk_is_one_line_and_leaves_no_partial_file(tmp_path, capsys, mo
 
 # ----------------------------------------------------------------------------- the command line's own errors
 
-def test_main_help_version_and_errors(capsys, tmp_path):
-    assert main([]) == 0 and "usage: controlgs" in capsys.readouterr().out
-    with pytest.raises(SystemExit) as e:
-        main(["--version"])
-    assert e.value.code == 0
-    assert capsys.readouterr().out.strip() == f"controlgs-adapter {__version__}"
-    # an OSError (an unreadable file) is one line naming its type, exit 2
-    if Path("/proc/self/mem").is_file():
-        assert main(["optics", "figures", "--prescription", "/proc/self/mem"]) == 2
-        assert error_line(capsys, "optics").startswith("OSError: ")
 
-
-def test_main_missing_module_is_one_line(capsys, monkeypatch):
-    # a module that cannot be imported: the package named, with the extra to install
-    monkeypatch.setitem(sys.modules, "controlgs_adapter.downstream.optics.generate", None)
-    assert main(["optics", "figures"]) == 2
-    msg = error_line(capsys, "optics")
-    assert msg == ("needs the Python package 'controlgs_adapter.downstream.optics.generate', which is not installed "
-                   "(pip install 'controlgs-adapter[demo]' installs the optional ones)")
-    # another ImportError (a name missing from a module): its own message on one line
-    monkeypatch.setitem(sys.modules, "controlgs_adapter.downstream.optics.generate", types.ModuleType("standin"))
-    assert main(["optics", "figures"]) == 2
-    msg = error_line(capsys, "optics")
-    assert msg == ("cannot import name 'lens_figures' from 'standin' (unknown location) (pip install "
-                   "'controlgs-adapter[demo]' installs the optional ones)")

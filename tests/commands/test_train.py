@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -17,12 +18,13 @@ from pathlib import Path
 import pytest
 import torch
 from helpers.cli_runs import FAST, MODEL, error_line, needs_backbone, snapshot, write_tiny_colmap
+from helpers.progress import record_bars
 from helpers.scene_writers import write_blender, write_colmap, write_instant_ngp
 from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 import controlgs_adapter.formats.safetensors as st
-from controlgs_adapter import cli
+from controlgs_adapter import cli, training
 from controlgs_adapter.cli import main
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND
 from controlgs_adapter.datasets.detect import FORMATS
@@ -174,13 +176,6 @@ def test_a_refused_option_writes_nothing(tmp_path: Path, data: Path, capsys: pyt
     line = error_line(capsys, "train")
     assert line.startswith(f"{option} ") and value in line, line
     assert not new.exists()  # no folder, no lock file, no run.json
-
-
-def test_an_error_message_with_a_newline_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """torch's message repeats the raw device string: the CLI still prints one line."""
-    assert main(["train", "--model", "m", "--data", "d", "--out", str(tmp_path / "r"), "--device", "cu\nda"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("controlgs train: error: --device 'cu\\nda': "), err
 
 
 @pytest.mark.parametrize("command", ["train", "eval"])
@@ -577,3 +572,18 @@ def test_a_count_beyond_int64_is_one_line(tmp_path: Path, data: Path, capsys: py
     line = error_line(capsys, "train")
     assert line.startswith(f"{option} must be an integer in ") and "401 digits" in line, line
     assert not new.exists()
+
+
+def test_train_with_seeds_and_ablations_names_each_bar(tmp_path, monkeypatch):
+    """``controlgs train --seeds 2 --ablation wo_lens``: four trainings, each bar titled with its place in the
+    job, its method and seed, and showing the whole job's time left."""
+    from controlgs_adapter.cli import main
+
+    bars = record_bars(monkeypatch, training)
+    assert main(["train", "--out", str(tmp_path / "run"), "--resolution", "16", "--iterations", "2", "--seeds", "2",
+                 "--ablation", "wo_lens", "--effects", "resample,display", "--checkpoint-every", "0"]) == 0
+    assert [b.desc for b in bars] == ["[1/4] training ControlGS, seed 0", "[2/4] training w/o Lens, seed 0",
+                                      "[3/4] training ControlGS, seed 1", "[4/4] training w/o Lens, seed 1"]
+    assert all(b.total == b.n == 2 and b.closed for b in bars)
+    lefts = [p["total left"] for b in bars for p in b.postfixes]
+    assert len(lefts) == 8 and all(re.fullmatch(r"~\d+s", v) for v in lefts), lefts

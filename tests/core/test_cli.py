@@ -8,15 +8,19 @@ import argparse
 import functools
 import subprocess
 import sys
+import types
 import warnings
 from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.cli_runs import error_line
 
+import controlgs_adapter.report as report_module
 from controlgs_adapter import cli
+from controlgs_adapter._version import __version__
+from controlgs_adapter.cli import main
 from controlgs_adapter.commands import plugins as plugins_command
-from controlgs_adapter.errors import warn_user
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -370,25 +374,101 @@ def test_a_caller_recording_warnings_still_gets_them(monkeypatch, capsys):
     assert capsys.readouterr().err == ""
 
 
-def test_warn_user_skips_only_the_librarys_own_folders():
-    from controlgs_adapter.errors import _OWN, _between
-
-    assert any(p.endswith("controlgs_adapter/") for p in _OWN)
-    assert _between(cli.__file__) and not _between(__file__)
+def test_commands_are_registered_in_order() -> None:
+    assert cli.COMMANDS == ("plugins", "optics", "scene", "backbone", "train", "eval", "demo", "bench", "view")
 
 
-def test_library_warnings_land_on_the_users_line():
-    from controlgs_adapter.downstream.optics.stage import PSFOptics
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        PSFOptics(stretch=True)
-    assert [w.category for w in caught] == [DeprecationWarning] and caught[0].filename == __file__
+_DEMO_HINT = "which is not installed: pip install 'controlgs-adapter[demo]'"
 
 
-@pytest.mark.parametrize("category", [RuntimeWarning, UserWarning])
-def test_warn_user_keeps_the_category(category):
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        warn_user("x", category)
-    assert caught[0].category is category and caught[0].filename == __file__
+@pytest.mark.parametrize("stand_in", [types.ModuleType, None], ids=["no-file", "no-import"])
+@pytest.mark.parametrize("argv,blocked,purpose,missing", [
+    (["demo"], "skimage", "controlgs demo (the built-in scene and the report's plots)", "scikit-image"),
+    (["optics", "bench"], "skimage", "controlgs optics bench (the optics benchmark's test image and plot)",
+     "scikit-image"),
+    (["scene", "export"], "skimage", "controlgs scene export (exporting the built-in scene's views as PNG)",
+     "scikit-image"),
+    (["eval", "--run", "RUN"], "matplotlib", "controlgs eval (the report's plots)", "matplotlib"),
+    (["demo"], "matplotlib", "controlgs demo (the built-in scene and the report's plots)", "matplotlib"),
+])
+def test_a_missing_extra_is_refused_before_any_work(tmp_path, monkeypatch, capsys, argv, blocked, purpose, missing,
+                                                    stand_in):
+    """A package that does not import, or a stand-in module without a file (extras.py), counts as missing: the
+    command stops before its work naming the extra to install."""
+    monkeypatch.setitem(sys.modules, blocked, None if stand_in is None else stand_in(blocked))
+    out = tmp_path / "out"
+    argv = [str(tmp_path / "run") if a == "RUN" else a for a in argv] + ["--out", str(out)]
+    assert main(argv) == 2
+    assert error_line(capsys, argv[0]) == f"{purpose} needs {missing}, {_DEMO_HINT}"
+    assert not out.exists()
+
+
+def test_eval_needs_matplotlib_only(capsys, monkeypatch, tmp_path):
+    """eval's entry in the table of optional packages names matplotlib alone: without scikit-image it goes on to
+    its own check of the run folder; optics figures needs neither."""
+    for stand_in in (types.ModuleType("skimage"), None):  # a module without a file, or one that does not import
+        monkeypatch.setitem(sys.modules, "skimage", stand_in)
+        assert main(["eval", "--run", str(tmp_path / "no-run"), "--out", str(tmp_path / "out")]) == 2
+        line = error_line(capsys, "eval")
+        assert "scikit-image" not in line and "no-run" in line, line
+    assert main(["eval", "--run", str(tmp_path)]) == 2
+    assert error_line(capsys, "eval") == (f"{tmp_path}: no controlgs.controlgs.safetensors (train one with "
+                                          f"`controlgs train --out {tmp_path}`)")
+    # optics figures needs neither
+    assert main(["optics", "figures", "--prescription", str(tmp_path / "none.json")]) == 2
+    assert error_line(capsys, "optics") == f"--prescription {tmp_path / 'none.json'}: no such file"
+    monkeypatch.setitem(sys.modules, "matplotlib", types.ModuleType("matplotlib"))
+    assert main(["eval", "--run", str(tmp_path)]) == 2
+    assert error_line(capsys, "eval").startswith("controlgs eval (the report's plots) needs matplotlib")
+
+
+def test_cli_import_errors_outside_the_table_are_one_line(tmp_path, monkeypatch, capsys):
+    """A package missing at the command's own import (not in REQUIRES) and a broken install (a name
+    missing from a module) each end in one line and exit code 2, never a traceback."""
+    pytest.importorskip("matplotlib")
+    argv = ["eval", "--run", str(tmp_path / "run"), "--out", str(tmp_path / "out")]
+    with monkeypatch.context() as mp:
+        mp.setitem(sys.modules, "controlgs_adapter.report", None)
+        assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == ("controlgs eval: error: needs the Python package 'controlgs_adapter.report', which is not installed "
+                   "(pip install 'controlgs-adapter[demo]' installs the optional ones)\n"), err
+    monkeypatch.delattr(report_module, "write_report")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("controlgs eval: error: cannot import name 'write_report' from 'controlgs_adapter.report'"), err
+    assert err.endswith(" (pip install 'controlgs-adapter[demo]' installs the optional ones)\n") and err.count("\n") == 1
+
+
+def test_main_help_version_and_errors(capsys, tmp_path):
+    assert main([]) == 0 and "usage: controlgs" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"controlgs-adapter {__version__}"
+    # an OSError (an unreadable file) is one line naming its type, exit 2
+    if Path("/proc/self/mem").is_file():
+        assert main(["optics", "figures", "--prescription", "/proc/self/mem"]) == 2
+        assert error_line(capsys, "optics").startswith("OSError: ")
+
+
+def test_main_missing_module_is_one_line(capsys, monkeypatch):
+    # a module that cannot be imported: the package named, with the extra to install
+    monkeypatch.setitem(sys.modules, "controlgs_adapter.downstream.optics.generate", None)
+    assert main(["optics", "figures"]) == 2
+    msg = error_line(capsys, "optics")
+    assert msg == ("needs the Python package 'controlgs_adapter.downstream.optics.generate', which is not installed "
+                   "(pip install 'controlgs-adapter[demo]' installs the optional ones)")
+    # another ImportError (a name missing from a module): its own message on one line
+    monkeypatch.setitem(sys.modules, "controlgs_adapter.downstream.optics.generate", types.ModuleType("standin"))
+    assert main(["optics", "figures"]) == 2
+    msg = error_line(capsys, "optics")
+    assert msg == ("cannot import name 'lens_figures' from 'standin' (unknown location) (pip install "
+                   "'controlgs-adapter[demo]' installs the optional ones)")
+
+
+def test_an_error_message_with_a_newline_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """torch's message repeats the raw device string: the CLI still prints one line."""
+    assert main(["train", "--model", "m", "--data", "d", "--out", str(tmp_path / "r"), "--device", "cu\nda"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("controlgs train: error: --device 'cu\\nda': "), err

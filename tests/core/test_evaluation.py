@@ -15,7 +15,7 @@ from helpers.grid_results import DOWNSAMPLE, POWER_SAVING, PSNR, grid_result
 from helpers.lpips_weights import random_lpips_weights
 from helpers.progress import record_bars
 
-from controlgs_adapter import ControlGS, RuntimeState, evaluation
+from controlgs_adapter import ControlGS, RuntimeState, evaluation, plugins
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import InputValueError
@@ -353,30 +353,6 @@ def test_grid_result_from_json_refuses_what_is_not_one():
         GridResult.from_json(flat)
 
 
-# ------------------------------------------------------------------------------ seeds (the demo's evaluation)
-def test_evaluate_seeds_shares_the_baselines(adapter_setup, tmp_path):
-    from controlgs_adapter.commands.demo import evaluate_seeds, report_figures
-
-    model, views, path = adapter_setup
-    zero = ControlGS.wrap(model, cond_dim=4)
-    zpath = zero.save(tmp_path / "zero.controlgs.safetensors")
-    zero.unwrap()
-    kw = dict(downsample=(2.0,), power_saving=(0.6,), extra_metrics=False, progress=False, effects=CHEAP)
-    runs = evaluate_seeds(model, views, {4: {"controlgs": path}, 7: {"controlgs": zpath}}, **kw)
-    assert [r.info["seed"] for r in runs] == [4, 7] and [r.methods for r in runs] == [["no_ss", "ss", IDEAL, "controlgs"]] * 2
-    for m in ("no_ss", "ss", IDEAL):  # evaluated once, the same numbers in both seeds
-        assert runs[1].per_view[m] is runs[0].per_view[m]
-    # each seed's own adapter: the zero one renders as the backbone (SS), the other does not
-    assert torch.equal(runs[1].per_view["controlgs"]["psnr"], runs[0].per_view["ss"]["psnr"])
-    assert not torch.equal(runs[0].per_view["controlgs"]["psnr"], runs[0].per_view["ss"]["psnr"])
-    alone = evaluate_grid(model, views, {"controlgs": path}, **kw)
-    assert torch.equal(alone.per_view["controlgs"]["psnr"], runs[0].per_view["controlgs"]["psnr"])
-    comparison, response = report_figures(model, path, views, effects=CHEAP, optics_mode="fast")
-    cam, gt = views[0]
-    assert torch.equal(comparison["gt"], gt) and list(response) == ["resample", "display", "lens"]
-    assert torch.equal(response["lens"][0][1], render_view(None, model, cam, None, views.background))
-
-
 needs_builtin_scene = pytest.mark.skipif(find_spec("skimage") is None,
                                          reason="the built-in scene's textures come from scikit-image")
 
@@ -539,3 +515,34 @@ def test_an_adapter_with_fewer_modules_shows_only_those(adapter_setup, tmp_path:
     cgs.unwrap()
     strips = condition_response(model, path, views[0][0], background=views.background)
     assert list(strips) == ["display"]
+
+
+def test_make_pipeline_sets_each_optics_mode():
+    if "optics" not in plugins.stages():
+        pytest.skip("optics stage not registered")
+    for mode in ("distortion", "fast", "exact"):
+        assert make_pipeline({"optics": True}, mode)["optics"].mode == mode
+
+
+# ------------------------------------------------------------------------------ seeds (the demo's evaluation)
+def test_evaluate_seeds_shares_the_baselines(adapter_setup, tmp_path):
+    from controlgs_adapter.commands.demo import evaluate_seeds, report_figures
+
+    model, views, path = adapter_setup
+    zero = ControlGS.wrap(model, cond_dim=4)
+    zpath = zero.save(tmp_path / "zero.controlgs.safetensors")
+    zero.unwrap()
+    kw = dict(downsample=(2.0,), power_saving=(0.6,), extra_metrics=False, progress=False, effects=CHEAP)
+    runs = evaluate_seeds(model, views, {4: {"controlgs": path}, 7: {"controlgs": zpath}}, **kw)
+    assert [r.info["seed"] for r in runs] == [4, 7] and [r.methods for r in runs] == [["no_ss", "ss", IDEAL, "controlgs"]] * 2
+    for m in ("no_ss", "ss", IDEAL):  # evaluated once, the same numbers in both seeds
+        assert runs[1].per_view[m] is runs[0].per_view[m]
+    # each seed's own adapter: the zero one renders as the backbone (SS), the other does not
+    assert torch.equal(runs[1].per_view["controlgs"]["psnr"], runs[0].per_view["ss"]["psnr"])
+    assert not torch.equal(runs[0].per_view["controlgs"]["psnr"], runs[0].per_view["ss"]["psnr"])
+    alone = evaluate_grid(model, views, {"controlgs": path}, **kw)
+    assert torch.equal(alone.per_view["controlgs"]["psnr"], runs[0].per_view["controlgs"]["psnr"])
+    comparison, response = report_figures(model, path, views, effects=CHEAP, optics_mode="fast")
+    cam, gt = views[0]
+    assert torch.equal(comparison["gt"], gt) and list(response) == ["resample", "display", "lens"]
+    assert torch.equal(response["lens"][0][1], render_view(None, model, cam, None, views.background))

@@ -8,13 +8,18 @@ import fcntl
 import json
 import os
 import re
+import subprocess
+import sys
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import pytest
+from helpers.cli_runs import error_line
 
 from controlgs_adapter import lock
-from controlgs_adapter.errors import FileWriteError, RunLockedError
+from controlgs_adapter.cli import main
+from controlgs_adapter.errors import ControlGSError, FileWriteError, RunLockedError
 from controlgs_adapter.lock import LOCK_NAME, lock_holder, run_lock
 
 
@@ -76,3 +81,47 @@ def test_a_foreign_or_unreadable_holder_is_described(tmp_path: Path) -> None:
     assert lock_holder(folder) is None
     assert "unreadable" in lock._describe(None)
     assert lock._describe({"pid": 5, "host": "h", "time": "x"}) == "pid 5 on h since ? (?)"
+
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+#: a process that holds a run folder's lock for two minutes
+_HOLDER = """
+import sys, time
+from controlgs_adapter.lock import run_lock
+with run_lock(sys.argv[1]):
+    print("held", flush=True)
+    time.sleep(120)
+"""
+
+
+def _raises(fn: Callable[[], Any], error: type[BaseException] | tuple[type[BaseException], ...], *names: str) -> str:
+    """Call ``fn``; it must raise ``error`` (a ControlGSError) whose message holds every one of ``names``."""
+    with pytest.raises(error) as info:
+        fn()
+    assert isinstance(info.value, ControlGSError), type(info.value)
+    msg = str(info.value)
+    for n in names:
+        assert n in msg, f"{n!r} not in {msg!r}"
+    return msg
+
+
+def test_run_folder_lock_refuses_a_second_process_naming_the_holder(tmp_path, capsys):
+    run = tmp_path / "run"
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(run)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        msg = _raises(lambda: run_lock(run).__enter__(), RunLockedError, str(run), f"pid {holder.pid}")
+        assert "since" in msg
+        assert main(["demo", "--out", str(run)]) == 2  # the CLI too: one line naming the holder
+        line = error_line(capsys, "demo")
+        assert f"pid {holder.pid}" in line
+        second = subprocess.run([sys.executable, "-c", _HOLDER, str(run)], capture_output=True, text=True, cwd=ROOT,
+                                timeout=120)
+        assert second.returncode != 0 and f"pid {holder.pid}" in second.stderr
+    finally:
+        holder.kill()  # SIGKILL: the kernel drops the lock, the stale .lock file does not block
+        holder.wait()
+    with run_lock(run):
+        assert json.loads((run / ".lock").read_text())["pid"] == os.getpid()

@@ -17,18 +17,10 @@ from controlgs_adapter import plugins
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.downstream.stage import Stage
 from controlgs_adapter.errors import NoMatchingBackendError, PluginLoadError
-from controlgs_adapter.evaluation import make_pipeline
 from controlgs_adapter.hookspecs import hookimpl
 from controlgs_adapter.plugins import _describe
 from controlgs_adapter.rendering.rasterizers import Rasterizer, TorchSplatter, rasterize_gaussians
 from controlgs_adapter.state import Camera
-
-
-def test_make_pipeline_sets_each_optics_mode():
-    if "optics" not in plugins.stages():
-        pytest.skip("optics stage not registered")
-    for mode in ("distortion", "fast", "exact"):
-        assert make_pipeline({"optics": True}, mode)["optics"].mode == mode
 
 
 def test_stages_are_plain_modules_with_functional_twins():

@@ -20,6 +20,9 @@ from typing import Any
 import pytest
 
 import controlgs_adapter
+from controlgs_adapter.losses import LossWeights
+from controlgs_adapter.state import RuntimeState
+from controlgs_adapter.training import TrainConfig, Trainer
 
 SNAPSHOT = Path(__file__).with_name("public_api.txt")
 UPDATE = "CONTROLGS_UPDATE_API_SNAPSHOT"
@@ -136,3 +139,25 @@ def test_names_load_on_first_use() -> None:
             "assert 'controlgs_adapter.controlgs' not in sys.modules; "
             "c.TrainConfig; assert 'controlgs_adapter.training' in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_every_public_name_resolves() -> None:
+    import controlgs_adapter
+    from controlgs_adapter.evaluation import GridResult
+
+    for name in controlgs_adapter.__all__:
+        assert getattr(controlgs_adapter, name) is not None, name
+    assert controlgs_adapter.Trainer is Trainer and controlgs_adapter.GridResult is GridResult
+    assert issubclass(controlgs_adapter.StateRangeError, controlgs_adapter.StateError)
+
+
+def test_value_objects_are_frozen():
+    from controlgs_adapter.controlgs import Target
+    from controlgs_adapter.plugins import PluginInfo
+
+    objs = [(LossWeights(), "l1"), (RuntimeState(), "downsample"), (TrainConfig(), "lr"),
+            (Target("d", "d.0", 3, 4, False), "fc1"), (PluginInfo("stage", "n", "p", "s", None), "name")]
+    for obj, field in objs:
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(obj, field, 1)
+    assert hash(LossWeights()) == hash(LossWeights(0.8, 0.2, 10.0, 0.0))  # frozen dataclasses hash by value

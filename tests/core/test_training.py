@@ -11,6 +11,7 @@ import math
 import os
 import re
 import sys
+import time
 import traceback
 from pathlib import Path
 from typing import Any
@@ -18,11 +19,10 @@ from typing import Any
 import pytest
 import torch
 import torch.distributed as dist
-from helpers.progress import record_bars
 from helpers.rawfiles import write_raw
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from controlgs_adapter import training
+from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.controlgs import ControlGS
 from controlgs_adapter.datasets.memory import posed_images
 from controlgs_adapter.distributed import DistContext
@@ -32,6 +32,7 @@ from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND
 from controlgs_adapter.formats.safetensors import load_tensors
 from controlgs_adapter.losses import LossWeights, image_loss
 from controlgs_adapter.rendering.protocol import FunctionRenderer, ModelRenderer, render_view
+from controlgs_adapter.scene import load_builtin_scene
 from controlgs_adapter.state import Camera, RuntimeState
 from controlgs_adapter.training import (
     DEFAULT_EFFECTS,
@@ -415,6 +416,8 @@ def test_training_step_host_syncs(tiny):
     t = _trainer(tiny, iterations=3, psf_fraction=0.34)
     try:
         t.step()
+        for i in range(len(t.views)):  # steady state: a view's image is checked (one sync) on its first read only
+            t.load_view(i)
         with _HostSyncs() as mode:
             t.step()
     finally:
@@ -858,33 +861,75 @@ def test_a_job_titles_its_trainings_and_estimates_the_whole_job():
         assert job.remaining_text() == text
 
 
-def test_train_with_seeds_and_ablations_names_each_bar(tmp_path, monkeypatch):
-    """``controlgs train --seeds 2 --ablation wo_lens``: four trainings, each bar titled with its place in the
-    job, its method and seed, and showing the whole job's time left."""
-    from controlgs_adapter.cli import main
-
-    bars = record_bars(monkeypatch, training)
-    assert main(["train", "--out", str(tmp_path / "run"), "--resolution", "16", "--iterations", "2", "--seeds", "2",
-                 "--ablation", "wo_lens", "--effects", "resample,display", "--checkpoint-every", "0"]) == 0
-    assert [b.desc for b in bars] == ["[1/4] training ControlGS, seed 0", "[2/4] training w/o Lens, seed 0",
-                                      "[3/4] training ControlGS, seed 1", "[4/4] training w/o Lens, seed 1"]
-    assert all(b.total == b.n == 2 and b.closed for b in bars)
-    lefts = [p["total left"] for b in bars for p in b.postfixes]
-    assert len(lefts) == 8 and all(re.fullmatch(r"~\d+s", v) for v in lefts), lefts
-
-
-def test_every_public_name_resolves() -> None:
-    import controlgs_adapter
-    from controlgs_adapter.evaluation import GridResult
-
-    for name in controlgs_adapter.__all__:
-        assert getattr(controlgs_adapter, name) is not None, name
-    assert controlgs_adapter.Trainer is Trainer and controlgs_adapter.GridResult is GridResult
-    assert issubclass(controlgs_adapter.StateRangeError, controlgs_adapter.StateError)
-
-
 @pytest.mark.parametrize("name", ["iterations", "cond_dim", "checkpoint_every", "batch_size"])
 def test_train_config_counts_fit_int64(name: str) -> None:
     with pytest.raises(InputValueError, match=f"TrainConfig.{name} must be an integer in"):
         TrainConfig(**{name: 10**400})
     assert getattr(TrainConfig(**{name: 2**40}), name) == 2**40
+
+
+D = F64 = torch.float64
+
+
+# ------------------------------------------------------------------- the trainer on the reference model
+def test_trainer_samples_states_from_the_configured_ranges_by_hand():
+    """max_downsample / max_power_saving / seed off their defaults: each draw is (randint view,
+    d = max_d ** u0, rho = max_rho * u1) from the seeded generator, as the docstring says."""
+    pytest.importorskip("skimage")
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=2)
+    views = scene.views("train")
+    config = TrainConfig(iterations=1, checkpoint_every=0, max_downsample=3.0, max_power_saving=0.5, seed=11)
+    t = Trainer(model.eval(), views, config, effects={"resample": True, "display": True})
+    try:
+        g = torch.Generator().manual_seed(11)
+        for _ in range(50):
+            view = int(torch.randint(len(views), (1,), generator=g))
+            u = torch.rand(2, generator=g, dtype=D)
+            got_view, state = t.sample()
+            assert got_view == view
+            assert state.downsample == pytest.approx(3.0 ** float(u[0]), rel=1e-12)
+            assert state.power_saving == pytest.approx(0.5 * float(u[1]), rel=1e-12)
+    finally:
+        t.cgs.unwrap()
+
+
+def test_a_trainer_starts_in_its_first_iterations_optics_mode():
+    """Before any step the pipeline's optics stage is in iteration 0's mode (``distortion`` while
+    ``psf_fraction`` leaves iterations to it), and the switch to ``psf_mode`` comes at its iteration."""
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    torch.manual_seed(0)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=5)
+    effects = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
+    config = TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.5, psf_mode="exact")
+    t = Trainer(model.eval(), scene.views("train"), config, effects=effects)
+    try:
+        assert [t.optics_mode(i) for i in (0, 1)] == ["distortion", "exact"]
+        assert t.pipeline["optics"].mode == "distortion"
+        t.step()
+        assert t.pipeline["optics"].mode == "distortion"
+        t.step()
+        assert t.pipeline["optics"].mode == "exact"
+    finally:
+        t.cgs.unwrap()
+
+
+def test_trainer_seconds_is_zero_before_training_then_the_wall_time_of_train():
+    """``Trainer`` docstring: ``seconds`` is the wall time of the last ``train()`` call, 0.0 before the
+    first; after ``train()`` it lies between 0 and the wall time measured around the call."""
+    pytest.importorskip("skimage")
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
+    xyz, rgb = scene.points(0.25)
+    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=2)
+    t = Trainer(model.eval(), scene.views("train"), TrainConfig(iterations=1, checkpoint_every=0),
+                effects={"resample": True})
+    try:
+        assert t.seconds == 0.0 and t.iteration == 0
+        t0 = time.perf_counter()
+        t.train(progress=False)
+        wall = time.perf_counter() - t0
+        assert t.iteration == 1 and 0.0 < t.seconds <= wall
+    finally:
+        t.cgs.unwrap()

@@ -673,3 +673,20 @@ def test_viewer_renders_with_the_optics_mode_of_the_state(small: Any) -> None:
             assert ss["metrics"][k] == pytest.approx(float(grid.per_view["ss"][k][0, 0, 0]), abs=1e-9), (mode, k)
         eyes[mode] = ss["eye"]
     assert eyes["distortion"] != eyes["fast"]
+
+
+def test_session_info(small: Any) -> None:
+    """``info()`` lists the views, the methods (baselines, then the adapters; an adapter without a label of
+    its own shows its name), stages, optics modes, defaults, ranges and device."""
+    session, _ = small
+    info = session.info()
+    assert info["name"] == "tiny" and info["views"] == [f"test view 0 ({SIZE}x{SIZE})"]
+    assert [m["name"] for m in info["methods"]] == ["no_ss", "ss", "controlgs", "blind", "fov"]
+    assert info["methods"][3] == {"name": "blind", "label": "blind"}
+    assert info["stages"] == list(STAGES) and info["optics_modes"] == list(OPTICS_MODES)
+    assert info["defaults"] == ViewState().to_json() and info["diff_gain"] == 2.0
+    assert info["ranges"] == {"downsample": (1.0, 8.0), "power_saving": (0.0, 0.8), "azimuth": (-180.0, 180.0),
+                              "elevation": (-80.0, 80.0)}
+    assert info["orbit_truth"] is True and info["device"] == "cpu"
+    assert info["extra_metrics"] == list(session.extra_metrics)
+

@@ -5,13 +5,12 @@ nearest-neighbour spacing behind its default voxel size."""
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
-from helpers.scaffold_cameras import scaffold_camera
 import torch
 from helpers.anchor_oracle import camera_centre, oblique_camera, visible64
+from helpers.scaffold_cameras import scaffold_camera
 from helpers.scaffold_oracle import camera_looking_down_z, decode_by_hand
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -19,12 +18,10 @@ from torch import nn
 
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel, _knn_sq_dists, median_spacing
 from controlgs_adapter.errors import InputValueError, ShapeError
-from controlgs_adapter.scene import load_builtin_scene
+from controlgs_adapter.rendering.splatter import rasterize
 from controlgs_adapter.state import Camera
-from controlgs_adapter.training import TrainConfig, Trainer
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-D = F64 = torch.float64
 
 
 def _random_model(a=20, f=8, k=4, seed=0, **opts) -> NeuralGaussianModel:
@@ -461,70 +458,6 @@ def test_median_spacing_of_a_cloud_past_2_24_points():
     assert median_spacing(pts, samples=2) == 0.5
 
 
-# ------------------------------------------------------------------- the trainer on the reference model
-def test_trainer_samples_states_from_the_configured_ranges_by_hand():
-    """max_downsample / max_power_saving / seed off their defaults: each draw is (randint view,
-    d = max_d ** u0, rho = max_rho * u1) from the seeded generator, as the docstring says."""
-    pytest.importorskip("skimage")
-    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
-    xyz, rgb = scene.points(0.25)
-    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=2)
-    views = scene.views("train")
-    config = TrainConfig(iterations=1, checkpoint_every=0, max_downsample=3.0, max_power_saving=0.5, seed=11)
-    t = Trainer(model.eval(), views, config, effects={"resample": True, "display": True})
-    try:
-        g = torch.Generator().manual_seed(11)
-        for _ in range(50):
-            view = int(torch.randint(len(views), (1,), generator=g))
-            u = torch.rand(2, generator=g, dtype=D)
-            got_view, state = t.sample()
-            assert got_view == view
-            assert state.downsample == pytest.approx(3.0 ** float(u[0]), rel=1e-12)
-            assert state.power_saving == pytest.approx(0.5 * float(u[1]), rel=1e-12)
-    finally:
-        t.cgs.unwrap()
-
-
-def test_a_trainer_starts_in_its_first_iterations_optics_mode():
-    """Before any step the pipeline's optics stage is in iteration 0's mode (``distortion`` while
-    ``psf_fraction`` leaves iterations to it), and the switch to ``psf_mode`` comes at its iteration."""
-    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
-    torch.manual_seed(0)
-    xyz, rgb = scene.points(0.25)
-    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=5)
-    effects = {"lens": True, "resample": True, "display": True, "oled": True, "optics": {"mode": "distortion"}}
-    config = TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.5, psf_mode="exact")
-    t = Trainer(model.eval(), scene.views("train"), config, effects=effects)
-    try:
-        assert [t.optics_mode(i) for i in (0, 1)] == ["distortion", "exact"]
-        assert t.pipeline["optics"].mode == "distortion"
-        t.step()
-        assert t.pipeline["optics"].mode == "distortion"
-        t.step()
-        assert t.pipeline["optics"].mode == "exact"
-    finally:
-        t.cgs.unwrap()
-
-
-def test_trainer_seconds_is_zero_before_training_then_the_wall_time_of_train():
-    """``Trainer`` docstring: ``seconds`` is the wall time of the last ``train()`` call, 0.0 before the
-    first; after ``train()`` it lies between 0 and the wall time measured around the call."""
-    pytest.importorskip("skimage")
-    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=2)
-    xyz, rgb = scene.points(0.25)
-    model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=2)
-    t = Trainer(model.eval(), scene.views("train"), TrainConfig(iterations=1, checkpoint_every=0),
-                effects={"resample": True})
-    try:
-        assert t.seconds == 0.0 and t.iteration == 0
-        t0 = time.perf_counter()
-        t.train(progress=False)
-        wall = time.perf_counter() - t0
-        assert t.iteration == 1 and 0.0 < t.seconds <= wall
-    finally:
-        t.cgs.unwrap()
-
-
 # ------------------------------------------------------------------------------ Camera.from_scaffold
 def test_the_cameras_uid_picks_the_appearance_code():
     """A Scaffold-GS camera's ``uid`` travels in ``Camera.extra`` and selects the reference model's
@@ -542,3 +475,16 @@ def test_the_cameras_uid_picks_the_appearance_code():
     got = model.decode(cam).colors
     assert torch.equal(got, want)
     assert (got - code0).abs().max() > 1e-2  # the code matters: uid 0 would decode other colours
+
+
+def test_render_is_the_splat_of_the_decoded_gaussians_and_reaches_every_parameter():
+    m = _random_model(12, 8, 3)
+    cam = camera_looking_down_z(size=20, f=20.0)
+    out = m.render(cam, background=torch.tensor([0.2, 0.3, 0.4]))
+    g = m.decode(cam, m.visible_anchors(cam))
+    ref = rasterize(g.means, g.scales, g.rotations, g.opacities, g.colors, cam, torch.tensor([0.2, 0.3, 0.4]))
+    assert out.color.shape == (3, 20, 20) and torch.equal(out.color, ref.color)
+    out.color.sum().backward()
+    for name in ("_offset", "_anchor_feat", "_scaling", "mlp_opacity.0.weight", "mlp_cov.2.bias", "mlp_color.0.weight"):
+        p = dict(m.named_parameters())[name]
+        assert p.grad is not None and bool(p.grad.abs().sum() > 0), name
