@@ -219,7 +219,7 @@ def test_lens_prewarp_refuses_bad_inputs_by_name():
 def test_constructors_and_defaults():
     """The default lens is the Cardboard radial map warping the display primaries; ``radial`` gives fixed or
     learnable coefficients; a map and coefficients together, or an unknown basis, are refused; baking keeps
-    the basis."""
+    the basis; a lens on the CPU warps an image on another device there."""
     fixed = LensPrewarp.radial([[0.1], [0.1], [0.1]])
     assert isinstance(fixed.map, RadialMap) and not fixed.map.coefficients.requires_grad
     assert fixed.basis == "primaries" and LensPrewarp().basis == "primaries"
@@ -232,6 +232,7 @@ def test_constructors_and_defaults():
         LensPrewarp(basis="xyz")  # type: ignore[arg-type]
     assert LensPrewarp(basis="rgb").bake((4, 4)).basis == "rgb"
     assert LensPrewarp().bake((4, 4)).basis == "primaries"
+    assert LensPrewarp(basis="rgb")(torch.ones(3, 4, 4, device="meta")).device.type == "meta"   # made on the image's device
 
 
 def test_a_trainable_lens_is_skipped_only_outside_training():

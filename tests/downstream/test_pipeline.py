@@ -321,8 +321,11 @@ def test_what_is_off_or_identity_costs_nothing():
     r = Pipeline([b, a, c]).double()
     assert r.active(RuntimeState()) == ["a", "b"]
     _CALLS.clear()
-    eye, rec = r.run_recorded(torch.tensor([0.2, 0.5, 0.9], dtype=D)[:, None, None].expand(3, 2, 2))
+    image = torch.tensor([0.2, 0.5, 0.9], dtype=D)[:, None, None].expand(3, 2, 2)
+    eye, rec = r.run_recorded(image)
     assert _CALLS == ["a", "b"] and rec["stages_run"] == ["a", "b"]  # c is the identity: not called
+    assert torch.allclose(eye, linear_to_srgb(srgb_to_linear(image) * 6.0), atol=1e-12)
+    assert torch.equal(rec["post"], eye) and torch.equal(rec["displayed"], eye) and torch.equal(rec["rendered"], image)
 
 
 def test_recorded_intermediates():

@@ -14,6 +14,7 @@ import torch
 from controlgs_adapter.downstream.optics import bench
 from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.downstream.optics.operators import psf_distortion, psf_exact, psf_fast
+from controlgs_adapter.errors import InputValueError
 
 
 def test_parse_size():
@@ -168,8 +169,7 @@ def test_bench_figure_lines_labels_and_exact_marker():
 @pytest.mark.parametrize("kw, name", [(dict(repeat=0), "repeat"), (dict(repeat=-1), "repeat"), (dict(zone=0), "zone"),
                                       (dict(threads=0), "threads"), (dict(threads=10**40), "threads")])
 def test_run_refuses_bad_counts_before_timing(kw, name, capsys):
-    from controlgs_adapter.errors import InputValueError
-
+    """Counts below 1 (and threads beyond the limit) are refused naming the option, before anything is printed."""
     with pytest.raises(InputValueError, match=f"^{name} must be an integer in "):
         bench.run(sizes=[8], **kw)
     assert capsys.readouterr().out == ""
