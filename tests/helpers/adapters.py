@@ -1,4 +1,4 @@
-"""Shared test helpers: adapters."""
+"""Adapters with random (non-zero) conditions, so that ControlGS differs from the SS-backbone in tests of what renders it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Shared test helpers: banks."""
+"""Small PSF banks for the optics tests: a tiny Gaussian bank and a synthetic bank with known, shift-variant kernels."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Shared test helpers: fake plugins."""
+"""Installed plug-ins faked without installing anything: distributions and entry points that the plug-in manager discovers."""
 
 from __future__ import annotations
 

@@ -9,6 +9,8 @@ import importlib.util
 from types import SimpleNamespace
 from typing import Any
 
+import math
+
 import pytest
 import torch
 from helpers.render_stubs import Renders, small_camera
@@ -161,6 +163,23 @@ def test_an_image_of_another_dtype_is_refused_naming_the_renderer(model: Any, im
     with pytest.raises(InputValueError, match=rf"renderer FunctionRenderer\(.*my_render\) returned a {image_dtype} image; "
                                               rf"expected {wanted}"):
         render_view(None, model, CAM, None, renderer=_returns(torch.zeros(3, 2, 5, dtype=image_dtype)))
+
+
+@pytest.mark.parametrize("value, count", [(math.nan, 1), (math.inf, 1), (-math.inf, 1), ("all-nan", 30)])
+def test_a_non_finite_image_is_refused_naming_the_renderer(value: Any, count: int) -> None:
+    image = torch.rand(3, 2, 5)
+    if value == "all-nan":
+        image.fill_(math.nan)
+    else:
+        image[1, 1, 3] = value
+    with pytest.raises(InputValueError, match=rf"renderer FunctionRenderer\(.*my_render\) returned an image with {count} "
+                                              r"non-finite value"):
+        render_view(None, nn.Linear(2, 2), CAM, None, renderer=_returns(image))
+
+
+def test_a_sparse_image_is_refused_naming_the_renderer() -> None:
+    with pytest.raises(InputValueError, match=r"renderer FunctionRenderer\(.*my_render\) returned a torch.sparse_coo image"):
+        render_view(None, nn.Linear(2, 2), CAM, None, renderer=_returns(torch.rand(3, 2, 5).to_sparse()))
 
 
 @pytest.mark.parametrize("model, image_dtype", [(nn.Linear(2, 2), torch.float32), (nn.Linear(2, 2).double(), torch.float64),
