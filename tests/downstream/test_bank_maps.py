@@ -90,7 +90,7 @@ def test_display_lut_map_table_choice():
     optics = _Optics()
     assert DisplayLUTMap({"distortion": (disp, gain), "exact": other}).follow(optics).table_mode() == "exact"
     only_distortion = DisplayLUTMap({"distortion": (disp, gain)}).follow(optics)
-    with pytest.raises(InputValueError, match=r"tables for \('distortion',\), not for optics mode 'fast'"):
+    with pytest.raises(InputValueError, match=r"\('distortion',\).*'fast'"):
         only_distortion.table_mode()
     fast = DisplayLUTMap({"fast": (disp, gain), "exact": other}, mode="fast")
     assert fast.table_mode() == "fast"  # its own fast table wins over the exact one
@@ -135,15 +135,15 @@ def test_display_lut_file_round_trip_version_and_refusals(tmp_path):
     with pytest.raises(FileFormatError, match="newer.safetensors.*newer than this library reads"):
         DisplayLUTMap.load(newer)
     no_modes = save_tensors(tmp_path / "no_modes.safetensors", {"gain_exact": gain.float()}, {}, format_version=1, **kind)
-    with pytest.raises(FileFormatError, match="no_modes.safetensors: display LUT header lacks its modes"):
+    with pytest.raises(FileFormatError, match="no_modes.safetensors.*modes"):
         DisplayLUTMap.load(no_modes)
     lacking = save_tensors(tmp_path / "lacking.safetensors", {"gain_exact": gain.float()}, {"modes": ["exact"]},
                            format_version=1, **kind)
-    with pytest.raises(FileFormatError, match=r"lacking.safetensors: display LUT lacks \['displacement_exact'\]"):
+    with pytest.raises(FileFormatError, match=r"lacking.safetensors.*\['displacement_exact'\]"):
         DisplayLUTMap.load(lacking)
     bad = save_tensors(tmp_path / "bad.safetensors", {"displacement_exact": disp[:, :1].float(), "gain_exact": gain[:, :1].float()},
                        {"modes": ["exact"]}, format_version=1, **kind)
-    with pytest.raises(FileFormatError, match="bad.safetensors: table 'exact' needs at least 2x2"):
+    with pytest.raises(FileFormatError, match="bad.safetensors.*'exact'.*2x2"):
         DisplayLUTMap.load(bad)
     (tmp_path / "nonsense.safetensors").write_bytes(b"nonsense")
     with pytest.raises(FileFormatError, match="nonsense.safetensors"):
@@ -341,7 +341,7 @@ def test_tables_of_several_sizes_round_trip_and_are_checked(tmp_path):
         DisplayLUTMap({"exact": (disp, gain)}, sizes={"exact": {16: (disp, gain)}})
     with pytest.raises(InputValueError, match="sizes needs .* a table of the same mode"):
         DisplayLUTMap({"exact": (disp, gain)}, size=32, sizes={"distortion": {16: (disp, gain)}})
-    with pytest.raises(InputValueError, match=r"sizes\['exact'\] keys must be ints >= 1 other than size=32, got 32"):
+    with pytest.raises(InputValueError, match=r"sizes\['exact'\].*size=32, got 32"):
         DisplayLUTMap({"exact": (disp, gain)}, size=32, sizes={"exact": {32: (disp, gain)}})
     with pytest.raises(InputValueError, match="size must be an int >= 1"):
         DisplayLUTMap({"exact": (disp, gain)}, size=0)
@@ -350,11 +350,11 @@ def test_tables_of_several_sizes_round_trip_and_are_checked(tmp_path):
     kind = {"kind": DISPLAY_LUT_KIND, "format_version": 1}
     lacking = save_tensors(tmp_path / "lacking.safetensors", {"displacement_exact": disp, "gain_exact": gain},
                            {"modes": ["exact"], "size": 32, "sizes": {"exact": [16]}}, **kind)
-    with pytest.raises(FileFormatError, match=r"lacking.safetensors: display LUT lacks \['displacement_exact_16', 'gain_exact_16'\]"):
+    with pytest.raises(FileFormatError, match=r"lacking.safetensors.*\['displacement_exact_16', 'gain_exact_16'\]"):
         DisplayLUTMap.load(lacking)
     bad = save_tensors(tmp_path / "bad.safetensors", {"displacement_exact": disp, "gain_exact": gain},
                        {"modes": ["exact"], "size": 32, "sizes": {"exact": ["16"]}}, **kind)
-    with pytest.raises(FileFormatError, match="bad.safetensors: display LUT header field 'sizes'"):
+    with pytest.raises(FileFormatError, match="bad.safetensors.*'sizes'"):
         DisplayLUTMap.load(bad)
 
 

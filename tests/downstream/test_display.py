@@ -6,6 +6,8 @@ stage's reference power and records, and the refusals. The stage contract is che
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 from hypothesis import assume, given, settings
@@ -305,7 +307,7 @@ def test_display_stage_reference_power_and_records():
     ``"displayed"`` (default) that of the displayed reference when the pipeline gives one, else of the
     ground truth; without a reference the scale is 1 - rho and no reference power is recorded. The
     stage records scale, targets, power and clipped fraction."""
-    with pytest.raises(InputValueError, match="p_ref must be 'displayed' or 'ground_truth', got 'eye'"):
+    with pytest.raises(InputValueError, match="p_ref.*'eye'"):
         DisplayMapping(p_ref="eye")  # type: ignore[arg-type]
     st = DisplayMapping()
     assert st.order == 30.0 and st.wants_displayed_reference and st.brighten
@@ -379,7 +381,7 @@ def test_bad_rho_is_a_state_range_error_naming_it(rho):
 @pytest.mark.parametrize("bad", [(1.0, 1.0), (1.0, 1.0, 1.0, 1.0), (-1.0, 1.0, 1.0), (1.0, float("nan"), 1.0),
                                  (1.0, 1.0, float("inf")), (0.0, 0.0, 0.0)])
 def test_bad_coefficients_are_refused(bad):
-    with pytest.raises(InputValueError, match="coefficients must be 3 finite non-negative numbers, not all 0"):
+    with pytest.raises(InputValueError, match=rf"coefficients.*{re.escape(repr(bad))}"):
         display_power(_img([1.0, 1.0, 1.0]), bad)
     with pytest.raises(InputValueError, match="coefficients"):
         DisplayMapping(coefficients=bad)
@@ -387,15 +389,15 @@ def test_bad_coefficients_are_refused(bad):
 
 def test_display_refusals_name_the_argument():
     img = _img([0.5, 0.5, 0.5])
-    with pytest.raises(InputValueError, match="encoding must be 'linear' or 'srgb', got 'gamma'"):
+    with pytest.raises(InputValueError, match="encoding.*'gamma'"):
         display_power(img, encoding="gamma")
     with pytest.raises(InputValueError, match="reference"):
         display_mapping(torch.rand(3, 2, 2), 0.2, torch.rand(3, 2, 2, dtype=torch.float16))
     with pytest.raises(InputValueError, match="reference="):
         display_mapping(torch.rand(3, 8, 8), 0.3, torch.rand(3, 8, 8, device="meta"))
-    with pytest.raises(InputValueError, match="give reference or reference_power, not both"):
+    with pytest.raises(InputValueError, match="reference or reference_power, not both"):
         display_mapping(img, 0.1, img, reference_power=1.0)
     for bad in (-1.0, float("nan"), float("inf")):
-        with pytest.raises(InputValueError, match=rf"reference_power must be finite and >= 0, got {bad!r}"):
+        with pytest.raises(InputValueError, match=rf"reference_power.*{bad!r}"):
             display_mapping(img, 0.1, reference_power=bad)
     display_mapping(img, 0.1, reference_power=0.0)  # 0 is allowed

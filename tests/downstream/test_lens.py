@@ -226,7 +226,7 @@ def test_constructors_and_defaults():
     assert LensPrewarp.radial([[0.1], [0.1], [0.1]], learnable=True).map.coefficients.requires_grad
     assert LensPrewarp(coefficients=[[0.2], [0.2], [0.2]]).map.coefficients.flatten().tolist() == pytest.approx([0.2] * 3)
     for prewarp_map in (RadialMap(), MLPMap()):
-        with pytest.raises(InputValueError, match="either prewarp_map or coefficients, not both"):
+        with pytest.raises(InputValueError, match="prewarp_map or coefficients"):
             LensPrewarp(prewarp_map, coefficients=[[0.1]] * 3)
     with pytest.raises(InputValueError, match="basis must be one of .*'xyz'"):
         LensPrewarp(basis="xyz")  # type: ignore[arg-type]
@@ -380,7 +380,7 @@ def test_bank_prewarp_undoes_the_optics_distortion():
 
 
 def test_from_psf_bank_refusals():
-    with pytest.raises(InputValueError, match="a gain tensor needs a LUT size"):
+    with pytest.raises(InputValueError, match="gain tensor.*size"):
         LensPrewarp.from_psf_bank(PSFBank.default(), gain=torch.ones(3, 4, 4))
     with pytest.raises(InputValueError, match="size"):
         LensPrewarp.from_psf_bank(None, gain=torch.ones(3, 4, 4))
@@ -403,7 +403,7 @@ def test_lut_file_round_trip_size_and_version(tmp_path):
         assert torch.allclose(loaded(img, STATE, StageContext((12, 10))), learned(img, STATE, StageContext((12, 10))), atol=1e-5)
     again = loaded.save_lut(tmp_path / "again.safetensors")
     assert torch.equal(LensPrewarp.load_lut(again).map.displacement, loaded.map.displacement)
-    with pytest.raises(InputValueError, match="size is required to save a RadialMap as a LUT"):
+    with pytest.raises(InputValueError, match="size.*RadialMap"):
         LensPrewarp().save_lut(tmp_path / "x.safetensors")
     radial = LensPrewarp.load_lut(LensPrewarp().save_lut(tmp_path / "r.safetensors", (4, 6)))
     assert isinstance(radial.map, LUTMap)
@@ -413,7 +413,7 @@ def test_lut_file_round_trip_size_and_version(tmp_path):
     header = read_header(LensPrewarp.from_lut(pixel).save_lut(tmp_path / "lut.safetensors"), kind=lens.LUT_KIND, max_version=99)
     assert (header["format_version"], header["size"], header["source"]) == (1, [2, 3], "LUTMap")
     other = save_tensors(tmp_path / "other.safetensors", {"x": torch.zeros(1)}, {}, kind="something-else", format_version=1)
-    with pytest.raises(FileFormatError, match="other.safetensors.*expected a 'controlgs-prewarp-lut'"):
+    with pytest.raises(FileFormatError, match="other.safetensors.*'controlgs-prewarp-lut'"):
         LensPrewarp.load_lut(other)
     newer = save_tensors(tmp_path / "newer.safetensors", {"grid": pixel, "gain": torch.ones(3, 2, 3)}, {},
                          kind=lens.LUT_KIND, format_version=2)
@@ -421,7 +421,7 @@ def test_lut_file_round_trip_size_and_version(tmp_path):
         LensPrewarp.load_lut(newer)
     no_gain = save_tensors(tmp_path / "no_gain.safetensors", {"grid": torch.zeros(3, 2, 2, 2)}, {},
                            kind=lens.LUT_KIND, format_version=1)
-    with pytest.raises(FileFormatError, match=r"no_gain.safetensors: pre-warp LUT lacks \['gain'\]"):
+    with pytest.raises(FileFormatError, match=r"no_gain.safetensors.*\['gain'\]"):
         LensPrewarp.load_lut(no_gain)
 
 
@@ -478,7 +478,7 @@ def test_for_optics_checks_a_fitted_lut_and_falls_back_to_chief_rays(tmp_path):
     fp = bank_fingerprint(bank)
     lut = DisplayLUTMap({"distortion": (disp, gain), "exact": (disp * 2, gain)},
                         meta={"bank": fp, "radiometry": "energy"}).save(tmp_path / "fit.safetensors")
-    with pytest.raises(InputValueError, match="fit.safetensors: this pre-warp LUT was fitted for radiometry 'energy'"):
+    with pytest.raises(InputValueError, match="fit.safetensors.*radiometry 'energy'"):
         LensPrewarp.for_optics(_Optics(bank, "radiance"), lut=lut)
     optics = _Optics(bank, "energy", mode="distortion")
     stage = LensPrewarp.for_optics(optics, lut=lut)
@@ -487,10 +487,10 @@ def test_for_optics_checks_a_fitted_lut_and_falls_back_to_chief_rays(tmp_path):
     assert stage.map.table_mode() == "exact"  # follows the optics' current mode
     other = copy.copy(bank)
     other._cache, other.chief = {}, bank.chief * 1.001  # own cache: the default bank is process-wide
-    with pytest.raises(InputValueError, match=f"fit.safetensors: this pre-warp LUT was fitted for another PSF bank .*{fp}"):
+    with pytest.raises(InputValueError, match=f"fit.safetensors.*another PSF bank.*{fp}"):
         LensPrewarp.for_optics(_Optics(other, "energy"), lut=lut)
     for radiometry, fallback in (("energy", "jacobian"), ("radiance", None)):
-        with pytest.warns(UserWarning, match=f"no fitted pre-warp LUT for this PSF bank and radiometry '{radiometry}'"):
+        with pytest.warns(UserWarning, match=f"no fitted pre-warp LUT.*'{radiometry}'"):
             chief = LensPrewarp.for_optics(_Optics(other, radiometry))
         assert isinstance(chief.map, BankMap) and chief.map.gain == fallback and chief.map.bank is other
 
@@ -503,9 +503,9 @@ def test_for_optics_follows_the_placement_and_refuses_what_it_cannot_use():
     assert isinstance(lens_.map, BankMap) and lens_.map.placement == "stretch"
     chief = LensPrewarp.for_optics(_Optics(placement="stretch"), source="chief_rays", gain="jacobian", basis="rgb")
     assert (chief.map.placement, chief.map.gain, chief.basis) == ("stretch", "jacobian", "rgb")
-    with pytest.raises(InputValueError, match="optics must be an optics stage with a PSFBank .*Identity.*NoneType"):
+    with pytest.raises(InputValueError, match="optics.*PSFBank.*Identity.*NoneType"):
         LensPrewarp.for_optics(torch.nn.Identity())
-    with pytest.raises(InputValueError, match="source must be 'fitted' or 'chief_rays', got 'traced'"):
+    with pytest.raises(InputValueError, match="source.*'traced'"):
         LensPrewarp.for_optics(_Optics(), source="traced")  # type: ignore[arg-type]
     with pytest.raises(InputValueError, match="gain applies to source='chief_rays'"):
         LensPrewarp.for_optics(_Optics(), gain="jacobian")

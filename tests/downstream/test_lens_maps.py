@@ -245,7 +245,7 @@ def test_mlp_map_output_is_displacement_and_log_gain_per_channel():
 
 @pytest.mark.parametrize("kwargs", [dict(hidden=0), dict(layers=0), dict(frequencies=-1)])
 def test_mlp_map_refuses_bad_sizes_and_accepts_the_bounds(kwargs):
-    with pytest.raises(InputValueError, match="hidden, layers must be >= 1 and frequencies >= 0"):
+    with pytest.raises(InputValueError, match="hidden, layers.*frequencies"):
         MLPMap(**kwargs)
     m = MLPMap(hidden=1, layers=1, frequencies=0)
     assert m.is_identity() and m((2, 2), torch.float32, CPU)[0].shape == (3, 2, 2, 2)

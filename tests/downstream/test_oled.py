@@ -39,7 +39,7 @@ def test_box_emission_is_nearest_with_pixel_centres():
 def test_box_emission_refuses_to_shrink_and_non_float_images():
     img = torch.rand(3, 2, 3, dtype=D)
     for size in [(1, 3), (2, 2), (4, 2), (1, 6), (1, 2)]:  # either axis smaller than the image
-        with pytest.raises(ShapeError, match=r"size must be at least the image size \(2, 3\)"):
+        with pytest.raises(ShapeError, match=r"size.*\(2, 3\)"):
             oled_emission(img, size)
     with pytest.raises(InputValueError, match="image"):
         oled_emission(img.half(), (6, 8))

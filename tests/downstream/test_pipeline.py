@@ -122,24 +122,23 @@ def test_an_absent_anchor_is_placed_by_its_registered_order():
 
 
 def test_placement_errors():
-    with pytest.raises(InputValueError, match="placement constraints form a cycle through 'a'"):
+    with pytest.raises(InputValueError, match="cycle.*'a'"):
         Pipeline([_stage("a", after="b"), _stage("b", after="a")])
-    with pytest.raises(InputValueError, match="stage 'c' wants to go next to 'nowhere', which is neither in the pipeline "
-                                              "nor registered"):
+    with pytest.raises(InputValueError, match="'c'.*'nowhere'.*registered"):
         Pipeline([_stage("c", after="nowhere")])
-    with pytest.raises(InputValueError, match="stage 'd': after='display' and before='resample' contradict"):
+    with pytest.raises(InputValueError, match="'d'.*after='display'.*before='resample'"):
         Pipeline.from_config({"resample": True, "display": True, "d": _stage("d", after="display", before="resample")})
 
 
 # ----------------------------------------------------------------------------- construction
 def test_construction_refusals_name_what_is_wrong(monkeypatch):
-    with pytest.raises(InputValueError, match=r"stages\[0\] must be a Stage instance, got Identity"):
+    with pytest.raises(InputValueError, match=r"stages\[0\].*Stage.*Identity"):
         Pipeline([torch.nn.Identity()])  # type: ignore[list-item]
-    with pytest.raises(InputValueError, match=r"stages\[1\] must be a Stage instance, got Identity"):
+    with pytest.raises(InputValueError, match=r"stages\[1\].*Stage.*Identity"):
         Pipeline([_stage("a"), torch.nn.Identity()])  # type: ignore[list-item]
-    with pytest.raises(InputValueError, match=r"stage names must be unique, got duplicates \['a'\]"):
+    with pytest.raises(InputValueError, match=r"unique.*\['a'\]"):
         Pipeline([_stage("a"), _stage("b"), _stage("a")])
-    with pytest.raises(InputValueError, match=r"stage names must be unique, got duplicates \['lens'\]"):
+    with pytest.raises(InputValueError, match=r"unique.*\['lens'\]"):
         Pipeline([LensPrewarp(), LensPrewarp()])
     nameless = _stage("x", 1.0)
     nameless.name = ""
@@ -147,20 +146,20 @@ def test_construction_refusals_name_what_is_wrong(monkeypatch):
         Pipeline([_stage("a", 1.0), nameless])
     with pytest.raises(InputValueError, match="stage 'hsv' has domain 'hsv'"):
         Pipeline([_stage("hsv", 1.0, domain="hsv")])
-    with pytest.raises(InputValueError, match=r"effects\['resample'\] is a stage named 'lens'"):
+    with pytest.raises(InputValueError, match=r"effects\['resample'\].*'lens'"):
         Pipeline.from_config({"resample": LensPrewarp()})
     with pytest.raises(InputValueError, match=r"effects\['resample'\]: .*no_such_option"):
         Pipeline.from_config({"resample": {"no_such_option": 1}})
-    with pytest.raises(InputValueError, match=r"effects\['display'\] must be a bool, a dict of options or a Stage, got str"):
+    with pytest.raises(InputValueError, match=r"effects\['display'\].*got str"):
         Pipeline.from_config({"display": "yes"})
     with pytest.raises(InputValueError, match=r"effects\['lens'\] must be .* got int"):
         Pipeline.from_config({"lens": 3})
-    with pytest.raises(InputValueError, match="unknown stage 'blur'; registered stages: ") as e:
+    with pytest.raises(InputValueError, match="'blur'.*registered") as e:
         Pipeline.from_config({"blur": True})
     assert "optics plug-in" not in str(e.value)
     registered = pipeline_module._registered_stages()
     monkeypatch.setattr(pipeline_module, "_registered_stages", lambda: {k: v for k, v in registered.items() if k != "optics"})
-    with pytest.raises(InputValueError, match=r"unknown stage 'optics'.*\(the optics stage comes from the optics plug-in\)"):
+    with pytest.raises(InputValueError, match=r"'optics'.*optics plug-in"):
         Pipeline.from_config({"optics": True})
 
 
@@ -219,7 +218,7 @@ def test_from_config_lens_follows_the_optics():
 def test_lookup_by_name_and_module_recursion():
     p = Pipeline([_stage("a"), _stage("b", 1.0)])
     assert p["a"].name == "a" and "b" in p and "c" not in p and 3 not in p
-    with pytest.raises(KeyError, match=r"no stage 'c' in this pipeline \(stages: \['b', 'a'\]\)"):
+    with pytest.raises(KeyError, match=r"'c'.*\['b', 'a'\]"):
         p["c"]
     seen: list[str] = []
     Pipeline.from_config({"lens": True, "resample": True}).apply(lambda m: seen.append(type(m).__name__))

@@ -45,7 +45,7 @@ class _Lens(Stage):
 
 def test_fit_prewarp_refuses_what_it_cannot_fit():
     images = torch.rand(2, 3, 16, 16)
-    with pytest.raises(InputValueError, match=r"no 'lens' stage to fit \(stages: \['resample', 'oled'\]\)"):
+    with pytest.raises(InputValueError, match=r"'lens'.*\['resample', 'oled'\]"):
         fit_prewarp(Pipeline.from_config(["resample"]), images, steps=1)
     with pytest.raises(InputValueError, match="lens stage has no trainable parameters"):
         fit_prewarp(Pipeline.from_config(["lens"]), images, steps=1)
@@ -122,20 +122,20 @@ def test_fit_reduces_the_eye_loss_and_bakes():
 
 # ----------------------------------------------------------------------------- fit_bank_prewarp
 def test_fit_bank_prewarp_refusals_name_the_argument():
-    with pytest.raises(InputValueError, match="optics must be an optics stage or a PSFBank, got Identity"):
+    with pytest.raises(InputValueError, match="optics.*PSFBank.*Identity"):
         fit_bank_prewarp(torch.nn.Identity())
     optics = PSFOptics()
     for size in (7, 8.0, "16"):
         with pytest.raises(InputValueError, match=rf"size must be an int >= 8 .*got {size!r}"):
             fit_bank_prewarp(optics, size)  # type: ignore[arg-type]
     for size, pool in [(16, 0), (16, 3), (8, 4), (16, 2.0)]:  # 8 / 4 = 2 samples < 4
-        with pytest.raises(InputValueError, match=rf"pool must be an int >= 1 dividing size into >= 4 samples .*got {pool!r}"):
+        with pytest.raises(InputValueError, match=rf"pool.*got {pool!r}"):
             fit_bank_prewarp(optics, size, pool=pool)  # type: ignore[arg-type]
     for modes in ((), ("blur",)):
         with pytest.raises(InputValueError, match=r"modes must be a non-empty subset"):
             fit_bank_prewarp(optics, 16, modes=modes)
     for bad in (-1, 1.0, True):
-        with pytest.raises(InputValueError, match=rf"gain_iterations must be an int >= 0, got {bad!r}"):
+        with pytest.raises(InputValueError, match=rf"gain_iterations.*{bad!r}"):
             fit_bank_prewarp(optics, 8, modes=("distortion",), gain_iterations=bad)  # type: ignore[arg-type]
     for bank in (PSFBank.default(), None):  # a bank or None is made an optics stage first
         with pytest.raises(InputValueError, match="size must be an int >= 8"):
@@ -156,7 +156,7 @@ def test_fit_bank_prewarp_refuses_a_primary_whose_light_never_reaches_the_eye_fr
     chief[1] *= 30.0
     far = PSFOptics(dataclasses.replace(bank, chief=chief, _cache={}))
     for iterations in (0, 2):
-        with pytest.raises(InputValueError, match=r"no display pixel could be measured.*channel\(s\) \[1\] of 3"):
+        with pytest.raises(InputValueError, match=r"measured.*\[1\] of 3"):
             fit_bank_prewarp(far, 8, modes=("distortion",), gain_iterations=iterations)
     lut = fit_bank_prewarp(PSFOptics(bank, radiometry="energy"), 8, modes=("distortion",), gain_iterations=0, pool=1)
     _, gain = lut((8, 8), D, "cpu")
@@ -235,9 +235,9 @@ def test_fit_bank_prewarp_fits_a_table_per_display_size():
         assert torch.equal(getattr(lut, f"displacement_distortion{sfx}"), alone.displacement_distortion)
         assert torch.equal(getattr(lut, f"gain_distortion{sfx}"), alone.gain_distortion)
     for size in ([16, 16], [], [16, 7]):
-        with pytest.raises(InputValueError, match=r"size must be an int >= 8 or a sequence of different ones, got \["):
+        with pytest.raises(InputValueError, match=r"size.*got \["):
             fit_bank_prewarp(optics, size)
-    with pytest.raises(InputValueError, match=r"pool must be an int >= 1 dividing size into >= 4 samples \(size \[16, 18\]\), got 4"):
+    with pytest.raises(InputValueError, match=r"pool.*\[16, 18\]\), got 4"):
         fit_bank_prewarp(optics, [16, 18], pool=4)
 
 

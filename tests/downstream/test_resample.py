@@ -141,7 +141,7 @@ def test_resample_stage_passes_the_no_ss_baseline_through_and_checks_its_input()
     assert stage(low, RuntimeState(2.5), ctx) is low
     with pytest.raises(ShapeError, match=r"native size \(20, 30\) or the display size \(8, 12\)"):
         stage(torch.rand(3, 10, 10), RuntimeState(2.5), ctx)
-    with pytest.raises(StateRangeError, match="downsample 5.0 exceeds this pipeline's max_factor 4.0"):
+    with pytest.raises(StateRangeError, match="downsample 5.0.*max_factor 4.0"):
         stage(img, RuntimeState(5.0), ctx)
 
 

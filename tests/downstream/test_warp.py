@@ -91,7 +91,7 @@ def test_invert_map_refusals():
     ys = torch.tensor([0.0, 1.0], dtype=D)
     # steps 1 and 1 + 3e-6: 1.5e-6 from their mean > 1e-6 x mean: refused; 1 and 1 + 1e-6: accepted
     for bad in ([0.0, 1.0, 2.0 + 3e-6], [0.0, 0.0, 0.0], [2.0, 1.0, 0.0]):
-        with pytest.raises(InputValueError, match="sample_x must be uniformly spaced and increasing"):
+        with pytest.raises(InputValueError, match="sample_x.*uniformly spaced"):
             invert_map(ident, (2, 2), sample_x=torch.tensor(bad, dtype=D), sample_y=ys)
     invert_map(ident, (2, 2), sample_x=torch.tensor([0.0, 1.0, 2.0 + 1e-6], dtype=D), sample_y=ys)
 
@@ -128,5 +128,5 @@ def test_chief_ray_grid_refusals():
         chief_ray_grid(torch.zeros(3, 2, 2, 2, dtype=torch.int64), (4, 4))
     with pytest.raises(InputValueError, match="direction must be .*'up'"):
         chief_ray_grid(ok, (2, 2), direction="up")  # type: ignore[arg-type]
-    with pytest.raises(InputValueError, match="gain must be a tensor, 'jacobian' or None, got 'area'"):
+    with pytest.raises(InputValueError, match="gain.*'area'"):
         chief_ray_grid(ok, (2, 2), gain="area")  # type: ignore[arg-type]

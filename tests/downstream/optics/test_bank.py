@@ -136,11 +136,11 @@ def test_psf_sum_and_sign_tolerances_by_number():
         if accepted:
             assert PSFBank(**a).psf[0, 0, 0, 0, 0].item() == pytest.approx(low, rel=1e-3)
         else:
-            with pytest.raises(InputValueError, match=rf"PSF bank: PSFs must be non-negative, min is {low:.3g}"):
+            with pytest.raises(InputValueError, match=rf"PSFs .*non-negative.*{low:.3g}"):
                 PSFBank(**a)
     a = _bank_args()
     a["psf"][1, 2, 0] *= 1.006                                                 # flat index 1 * 9 + 2 * 3 + 0 = 15
-    with pytest.raises(InputValueError, match=r"sum to 1 \(\+-0.005\); PSF #15 \(flat index over \[L, Gy, Gx\]\) sums to 1.006"):
+    with pytest.raises(InputValueError, match=r"\+-0.005.*PSF #15.*1.006"):
         PSFBank(**a)
 
 
@@ -220,7 +220,7 @@ def test_file_round_trip_float16_psfs_units_and_display_check(tmp_path):
     assert torch.allclose(back.psf.sum((-1, -2)), torch.ones(3, 3, 3), atol=1e-6)
     assert torch.equal(back.chief, bank.chief) and back.wavelengths_nm == bank.wavelengths_nm
     assert back.display_mm == (24.0, 24.0) and back.meta == {"k": [1, 2]}
-    with pytest.raises(FileFormatError, match=r"b.safetensors: bank was made for a 24.0 x 24.0 mm display, expected 24.0 x 24.001"):
+    with pytest.raises(FileFormatError, match=r"b\.safetensors.*24\.0 x 24\.0 mm.*24\.0 x 24\.001"):
         PSFBank.load(path, display_mm=(24.0, 24.001))
     for display in ((24.0 * (1 + 1.5e-6), 24.0), (30.0, 20.0)):                  # beyond 1e-6 relative
         with pytest.raises(FileFormatError, match="bank was made for a 24.0 x 24.0 mm display"):

@@ -50,8 +50,7 @@ def test_build_bank_refuses_bad_settings_by_name(kw, match):
 
 def test_an_aperture_blocking_the_edge_chief_rays_is_refused():
     spec = cardboard_spec(surfaces=[dict(CARDBOARD["surfaces"][0], semi_diameter_mm=5.0), dict(CARDBOARD["surfaces"][1])])
-    with pytest.raises(InputValueError, match=r"chief rays of \d+ warp-grid points \(up to 16.97 mm from the display "
-                                              r"centre\) at 656 nm are blocked by a lens aperture"):
+    with pytest.raises(InputValueError, match=r"chief rays.*16\.97 mm.*656 nm.*aperture"):
         build_bank(spec, grid=(1, 1), psf_size=5, pupil_samples=8, chief_grid=(3, 3))
 
 

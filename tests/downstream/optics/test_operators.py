@@ -585,12 +585,11 @@ def test_operators_refuse_primaries_that_do_not_fit_the_bank():
     float32 bank and a channel count other than the bank's by name, for every operator."""
     rb, rb64 = _rb8(), random_bank().resample_to(8, 8, dtype=D64)
     for op in (psf_exact, psf_distortion, psf_reference, psf_fast):
-        with pytest.raises(InputValueError, match="primaries is torch.float32 on cpu but the resampled bank is torch.float64"):
+        with pytest.raises(InputValueError, match="primaries.*float32.*bank.*float64"):
             op(torch.zeros(3, 8, 8), rb64)
-        with pytest.raises(InputValueError, match=r"primaries must have dtype in \['torch.float32', 'torch.float64'\], "
-                                                  "got torch.int64"):
+        with pytest.raises(InputValueError, match=r"primaries.*\['torch.float32', 'torch.float64'\].*int64"):
             op(torch.zeros(3, 8, 8, dtype=torch.int64), rb)
-        with pytest.raises(InputValueError, match="primaries is torch.float64 on cpu but the resampled bank is torch.float32"):
+        with pytest.raises(InputValueError, match="primaries.*float64.*bank.*float32"):
             op(torch.zeros(3, 8, 8, dtype=D64), rb)
         with pytest.raises(ShapeError, match="primaries must have size 3 in dim -3"):
             op(torch.zeros(2, 8, 8), rb)                                          # 2 channels, bank has 3

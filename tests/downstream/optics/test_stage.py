@@ -109,7 +109,7 @@ def test_psf_optics_refusals():
     """A bank without exactly 3 wavelengths (the display primaries) is refused naming its wavelengths, an
     unknown mode and an image without 3 channels by name; a 3-wavelength bank is taken."""
     img = torch.rand(3, 8, 8)
-    with pytest.raises(InputValueError, match=r"mode must be one of \('distortion', 'fast', 'exact'\), got 'blur'"):
+    with pytest.raises(InputValueError, match=r"mode.*'blur'"):
         psf_optics(img, mode="blur")  # type: ignore[arg-type]
     with pytest.raises(InputValueError, match=r"needs a bank with 3 wavelengths.*\(656.0, 550.0\)"):
         psf_optics(img, random_bank(L=2))
