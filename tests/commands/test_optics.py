@@ -18,6 +18,8 @@ from helpers.cli_runs import error_line
 from controlgs_adapter import cli
 from controlgs_adapter.cli import main
 from controlgs_adapter.downstream.optics.bank import PSFBank
+from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
+from controlgs_adapter.errors import FileFormatError
 
 #: a one-size optics bench that runs in seconds
 BENCH = ["optics", "bench", "--sizes", "16", "--radiometry", "radiance", "--repeat", "1", "--no-scaling", "--threads", "1"]
@@ -175,3 +177,56 @@ def test_a_full_disk_is_one_line_and_leaves_no_partial_file(tmp_path, capsys, mo
 # ----------------------------------------------------------------------------- the command line's own errors
 
 
+# ----------------------------------------------------------------------------- the optics commands
+@pytest.fixture
+def files(tmp_path):
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    (tmp_path / "field.json").write_text(json.dumps({**CARDBOARD, "display_mm": "66"}))
+    (tmp_path / "a_file").write_text("x")
+    return tmp_path
+
+
+CLI_CASES = [
+    ("psf-size 4", ["optics", "build-bank", "--psf-size", "4"], "--psf-size"),
+    ("psf-size 6", ["optics", "build-bank", "--psf-size", "6"], "--psf-size"),
+    ("grid 0 0", ["optics", "build-bank", "--grid", "0", "0"], "--grid"),
+    ("grid 3 -1", ["optics", "build-bank", "--grid", "3", "-1"], "--grid"),
+    ("pupil-samples 1", ["optics", "build-bank", "--pupil-samples", "1"], "--pupil-samples"),
+    ("min-pitch-px 0", ["optics", "build-bank", "--min-pitch-px", "0"], "--min-pitch-px"),
+    ("min-pitch-px nan", ["optics", "build-bank", "--min-pitch-px", "nan"], "--min-pitch-px"),
+    ("prescription missing", ["optics", "build-bank", "--prescription", "{d}/none.json"], "none.json"),
+    ("prescription not JSON", ["optics", "build-bank", "--prescription", "{d}/bad.json"], "bad.json"),
+    ("prescription a list", ["optics", "build-bank", "--prescription", "{d}/list.json"], "list.json"),
+    ("prescription bad field", ["optics", "build-bank", "--prescription", "{d}/field.json"], "display_mm"),
+    ("out a folder", ["optics", "build-bank", "--out", "{d}"], "--out"),
+    ("figures prescription missing", ["optics", "figures", "--prescription", "{d}/none.json"], "none.json"),
+    ("figures prescription a list", ["optics", "figures", "--prescription", "{d}/list.json"], "list.json"),
+    ("demo out under a file", ["demo", "--out", "{d}/a_file/report"], "a_file"),
+]
+
+
+@pytest.mark.parametrize("argv, name", [c[1:] for c in CLI_CASES], ids=[c[0] for c in CLI_CASES])
+def test_refusals_are_one_line_naming_the_option_or_file(files, capsys, argv, name):
+    """Exit code 2 and exactly one line on stderr naming the option or file, no traceback."""
+    code = cli.main([a.replace("{d}", str(files)) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2, (code, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert name in lines[0], lines[0]
+
+
+def test_build_bank_smallest_accepted_values_pass_the_checks(tmp_path):
+    """The command reads the Cardboard prescription by default, a JSON file of it, and at most 1 MiB (which
+    is not JSON here)."""
+    from controlgs_adapter.commands.optics import _prescription
+
+    assert _prescription(None).spec == Prescription(CARDBOARD).spec
+    p = tmp_path / "rx.json"
+    p.write_text(json.dumps(CARDBOARD))
+    assert _prescription(p).spec == Prescription(CARDBOARD).spec
+    big = tmp_path / "big.json"
+    big.write_bytes(b" " * (1 << 20))  # exactly 1 MiB is read (and is not JSON)
+    with pytest.raises(FileFormatError, match="not a JSON file"):
+        _prescription(big)
