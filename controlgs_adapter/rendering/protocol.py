@@ -33,7 +33,7 @@ from controlgs_adapter.errors import InputValueError, NoMatchingBackendError, Sh
 from controlgs_adapter.plugins import select_backend
 from controlgs_adapter.state import Camera, RuntimeState
 
-from .renderer import FunctionRenderer, ModelRenderer, Renderer, default_renderer, model_device
+from .renderer import FunctionRenderer, ModelRenderer, Renderer, _model_float_dtype, default_renderer, model_device
 
 __all__ = ["Renderer", "ModelRenderer", "FunctionRenderer", "renderer_for", "as_renderer", "render_view",
            "model_device"]
@@ -69,23 +69,6 @@ def as_renderer(renderer: Renderer | Callable[..., Any] | None, model: Any) -> R
         return FunctionRenderer(renderer)
     raise InputValueError(f"renderer must be None, a Renderer (visible + render) or a render function, "
                           f"got {type(renderer).__name__}")
-
-
-def _model_float_dtype(model: Any) -> torch.dtype | None:
-    """Dtype of ``model``'s first floating-point parameter or buffer (searched as :func:`model_device`
-    searches), or None when it has none."""
-    for attr in ("parameters", "buffers"):
-        fn = getattr(model, attr, None)
-        if callable(fn):
-            for t in fn():
-                if t.is_floating_point():
-                    return t.dtype
-    for value in getattr(model, "__dict__", {}).values():
-        tensors = value.parameters() if isinstance(value, torch.nn.Module) else (value,) if isinstance(value, torch.Tensor) else ()
-        for t in tensors:
-            if t.is_floating_point():
-                return t.dtype
-    return None
 
 
 def render_view(cgs: ControlGS | None, model: Any, camera: Camera, state: RuntimeState | None,
