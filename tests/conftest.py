@@ -55,3 +55,20 @@ def tiny():
         torch.manual_seed(0)
         model = NeuralGaussianModel.from_points(xyz, rgb, feat_dim=8, n_offsets=2, voxel_size=0.35, color_fit_steps=20)
     return scene, model.eval()
+
+
+@pytest.fixture(scope="module")
+def tiny_adapter(tiny, tmp_path_factory):
+    """``tiny``'s model, the tiny scene's first two training views and an adapter file with random (non-zero) conditions."""
+    scene, model = tiny
+    views = scene.data.views("train", first=2)
+    from controlgs_adapter import ControlGS
+
+    cgs = ControlGS.wrap(model, cond_dim=4)
+    with torch.no_grad(), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(3)
+        for p in cgs.trainable_parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    path = cgs.save(tmp_path_factory.mktemp("adapter") / "a.controlgs.safetensors")
+    cgs.unwrap()
+    return model, views, path

@@ -18,7 +18,6 @@ import torch
 from helpers.cli_runs import MODEL, needs_backbone
 from helpers.scene_writers import write_colmap
 
-from controlgs_adapter import ControlGS
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.commands.common import (
     RasterizerRenderer,
@@ -95,21 +94,6 @@ class Recorder:
 
 recorder = Recorder()
 '''
-
-
-@pytest.fixture(scope="module")
-def setup(tiny, tmp_path_factory):
-    """The tiny scene's first two training views and an adapter file with random (non-zero) conditions."""
-    scene, model = tiny
-    views = scene.data.views("train", first=2)
-    cgs = ControlGS.wrap(model, cond_dim=4)
-    with torch.no_grad(), torch.random.fork_rng(devices=[]):
-        torch.manual_seed(3)
-        for p in cgs.trainable_parameters():
-            p.add_(0.5 * torch.randn_like(p))
-    path = cgs.save(tmp_path_factory.mktemp("adapter") / "a.controlgs.safetensors")
-    cgs.unwrap()
-    return model, views, path
 
 
 # ----------------------------------------------------------------------------- run.json
@@ -262,8 +246,8 @@ def test_user_scene_defaults_every_8th_view_held_out(tmp_path: Path) -> None:
     assert (rec["allow_unquantized"], rec["white_background"], rec["format"], rec["iterations"]) == (False, False, "colmap", 3)
 
 
-def test_anchor_positions_are_plain_cpu_values(setup):
-    model, _, _ = setup
+def test_anchor_positions_are_plain_cpu_values(tiny_adapter):
+    model, _, _ = tiny_adapter
     pos = anchor_positions(model)
     assert pos.dtype == torch.float32 and pos.device.type == "cpu" and pos.shape[1] == 3
     assert not pos.requires_grad and pos.grad_fn is None  # no autograd graph back into the model
@@ -358,11 +342,11 @@ def test_load_renderer_refusals(tmp_path, monkeypatch):
     assert repr(r).endswith(" with rasterizer 'torch'")
 
 
-def test_make_renderer_wraps_the_chosen_rasterizer(tmp_path, setup):
+def test_make_renderer_wraps_the_chosen_rasterizer(tmp_path, tiny_adapter):
     """No option (or auto): the model's own renderer; ``--rasterizer torch`` renders the same image through the
     chosen rasterizer; a user's renderer is wrapped, the rasterizer chosen around its render only; an unknown or
     unusable rasterizer is refused naming it and what it needs."""
-    built_in, views, _ = setup
+    built_in, views, _ = tiny_adapter
     model = NeuralGaussianModel(6, feat_dim=8, n_offsets=2)
     assert make_renderer(_ns(rasterizer=None, renderer=None), model) is None  # the model's own
     assert make_renderer(_ns(rasterizer="auto", renderer=None), model) is None

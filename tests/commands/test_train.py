@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers.capture import cropped_capture
 import torch
 from helpers.cli_runs import FAST, MODEL, error_line, needs_backbone, snapshot, write_tiny_colmap
 from helpers.progress import record_bars
@@ -34,7 +35,6 @@ from controlgs_adapter.formats.safetensors import load_tensors
 from controlgs_adapter.lock import run_lock
 from controlgs_adapter.rendering.rasterizers import RASTERIZER_ENV
 from controlgs_adapter.scene import load_builtin_scene
-from controlgs_adapter.state import Camera
 from controlgs_adapter.training import Trainer
 
 #: torchrun's variables
@@ -80,25 +80,6 @@ def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def _capture(size: int = 32, crop: tuple[int, int] | None = None) -> tuple[list[Camera], list[torch.Tensor]]:
-    """8 views of the built-in scene (view 0 is the test view in every format); ``crop = (w, h)``
-    cuts a centred window out of each image with matching intrinsics."""
-    scene = load_builtin_scene("ar", size, views=8, test_every=8, samples=1)
-    cams = scene.test_cameras + scene.train_cameras
-    images = list(torch.cat([scene.test_images, scene.train_images]))
-    if crop is None:
-        return cams, images
-    w, h = crop
-    x0, y0 = (size - w) // 2, (size - h) // 2
-    out = []
-    for c in cams:
-        k = c.intrinsics.clone()
-        k[0, 2] -= x0
-        k[1, 2] -= y0
-        out.append(Camera(c.world_to_camera, k, w, h))
-    return out, [img[:, y0:y0 + h, x0:x0 + w].contiguous() for img in images]
 
 
 #: a user's render module: a renderer and a render function that log their calls, and attributes that do not render
@@ -210,7 +191,7 @@ def test_train_refusals_before_any_loading(capsys, tmp_path, monkeypatch):
 
 @needs_backbone
 def test_a_missing_or_wrong_model_and_flipped_cameras_are_one_line(tmp_path, capsys):
-    cams, images = _capture(16)
+    cams, images = cropped_capture(16)
     data = write_instant_ngp(tmp_path / "ngp", cams, images)
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "r")]) == 2
     assert main(["train", "--model", str(tmp_path), "--data", str(data), "--out", str(tmp_path / "r")]) == 2
@@ -391,7 +372,7 @@ def test_full_disk_by_file_size_limit_in_a_real_write(tmp_path: Path, data: Path
 def test_seeds_train_each_seed_on_a_users_scene(tmp_path):
     """``--seeds 2 --seed 5`` on ``--model/--data`` trains seed-5/ and seed-6/ with their own seeds: each
     adapter equals the one a single run with that ``--seed`` writes (and the two differ)."""
-    cams, images = _capture(16)
+    cams, images = cropped_capture(16)
     data = write_colmap(tmp_path / "colmap", cams, images)
     common = ["--model", str(MODEL), "--data", str(data), "--iterations", "2", *FAST]
     assert main(["train", *common, "--out", str(tmp_path / "multi"), "--seeds", "2", "--seed", "5"]) == 0

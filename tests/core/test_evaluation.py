@@ -46,21 +46,6 @@ F64 = torch.float64
 CHEAP = {"lens": True, "resample": True, "display": True}
 
 
-@pytest.fixture(scope="module")
-def adapter_setup(tiny, tmp_path_factory):
-    """The tiny scene's first two training views and an adapter file with random (non-zero) conditions."""
-    scene, model = tiny
-    views = scene.data.views("train", first=2)
-    cgs = ControlGS.wrap(model, cond_dim=4)
-    with torch.no_grad(), torch.random.fork_rng(devices=[]):
-        torch.manual_seed(3)
-        for p in cgs.trainable_parameters():
-            p.add_(0.5 * torch.randn_like(p))
-    path = cgs.save(tmp_path_factory.mktemp("adapter") / "a.controlgs.safetensors")
-    cgs.unwrap()
-    return model, views, path
-
-
 def _pipe(mode: str = "fast", effects: dict | None = None) -> Pipeline:
     pipe = Pipeline.from_config(dict(DEFAULT_EFFECTS if effects is None else effects))
     if "optics" in pipe:
@@ -132,8 +117,8 @@ def test_ideal_bound_is_the_ground_truth_through_the_pipeline(tiny):
         assert want["psnr"] < 60  # the pipeline is not the identity: the bound means something
 
 
-def test_baselines_ideal_and_extra_metrics_options(adapter_setup):
-    model, views, path = adapter_setup
+def test_baselines_ideal_and_extra_metrics_options(tiny_adapter):
+    model, views, path = tiny_adapter
     r = evaluate_grid(model, views, {}, downsample=(2.0,), power_saving=(0.6,), baselines=("ss",), ideal=False,
                       progress=False, optics_mode="distortion")
     assert r.methods == ["ss"] and r.metrics == ["psnr", "ssim", "flip"] and r.optics_mode == "distortion"
@@ -193,8 +178,8 @@ def test_evaluate_grid_renders_on_the_views_background(tiny):
     assert float(r.per_view["ss"]["psnr"][0, 0, 0]) == pytest.approx(scored["white"], abs=1e-9)
 
 
-def test_views_without_describe_and_refusals(adapter_setup):
-    model, views, path = adapter_setup
+def test_views_without_describe_and_refusals(tiny_adapter):
+    model, views, path = tiny_adapter
     r = evaluate_grid(model, _Plain(views), {}, downsample=(1.0,), power_saving=(0.0,), baselines=(),
                       extra_metrics=False, progress=False)
     assert r.info == {"test_views": 2, "test_sizes": ["16x16"]}
@@ -215,10 +200,10 @@ def test_views_without_describe_and_refusals(adapter_setup):
             evaluate_grid(model, views, {name: path}, progress=False)
 
 
-def test_progress_bar_is_on_by_default_and_counts_every_scored_image(adapter_setup, capsys, monkeypatch):
+def test_progress_bar_is_on_by_default_and_counts_every_scored_image(tiny_adapter, capsys, monkeypatch):
     """``evaluate_grid`` shows its bar ("evaluating grid", on stderr) unless ``progress=False``; the bar
     counts one step per scored image: views x d x rho x methods."""
-    model, views, _ = adapter_setup
+    model, views, _ = tiny_adapter
     kw = dict(power_saving=(0.0,), baselines=("ss",), extra_metrics=False, effects=CHEAP)
     capsys.readouterr()
     evaluate_grid(model, views, {}, downsample=(1.0,), ideal=False, **kw)
@@ -413,8 +398,8 @@ def _psnr64(eye: torch.Tensor, gt: torch.Tensor) -> float:
 
 
 @needs_builtin_scene
-def test_every_cell_recomputed_by_hand(adapter_setup):
-    model, views, path = adapter_setup
+def test_every_cell_recomputed_by_hand(tiny_adapter):
+    model, views, path = tiny_adapter
     r = evaluate_grid(model, views, {"mine": path}, downsample=(1, 2), power_saving=P, extra_metrics=False,
                       progress=False, effects=CHEAP)
     assert ControlGS.attached(model) is None  # the adapter is removed afterwards
@@ -447,8 +432,8 @@ def test_every_cell_recomputed_by_hand(adapter_setup):
 
 
 @needs_builtin_scene
-def test_side_by_side_by_hand(adapter_setup):
-    model, views, path = adapter_setup
+def test_side_by_side_by_hand(tiny_adapter):
+    model, views, path = tiny_adapter
     cam, gt = views[0]
     out = side_by_side(model, path, cam, gt, background=views.background)
     assert ControlGS.attached(model) is None
@@ -478,8 +463,8 @@ def test_side_by_side_by_hand(adapter_setup):
 
 
 @needs_builtin_scene
-def test_condition_response_by_hand(adapter_setup):
-    model, views, path = adapter_setup
+def test_condition_response_by_hand(tiny_adapter):
+    model, views, path = tiny_adapter
     cam, _ = views[0]
     bg = views.background
     strips = condition_response(model, path, cam, background=bg)
@@ -508,8 +493,8 @@ def test_condition_response_by_hand(adapter_setup):
 
 
 @needs_builtin_scene
-def test_an_adapter_with_fewer_modules_shows_only_those(adapter_setup, tmp_path: Path):
-    model, views, _ = adapter_setup
+def test_an_adapter_with_fewer_modules_shows_only_those(tiny_adapter, tmp_path: Path):
+    model, views, _ = tiny_adapter
     cgs = ControlGS.wrap(model, modules=("display",), cond_dim=2)
     path = cgs.save(tmp_path / "d.controlgs.safetensors")
     cgs.unwrap()
@@ -525,10 +510,10 @@ def test_make_pipeline_sets_each_optics_mode():
 
 
 # ------------------------------------------------------------------------------ seeds (the demo's evaluation)
-def test_evaluate_seeds_shares_the_baselines(adapter_setup, tmp_path):
+def test_evaluate_seeds_shares_the_baselines(tiny_adapter, tmp_path):
     from controlgs_adapter.commands.demo import evaluate_seeds, report_figures
 
-    model, views, path = adapter_setup
+    model, views, path = tiny_adapter
     zero = ControlGS.wrap(model, cond_dim=4)
     zpath = zero.save(tmp_path / "zero.controlgs.safetensors")
     zero.unwrap()

@@ -7,6 +7,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import pytest
+from helpers.splat_scenes import gaussian_cloud
 import torch
 from helpers.fake_plugins import _fake_distributions, _FakeDistribution, _FakeEntryPoint, _GoodPlugin
 from helpers.scaffold_standin import ScaffoldStandIn
@@ -20,7 +21,6 @@ from controlgs_adapter.errors import NoMatchingBackendError, PluginLoadError
 from controlgs_adapter.hookspecs import hookimpl
 from controlgs_adapter.plugins import _describe
 from controlgs_adapter.rendering.rasterizers import Rasterizer, TorchSplatter, rasterize_gaussians
-from controlgs_adapter.state import Camera
 
 
 def test_stages_are_plain_modules_with_functional_twins():
@@ -179,19 +179,6 @@ def test_register_blocked_unregister_and_report(fresh_plugins):
     assert "sharpen_test" not in plugins.stages()
 
 
-def _scene(n: int = 40, seed: int = 0, device: str = "cpu", max_opacity: float = 0.9):
-    g = torch.Generator().manual_seed(seed)
-    means = torch.rand(n, 3, generator=g) * 2 - 1
-    scales = torch.rand(n, 3, generator=g) * 0.15 + 0.02
-    rotations = torch.randn(n, 4, generator=g)
-    opacities = torch.rand(n, generator=g) * max_opacity
-    colors = torch.rand(n, 3, generator=g)
-    w2c = torch.eye(4)
-    w2c[2, 3] = 3.0
-    cam = Camera(w2c, torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]), 48, 32)
-    return [t.to(device) for t in (means, scales, rotations, opacities, colors)], cam
-
-
 def test_builtin_rasterizers_are_registered_through_the_hook_and_listed():
     names = list(plugins.rasterizers())
     assert names == ["gsplat", "torch"]  # the automatic choice tries gsplat first, torch always works
@@ -222,7 +209,7 @@ def test_a_plugin_rasterizer_goes_first(fresh_plugins):
     name = plugins.register_plugin(Plugin(), name="counting-rasterizer")
     try:
         assert list(plugins.rasterizers())[0] == "counting"
-        scene, cam = _scene()
+        scene, cam = gaussian_cloud()
         rasterize_gaussians(*scene, cam)
         assert Counting.calls == 1
     finally:

@@ -6,14 +6,14 @@ import json
 from importlib.util import find_spec
 
 import pytest
+from helpers.capture import cropped_capture
 import torch
 from helpers.scene_writers import write_blender, write_colmap, write_instant_ngp
 
 from controlgs_adapter import ControlGS
 from controlgs_adapter.backends import load_model_dir
 from controlgs_adapter.cli import main
-from controlgs_adapter.scene import builtin_backbone_dir, load_builtin_scene
-from controlgs_adapter.state import Camera
+from controlgs_adapter.scene import builtin_backbone_dir
 
 
 # ------------------------------------------------------------------------------ the adapter through the CLI
@@ -27,25 +27,6 @@ FAST = ["--effects", "resample,display", "--no-progress", "--checkpoint-every", 
 needs_cli_run = pytest.mark.skipif(find_spec("skimage") is None or find_spec("matplotlib") is None
                                    or not (MODEL / "point_cloud").is_dir(),
                                    reason="needs the demo extra (scikit-image, matplotlib) and the baked built-in backbone")
-
-
-def _capture(size: int = 32, crop: tuple[int, int] | None = None) -> tuple[list[Camera], list[torch.Tensor]]:
-    """8 views of the built-in scene (view 0 is the test view in every format); ``crop = (w, h)``
-    cuts a centred window out of each image with matching intrinsics."""
-    scene = load_builtin_scene("ar", size, views=8, test_every=8, samples=1)
-    cams = scene.test_cameras + scene.train_cameras
-    images = list(torch.cat([scene.test_images, scene.train_images]))
-    if crop is None:
-        return cams, images
-    w, h = crop
-    x0, y0 = (size - w) // 2, (size - h) // 2
-    out = []
-    for c in cams:
-        k = c.intrinsics.clone()
-        k[0, 2] -= x0
-        k[1, 2] -= y0
-        out.append(Camera(c.world_to_camera, k, w, h))
-    return out, [img[:, y0:y0 + h, x0:x0 + w].contiguous() for img in images]
 
 
 def _train_eval(tmp_path, data, name: str, *extra: str) -> dict:
@@ -66,7 +47,7 @@ def _train_eval(tmp_path, data, name: str, *extra: str) -> dict:
 
 @needs_cli_run
 def test_three_formats_train_eval_and_agree(tmp_path, capsys):
-    cams, images = _capture()
+    cams, images = cropped_capture()
     folders = {"colmap": write_colmap(tmp_path / "colmap", cams, images),
                "blender": write_blender(tmp_path / "blender", cams, images, test=[0]),
                "instant_ngp": write_instant_ngp(tmp_path / "ngp", cams, images)}
@@ -84,7 +65,7 @@ def test_three_formats_train_eval_and_agree(tmp_path, capsys):
 
 @needs_cli_run
 def test_non_square_capture(tmp_path):
-    cams, images = _capture(48, crop=(48, 28))
+    cams, images = cropped_capture(48, crop=(48, 28))
     data = write_instant_ngp(tmp_path / "ngp", cams, images)
     r = _train_eval(tmp_path, data, "wide")
     assert r["info"]["test_sizes"] == ["48x28"]

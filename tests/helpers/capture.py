@@ -15,6 +15,7 @@ except ImportError:  # pragma: no cover - the older location
     from helpers.scene_writers import write_blender, write_colmap, write_instant_ngp
 
 from controlgs_adapter.scene import load_builtin_scene
+from controlgs_adapter.state import Camera
 
 FORMATS = ("colmap", "blender", "instant_ngp")
 
@@ -48,3 +49,22 @@ def write_capture(root: Path, fmt: str, size: int = 24) -> Path:
     if fmt == "blender":
         return write_blender(root, cams, images, test=[0])
     return write_instant_ngp(root, cams, images)
+
+
+def cropped_capture(size: int = 32, crop: tuple[int, int] | None = None) -> tuple[list, list[torch.Tensor]]:
+    """8 views of the built-in scene (view 0 is the test view in every format); ``crop = (w, h)``
+    cuts a centred window out of each image with matching intrinsics."""
+    scene = load_builtin_scene("ar", size, views=8, test_every=8, samples=1)
+    cams = scene.test_cameras + scene.train_cameras
+    images = list(torch.cat([scene.test_images, scene.train_images]))
+    if crop is None:
+        return cams, images
+    w, h = crop
+    x0, y0 = (size - w) // 2, (size - h) // 2
+    out = []
+    for c in cams:
+        k = c.intrinsics.clone()
+        k[0, 2] -= x0
+        k[1, 2] -= y0
+        out.append(Camera(c.world_to_camera, k, w, h))
+    return out, [img[:, y0:y0 + h, x0:x0 + w].contiguous() for img in images]

@@ -61,3 +61,17 @@ def random_scene(seed: int, n: int, camera: Camera, dtype: torch.dtype = F64, ha
     rot = torch.randn(n, 4, generator=g, dtype=F64) * (0.5 + rand(n, 1))  # unnormalised
     colors = rand(n, 3)
     return tuple(t.to(dtype) for t in (means, scales, rot, opac, colors))
+
+
+def gaussian_cloud(n: int = 40, seed: int = 0, device: str = "cpu", max_opacity: float = 0.9):
+    """``n`` random Gaussians around the origin and a 48 x 32 camera 3 units away."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g) * 2 - 1
+    scales = torch.rand(n, 3, generator=g) * 0.15 + 0.02
+    rotations = torch.randn(n, 4, generator=g)
+    opacities = torch.rand(n, generator=g) * max_opacity
+    colors = torch.rand(n, 3, generator=g)
+    w2c = torch.eye(4)
+    w2c[2, 3] = 3.0
+    cam = Camera(w2c, torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]), 48, 32)
+    return [t.to(device) for t in (means, scales, rotations, opacities, colors)], cam

@@ -8,6 +8,7 @@ import types
 from typing import Any
 
 import pytest
+from helpers.splat_scenes import gaussian_cloud
 import torch
 
 from controlgs_adapter.errors import InputValueError
@@ -26,20 +27,6 @@ from controlgs_adapter.rendering.splatter import ALPHA_MAX, LOW_PASS, NEAR_PLANE
 from controlgs_adapter.state import Camera
 
 CPU, CUDA = torch.device("cpu"), torch.device("cuda")
-
-
-def _scene(n: int = 40, seed: int = 0, device: str = "cpu", max_opacity: float = 0.9):
-    """``n`` random Gaussians around the origin and a 48 x 32 camera 3 units away."""
-    g = torch.Generator().manual_seed(seed)
-    means = torch.rand(n, 3, generator=g) * 2 - 1
-    scales = torch.rand(n, 3, generator=g) * 0.15 + 0.02
-    rotations = torch.randn(n, 4, generator=g)
-    opacities = torch.rand(n, generator=g) * max_opacity
-    colors = torch.rand(n, 3, generator=g)
-    w2c = torch.eye(4)
-    w2c[2, 3] = 3.0
-    cam = Camera(w2c, torch.tensor([[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]), 48, 32)
-    return [t.to(device) for t in (means, scales, rotations, opacities, colors)], cam
 
 
 def _two_gaussians(dtype: torch.dtype = torch.float32) -> tuple[list[torch.Tensor], Camera]:
@@ -230,7 +217,7 @@ def test_gsplat_adaptor_conventions_on_cpu(monkeypatch, version):
     opacity cap for 0.999-clamping releases) against a stand-in that renders with the project splatter."""
     seen: dict = {}
     monkeypatch.setattr(rasterizers, "_import_gsplat", lambda: _fake_gsplat(version, seen))
-    (means, scales, rotations, opacities, colors), cam = _scene()
+    (means, scales, rotations, opacities, colors), cam = gaussian_cloud()
     opacities[::4] = 0.999  # opaque splats: above the project's 0.99 clamp
     opacities.requires_grad_(True)
     bg = torch.tensor([0.2, 0.3, 0.4])
@@ -257,7 +244,7 @@ def test_gsplat_opacity_cap_passes_the_gradient_straight_through(monkeypatch):
     """With a 0.999-clamping gsplat (< 1.6) the adaptor caps opacities at 0.99 straight-through: a splat
     above the cap gets the gradient the splatter gives at the capped value (not zero, as a plain clamp would)."""
     monkeypatch.setattr(rasterizers, "_import_gsplat", lambda: _fake_gsplat("1.5.3", {}))
-    (means, scales, rotations, opacities, colors), cam = _scene(seed=3)
+    (means, scales, rotations, opacities, colors), cam = gaussian_cloud(seed=3)
     opacities[::3] = 0.9995
     opacities.requires_grad_(True)
     GsplatRasterizer()(means, scales, rotations, opacities, colors, cam).color.sum().backward()
@@ -275,7 +262,7 @@ def test_gsplat_empty_render_is_the_background_and_stays_in_the_graph(monkeypatc
     of the empty inputs), as with the torch splatter, not raise "element 0 of tensors does not require grad" at
     ``loss.backward()`` in a CUDA training step."""
     monkeypatch.setattr(rasterizers, "_import_gsplat", lambda: types.SimpleNamespace(__version__="1.6.0"))
-    (means, scales, rotations, opacities, colors), cam = _scene()
+    (means, scales, rotations, opacities, colors), cam = gaussian_cloud()
     bg = torch.tensor([0.2, 0.3, 0.4]) if with_background else None
     for r in (TorchSplatter(), GsplatRasterizer()):
         xs = [t[:0].clone().requires_grad_(True) for t in (means, scales, rotations, opacities, colors)]
@@ -295,7 +282,7 @@ def test_gsplat_empty_render_is_the_background_and_stays_in_the_graph(monkeypatc
 def test_gsplat_agrees_with_the_project_splatter_on_cuda():
     """Images and gradients within the documented convention differences (docs/reference/rasterizers.md): the
     footprint ring between 3 and 3.33 sigma holds splats of alpha <= o e^-4.5 < 0.0111."""
-    leaves, cam = _scene(n=400, device="cuda", max_opacity=0.95)
+    leaves, cam = gaussian_cloud(n=400, device="cuda", max_opacity=0.95)
     bg = torch.tensor([0.1, 0.2, 0.3], device="cuda")
     grads = []
     for r in (TorchSplatter(), GsplatRasterizer()):

@@ -16,7 +16,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controlgs_adapter import ControlGS, RuntimeState
-from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.checks import value_checks
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.rendering import splatter
@@ -651,19 +650,6 @@ def test_tensors_on_another_device_are_refused_by_name(i: int) -> None:
 
 
 # ----------------------------------------------------------------------------- the reference model's render
-
-def _random_model(a=20, f=8, k=4, seed=0, **opts) -> NeuralGaussianModel:
-    torch.manual_seed(seed)
-    m = NeuralGaussianModel(a, feat_dim=f, n_offsets=k, **opts)
-    with torch.no_grad():
-        m._anchor.normal_()
-        m._anchor[:, 2] += 5.0
-        m._offset.normal_()
-        m._anchor_feat.normal_()
-        m._scaling.normal_(-2.0, 0.3)
-        m._rotation.normal_()
-    return m
-
 
 # ------------------------------------------------------------------------------ the splatter
 BOTH = [rasterize, rasterize_reference]

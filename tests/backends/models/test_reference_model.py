@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers.reference_models import random_reference_model
 import torch
 from helpers.anchor_oracle import camera_centre, oblique_camera, visible64
 from helpers.scaffold_cameras import scaffold_camera
@@ -22,19 +23,6 @@ from controlgs_adapter.rendering.splatter import rasterize
 from controlgs_adapter.state import Camera
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
-
-
-def _random_model(a=20, f=8, k=4, seed=0, **opts) -> NeuralGaussianModel:
-    torch.manual_seed(seed)
-    m = NeuralGaussianModel(a, feat_dim=f, n_offsets=k, **opts)
-    with torch.no_grad():
-        m._anchor.normal_()
-        m._anchor[:, 2] += 5.0
-        m._offset.normal_()
-        m._anchor_feat.normal_()
-        m._scaling.normal_(-2.0, 0.3)
-        m._rotation.normal_()
-    return m
 
 
 def _raw(m: NeuralGaussianModel) -> dict:
@@ -102,7 +90,7 @@ def test_constructor_refusals(kw, words):
 def test_decode_equals_a_float64_decode_anchor_by_anchor(a, k, f, seed, bank, app, dists):
     """Every option (feature bank, appearance code of camera uid 3, distance inputs) against the float64
     decode of ``helpers.scaffold_oracle``, seen from a turned camera with an off-centre principal point."""
-    m = _random_model(a, f, k, seed, use_feat_bank=bank, appearance_dim=app, num_cameras=4, add_opacity_dist=dists[0],
+    m = random_reference_model(a, f, k, seed, use_feat_bank=bank, appearance_dim=app, num_cameras=4, add_opacity_dist=dists[0],
                       add_cov_dist=dists[1], add_color_dist=dists[2])
     cam = oblique_camera(uid=3)
     visible = torch.rand(a, generator=torch.Generator().manual_seed(seed)) > 0.4
@@ -119,7 +107,7 @@ def test_decode_equals_a_float64_decode_anchor_by_anchor(a, k, f, seed, bank, ap
 
 @pytest.mark.parametrize("with_dist", [False, True])
 def test_decoder_row_i_is_the_i_th_visible_anchor(with_dist):
-    m = _random_model(15, 8, 3, add_opacity_dist=with_dist, add_cov_dist=with_dist, add_color_dist=with_dist)
+    m = random_reference_model(15, 8, 3, add_opacity_dist=with_dist, add_cov_dist=with_dist, add_color_dist=with_dist)
     seen = {}
     for name in ("mlp_opacity", "mlp_cov", "mlp_color"):
         getattr(m, name)[0].register_forward_pre_hook(lambda mod, args, name=name: seen.__setitem__(name, args[0]))
@@ -138,7 +126,7 @@ def test_decoder_row_i_is_the_i_th_visible_anchor(with_dist):
 
 
 def test_opacity_mask_and_anchor_major_offset_order():
-    m = _random_model(6, 8, 5)
+    m = random_reference_model(6, 8, 5)
     with torch.no_grad():  # opacity of offset k is +0.5 for even k, -0.5 for odd k, for every anchor
         m.mlp_opacity[2].weight.zero_()
         m.mlp_opacity[2].bias.copy_(torch.tensor([0.55, -0.55, 0.55, -0.55, 0.55]).atanh())
@@ -154,7 +142,7 @@ def test_opacity_mask_and_anchor_major_offset_order():
 
 
 def test_decode_is_differentiable_in_float64():
-    m = _random_model(3, 4, 2).double()
+    m = random_reference_model(3, 4, 2).double()
     cam = camera_looking_down_z()
     cam = Camera(cam.world_to_camera.double(), cam.intrinsics.double(), cam.width, cam.height)
     params = (m._offset, m._anchor_feat, m._scaling)
@@ -177,7 +165,7 @@ def test_decode_is_differentiable_in_float64():
 
 def test_decode_refuses_a_bad_visible_mask_and_names_unknown_options():
     """The model takes no decode option: one passed to render or decode is named, not ignored."""
-    m = _random_model(5)
+    m = random_reference_model(5)
     with pytest.raises(ShapeError, match="visible_mask"):
         m.decode(camera_looking_down_z(), torch.ones(4, dtype=torch.bool))
     with pytest.raises(InputValueError, match="visible_mask"):
@@ -478,7 +466,7 @@ def test_the_cameras_uid_picks_the_appearance_code():
 
 
 def test_render_is_the_splat_of_the_decoded_gaussians_and_reaches_every_parameter():
-    m = _random_model(12, 8, 3)
+    m = random_reference_model(12, 8, 3)
     cam = camera_looking_down_z(size=20, f=20.0)
     out = m.render(cam, background=torch.tensor([0.2, 0.3, 0.4]))
     g = m.decode(cam, m.visible_anchors(cam))
