@@ -31,7 +31,6 @@ from controlgs_adapter.backend import get_attr_path, set_attr_path
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND, DEFAULT_ADAPTER, DEFAULT_MODULES, _backbone_tensors
-from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import (
     FileFormatError,
     FileWriteError,
@@ -46,7 +45,6 @@ from controlgs_adapter.errors import (
 from controlgs_adapter.formats.safetensors import load_tensors, read_header
 from controlgs_adapter.rendering.protocol import FunctionRenderer, render_view
 from controlgs_adapter.state import Camera
-from controlgs_adapter.training import DEFAULT_EFFECTS
 
 #: a state in the middle of every shared schedule
 STATE = RuntimeState(downsample=5.0, power_saving=0.55)
@@ -709,16 +707,3 @@ def test_adapter_names_are_checked_and_switching_moves_the_hooks(tmp_path):
     cgs.set_adapter("default")
     assert cgs.injector is first
     cgs.unwrap()
-
-
-#: the cheap downstream path (no optics) of the every-cell test
-CHEAP = {"lens": True, "resample": True, "display": True}
-
-
-def _pipe(mode: str = "fast", effects: dict | None = None) -> Pipeline:
-    pipe = Pipeline.from_config(dict(DEFAULT_EFFECTS if effects is None else effects))
-    if "optics" in pipe:
-        pipe["optics"].mode = mode
-    return pipe.eval()
-
-
