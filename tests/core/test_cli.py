@@ -472,3 +472,17 @@ def test_an_error_message_with_a_newline_is_one_line(tmp_path: Path, capsys: pyt
     assert main(["train", "--model", "m", "--data", "d", "--out", str(tmp_path / "r"), "--device", "cu\nda"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("controlgs train: error: --device 'cu\\nda': "), err
+
+
+def test_warnings_as_lines_prints_each_warning_as_one_line_and_restores_the_formatter(capsys):
+    """Inside the block a warning Python prints is one line naming the command (its message's
+    whitespace folded, no file, line or source); ``warnings.formatwarning`` is put back after."""
+    import warnings
+
+    from controlgs_adapter.cli import warnings_as_lines
+
+    before = warnings.formatwarning
+    with warnings_as_lines("train"):  # pytest records warnings itself: call the formatter Python would call
+        assert warnings.formatwarning("two\n   lines", UserWarning, "lib.py", 3) == ""
+    assert capsys.readouterr().err == "controlgs train: warning: two lines\n"
+    assert warnings.formatwarning is before
