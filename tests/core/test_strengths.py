@@ -103,15 +103,19 @@ def test_strengths_follow_eqs_10_11_at_each_anchors_display_position(state, lo, 
     cgs = ControlGS.wrap(_MODEL, modules=("lens", "resample", "display", "foveation"),
                          endpoints={"lens": (lo, hi), "foveation": (lo, hi)})
     try:
-        ids = torch.randperm(25, generator=torch.Generator().manual_seed(seed))[:10]
-        got = cgs.strengths(state, cam, ids)
-        # independent pinhole projection in float64
-        pts = _MODEL._anchor.detach().double()[ids]
+        # independent pinhole projection in float64 of every anchor
+        pts = _MODEL._anchor.detach().double()
         k = cam.intrinsics.double()
         z = pts[:, 2] + float(cam.world_to_camera[2, 3])
         u = k[0, 0] * pts[:, 0] / z + k[0, 2]
         v = k[1, 1] * pts[:, 1] / z + k[1, 2]
-        xy = torch.stack([2 * u / cam.width - 1, 2 * v / cam.height - 1], dim=1)
+        xy_all = torch.stack([2 * u / cam.width - 1, 2 * v / cam.height - 1], dim=1)
+        # 9 random anchors and the one farthest off screen
+        far = int(xy_all.abs().amax(dim=1).argmax())
+        perm = torch.randperm(25, generator=torch.Generator().manual_seed(seed))
+        ids = torch.cat([perm[perm != far][:9], torch.tensor([far])])
+        got = cgs.strengths(state, cam, ids)
+        xy = xy_all[ids]
         assert bool((xy.abs() > 1).any())  # some anchors are off screen
         # anchors and gaze on the display ("fit" placement: the 40 px width spans it, the height 30/40)
         xy = xy * torch.tensor([1.0, 30 / 40], dtype=torch.float64)
