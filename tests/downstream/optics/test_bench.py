@@ -173,3 +173,17 @@ def test_run_refuses_bad_counts_before_timing(kw, name, capsys):
     with pytest.raises(InputValueError, match=f"^{name} must be an integer in "):
         bench.run(sizes=[8], **kw)
     assert capsys.readouterr().out == ""
+
+
+def test_the_exact_operator_is_timed_only_when_the_longer_side_is_within_exact_max(tmp_path):
+    """``exact_max`` bounds the longer side: a 12 x 20 image is timed with the exact operator at
+    ``exact_max = 20`` and not at 16 (its shorter side, 12, would pass)."""
+    pytest.importorskip("skimage")
+    n = torch.get_num_threads()
+    try:
+        ops = {m: {r["op"] for r in bench.run(sizes=["12x20"], exact_max=m, threads=1, tols=(0.3,), repeat=1,
+                                               scaling=False, out=None, command="test")}
+               for m in (16, 20)}
+    finally:
+        torch.set_num_threads(n)
+    assert "exact" not in ops[16] and "exact" in ops[20]
