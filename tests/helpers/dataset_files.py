@@ -1,7 +1,7 @@
 """Tiny dataset folders written directly (COLMAP text and binary, Blender, instant-ngp) for the readers'
 refusal tests, a sentinel image outside them, and a record of every file the process opens.
 
-The record is one audit hook (``sys.addaudithook``; hooks cannot be removed) that appends the path of
+The record is one interpreter hook on `open` events (installed once: such hooks cannot be removed) that appends the path of
 each ``open`` event to :data:`OPENED`; :func:`recording` clears it for one test."""
 
 from __future__ import annotations
