@@ -71,6 +71,7 @@ def _cases(size: int, device: torch.device) -> dict[str, Callable[[torch.Tensor]
         "sRGB decode": srgb_to_linear,
         "sRGB encode": linear_to_srgb,
         "lens pre-warp (radial, 3 ch)": lambda x: lens_prewarp(x, grid),
+        "lens pre-warp, 2 x 2 samples per pixel": lambda x: lens_prewarp(x, grid, supersample=2),
         "resample d=2 (avg-pool path)": lambda x: area_resample(x, 2.0),
         "resample d=2.5 (area taps)": lambda x: area_resample(x, 2.5),
         "display rho=0.4 (at S/2.5)": lambda x: display_mapping(x[..., : low[0], : low[1]], 0.4, gt_lin),
