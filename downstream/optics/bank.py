@@ -183,6 +183,40 @@ class PSFBank:
                 _DEFAULT = cls.load(p)
         return _DEFAULT
 
+    # ------------------------------------------------------------------ the lens it describes
+    @property
+    def lens(self) -> dict[str, Any]:
+        """``meta["lens"]``, the lens's frame: ``{"axis": [ax, ay], "rotationally_symmetric": bool,
+        "psf": bool, "kind": str}``; a bank without one (the shipped Cardboard bank) is a centred,
+        rotationally symmetric lens traced from a prescription."""
+        lens = self.meta.get("lens")
+        if lens is None:
+            return {"axis": [0.0, 0.0], "rotationally_symmetric": True, "psf": True, "kind": "prescription"}
+        if not isinstance(lens, dict):
+            raise InputValueError(f"PSF bank: meta.lens must be an object, got {type(lens).__name__}")
+        return lens
+
+    @property
+    def axis(self) -> tuple[float, float]:
+        """Where the lens's optical axis meets the display, in normalised display coordinates
+        (``display_offset_mm`` divided by the display's half-extents; ``(0, 0)``: centred)."""
+        a = self.lens.get("axis", [0.0, 0.0])
+        if (not isinstance(a, (list, tuple)) or len(a) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in a)):
+            raise InputValueError(f"PSF bank: meta.lens.axis must be two finite numbers, got {a!r}")
+        return float(a[0]), float(a[1])
+
+    @property
+    def rotationally_symmetric(self) -> bool:
+        """True if the lens is rotationally symmetric about an axis through the display centre
+        (no decentre, tilt or display offset): the lens condition is then the anchor's radius."""
+        return bool(self.lens.get("rotationally_symmetric", True)) and self.axis == (0.0, 0.0)
+
+    @property
+    def has_psf(self) -> bool:
+        """False for a bank made from a distortion profile: chief rays only, every PSF a unit impulse."""
+        return bool(self.lens.get("psf", True))
+
     # ------------------------------------------------------------------ resampling
     @property
     def num_wavelengths(self) -> int:
