@@ -3,7 +3,25 @@
 A prescription is a small JSON-able dict (see :data:`CARDBOARD`); :class:`Prescription` checks it
 and gives refractive indices. Lengths are millimetres, wavelengths nanometres. The optical axis is
 +z from the display (z = 0) toward the eye; a surface's radius is positive when its centre of
-curvature lies toward the eye.
+curvature lies toward the eye (+z), whichever way the light travels.
+
+Optional per surface:
+
+- ``conic`` (k) and ``aspheric`` ([A4, A6, ...]): the even asphere
+  ``z = c r^2 / (1 + sqrt(1 - (1 + k) c^2 r^2)) + sum_i A_2i r^2i`` (c = 1 / radius_mm, r in mm);
+  k = 0 sphere, -1 paraboloid, (-1, 0) prolate ellipsoid, < -1 hyperboloid;
+- ``decenter_mm`` [x, y] and ``tilt_deg`` [a, b]: the surface alone is moved (the surfaces after it
+  stay on the axis): its vertex to ``(x, y, z_vertex)``, then rotated about that vertex by ``a``
+  about the x axis, then by ``b`` about the (fixed) y axis: ``p_global = vertex + R_y(b) R_x(a) p_local``
+  (right-handed, a positive ``a`` turns +y toward +z);
+- ``"after": "mirror"``: the surface reflects; the medium after it is the medium before it and the
+  light travels back, so the thicknesses after an odd number of mirrors are negative (a sequential
+  folded path, e.g. a pancake lens unrolled into its double pass). After the last surface the light
+  must travel toward the eye (+z): an even number of mirrors.
+
+Optional per system: ``display_offset_mm`` [x, y], the display point the lens axis meets,
+measured from the display centre (the eye pupil stays on the lens axis), and ``efficiency`` in
+(0, 1], the throughput of the modelled path (e.g. 0.25 for a pancake's two half-mirror passes).
 
 Dispersion: a material is given as ``{"nd": n_d, "vd": V_d}`` and modelled with the two-term
 Cauchy law ``n(lambda) = A + B / lambda^2`` fitted so that n(587.56 nm) = n_d and
@@ -20,7 +38,13 @@ from typing import Any, Mapping
 
 from controlgs_adapter.errors import InputValueError
 
-__all__ = ["CARDBOARD", "Prescription", "cauchy_index"]
+__all__ = ["CARDBOARD", "Prescription", "Surface", "cauchy_index"]
+
+_SYSTEM_KEYS = {"name", "display_mm", "object_distance_mm", "surfaces", "pupil_diameter_mm",
+                "virtual_image_distance_mm", "wavelengths_nm", "reference_wavelength_nm", "display_offset_mm",
+                "efficiency", "source", "licence", "notes"}
+_SURFACE_KEYS = {"radius_mm", "thickness_mm", "after", "semi_diameter_mm", "conic", "aspheric", "decenter_mm",
+                 "tilt_deg", "name"}
 
 LAMBDA_D, LAMBDA_F, LAMBDA_C = 587.56, 486.13, 656.27  # nm
 
@@ -52,9 +76,24 @@ def cauchy_index(nd: float, vd: float, wavelength_nm: float) -> float:
 @dataclass(frozen=True)
 class Surface:
     radius: float        # mm; math.inf for a plane
-    thickness: float     # mm to the next surface (or to the pupil for the last one)
-    material: Any        # "air" or {"nd", "vd"}
+    thickness: float     # mm to the next surface (or to the pupil for the last one); < 0 travelling back
+    material: Any        # "air" or {"nd", "vd"}: the medium after the surface (a mirror's: the one before it)
     semi_diameter: float
+    conic: float = 0.0
+    aspheric: tuple[float, ...] = ()           # A4, A6, ... (mm^-3, mm^-5, ...)
+    decenter: tuple[float, float] = (0.0, 0.0)  # mm
+    tilt: tuple[float, float] = (0.0, 0.0)      # degrees, about x then y
+    mirror: bool = False
+
+    @property
+    def curvature(self) -> float:
+        """Vertex curvature c = 1 / radius (1/mm; 0 for a plane)."""
+        return 0.0 if math.isinf(self.radius) else 1.0 / self.radius
+
+    @property
+    def moved(self) -> bool:
+        """Decentred or tilted."""
+        return self.decenter != (0.0, 0.0) or self.tilt != (0.0, 0.0)
 
 
 class Prescription:
@@ -89,23 +128,78 @@ class Prescription:
             raise InputValueError(f"prescription is missing or has a malformed field: {e!r}; see CARDBOARD for the form") from e
         if not surfaces:
             raise InputValueError("prescription['surfaces'] must list at least one surface")
+        self.display_offset = self._pair(s, "display_offset_mm", "prescription['display_offset_mm']")
+        eff = s.get("efficiency", 1.0)
+        if isinstance(eff, bool) or not isinstance(eff, (int, float)) or not (0 < eff <= 1):
+            raise InputValueError(f"prescription['efficiency'] must be a number in (0, 1], got {eff!r}")
+        self.efficiency = float(eff)
+        unknown = sorted(set(s) - _SYSTEM_KEYS)
+        if unknown:
+            raise InputValueError(f"prescription has unknown keys {unknown}; known: {sorted(_SYSTEM_KEYS)}")
         self.surfaces: list[Surface] = []
+        n_mirrors, material = 0, "air"
         for i, sf in enumerate(surfaces):
-            if not isinstance(sf, Mapping) or "thickness_mm" not in sf:
-                raise InputValueError(f"surfaces[{i}] must be an object with 'thickness_mm' (see CARDBOARD), got {sf!r}")
-            r = sf.get("radius_mm", math.inf)
-            if r in (None, 0, "inf"):
-                r = math.inf
-            elif isinstance(r, bool) or not isinstance(r, (int, float)) or math.isnan(r):
-                raise InputValueError(f"surfaces[{i}].radius_mm must be a number (or 0/null/'inf' for a plane), got {r!r}")
-            r = float(r)
-            mat = sf.get("after", "air")
-            if mat != "air" and not (isinstance(mat, Mapping) and "nd" in mat and "vd" in mat):
-                raise InputValueError(f"surfaces[{i}]['after'] must be 'air' or {{'nd': .., 'vd': ..}}, got {mat!r}")
-            self.surfaces.append(Surface(r, pos(f"surfaces[{i}].thickness_mm", sf["thickness_mm"]), mat,
-                                         pos(f"surfaces[{i}].semi_diameter_mm", sf.get("semi_diameter_mm", 1e9))))
+            self.surfaces.append(self._surface(i, sf, material, n_mirrors % 2 == 1))
+            material = self.surfaces[-1].material
+            n_mirrors += self.surfaces[-1].mirror
+        if n_mirrors % 2:
+            raise InputValueError(f"prescription has {n_mirrors} mirrors: after the last surface the light must "
+                                  "travel toward the eye (+z), which needs an even number of mirrors")
         if self.surfaces[-1].material != "air":
             raise InputValueError("the medium behind the last surface (toward the eye) must be 'air'")
+
+    @staticmethod
+    def _pair(obj: Mapping[str, Any], key: str, name: str) -> tuple[float, float]:
+        """An optional ``[x, y]`` of finite numbers (default ``(0, 0)``)."""
+        v = obj.get(key, (0.0, 0.0))
+        if not isinstance(v, (list, tuple)) or len(v) != 2 or not all(
+                not isinstance(a, bool) and isinstance(a, (int, float)) and math.isfinite(a) for a in v):
+            raise InputValueError(f"{name} must be [x, y], two finite numbers, got {v!r}")
+        return float(v[0]) + 0.0, float(v[1]) + 0.0   # -0.0 -> 0.0
+
+    def _surface(self, i: int, sf: Any, before: Any, backward: bool) -> Surface:
+        """Check ``surfaces[i]``; ``before`` is the medium in front of it, ``backward`` whether the light
+        reaching it travels toward the display (after an odd number of mirrors)."""
+        name = f"surfaces[{i}]"
+        if not isinstance(sf, Mapping) or "thickness_mm" not in sf:
+            raise InputValueError(f"{name} must be an object with 'thickness_mm' (see CARDBOARD), got {sf!r}")
+        unknown = sorted(set(sf) - _SURFACE_KEYS)
+        if unknown:
+            raise InputValueError(f"{name} has unknown keys {unknown}; known: {sorted(_SURFACE_KEYS)}")
+        r = sf.get("radius_mm", math.inf)
+        if r in (None, 0, "inf"):
+            r = math.inf
+        elif isinstance(r, bool) or not isinstance(r, (int, float)) or math.isnan(r):
+            raise InputValueError(f"{name}.radius_mm must be a number (or 0/null/'inf' for a plane), got {r!r}")
+        r = float(r)
+        mat = sf.get("after", "air")
+        mirror = mat == "mirror"
+        if mirror:
+            mat = before
+        elif mat != "air" and not (isinstance(mat, Mapping) and "nd" in mat and "vd" in mat):
+            raise InputValueError(f"{name}['after'] must be 'air', 'mirror' or {{'nd': .., 'vd': ..}}, got {mat!r}")
+        t = sf["thickness_mm"]
+        backward ^= mirror
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t == 0 or (t < 0) != backward:
+            want = "negative (the light travels back after an odd number of mirrors)" if backward else "positive"
+            raise InputValueError(f"prescription[{name + '.thickness_mm'!r}] must be a {want} number, got {t!r}")
+        semi = sf.get("semi_diameter_mm", 1e9)
+        if isinstance(semi, bool) or not isinstance(semi, (int, float)) or not math.isfinite(semi) or semi <= 0:
+            raise InputValueError(f"prescription[{name + '.semi_diameter_mm'!r}] must be a positive number, got {semi!r}")
+        k = sf.get("conic", 0.0)
+        if isinstance(k, bool) or not isinstance(k, (int, float)) or not math.isfinite(k):
+            raise InputValueError(f"{name}.conic must be a finite number, got {k!r}")
+        asph = sf.get("aspheric", [])
+        if not isinstance(asph, (list, tuple)) or not all(
+                not isinstance(a, bool) and isinstance(a, (int, float)) and math.isfinite(a) for a in asph):
+            raise InputValueError(f"{name}.aspheric must be a list of finite numbers [A4, A6, ...], got {asph!r}")
+        c = 0.0 if math.isinf(r) else 1.0 / r
+        if "semi_diameter_mm" in sf and 1.0 - (1.0 + k) * c * c * semi * semi < 0:
+            raise InputValueError(f"{name}: the conic (radius_mm {r:g}, conic {k:g}) has no sag at its semi_diameter_mm "
+                                  f"{semi:g} (1 - (1 + k) c^2 r^2 < 0); reduce semi_diameter_mm")
+        return Surface(r, float(t), mat, float(semi), float(k) + 0.0, tuple(float(a) for a in asph),
+                       self._pair(sf, "decenter_mm", f"{name}.decenter_mm"),
+                       self._pair(sf, "tilt_deg", f"{name}.tilt_deg"), mirror)
 
     @classmethod
     def cardboard(cls) -> "Prescription":
@@ -113,6 +207,16 @@ class Prescription:
 
     def index(self, material: Any, wavelength_nm: float) -> float:
         return 1.0 if material == "air" else cauchy_index(material["nd"], material["vd"], wavelength_nm)
+
+    @property
+    def rotationally_symmetric(self) -> bool:
+        """No surface decentred or tilted and the display centred on the lens axis."""
+        return self.display_offset == (0.0, 0.0) and not any(sf.moved for sf in self.surfaces)
+
+    @property
+    def path_length(self) -> float:
+        """Display -> pupil along the (unfolded) axis, mm: ``pupil_z`` when there are no mirrors."""
+        return self.object_distance + sum(abs(sf.thickness) for sf in self.surfaces)
 
     @property
     def vertices(self) -> list[float]:

@@ -8,10 +8,10 @@ import math
 
 import numpy as np
 import pytest
-from helpers.prescriptions import lens
+from helpers.prescriptions import cardboard_spec, lens
 
-from controlgs_adapter.downstream.optics.prescription import Prescription, cauchy_index
-from controlgs_adapter.downstream.optics.raytrace import chief_ray, paraxial, real_magnification, trace
+from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription, cauchy_index
+from controlgs_adapter.downstream.optics.raytrace import chief_ray, paraxial, real_magnification, trace, trace_exit
 
 
 @pytest.mark.parametrize("lam, efl, dist, mag", [(486.0, 47.51, 725.6, 15.88), (550.0, 47.91, 650.8, 14.20),
@@ -236,3 +236,75 @@ def test_real_magnification_is_the_tiny_field_limit_of_the_chief_ray_height():
         m0 = (4.0 * f1 - f2) / 3.0
         assert abs(f2 - f1) > 1e-10 * abs(m0)  # the distortion term is really there at these fields
         assert real_magnification(rx, lam) == pytest.approx(m0, rel=6e-12, abs=0)
+
+
+# ----------------------------------------------------------------------------- conics, aspheres, mirrors
+def _axis_crossings(p, d):
+    """Where each ray's line comes closest to the z axis: (z, distance from the axis)."""
+    t = -(p[..., 0] * d[..., 0] + p[..., 1] * d[..., 1]) / (d[..., 0] ** 2 + d[..., 1] ** 2)
+    q = p + t[..., None] * d
+    return q[..., 2], np.hypot(q[..., 0], q[..., 1])
+
+
+def test_zero_conic_and_zero_aspheric_terms_trace_exactly_like_the_sphere():
+    spec = cardboard_spec(surfaces=[dict(CARDBOARD["surfaces"][0], conic=0.0, aspheric=[0.0, 0.0, 0.0]),
+                                    dict(CARDBOARD["surfaces"][1], aspheric=[0.0])])
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-14, 14, (2, 2000))
+    u, v = rng.uniform(-0.5, 0.5, (2, 2000))
+    for a, b in zip(trace(Prescription(spec), 550.0, x, y, u, v), trace(Prescription.cardboard(), 550.0, x, y, u, v)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("f", [25.0, 40.0, 80.0])
+def test_a_paraboloid_mirror_focuses_a_collimated_beam_at_half_its_radius(f):
+    """A concave paraboloid (k = -1, R = -2f, centre toward the display) at z = 100 mm and a plane fold
+    mirror at z = 70 mm: rays parallel to the axis meet the axis at the paraboloid's focus 100 - f
+    (exactly, at any height), seen through the fold at 2 * 70 - (100 - f); the paraxial focal length is f."""
+    rx = lens([{"radius_mm": -2 * f, "conic": -1.0, "thickness_mm": -30.0, "after": "mirror"},
+               {"thickness_mm": 50.0, "after": "mirror"}], object_distance_mm=100.0)
+    rng = np.random.default_rng(4)
+    r, phi = 20 * np.sqrt(rng.uniform(0, 1, 500)), rng.uniform(0, 2 * math.pi, 500)
+    p, d, ok = trace_exit(rx, 550.0, r * np.cos(phi), r * np.sin(phi), 0.0, 0.0)
+    z, miss = _axis_crossings(p, d)
+    assert ok.all() and d[..., 2].min() > 0
+    assert np.abs(z - (140.0 - (100.0 - f))).max() < 1e-9 and miss.max() < 1e-9
+    assert paraxial(rx, 550.0).efl == pytest.approx(f, rel=1e-12)
+    # the sphere of the same vertex radius has spherical aberration: its marginal rays fall short
+    sphere = lens([{"radius_mm": -2 * f, "thickness_mm": -30.0, "after": "mirror"},
+                   {"thickness_mm": 50.0, "after": "mirror"}], object_distance_mm=100.0)
+    zs, _ = _axis_crossings(*trace_exit(sphere, 550.0, np.array([1e-3, 15.0]), 0.0, 0.0, 0.0)[:2])
+    assert zs[0] == pytest.approx(40.0 + f, abs=1e-6) and zs[1] < 40.0 + f - 0.1   # marginal focus nearer the mirror
+
+
+@pytest.mark.parametrize("a_axis, b_axis", [(60.0, 40.0), (100.0, 30.0)])
+def test_an_ellipsoid_mirror_images_one_focus_onto_the_other(a_axis, b_axis):
+    """An ellipsoid (R = -b^2 / a, k = -e^2) with its near focus on the display centre: every ray from it
+    passes through the far focus (z = vertex - a (1 + e)), here seen through a plane fold mirror."""
+    e = math.sqrt(1 - (b_axis / a_axis) ** 2)
+    z0 = a_axis * (1 - e)
+    fold = z0 / 2
+    rx = lens([{"radius_mm": -b_axis ** 2 / a_axis, "conic": -e * e, "thickness_mm": fold - z0, "after": "mirror"},
+               {"thickness_mm": 20.0, "after": "mirror"}], object_distance_mm=z0)
+    rng = np.random.default_rng(5)
+    u, v = rng.uniform(-0.8, 0.8, (2, 300))
+    p, d, ok = trace_exit(rx, 550.0, 0.0, 0.0, u, v)
+    z, miss = _axis_crossings(p, d)
+    assert ok.all() and miss.max() < 1e-9
+    assert np.abs(z - (2 * fold - (z0 - a_axis * (1 + e)))).max() < 1e-8
+
+
+def test_an_asphere_is_hit_on_its_sag():
+    """The rays' hits on an even asphere lie on ``z = c r^2 / (1 + sqrt(1 - (1 + k) c^2 r^2)) + A4 r^4 + A6 r^6``
+    (one surface: the exit point is the hit)."""
+    glass = {"nd": 1.5, "vd": 1e12}
+    c, k, a4, a6 = 1 / 30.0, -2.0, 2e-5, -3e-8
+    rx = lens([{"radius_mm": 30.0, "conic": k, "aspheric": [a4, a6], "thickness_mm": 10.0, "after": glass,
+                "semi_diameter_mm": 12.0}, {"thickness_mm": 5.0}], object_distance_mm=40.0)
+    rng = np.random.default_rng(6)
+    x, y, u, v = rng.uniform(-3, 3, 400), rng.uniform(-3, 3, 400), rng.uniform(-0.1, 0.1, 400), rng.uniform(-0.1, 0.1, 400)
+    one = Prescription(dict(rx.spec, surfaces=[dict(rx.spec["surfaces"][0], after="air")]))
+    p, _, ok = trace_exit(one, 550.0, x, y, u, v)
+    r2 = p[..., 0] ** 2 + p[..., 1] ** 2
+    sag = c * r2 / (1 + np.sqrt(1 - (1 + k) * c * c * r2)) + a4 * r2 ** 2 + a6 * r2 ** 3
+    assert ok.all() and np.abs(p[..., 2] - 40.0 - sag).max() < 1e-12
