@@ -34,6 +34,7 @@ from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
 from .downstream.oled import oled_emission
+from .downstream.optics.lenses import LensSpec, effects_for_lens
 from .downstream.optics.stage import set_optics_mode
 from .downstream.pipeline import Pipeline
 from .errors import FileFormatError, InputValueError, NonFiniteError
@@ -195,6 +196,9 @@ class Trainer:
             default a single process.
         renderer: how a view is rendered (:mod:`controlgs_adapter.rendering.protocol`: a ``Renderer`` or a
             render function); default the model's own (:func:`~controlgs_adapter.rendering.protocol.renderer_for`).
+        lens: the headset lens the effects simulate (:func:`~controlgs_adapter.downstream.optics.lenses.effects_for_lens`:
+            a shipped name, a bank / prescription / profile path, a ``Lens`` or a ``PSFBank``); default the
+            shipped Cardboard lens.
 
     Everything runs on the model's device; inside a step the per-tensor value checks (NaN/Inf,
     ranges: host syncs) are off, and the loss and the updated parameters are checked once instead;
@@ -209,14 +213,14 @@ class Trainer:
     def __init__(self, model: Any, views: Views, config: TrainConfig = TrainConfig(),
                  *, effects: Mapping[str, Any] | None = None,
                  checkpoint: str | Path | None = None, dist: DistContext | None = None,
-                 renderer: Renderer | Any = None) -> None:
+                 renderer: Renderer | Any = None, lens: LensSpec = None) -> None:
         if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
             raise InputValueError("views must be a non-empty dataset of (camera, image) with a background "
                                   f"(e.g. SceneData.views('train')), got {type(views).__name__}")
         if not isinstance(config, TrainConfig):
             raise InputValueError(f"config must be a TrainConfig, got {type(config).__name__}")
         self.config = config
-        self.effects = dict(DEFAULT_EFFECTS if effects is None else effects)
+        self.effects = effects_for_lens(DEFAULT_EFFECTS if effects is None else effects, lens)
         modules = modules_for(self.effects) if config.modules is None else tuple(config.modules)
         if not modules:
             raise InputValueError(f"no condition module to train: the effects {sorted(self.effects)} call for none")
@@ -226,10 +230,11 @@ class Trainer:
         bg = getattr(views, "background", None)
         self.background = None if bg is None else bg.to(self.device)
         self.data_fingerprint = views_fingerprint(views)
+        self.pipeline = Pipeline.from_config(self.effects).to(self.device)
         with seeded(int(config.seed), self.device):  # the projections' initialisation follows the seed, not the global RNG
-            self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind)
+            self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind,
+                                      lens=pipeline_lens(self.pipeline))
         try:  # a failure below leaves the user's model as it was
-            self.pipeline = Pipeline.from_config(self.effects).to(self.device)
             set_optics_mode(self.pipeline, self.optics_mode(0))  # refuses an optics stage without modes before any step
             self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)
             self.dist = DistContext() if dist is None else dist

@@ -32,7 +32,6 @@ sRGB texture).
 from __future__ import annotations
 
 import os
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Sequence
 
@@ -171,9 +170,9 @@ class LensPrewarp(Stage):
         Args:
             optics: the pipeline's optics stage (:class:`~.optics.stage.PSFOptics`).
             source: ``"fitted"``: map and gain fitted through the optics
-                (:func:`.prewarp_fit.fit_bank_prewarp`), read from ``lut`` (default: the LUT shipped
-                for the shipped Cardboard bank; for another bank without a LUT this falls back to
-                ``"chief_rays"`` with a warning); ``"chief_rays"``: the bank's chief rays
+                (:func:`.prewarp_fit.fit_bank_prewarp`), read from ``lut`` (default: a shipped lens's LUT
+                fitted for this bank, found by its fingerprint, :func:`.optics.lenses.prewarp_for_bank`;
+                for another bank without a LUT this falls back to ``"chief_rays"`` with a warning); ``"chief_rays"``: the bank's chief rays
                 (:class:`BankMap`, gain ``gain``).
             basis: see :class:`LensPrewarp`.
             lut: a file written by :meth:`DisplayLUTMap.save` (``controlgs optics fit-prewarp``).
@@ -189,10 +188,12 @@ class LensPrewarp(Stage):
         if gain is not None:
             raise InputValueError("gain applies to source='chief_rays'; a fitted LUT brings its own gain")
         if lut is None:
-            with resources.as_file(resources.files("controlgs_adapter.data").joinpath(DEFAULT_PREWARP_FILE)) as path:
-                fitted = DisplayLUTMap.load(path, placement) if path.is_file() else None
+            from .optics.lenses import prewarp_for_bank
+
+            shipped = prewarp_for_bank(bank)
+            fitted = None if shipped is None else DisplayLUTMap.load(shipped, placement)
             radiometry = getattr(optics, "radiometry", None)
-            if fitted is None or fitted.meta.get("bank") != bank_fingerprint(bank) or fitted.meta.get("radiometry") != radiometry:
+            if fitted is None or fitted.meta.get("radiometry") != radiometry:
                 fallback: Literal["jacobian"] | None = "jacobian" if radiometry == "energy" else None
                 warn_user(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
                           f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "

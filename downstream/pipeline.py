@@ -34,6 +34,7 @@ from controlgs_adapter.state import RuntimeState
 
 from .color import convert_domain
 from .lens import LensPrewarp
+from .optics.lenses import LENS_FOR_OPTICS
 from .stage import Domain, Stage, StageContext
 
 __all__ = ["Pipeline", "PHYSICAL_STAGES"]
@@ -41,8 +42,6 @@ __all__ = ["Pipeline", "PHYSICAL_STAGES"]
 #: Names of the stages that model the physical display-optics path (paper Eq. 5); everything
 #: ordered before the first of them is post-processing.
 PHYSICAL_STAGES: tuple[str, ...] = ("oled", "optics")
-#: options of ``{"lens": {...}}`` that build the lens from the optics (:meth:`LensPrewarp.for_optics`)
-_LENS_FOR_OPTICS = frozenset({"source", "basis", "lut", "gain", "supersample"})
 
 
 def _registered_stages() -> dict[str, type[Stage]]:
@@ -156,13 +155,13 @@ class Pipeline(nn.Module):
         # the default lens correction compensates the configured optics (fitted through it)
         lens_spec = spec.get("lens")
         lens_from_optics = spec.get("optics") not in (None, False) and (
-            lens_spec is True or (isinstance(lens_spec, Mapping) and set(lens_spec) <= _LENS_FOR_OPTICS))
+            lens_spec is True or (isinstance(lens_spec, Mapping) and set(lens_spec) <= LENS_FOR_OPTICS))
         for name, value in sorted(spec.items(), key=lambda kv: kv[0] == "lens"):  # lens last: it may need the optics
             if name == "lens" and lens_from_optics:
                 optics = next(s for s in stages if s.name == "optics")
                 bank = getattr(optics, "bank", None)
                 if bank is not None and hasattr(bank, "chief"):
-                    options = dict(value) if isinstance(value, Mapping) else {}  # keys within _LENS_FOR_OPTICS
+                    options = dict(value) if isinstance(value, Mapping) else {}  # keys within LENS_FOR_OPTICS
                     stages.append(LensPrewarp.for_optics(optics, **options))
                     continue
             if value is None or value is False:
