@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 
 from .controlgs import ControlGS
 from .downstream.oled import oled_emission
+from .downstream.optics.lenses import LensSpec, effects_for_lens
 from .downstream.optics.stage import set_optics_mode
 from .downstream.pipeline import Pipeline
 from .errors import InputValueError
@@ -117,10 +118,11 @@ class GridResult:
         return result
 
 
-def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "fast") -> Pipeline:
-    """The evaluation pipeline E_s from ``effects`` (default :data:`DEFAULT_EFFECTS`) with the
-    optics operator ``optics_mode``, in eval mode."""
-    pipeline = Pipeline.from_config(dict(DEFAULT_EFFECTS if effects is None else effects))
+def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "fast", lens: LensSpec = None) -> Pipeline:
+    """The evaluation pipeline E_s from ``effects`` (default :data:`DEFAULT_EFFECTS`) simulating ``lens``
+    (:func:`~controlgs_adapter.downstream.optics.lenses.effects_for_lens`; default the shipped Cardboard lens)
+    with the optics operator ``optics_mode``, in eval mode."""
+    pipeline = Pipeline.from_config(effects_for_lens(DEFAULT_EFFECTS if effects is None else effects, lens))
     set_optics_mode(pipeline, optics_mode)
     return pipeline.eval()
 
@@ -143,13 +145,14 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
                   effects: Mapping[str, Any] | None = None, downsample: Sequence[float] = GRID_DOWNSAMPLE, power_saving: Sequence[float] = GRID_POWER_SAVING,
                   optics_mode: str = "fast", baselines: Sequence[str] = BASELINES,
                   extra_metrics: bool = True, ideal: bool = True, lpips: Any = None,
-                  progress: bool = True, renderer: Renderer | Any = None) -> GridResult:
+                  progress: bool = True, renderer: Renderer | Any = None, lens: LensSpec = None) -> GridResult:
     """Evaluate the baselines and every adapter file in ``adapters`` (``{method name: path}``,
     each saved by :meth:`ControlGS.save` for ``model``) on the test ``views`` (a
     :class:`~controlgs_adapter.training.Views` dataset: ``(camera, image [3, H, W])`` per view, any
     size; its ``background`` is the renders'). ``model`` must not be wrapped; each adapter is loaded
     onto it in turn and removed afterwards. Everything runs on the model's device. ``renderer``:
-    how views are rendered (:mod:`controlgs_adapter.rendering.protocol`; default the model's own).
+    how views are rendered (:mod:`controlgs_adapter.rendering.protocol`; default the model's own). ``lens``: the
+    headset lens the pipeline simulates (:func:`make_pipeline`; default the shipped Cardboard lens).
 
     The renders that do not depend on the state are made once per view (``ss``) or once per d
     (``no_ss``); the pipeline runs for every (method, view, d, rho). ``result.info`` holds the
@@ -168,7 +171,7 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
         raise InputValueError(f"adapter names {clash} clash with the baselines {(*BASELINES, IDEAL)}")
     renderer = as_renderer(renderer, model)
     device = model_device(model)
-    pipeline = make_pipeline(effects, optics_mode).to(device)
+    pipeline = make_pipeline(effects, optics_mode, lens).to(device)
     bg = getattr(views, "background", None)
     background = None if bg is None else bg.to(device)
     extra = optional_metrics(None if lpips is None else lpips.to(device)) if extra_metrics else {}
@@ -225,12 +228,12 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
 def side_by_side(model: Any, adapter: str | Path, camera: Camera, gt: torch.Tensor, *,
                  settings: Sequence[tuple[float, float]] = ((1.0, 0.0), (8.0, 0.8)), effects: Mapping[str, Any] | None = None,
                  background: torch.Tensor | None = None, optics_mode: str = "fast",
-                 renderer: Renderer | Any = None) -> dict[str, Any]:
+                 renderer: Renderer | Any = None, lens: LensSpec = None) -> dict[str, Any]:
     """Rendered and eye images of no-SS, SS-backbone and ControlGS (adapter file) for one view at
     ``settings`` ``[(d, rho)]`` (paper Fig. 1): ``{"gt", "settings", "rows": {method: [(rendered,
-    eye, psnr, ssim)]}}``."""
+    eye, psnr, ssim)]}}``; ``lens`` as in :func:`make_pipeline`."""
     renderer = as_renderer(renderer, model)
-    pipeline = make_pipeline(effects, optics_mode).to(model_device(model))
+    pipeline = make_pipeline(effects, optics_mode, lens).to(model_device(model))
     rows: dict[str, list[tuple[torch.Tensor, torch.Tensor, float, float]]] = {"no_ss": [], "ss": [], "controlgs": []}
     full = render_view(None, model, camera, None, background, renderer=renderer)
 

@@ -34,6 +34,7 @@ from ..metrics import optional_metrics
 from controlgs_adapter.rendering.protocol import Renderer, model_device, render_view, renderer_for
 from ..state import Camera, RuntimeState
 from ..training import DEFAULT_EFFECTS, view_cameras
+from ..downstream.optics.lenses import LensSpec, load_lens
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..downstream.pipeline import Pipeline
@@ -246,17 +247,20 @@ class ViewerSession:
             power reference and no metrics are shown).
         renderer: how the model renders (default :func:`~controlgs_adapter.rendering.protocol.renderer_for`).
         name: the scene's name, shown on the page.
+        lens: the headset lens the pipeline simulates (:func:`~controlgs_adapter.evaluation.make_pipeline`;
+            default the shipped Cardboard lens).
     """
 
     def __init__(self, model: Any, views: Any, adapters: Mapping[str, str | Path], *,
                  truth: Callable[[Camera], torch.Tensor] | None = None, renderer: Renderer | None = None,
-                 name: str = "") -> None:
+                 name: str = "", lens: LensSpec = None) -> None:
         clash = [a for a in adapters if a in BASELINES]
         if clash:
             raise InputValueError(f"adapter names {clash} clash with the baselines {BASELINES}")
         if not len(views):
             raise InputValueError("the viewer needs at least one view")
         self.model, self.views, self.truth, self.name = model, views, truth, name
+        self.lens = None if lens is None else load_lens(lens)
         self.device = model_device(model)
         self.renderer = renderer or renderer_for(model)
         bg = getattr(views, "background", None)
@@ -291,7 +295,7 @@ class ViewerSession:
 
     def _pipeline(self, state: ViewState) -> Pipeline:
         if state.stages not in self._pipelines:
-            self._pipelines[state.stages] = make_pipeline(state.effects, "fast").to(self.device)
+            self._pipelines[state.stages] = make_pipeline(state.effects, "fast", self.lens).to(self.device)
         pipeline = self._pipelines[state.stages]
         set_optics_mode(pipeline, state.optics)
         return pipeline
