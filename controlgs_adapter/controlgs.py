@@ -6,6 +6,10 @@
     cgs.save("scene.controlgs.safetensors")
     cgs = ControlGS.load("scene.controlgs.safetensors", model)
 
+``wrap(model, lens=bank)`` conditions the lens module in the frame of the optics' lens
+(:mod:`controlgs_adapter.lens_frame`: the radius for a centred, rotationally symmetric lens, the
+position ``(x, y)`` in the lens's frame otherwise); the file records the frame.
+
 ``wrap`` follows PEFT's rule: it checks everything (backend, targets, widths, modules, endpoints)
 before it changes anything on the model, and ``unwrap`` puts back exactly what was there.
 """
@@ -26,12 +30,14 @@ from .backend import Backend, anchor_ids_from_mask, get_attr_path, set_attr_path
 from .errors import InjectionMissedError, InputValueError, LifecycleError, ShapeError, TargetError, warn_user
 from .injector import ConditionInjector, InjectionContext
 from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, AdapterSpec, build_header,
-                                               valid_fingerprint, write_adapter)
+                                               lens_frame_of, valid_fingerprint, write_adapter)
+from .lens_frame import LensFrame
 from .load_plan import load_into, plan_load, spec_endpoints
-from .schedules import StrengthSchedule
+from .schedules import LensSchedule, StrengthSchedule
 from .state import Camera, RuntimeState
 from .strengths import check_modules, module_strengths
 from .targets import ATTACHED, Target, check_shared_layers, inspect_target
+from .downstream.optics.bank import PSFBank
 from .downstream.placement import Placement
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
@@ -43,12 +49,13 @@ DEFAULT_ADAPTER = "default"
 
 @dataclass
 class _Adapter:
-    """One named parameter set of a wrapped model: its injector, schedules and what its load skipped."""
+    """One named parameter set of a wrapped model: its injector, schedules, lens frame and what its load skipped."""
 
     injector: ConditionInjector
     schedules: dict[str, StrengthSchedule]
     state_blind: bool
     skipped: list[str]
+    lens_frame: LensFrame
 
 
 def _backbone_tensors(model: Any) -> list[torch.Tensor]:
@@ -72,7 +79,8 @@ class ControlGS:
     ``targets`` (what it attached to), ``modules``, ``schedules``, ``state_blind``,
     ``num_anchors``, ``rows_per_anchor``, ``fingerprint`` (of the backbone), ``placement``,
     ``adapters`` (names of the loaded parameter sets), ``active_adapter`` (the injected one; ``injector``,
-    ``schedules`` and ``state_blind`` are its), ``skipped`` (what a non-strict load of it left out).
+    ``schedules``, ``state_blind`` and ``lens_frame`` are its), ``skipped`` (what a non-strict load of it
+    left out), ``lens_frame`` (the :class:`~controlgs_adapter.lens_frame.LensFrame` of the lens condition).
     """
 
     #: where the image sits on the headset display for the per-anchor strengths (``"fit"`` or
@@ -83,12 +91,13 @@ class ControlGS:
     def __init__(self, model: Any, backend: Backend, injector: ConditionInjector, targets: list[Target],
                  schedules: dict[str, StrengthSchedule], state_blind: bool, fingerprint: str,
                  originals: dict[str, nn.Module], grad_flags: list[tuple[torch.Tensor, bool]],
-                 name: str = DEFAULT_ADAPTER) -> None:
+                 name: str = DEFAULT_ADAPTER, lens_frame: LensFrame | None = None) -> None:
         self.model, self.backend, self.injector = model, backend, injector
         self.targets = tuple(targets)
         self.schedules = dict(schedules)
         self.state_blind = bool(state_blind)
-        self._adapters = {name: _Adapter(injector, self.schedules, self.state_blind, [])}
+        self.lens_frame = lens_frame or LensFrame()
+        self._adapters = {name: _Adapter(injector, self.schedules, self.state_blind, [], self.lens_frame)}
         self.active_adapter = name
         self.num_anchors = injector.num_anchors
         self.rows_per_anchor = backend.rows_per_anchor(model)
@@ -102,7 +111,8 @@ class ControlGS:
     def wrap(cls, model: Any, modules: Sequence[str] = DEFAULT_MODULES, cond_dim: int = 8,
              backend: str | Backend | None = None, targets: Sequence[str] | None = None,
              endpoints: Mapping[str, Sequence[float]] | None = None, state_blind: bool = False,
-             name: str = DEFAULT_ADAPTER) -> "ControlGS":
+             name: str = DEFAULT_ADAPTER, lens: PSFBank | LensFrame | None = None,
+             lens_conditioning: str | None = None) -> "ControlGS":
         """Attach a condition injector to every target decoder of ``model``.
 
         Args:
@@ -116,6 +126,13 @@ class ControlGS:
             endpoints: ``{module: (lo, hi)}`` control values of zero and full strength.
             state_blind: ablation: strength 1 for every module, whatever the state.
             name: name of this parameter set (more are added with :meth:`load_adapter`).
+            lens: the optics' lens, for the lens module's condition: a
+                :class:`~controlgs_adapter.downstream.optics.bank.PSFBank`, a
+                :class:`~controlgs_adapter.lens_frame.LensFrame`, or None (a centred radius frame).
+            lens_conditioning: ``"radius"`` (``||p - axis||``), ``"xy"`` (the position in the lens's
+                frame: a signed strength pair scaling the two halves of the N condition columns, so
+                ``cond_dim`` must be even), or None: ``"radius"`` for a rotationally symmetric, centred
+                lens, ``"xy"`` otherwise.
 
         Raises:
             NoMatchingBackendError, TargetError, InputValueError, ShapeError: before anything on the
@@ -124,6 +141,7 @@ class ControlGS:
         _check_name(name)
         chosen = select_backend(model, backend)
         schedules = check_modules(modules, cond_dim, endpoints)
+        lens_frame = _lens_frame(lens, lens_conditioning, schedules, cond_dim)
         if targets is None:
             targets = chosen.default_targets(model)
         if isinstance(targets, str) or not isinstance(targets, Sequence) or not targets:
@@ -165,7 +183,7 @@ class ControlGS:
         for t, _ in grad_flags:
             t.requires_grad_(False)
         cgs = cls(model, chosen, injector, [p.target for p in plans], schedules, state_blind, fingerprint,
-                  originals, grad_flags, name)
+                  originals, grad_flags, name, lens_frame)
         for p, fc1 in zip(plans, fc1s):
             injector.attach(p.target.decoder, fc1)
             ATTACHED[fc1] = cgs
@@ -237,7 +255,8 @@ class ControlGS:
 
     def strengths(self, state: RuntimeState, camera: Camera | None = None,
                   anchor_ids: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Injection strength of every wrapped module for the given anchors: ``{module: [R]}``."""
+        """Injection strength of every wrapped module for the given anchors: ``{module: [R]}``, the lens
+        ``[R, 2]`` ``(lambda_x, lambda_y)`` in an ``"xy"`` :attr:`lens_frame`."""
         self._check_live()
         ids = self.anchor_ids(anchor_ids)
         out = {}
@@ -250,7 +269,8 @@ class ControlGS:
                    *, skip_zero: bool) -> dict[str, torch.Tensor | float]:
         return module_strengths(self.schedules, state, camera, ids, modules, state_blind=self.state_blind,
                                 anchor_positions=lambda: self.backend.anchor_positions(self.model),
-                                placement=self.placement, dtype=self.injector.dtype, skip_zero=skip_zero)
+                                placement=self.placement, dtype=self.injector.dtype, skip_zero=skip_zero,
+                                lens_frame=self.lens_frame)
 
     @contextlib.contextmanager
     def conditioned(self, state: RuntimeState, camera: Camera | None = None, anchor_ids: torch.Tensor | None = None,
@@ -325,6 +345,7 @@ class ControlGS:
             rows_per_anchor=self.rows_per_anchor,
             fingerprint=self.fingerprint,
             valid_fingerprint=valid_fingerprint(self.model, self.backend),
+            lens_frame=None if self.lens_frame.is_default else self.lens_frame.header(),
         )
 
     def header(self) -> dict[str, Any]:
@@ -365,7 +386,7 @@ class ControlGS:
         spec = plan.spec
         cgs = cls.wrap(model, modules=spec["modules"], cond_dim=spec["cond_dim"], backend=plan.backend,
                        targets=plan.targets, endpoints=spec_endpoints(spec), state_blind=spec["state_blind"],
-                       name=name)
+                       name=name, lens=lens_frame_of(path, spec))
         load_into(cgs.injector, plan.tensors)
         cgs._adapters[name].skipped = plan.skipped
         return cgs
@@ -385,7 +406,8 @@ class ControlGS:
         injector = ConditionInjector(self.num_anchors, spec["modules"], spec["cond_dim"], widths,
                                      device=self.injector.conditions.device, dtype=self.injector.dtype)
         load_into(injector, plan.tensors)
-        self._adapters[name] = _Adapter(injector, schedules, bool(spec["state_blind"]), plan.skipped)
+        self._adapters[name] = _Adapter(injector, schedules, bool(spec["state_blind"]), plan.skipped,
+                                        lens_frame_of(path, spec))
         return list(plan.skipped)
 
     @property
@@ -400,7 +422,7 @@ class ControlGS:
 
     def set_adapter(self, name: str) -> None:
         """Inject parameter set ``name`` from now on (``injector``, ``schedules``, ``state_blind``,
-        ``trainable_parameters()`` and :meth:`save` follow it). Not inside a ``conditioned`` block."""
+        ``lens_frame``, ``trainable_parameters()`` and :meth:`save` follow it). Not inside a ``conditioned`` block."""
         self._check_live()
         if name not in self._adapters:
             raise InputValueError(f"unknown adapter {name!r}; loaded adapters: {list(self._adapters)}")
@@ -414,6 +436,7 @@ class ControlGS:
             if t.decoder in new.injector.widths:
                 new.injector.attach(t.decoder, get_attr_path(self.model, t.fc1))
         self.injector, self.schedules, self.state_blind = new.injector, new.schedules, new.state_blind
+        self.lens_frame = new.lens_frame
         self.active_adapter = name
 
     # ------------------------------------------------------------------ reporting
@@ -435,6 +458,8 @@ class ControlGS:
             lines.append(f"    {t.fc1}: Linear({t.in_features} -> {t.out_features}){note}")
         lines.append("  schedules:")
         lines += [f"    {m}: {s!r}" for m, s in self.schedules.items()]
+        if not self.lens_frame.is_default:
+            lines.append(f"  lens condition: {self.lens_frame!r}")
         lines.append(f"  trainable: {n_cond + n_proj:,} parameters (conditions {n_cond:,}, projections {n_proj:,})")
         return "\n".join(lines)
 
@@ -442,6 +467,23 @@ class ControlGS:
         return (f"ControlGS(backend={self.backend.name!r}, anchors={self.num_anchors}, modules={list(self.modules)}, "
                 f"cond_dim={self.injector.cond_dim}, targets={[t.fc1 for t in self.targets]}"
                 + (", state_blind=True" if self.state_blind else "") + ("" if self._wrapped else ", unwrapped") + ")")
+
+
+def _lens_frame(lens: PSFBank | LensFrame | None, mode: str | None, schedules: Mapping[str, StrengthSchedule],
+                cond_dim: int) -> LensFrame:
+    """The frame of the lens condition (a centred radius frame when no lens module is wrapped and
+    ``mode`` is not ``"xy"``); InputValueError where ``"xy"`` cannot split the condition in two."""
+    frame = LensFrame.of(lens, mode)
+    if frame.mode == "radius" and frame.axis == (0.0, 0.0):
+        return frame
+    if not any(isinstance(s, LensSchedule) for s in schedules.values()):
+        if mode == "xy":
+            raise InputValueError(f"lens_conditioning='xy' needs the 'lens' module, got modules {list(schedules)}")
+        return LensFrame()
+    if frame.mode == "xy" and cond_dim % 2:
+        raise InputValueError(f"cond_dim must be even for lens_conditioning 'xy' (lambda_x and lambda_y scale its two "
+                              f"halves), got {cond_dim}")
+    return frame
 
 
 def _check_name(name: str) -> None:

@@ -4,6 +4,9 @@ For every target decoder with first linear layer ``FC1`` (output width ``D1``)::
 
     h = FC1(x) + sum_m lambda[v, m] * A_m(C[v, m])
 
+A per-anchor strength may also be a pair ``[R_a, 2]`` (the lens in its ``"xy"`` frame,
+:mod:`controlgs_adapter.lens_frame`): it scales the two halves of the module's N condition columns,
+``lambda_x A_m([C_1, 0]) + lambda_y A_m([0, C_2])``.
 ``C`` is ``[A, M, N]`` (zero-initialised, so the wrapped model starts as the backbone) and
 ``A_m: R^N -> R^D1`` is a bias-free Linear shared by all anchors, one per module and distinct
 ``D1``. The sum is one gather and one matmul per :meth:`ConditionInjector.activate` context and
@@ -32,8 +35,9 @@ class InjectionContext:
 
     Attributes:
         anchor_ids: ``[R_a]`` long, the anchor of each group of ``rows_per_anchor`` decoder rows.
-        strengths: module -> ``[R_a]`` per-anchor strength tensor or a float shared by all rows;
-            modules with a shared strength of zero are not listed.
+        strengths: module -> ``[R_a]`` per-anchor strength tensor, ``[R_a, k]`` (each of k equal
+            slices of the N condition columns scaled by its own strength; k divides N), or a float
+            shared by all rows; modules with a shared strength of zero are not listed.
         rows_per_anchor: decoder rows per anchor (row r belongs to ``anchor_ids[r // K]``).
         calls: target name -> how many times its hooked first layer ran in this context.
     """
@@ -113,6 +117,10 @@ class ConditionInjector(nn.Module):
         unknown = set(ctx.strengths) - set(self.module_names)
         if unknown:
             raise InputValueError(f"strengths for unknown module(s) {sorted(unknown)}; wrapped modules: {list(self.module_names)}")
+        for m, lam in ctx.strengths.items():
+            if isinstance(lam, torch.Tensor) and lam.dim() == 2 and (lam.shape[1] < 1 or self.cond_dim % lam.shape[1]):
+                raise ShapeError(f"strengths[{m!r}]: {lam.shape[1]} strengths per anchor do not split the "
+                                 f"{self.cond_dim} condition columns into equal slices")
         self._ctx = ctx
 
     def deactivate(self) -> None:
@@ -144,7 +152,8 @@ class ConditionInjector(nn.Module):
         ws = []
         for j, (lam, w) in enumerate(zip(ctx.strengths.values(), projections)):
             if isinstance(lam, torch.Tensor):  # per-anchor strength scales the (few) condition columns
-                z[:, j] *= lam.to(z.dtype).unsqueeze(-1)
+                lam = lam.to(z.dtype)
+                z[:, j] *= lam.repeat_interleave(z.shape[-1] // lam.shape[1], dim=1) if lam.dim() == 2 else lam.unsqueeze(-1)
             elif lam != 1.0:  # a strength shared by all rows folds into the (tiny) projection
                 w = w * lam
             ws.append(w)

@@ -124,7 +124,12 @@ class StrengthSchedule:
 
 
 class LensSchedule(StrengthSchedule):
-    """Lens correction: radius of the anchor's display position about the optical centre."""
+    """Lens correction: radius of the anchor's display position about the optical centre.
+
+    For a lens that is not rotationally symmetric and centred, the adapter conditions on the
+    anchor's position ``q`` in the lens's own frame instead (:mod:`controlgs_adapter.lens_frame`):
+    :meth:`xy_strength` gives a signed pair per anchor.
+    """
 
     name = "lens"
     per_anchor = True
@@ -135,6 +140,12 @@ class LensSchedule(StrengthSchedule):
         if screen_xy is None:
             raise self._missing_screen_xy()
         return torch.linalg.vector_norm(screen_xy, dim=-1)
+
+    def xy_strength(self, q: torch.Tensor) -> torch.Tensor:
+        """``[R, 2]`` signed strengths ``(lambda_x, lambda_y) = clamp(q / hi, -1, 1)`` of positions
+        ``q`` ``[R, 2]`` in the lens's frame (``lo`` is not used: ``q = 0`` on the axis gives 0)."""
+        check_tensor("q", q, ["R", 2])
+        return (q / self.hi).clamp(-1.0, 1.0)
 
 
 class ResampleSchedule(StrengthSchedule):

@@ -11,10 +11,11 @@ import torch
 from . import plugins
 from .downstream.placement import Placement, to_display
 from .errors import InputValueError
-from .schedules import StrengthSchedule
+from .lens_frame import LensFrame
+from .schedules import LensSchedule, StrengthSchedule
 from .state import Camera, RuntimeState
 
-__all__ = ["check_modules", "module_strengths", "display_positions"]
+__all__ = ["check_modules", "module_strengths", "lens_strength", "display_positions"]
 
 
 def check_modules(modules: Sequence[str], cond_dim: int,
@@ -54,11 +55,12 @@ def check_modules(modules: Sequence[str], cond_dim: int,
 def module_strengths(schedules: Mapping[str, StrengthSchedule], state: RuntimeState, camera: Camera | None,
                      ids: torch.Tensor, modules: Sequence[str], *, state_blind: bool,
                      anchor_positions: Callable[[], torch.Tensor], placement: Placement, dtype: torch.dtype,
-                     skip_zero: bool) -> dict[str, torch.Tensor | float]:
+                     skip_zero: bool, lens_frame: LensFrame | None = None) -> dict[str, torch.Tensor | float]:
     """Strength of each of ``modules`` for the anchors ``ids`` (``LongTensor[R]``) at ``state``: a float
     for a global schedule (left out where 0 and ``skip_zero``), ``[R]`` for a per-anchor one (their
-    display positions: ``anchor_positions()`` ``[A, 3]`` seen by ``camera``, placed by ``placement``);
-    1.0 for every module when ``state_blind``."""
+    display positions: ``anchor_positions()`` ``[A, 3]`` seen by ``camera``, placed by ``placement``),
+    ``[R, 2]`` for the lens in a ``"xy"`` ``lens_frame`` (:func:`lens_strength`); 1.0 for every module
+    when ``state_blind``."""
     if not isinstance(state, RuntimeState):
         raise InputValueError(f"state must be a RuntimeState, got {type(state).__name__}")
     if state_blind:
@@ -82,8 +84,23 @@ def module_strengths(schedules: Mapping[str, StrengthSchedule], state: RuntimeSt
             screen, display_state = display_positions(
                 camera, camera.normalized_screen(positions.index_select(0, ids.to(positions.device))), state, placement)
         # per-anchor strengths stay even where all zero (they add exact zeros): testing would sync the device
-        out[m] = schedule.strength(display_state, screen, dtype=dtype, device=ids.device)
+        if isinstance(schedule, LensSchedule) and lens_frame is not None:
+            out[m] = lens_strength(schedule, lens_frame, display_state, screen, dtype, ids.device)
+        else:
+            out[m] = schedule.strength(display_state, screen, dtype=dtype, device=ids.device)
     return out
+
+
+def lens_strength(schedule: LensSchedule, frame: LensFrame, state: RuntimeState, screen: torch.Tensor,
+                  dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The lens strength of display positions ``screen`` ``[R, 2]`` in ``frame``: ``[R]`` from the radius
+    ``||p - axis||`` (``||p||`` itself for a centred lens), or ``[R, 2]`` ``(lambda_x, lambda_y)`` from the
+    position in the lens's frame (``"xy"``: :meth:`LensFrame.lens_coords`, :meth:`LensSchedule.xy_strength`)."""
+    if frame.mode == "xy":
+        return schedule.xy_strength(frame.lens_coords(screen).to(dtype=dtype, device=device))
+    if frame.axis != (0.0, 0.0):  # python scalars: no host-to-device copy
+        screen = torch.stack([screen[:, 0] - frame.axis[0], screen[:, 1] - frame.axis[1]], -1)
+    return schedule.strength(state, screen, dtype=dtype, device=device)
 
 
 def display_positions(camera: Camera, screen: torch.Tensor, state: RuntimeState,

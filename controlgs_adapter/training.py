@@ -35,6 +35,7 @@ from .controlgs import ControlGS
 from .distributed import DistContext
 from .downstream.oled import oled_emission
 from .downstream.optics.lenses import LensSpec, effects_for_lens
+from .downstream.optics.bank import PSFBank
 from .downstream.optics.stage import set_optics_mode
 from .downstream.pipeline import Pipeline
 from .errors import FileFormatError, InputValueError, NonFiniteError
@@ -52,6 +53,16 @@ DEFAULT_EFFECTS: dict[str, Any] = {"lens": True, "resample": True, "display": Tr
 
 # condition module -> downstream stages that make it useful
 _MODULE_STAGES = {"lens": ("lens", "optics"), "resample": ("resample",), "display": ("display",)}
+
+
+def _pipeline_lens(pipeline: Pipeline) -> PSFBank | None:
+    """The lens the lens condition is trained for: the optics stage's PSF bank, else the lens stage's
+    (its pre-warp map's) bank, else None (a centred radius frame)."""
+    optics = getattr(pipeline["optics"], "bank", None) if "optics" in pipeline else None
+    if isinstance(optics, PSFBank):
+        return optics
+    prewarp = getattr(getattr(pipeline["lens"], "map", None), "bank", None) if "lens" in pipeline else None
+    return prewarp if isinstance(prewarp, PSFBank) else None
 
 
 def _no_lap(name: str) -> None:
@@ -233,7 +244,7 @@ class Trainer:
         self.pipeline = Pipeline.from_config(self.effects).to(self.device)
         with seeded(int(config.seed), self.device):  # the projections' initialisation follows the seed, not the global RNG
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind,
-                                      lens=pipeline_lens(self.pipeline))
+                                      lens=_pipeline_lens(self.pipeline))
         try:  # a failure below leaves the user's model as it was
             set_optics_mode(self.pipeline, self.optics_mode(0))  # refuses an optics stage without modes before any step
             self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)

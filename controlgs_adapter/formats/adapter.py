@@ -18,13 +18,16 @@ import torch
 from controlgs_adapter.backend import Backend
 from controlgs_adapter.errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.safetensors import load_tensors, read_header, save_tensors
+from controlgs_adapter.lens_frame import LensFrame
 
 __all__ = ["ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "Problem", "AdapterSpec", "build_header", "check_header", "read_spec",
            "read_tensors", "write_adapter", "valid_fingerprint", "row_map", "map_conditions", "fingerprint_mismatch",
-           "tensor_mismatches"]
+           "tensor_mismatches", "lens_frame_of"]
 
 ADAPTER_KIND = "controlgs_adapter"
-ADAPTER_FORMAT_VERSION = 1
+#: the newest format: 2 adds the optional ``lens_frame`` field; a file without one (a centred radius
+#: lens condition, as every format-1 file) is written as format 1, which older readers read as it is meant
+ADAPTER_FORMAT_VERSION = 2
 
 # what a non-strict load leaves out for one mismatch: tensor keys, ("target", decoder), "conditions",
 # None (only reported: the adapter still loads) or "fatal" (cannot be skipped)
@@ -47,6 +50,8 @@ class AdapterSpec:
         num_anchors, rows_per_anchor: the backbone's anchor count and decoder rows per anchor.
         fingerprint: the backbone's fingerprint; ``valid_fingerprint``: over its valid anchors only
             (None for backends without ``valid_anchors``, :func:`valid_fingerprint`).
+        lens_frame: the lens condition's frame (:meth:`LensFrame.header
+            <controlgs_adapter.lens_frame.LensFrame.header>`); None for a centred radius frame.
     """
 
     backend: str
@@ -59,6 +64,7 @@ class AdapterSpec:
     rows_per_anchor: int
     fingerprint: str
     valid_fingerprint: str | None = None
+    lens_frame: dict[str, Any] | None = None
 
 
 def build_header(spec: AdapterSpec) -> dict[str, Any]:
@@ -74,6 +80,7 @@ def build_header(spec: AdapterSpec) -> dict[str, Any]:
         "rows_per_anchor": spec.rows_per_anchor,
         "fingerprint": spec.fingerprint,
         **({} if spec.valid_fingerprint is None else {"valid_fingerprint": spec.valid_fingerprint}),
+        **({} if spec.lens_frame is None else {"lens_frame": spec.lens_frame}),
     }
 
 
@@ -90,7 +97,8 @@ def write_adapter(path: str | Path, tensors: dict[str, torch.Tensor], header: di
     if dtype is not None:
         tensors = {**tensors, "conditions": tensors["conditions"].to(dtype)}
     header = {**header, "condition_dtype": str(tensors["conditions"].dtype).removeprefix("torch.")}
-    return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=ADAPTER_FORMAT_VERSION)
+    version = ADAPTER_FORMAT_VERSION if "lens_frame" in header else 1
+    return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=version)
 
 
 def read_spec(path: str | Path) -> dict[str, Any]:
@@ -129,7 +137,24 @@ def check_header(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
         if not (math.isfinite(lo) and math.isfinite(hi)) or lo == hi:
             raise FileFormatError(f"{path}: adapter header field schedules.{m}: endpoints lo={lo!r}, hi={hi!r} must be "
                                   "finite and differ")
+    lens_frame_of(path, header)
     return header
+
+
+def lens_frame_of(path: str | Path, header: dict[str, Any]) -> LensFrame:
+    """The lens frame the header records (none: a centred radius frame, as every format-1 file);
+    :class:`FileFormatError` naming ``path`` and the field if it is malformed or does not fit the adapter
+    (``"xy"`` needs the lens module and an even ``cond_dim``)."""
+    if "lens_frame" not in header:
+        return LensFrame()
+    try:
+        frame = LensFrame.from_header(header["lens_frame"])
+    except InputValueError as e:
+        raise FileFormatError(f"{path}: adapter header field {e}") from None
+    if frame.mode == "xy" and ("lens" not in header["modules"] or header["cond_dim"] % 2):
+        raise FileFormatError(f"{path}: adapter header field lens_frame.mode: 'xy' needs the 'lens' module and an "
+                              f"even cond_dim, got modules {header['modules']} and cond_dim {header['cond_dim']}")
+    return frame
 
 
 def valid_fingerprint(model: Any, backend: Backend) -> str | None:

@@ -36,7 +36,7 @@ LAYERS: dict[int, tuple[str, ...]] = {
     # 4. the built-ins, registered through the hooks
     4: ("builtin", "rendering.builtin", "backends.builtin", "downstream.builtin"),
     # 5. the wrapper and its file formats
-    5: ("formats.adapter", "formats.checkpoint", "targets", "strengths", "load_plan", "controlgs"),
+    5: ("lens_frame", "formats.adapter", "formats.checkpoint", "targets", "strengths", "load_plan", "controlgs"),
     # 6. the application
     6: ("rendering.protocol", "distributed", "training", "evaluation", "ablations", "report", "perceptual", "viewer",
         "benchmarking", "cli"),
