@@ -5,21 +5,24 @@ SSIM follows Wang et al. 2004 as 3DGS and pytorch-msssim use it: an 11-tap Gauss
 sigma 1.5 (separable, normalised), constants ``C1 = (0.01 L)^2``, ``C2 = (0.03 L)^2``, population
 (co)variances, per-channel maps averaged over the valid window positions (no padding) and the
 channels. ``data_range`` L is always explicit. LPIPS (local weights only) is in
-:mod:`controlgs_adapter.perceptual`; ColorVideoVDP runs when its package is installed.
+:mod:`controlgs_adapter.perceptual`. ColorVideoVDP (``cvvdp``, installed with ``--no-deps`` by
+``scripts/setup.sh``; :mod:`controlgs_adapter.cvvdp_shim`) scores a display of a given pixels per degree.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any, Callable, Union
 
 import torch
 import torch.nn.functional as F
 
 from .checks import check_image
-from .errors import InputValueError, ShapeError
+from .cvvdp_shim import import_pycvvdp
+from .errors import InputValueError, MissingDependencyError, ShapeError
 
-__all__ = ["psnr", "ssim", "flip", "FLIP_PPD", "gaussian_window", "check_image_pair", "optional_metrics"]
+__all__ = ["psnr", "ssim", "flip", "FLIP_PPD", "gaussian_window", "check_image_pair", "optional_metrics", "ColorVideoVDP",
+           "CVVDP_DISPLAY", "cvvdp_missing"]
 
 #: FLIP's default observer: pixels per degree of a 0.7 m wide 4K display seen from 0.7 m
 FLIP_PPD = 0.7 * (3840 / 0.7) * math.pi / 180.0
@@ -107,31 +110,77 @@ def flip(test: torch.Tensor, reference: torch.Tensor, *, ppd: float = FLIP_PPD) 
                                          parameters={"ppd": float(ppd)})[1])
 
 
-def optional_metrics(lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
-                     ) -> dict[str, Callable[[torch.Tensor, torch.Tensor], float]]:
+#: the ColorVideoVDP display model whose photometry (sRGB, 200 cd/m2 peak) every score uses; its geometry is replaced
+CVVDP_DISPLAY = "standard_4k"
+#: pixels per degree: a number, or a function ``(height, width) -> ppd`` of the image size
+PPD = Union[float, Callable[[int, int], float]]
+
+
+class ColorVideoVDP:
+    """ColorVideoVDP (``pycvvdp.cvvdp``, MIT): the JOD of one sRGB image pair ``[3, H, W]`` in [0, 1] (values
+    outside are clamped; higher is better, 10 for identical images; not differentiable here), on a ``W x H``
+    display seen at ``ppd`` pixels per degree (``pycvvdp.vvdp_display_geometry((W, H), ppd=...)``) with the
+    photometry of :data:`CVVDP_DISPLAY`. Runs on the images' device.
+
+    ``ppd``: a number or a function of the image size ``(H, W)``. ``ppd_used``: ``{"WxH": ppd}`` of every
+    size scored so far. Raises :class:`MissingDependencyError` when ``cvvdp`` does not import."""
+
+    def __init__(self, ppd: PPD) -> None:
+        self._pycvvdp = import_pycvvdp()
+        self._ppd = ppd
+        self._metrics: dict[tuple[str, str], Any] = {}
+        self.ppd_used: dict[str, float] = {}
+
+    def metric(self, height: int, width: int, device: torch.device | str = "cpu") -> Any:
+        """The ``pycvvdp.cvvdp`` metric for ``height x width`` images on ``device`` (made once)."""
+        size = f"{width}x{height}"
+        if size not in self.ppd_used:
+            ppd = self._ppd(height, width) if callable(self._ppd) else self._ppd
+            if isinstance(ppd, bool) or not isinstance(ppd, (int, float)) or not math.isfinite(ppd) or ppd <= 0:
+                raise InputValueError(f"cvvdp: ppd must be a finite number > 0 (pixels per degree), got {ppd!r} for {size}")
+            self.ppd_used[size] = float(ppd)
+        key = (size, str(device))
+        if key not in self._metrics:
+            geometry = self._pycvvdp.vvdp_display_geometry((width, height), ppd=self.ppd_used[size])
+            self._metrics[key] = self._pycvvdp.cvvdp(display_name=CVVDP_DISPLAY, display_geometry=geometry,
+                                                     device=torch.device(device), quiet=True)
+        return self._metrics[key]
+
+    def __call__(self, test: torch.Tensor, reference: torch.Tensor) -> float:
+        check_image_pair(test, reference, ("test", "reference"))
+        if test.dim() != 3:
+            raise ShapeError(f"cvvdp takes one image pair [3, H, W], got {list(test.shape)}")
+        metric = self.metric(test.shape[-2], test.shape[-1], test.device)
+
+        def hwc(img: torch.Tensor) -> torch.Tensor:
+            return img.detach().clamp(0, 1).permute(1, 2, 0).float()
+
+        jod, _ = metric.predict(hwc(test), hwc(reference), dim_order="HWC")
+        return float(jod)
+
+
+def cvvdp_missing() -> str | None:
+    """Why ColorVideoVDP cannot run here (one line), or None when it imports."""
+    try:
+        import_pycvvdp()
+    except MissingDependencyError as e:
+        return str(e)
+    return None
+
+
+def optional_metrics(lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None, *,
+                     ppd: PPD | None = None) -> dict[str, Callable[[torch.Tensor, torch.Tensor], float]]:
     """The report's metrics beyond PSNR and SSIM, as ``{name: f(eye, gt) -> float}`` on one sRGB
     image pair ``[3, H, W]`` in [0, 1]: ``"flip"`` (LDR-FLIP, lower is better; always),
     ``"lpips"`` (lower is better) when an LPIPS network is given (:func:`~controlgs_adapter.perceptual.load_lpips`),
-    and ``"cvvdp"`` (ColorVideoVDP JOD, higher is better) when the ``cvvdp`` package is installed
-    (``--no-deps``, so that it keeps the CPU torch, see docs/reference/training-evaluation.md). Nothing is ever downloaded."""
+    and ``"cvvdp"`` (a :class:`ColorVideoVDP` at ``ppd`` pixels per degree, higher is better) when ``ppd`` is
+    given and ``cvvdp`` imports (:func:`cvvdp_missing` says why not). Nothing is ever downloaded."""
     found: dict[str, Callable[[torch.Tensor, torch.Tensor], float]] = {"flip": flip}
     if lpips is not None:
         def lpips_metric(eye: torch.Tensor, gt: torch.Tensor) -> float:
             return float(lpips(eye, gt))
 
         found["lpips"] = lpips_metric
-    try:
-        import pycvvdp  # type: ignore[import-not-found]
-    except ImportError:
-        pass
-    else:
-        metric = pycvvdp.cvvdp(display_name="standard_4k", device=torch.device("cpu"), quiet=True)
-
-        def cvvdp(eye: torch.Tensor, gt: torch.Tensor) -> float:
-            check_image_pair(eye, gt)
-            jod, _ = metric.predict(eye.detach().clamp(0, 1).permute(1, 2, 0).float().cpu(),
-                                    gt.detach().clamp(0, 1).permute(1, 2, 0).float().cpu(), dim_order="HWC")
-            return float(jod)
-
-        found["cvvdp"] = cvvdp
+    if ppd is not None and cvvdp_missing() is None:
+        found["cvvdp"] = ColorVideoVDP(ppd)
     return found

@@ -25,7 +25,8 @@ ROOT = Path(controlgs_adapter.__file__).resolve().parent
 #: the core modules by layer; a module imports only from its own layer and the ones below
 LAYERS: dict[int, tuple[str, ...]] = {
     # 1. foundation: errors, checks, states, file readers that know no model, the splatter, the clock
-    1: ("_version", "errors", "checks", "state", "seeding", "lock", "extras", "clock", "injector", "metrics", "losses",
+    1: ("_version", "errors", "checks", "state", "seeding", "lock", "extras", "clock", "injector", "cvvdp_shim", "metrics",
+        "losses",
         "formats.safetensors", "formats.torchscript_layers", "formats.torchscript_live", "formats.torchscript",
         "formats.backbone", "formats.decoders", "formats.layout",
         "rendering.splatter"),

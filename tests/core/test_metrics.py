@@ -1,25 +1,29 @@
 """Tests of ``controlgs_adapter.metrics``: PSNR, SSIM and its Gaussian window against their definitions and
-scikit-image, NVIDIA's FLIP through its package, and the optional-metric table."""
+scikit-image, NVIDIA's FLIP and ColorVideoVDP through their packages, and the optional-metric table."""
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import subprocess
 import sys
+import textwrap
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from helpers.cvvdp_reference import direct_cvvdp, needs_cvvdp
 from helpers.oracles import ssim_brute_force
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
 from controlgs_adapter.errors import InputValueError, ShapeError
-from controlgs_adapter.metrics import FLIP_PPD, check_image_pair, flip, gaussian_window, optional_metrics, psnr, ssim
+from controlgs_adapter.metrics import (FLIP_PPD, ColorVideoVDP, check_image_pair, cvvdp_missing, flip, gaussian_window,
+                                       optional_metrics, psnr, ssim)
 
 D64 = torch.float64
 
@@ -234,10 +238,75 @@ def test_flip_without_its_package_says_how_to_install_it(monkeypatch):
         flip(x, x)
 
 
+# ------------------------------------------------------------------------------ ColorVideoVDP
+@needs_cvvdp
+def test_cvvdp_is_the_package_called_directly():
+    """The library's JOD equals the package's on the same images and geometry; the ppd is the one given, per size
+    ``(H, W)``, and it matters; identical images score 10."""
+    asked = []
+
+    def ppd_of(h: int, w: int) -> float:
+        asked.append((h, w))
+        return 2.0 + w / 4
+
+    metric = ColorVideoVDP(ppd_of)
+    for seed, shape in ((0, (3, 64, 64)), (1, (3, 48, 64))):
+        ref, test = _pair(seed, shape, noise=0.05)
+        score = metric(test, ref)
+        assert score == pytest.approx(direct_cvvdp(test, ref, 18.0), abs=1e-6)
+        assert score != pytest.approx(direct_cvvdp(test, ref, 40.0), abs=1e-3)
+        assert 5.0 < score < 10.0 and isinstance(score, float)
+        assert metric(ref, ref) == pytest.approx(10.0, abs=1e-6)
+    assert asked == [(64, 64), (48, 64)] and metric.ppd_used == {"64x64": 18.0, "64x48": 18.0}
+    fixed = ColorVideoVDP(25.0)
+    ref, test = _pair(2, (3, 64, 64), noise=0.05)
+    assert fixed(test, ref) == pytest.approx(direct_cvvdp(test, ref, 25.0), abs=1e-6)
+    # sRGB values outside [0, 1] are clamped, as a display holds them
+    assert fixed(test * 1.5 - 0.2, ref) == pytest.approx(direct_cvvdp((test * 1.5 - 0.2).clamp(0, 1), ref, 25.0), abs=1e-6)
+
+
+@needs_cvvdp
+def test_cvvdp_refusals_name_the_argument():
+    x = torch.rand(3, 64, 64)
+    for bad in (0.0, -3.0, float("nan"), float("inf"), True, "60"):
+        with pytest.raises(InputValueError, match=r"^cvvdp: ppd must be .*for 64x64$"):
+            ColorVideoVDP(bad)(x, x)
+    with pytest.raises(InputValueError, match=r"^cvvdp: ppd .*got nan for 64x64$"):
+        ColorVideoVDP(lambda h, w: float("nan"))(x, x)
+    with pytest.raises(ShapeError, match=r"^cvvdp takes one image pair \[3, H, W\], got \[2, 3, 64, 64\]$"):
+        ColorVideoVDP(30.0)(x.expand(2, 3, 64, 64), x.expand(2, 3, 64, 64))
+    with pytest.raises(ShapeError, match="^test and reference must have the same shape"):
+        ColorVideoVDP(30.0)(x, x[:, :32])
+
+
+@needs_cvvdp
+def test_cvvdp_makes_no_network_connection():
+    """In a fresh interpreter whose sockets refuse to connect (and record every try), importing ColorVideoVDP and
+    scoring with its base metric try none."""
+    code = textwrap.dedent("""
+        import json, socket
+        tries = []
+        def refuse(*args, **kwargs):
+            tries.append(repr(args[1:] or args))
+            raise OSError("network disabled")
+        socket.socket.connect = socket.socket.connect_ex = refuse
+        socket.create_connection = socket.getaddrinfo = refuse
+        import torch
+        from controlgs_adapter.metrics import ColorVideoVDP
+        x = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(0))
+        jod = ColorVideoVDP(20.0)((x + 0.05).clamp(0, 1), x)
+        print(json.dumps({"jod": jod, "tries": tries}))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["tries"] == [] and 5.0 < result["jod"] < 10.0
+
+
 # ------------------------------------------------------------------------------ optional metrics
-def test_optional_metrics():
+def test_optional_metrics(monkeypatch):
     found = optional_metrics()
-    assert list(found) == ["flip"] and found["flip"] is flip  # pycvvdp is not installed here
+    assert list(found) == ["flip"] and found["flip"] is flip  # ColorVideoVDP needs the pixels per degree
     calls = []
 
     def fake_lpips(e: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -249,3 +318,14 @@ def test_optional_metrics():
     x = torch.zeros(3, 4, 4)
     value = found["lpips"](x, x + 1)
     assert value == 0.375 and isinstance(value, float) and calls[0][0] is x
+    monkeypatch.setitem(sys.modules, "pycvvdp", None)  # ColorVideoVDP not installed: left out, and said why
+    assert list(optional_metrics(ppd=30.0)) == ["flip"]
+    assert re.fullmatch(r"ColorVideoVDP does not import \(.*\); pip install .*--no-deps cvvdp==0\.5\.7", cvvdp_missing() or "")
+
+
+@needs_cvvdp
+def test_optional_metrics_with_cvvdp():
+    found = optional_metrics(ppd=30.0)
+    assert list(found) == ["flip", "cvvdp"] and isinstance(found["cvvdp"], ColorVideoVDP) and cvvdp_missing() is None
+    ref, test = _pair(3, (3, 64, 64), noise=0.05)
+    assert found["cvvdp"](test, ref) == pytest.approx(direct_cvvdp(test, ref, 30.0), abs=1e-6)
