@@ -3,7 +3,7 @@
 For every test view and every setting of the 4 x 5 grid (d in {1, 2, 4, 8} x rho in {0, .2, .4,
 .6, .8}) each method's render goes through the same downstream pipeline E_s and its eye image
 is compared with the ground truth (PSNR, SSIM, LDR-FLIP; LPIPS given local weights; ColorVideoVDP
-when installed). Methods:
+at the on-axis pixels per degree of the simulated lens, when installed). Methods:
 
 - ``no_ss``: the backbone rendered directly at the display size round(S/d) (no supersampling);
 - ``ss``: the SS-backbone: rendered at S, area-pooled to S/d by the pipeline's resampling;
@@ -16,26 +16,29 @@ Eye images are clamped to [0, 1] (what a display-encoded image can hold) before 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 from tqdm.auto import tqdm
 
 from .controlgs import ControlGS
 from .downstream.oled import oled_emission
+from .downstream.optics.bank import PSFBank
 from .downstream.optics.lenses import LensSpec, effects_for_lens
 from .downstream.optics.stage import set_optics_mode
 from .downstream.pipeline import Pipeline
+from .downstream.placement import Placement, image_region
 from .errors import InputValueError
-from .metrics import optional_metrics, psnr, ssim
+from .metrics import CVVDP_DISPLAY, ColorVideoVDP, cvvdp_missing, optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
 from controlgs_adapter.rendering.protocol import Renderer, as_renderer, model_device, render_view
 from .training import DEFAULT_EFFECTS, Views
 
 __all__ = ["GRID_DOWNSAMPLE", "GRID_POWER_SAVING", "BASELINES", "IDEAL", "GridResult", "evaluate_grid", "make_pipeline",
-           "side_by_side", "condition_response", "scores"]
+           "side_by_side", "condition_response", "scores", "lens_ppd", "pipeline_lens"]
 
 GRID_DOWNSAMPLE: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
 GRID_POWER_SAVING: tuple[float, ...] = (0.0, 0.2, 0.4, 0.6, 0.8)
@@ -127,6 +130,51 @@ def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "
     return pipeline.eval()
 
 
+def lens_ppd(bank: PSFBank, height: int, width: int, placement: Placement = "fit") -> float:
+    """On-axis pixels per degree of an ``height x width`` image seen through the lens of ``bank``: a display
+    pixel of pitch p mm (the image placed on the bank's display, :func:`~.downstream.placement.image_region`)
+    is M p mm wide on the virtual image plane D mm in front of the eye's pupil (M =
+    ``meta.figures.reference_magnification``, D = ``meta.prescription.virtual_image_distance_mm``), so near
+    the axis it subtends M p / D radians: ppd = (pi / 180) D / (M p); with anisotropic pixels
+    (``"stretch"``) the geometric mean of the two axes'. The shipped Cardboard bank at 1024 x 1024: 34.13."""
+    try:
+        m = float(bank.meta["figures"]["reference_magnification"])
+        d = float(bank.meta["prescription"]["virtual_image_distance_mm"])
+    except (KeyError, TypeError, ValueError):
+        raise InputValueError("PSF bank: pixels per degree need meta.figures.reference_magnification and "
+                              "meta.prescription.virtual_image_distance_mm (numbers), which this bank lacks") from None
+    if not (math.isfinite(m) and math.isfinite(d) and m > 0 and d > 0):
+        raise InputValueError(f"PSF bank: reference_magnification {m} and virtual_image_distance_mm {d} must be finite and > 0")
+    px, py = image_region(height, width, bank.display_mm, placement).pitch_mm
+    return math.pi / 180.0 * d / (m * math.sqrt(px * py))
+
+
+def pipeline_lens(pipeline: Pipeline) -> tuple[PSFBank, Placement]:
+    """The lens a pipeline simulates: its ``optics`` stage's PSF bank and placement, else the shipped
+    Cardboard bank (:meth:`PSFBank.default`) with ``"fit"``."""
+    if "optics" in pipeline:
+        optics = pipeline["optics"]
+        bank = getattr(optics, "bank", None)
+        if isinstance(bank, PSFBank):
+            return bank, "stretch" if getattr(optics, "placement", "fit") == "stretch" else "fit"
+    return PSFBank.default(), "fit"
+
+
+def _cvvdp_ppd(pipeline: Pipeline) -> tuple[Callable[[int, int], float] | None, dict[str, Any]]:
+    """ColorVideoVDP's pixels per degree for ``pipeline``'s lens, ``(H, W) -> ppd``, and what the report says
+    of it (``{"skipped": why}`` when it cannot run)."""
+    bank, placement = pipeline_lens(pipeline)
+    try:
+        lens_ppd(bank, 2, 2, placement)
+    except InputValueError as e:
+        return None, {"skipped": str(e)}
+    missing = cvvdp_missing()
+    if missing is not None:
+        return None, {"skipped": missing}
+    lens = bank.meta.get("prescription", {}).get("name", "the PSF bank's lens")
+    return (lambda h, w: lens_ppd(bank, h, w, placement)), {"lens": lens, "placement": placement, "display": CVVDP_DISPLAY}
+
+
 def scores(eye: torch.Tensor, gt: torch.Tensor, extra: Mapping[str, Any]) -> dict[str, float]:
     """The grid's metrics of one eye image ``[3, H, W]`` (clamped to [0, 1], as a display holds it) vs
     the ground truth: PSNR, SSIM and each ``extra`` ``{name: fn(eye, gt)}``. An eye image at the display
@@ -158,7 +206,8 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
     (``no_ss``); the pipeline runs for every (method, view, d, rho). ``result.info`` holds the
     number of views and their sizes. ``ideal``: also score the ground truth through the pipeline
     (method :data:`IDEAL`, once per view and state). ``extra_metrics``: FLIP, ColorVideoVDP when
-    installed, and LPIPS with ``lpips`` (an :class:`~controlgs_adapter.perceptual.LPIPS`).
+    installed (at :func:`lens_ppd` of :func:`pipeline_lens`; ``info["cvvdp"]`` holds the ppd of each
+    image size, or why it was skipped), and LPIPS with ``lpips`` (an :class:`~controlgs_adapter.perceptual.LPIPS`).
     """
     if isinstance(views, torch.Tensor) or not isinstance(views, Views) or not len(views):
         raise InputValueError("views must be a non-empty dataset of (camera, image) with a background "
@@ -174,7 +223,8 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
     pipeline = make_pipeline(effects, optics_mode, lens).to(device)
     bg = getattr(views, "background", None)
     background = None if bg is None else bg.to(device)
-    extra = optional_metrics(None if lpips is None else lpips.to(device)) if extra_metrics else {}
+    ppd, cvvdp_info = _cvvdp_ppd(pipeline) if extra_metrics else (None, {})
+    extra = optional_metrics(None if lpips is None else lpips.to(device), ppd=ppd) if extra_metrics else {}
     names = list(baselines) + ([IDEAL] if ideal else []) + list(adapters)
     nd, npow, nv = len(downsample), len(power_saving), len(views)
     metric_names = ["psnr", "ssim", *extra]
@@ -220,8 +270,11 @@ def evaluate_grid(model: Any, views: Views, adapters: Mapping[str, str | Path], 
     describe = getattr(views, "describe", None)
     info = dict(describe()) if callable(describe) else {"views": nv, "sizes": sorted({f"{c.width}x{c.height}" for c, _ in
                                                                                        (views[v] for v in range(nv))})}
-    return GridResult(tuple(float(d) for d in downsample), tuple(float(p) for p in power_saving), result, optics_mode,
-                      {"test_" + k: v for k, v in info.items()})
+    info = {"test_" + k: v for k, v in info.items()}
+    if extra_metrics:
+        cvvdp = extra.get("cvvdp")
+        info["cvvdp"] = {**cvvdp_info, "ppd": dict(cvvdp.ppd_used)} if isinstance(cvvdp, ColorVideoVDP) else cvvdp_info
+    return GridResult(tuple(float(d) for d in downsample), tuple(float(p) for p in power_saving), result, optics_mode, info)
 
 
 @torch.no_grad()

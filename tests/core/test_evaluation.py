@@ -11,12 +11,15 @@ from pathlib import Path
 
 import pytest
 import torch
+from helpers.banks import tiny_bank
+from helpers.cvvdp_reference import CVVDP_COLUMN, direct_cvvdp, needs_cvvdp
 from helpers.grid_results import DOWNSAMPLE, POWER_SAVING, PSNR, grid_result
 from helpers.lpips_weights import random_lpips_weights
 from helpers.progress import record_bars
 
 from controlgs_adapter import ControlGS, RuntimeState, evaluation, plugins
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.evaluation import (
@@ -27,7 +30,9 @@ from controlgs_adapter.evaluation import (
     GridResult,
     condition_response,
     evaluate_grid,
+    lens_ppd,
     make_pipeline,
+    pipeline_lens,
     scores,
     side_by_side,
 )
@@ -101,17 +106,19 @@ class _Plain:
 # ------------------------------------------------------------------------------ evaluate_grid
 def test_ideal_bound_is_the_ground_truth_through_the_pipeline(tiny):
     """No baselines and no adapters: nothing is rendered, only the ground truth goes through E_s, scored
-    as PSNR, SSIM and FLIP of the clamped eye image."""
+    as PSNR, SSIM, FLIP and ColorVideoVDP (at the shipped Cardboard lens's on-axis ppd) of the clamped eye image."""
     scene, model = tiny
     views = scene.views("test")
     r = evaluate_grid(model, views, {}, downsample=(2.0,), power_saving=(0.4,), baselines=(), progress=False)
-    assert r.methods == [IDEAL] and r.metrics == ["psnr", "ssim", "flip"]
+    assert r.methods == [IDEAL] and r.metrics == ["psnr", "ssim", "flip", *CVVDP_COLUMN]
     pipe = _pipe()
     for v in range(len(views)):
         _, gt = views[v]
         with torch.no_grad():
             eye = pipe(gt, RuntimeState(downsample=2.0, power_saving=0.4), reference=gt).clamp(0, 1).double()
         want = {"psnr": float(psnr(eye, gt.double())), "ssim": float(ssim(eye, gt.double())), "flip": flip(eye, gt.double())}
+        if CVVDP_COLUMN:
+            want["cvvdp"] = direct_cvvdp(eye, gt.double(), lens_ppd(PSFBank.default(), gt.shape[-2], gt.shape[-1]))
         for k, value in want.items():
             assert float(r.per_view[IDEAL][k][0, 0, v]) == pytest.approx(value, rel=1e-9, abs=1e-12), k
         assert want["psnr"] < 60  # the pipeline is not the identity: the bound means something
@@ -121,7 +128,7 @@ def test_baselines_ideal_and_extra_metrics_options(tiny_adapter):
     model, views, path = tiny_adapter
     r = evaluate_grid(model, views, {}, downsample=(2.0,), power_saving=(0.6,), baselines=("ss",), ideal=False,
                       progress=False, optics_mode="distortion")
-    assert r.methods == ["ss"] and r.metrics == ["psnr", "ssim", "flip"] and r.optics_mode == "distortion"
+    assert r.methods == ["ss"] and r.metrics == ["psnr", "ssim", "flip", *CVVDP_COLUMN] and r.optics_mode == "distortion"
     cam, gt = views[1]
     with torch.no_grad():
         eye = _pipe("distortion")(render_view(None, model, cam, None, views.background),
@@ -147,7 +154,7 @@ def test_evaluate_grid_scores_lpips_with_the_network_it_is_given():
     effects = {"display": True}
     r = evaluate_grid(torch.nn.Linear(1, 1), views, {}, effects=effects, downsample=(1.0,), power_saving=(0.0, 0.6),
                       baselines=(), lpips=net, progress=False, renderer=lambda *a, **k: None)
-    assert r.methods == [IDEAL] and r.metrics == ["psnr", "ssim", "flip", "lpips"]
+    assert r.methods == [IDEAL] and r.metrics == ["psnr", "ssim", "flip", "lpips", *CVVDP_COLUMN]
     pipe = make_pipeline(effects)
     with torch.no_grad():
         for j, rho in enumerate((0.0, 0.6)):
@@ -157,6 +164,60 @@ def test_evaluate_grid_scores_lpips_with_the_network_it_is_given():
                 want = float(net(eye.double(), gt.double()))
                 assert float(r.per_view[IDEAL]["lpips"][0, j, v]) == pytest.approx(want, rel=1e-6, abs=1e-9)
     assert float(r.per_view[IDEAL]["lpips"][0, 1].min()) > 0  # dimmed: a distance, not 0
+
+
+def test_lens_ppd_is_the_angle_a_pixel_subtends_on_axis():
+    """A pixel of pitch p on the display is M p wide on the virtual image plane at D: ppd = 1 / (its angle in
+    degrees); for a stretched image the geometric mean of the two axes'. The Cardboard bank at 1024 px: 1.76 arcmin."""
+    bank = tiny_bank(display_mm=(20.0, 10.0), meta={"figures": {"reference_magnification": 8.0},
+                                                   "prescription": {"virtual_image_distance_mm": 400.0}})
+
+    def exact(pitch: float) -> float:  # the angle of a pixel centred on the axis
+        return 1.0 / math.degrees(2 * math.atan(8.0 * pitch / 2 / 400.0))
+
+    # the local (small-angle) ppd differs from the whole pixel's by about (M p / D)^2 / 12: 8e-6 at p = 0.5 mm
+    assert lens_ppd(bank, 40, 80) == pytest.approx(exact(0.25), rel=3e-6)       # width-limited: 20 mm / 80 px
+    assert lens_ppd(bank, 50, 60) == pytest.approx(exact(0.2), rel=3e-6)        # height-limited: 10 mm / 50 px
+    assert lens_ppd(bank, 40, 40, "stretch") == pytest.approx(math.sqrt(exact(0.5) * exact(0.25)), rel=1.2e-5)
+    assert 60 / lens_ppd(PSFBank.default(), 1024, 1024) == pytest.approx(1.76, abs=0.005)
+    for meta in ({}, {"figures": {"reference_magnification": 8.0}}, {"figures": {"reference_magnification": "x"},
+                                                                     "prescription": {"virtual_image_distance_mm": 400.0}}):
+        with pytest.raises(InputValueError, match=r"^PSF bank: pixels per degree need meta\.figures\.reference_magnification"):
+            lens_ppd(tiny_bank(meta=meta), 40, 40)
+    with pytest.raises(InputValueError, match=r"^PSF bank: reference_magnification -8\.0 .* must be finite and > 0$"):
+        lens_ppd(tiny_bank(meta={"figures": {"reference_magnification": -8.0},
+                                 "prescription": {"virtual_image_distance_mm": 400.0}}), 40, 40)
+
+
+def test_pipeline_lens_is_the_optics_stage_bank():
+    bank = tiny_bank()
+    assert pipeline_lens(make_pipeline({"optics": {"bank": bank, "placement": "stretch"}})) == (bank, "stretch")
+    assert pipeline_lens(make_pipeline({"display": True})) == (PSFBank.default(), "fit")
+
+
+@needs_cvvdp
+def test_evaluate_grid_scores_cvvdp_at_the_simulated_lens_ppd():
+    """The ``cvvdp`` column is ColorVideoVDP at the ppd of the optics stage's lens (a synthetic bank here), and
+    ``info["cvvdp"]`` records it per image size; a bank without the figures leaves the column out and says why."""
+    bank = tiny_bank(meta={"figures": {"reference_magnification": 12.0},
+                           "prescription": {"virtual_image_distance_mm": 600.0, "name": "synthetic"}})
+    views, effects = _GroundTruths(), {"optics": {"bank": bank}, "display": True}
+    r = evaluate_grid(torch.nn.Linear(1, 1), views, {}, effects=effects, downsample=(1.0,), power_saving=(0.6,),
+                      baselines=(), progress=False, renderer=lambda *a, **k: None)
+    ppd = math.pi / 180 * 600.0 / (12.0 * 24.0 / 32)
+    assert r.metrics == ["psnr", "ssim", "flip", "cvvdp"]
+    assert r.info["cvvdp"] == {"lens": "synthetic", "placement": "fit", "display": "standard_4k", "ppd": {"32x32": ppd}}
+    pipe = make_pipeline(effects)
+    with torch.no_grad():
+        for v in range(2):
+            gt = views[v][1]
+            eye = pipe(gt, RuntimeState(power_saving=0.6), reference=gt).clamp(0, 1).double()
+            assert float(r.per_view[IDEAL]["cvvdp"][0, 0, v]) == pytest.approx(direct_cvvdp(eye, gt.double(), ppd), abs=1e-6)
+            assert float(r.per_view[IDEAL]["cvvdp"][0, 0, v]) != pytest.approx(direct_cvvdp(eye, gt.double(), 2 * ppd), abs=1e-3)
+    bare = evaluate_grid(torch.nn.Linear(1, 1), views, {}, effects={"optics": {"bank": tiny_bank()}}, downsample=(1.0,),
+                         power_saving=(0.0,), baselines=(), progress=False, renderer=lambda *a, **k: None)
+    assert bare.metrics == ["psnr", "ssim", "flip"]
+    assert bare.info["cvvdp"]["skipped"].startswith("PSF bank: pixels per degree need meta.figures.reference_magnification")
 
 
 def test_evaluate_grid_renders_on_the_views_background(tiny):
