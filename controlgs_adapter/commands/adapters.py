@@ -100,7 +100,7 @@ def training_job(args: argparse.Namespace, names: Sequence[str], seeds: int = 1)
 
 def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, names: list[str],
                    dist: Any = None, trained: dict[str, int] | None = None, seed: int | None = None,
-                   renderer: Any = None, job: Any = None) -> dict[str, Path]:
+                   renderer: Any = None, job: Any = None, lens: Any = None) -> dict[str, Path]:
     """Train (or resume from a checkpoint; a finished one is just saved again) the adapters ``names`` ("controlgs" and ablation
     names) on the training ``views`` (a :class:`~controlgs_adapter.training.Views` dataset); returns ``{name: adapter
     file}``. Checkpoints go to ``out/checkpoints``. ``dist``: this process's
@@ -108,7 +108,8 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
     given, receives the iterations each adapter was actually trained for (a resumed run may hold more than asked).
     ``seed``: the training seed (default ``args.seed``). ``renderer``: the :class:`Trainer`'s (None: the model's own).
     ``job``: the :func:`training_job` these trainings belong to (None: one of ``names``); each bar reads
-    ``[k/N] training <method>, seed <s>`` with the job's estimated time left."""
+    ``[k/N] training <method>, seed <s>`` with the job's estimated time left. ``lens``: the :class:`Trainer`'s (None:
+    the shipped Cardboard lens)."""
     from ..report import METHOD_LABELS
     from ..training import Trainer
 
@@ -119,7 +120,7 @@ def train_adapters(views: Any, model: Any, out: Path, args: argparse.Namespace, 
         target = out / f"{name}.controlgs.safetensors"
         ckpt = out / "checkpoints" / f"{name}.ckpt.safetensors"
         trainer = Trainer(model, views, config, effects=effects_from(getattr(args, "effects", None)), checkpoint=ckpt,
-                          dist=dist, renderer=renderer)
+                          dist=dist, renderer=renderer, lens=lens)
         main = trainer.dist.is_main
         if trainer.resume() and main:
             print(f"{name}: resuming at iteration {trainer.iteration}")

@@ -10,9 +10,12 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-from ..errors import InputValueError
+from ..errors import ControlGSError, InputValueError
+
+if TYPE_CHECKING:
+    from ..downstream.optics.lenses import Lens
 
 #: default working resolution of a user's dataset (longer side in pixels; never upscaled)
 DEFAULT_DATA_RESOLUTION = 256
@@ -21,7 +24,7 @@ DEFAULT_CACHE_MIB = 1024
 RUN_FILE = "run.json"
 #: run.json keys that ``eval`` takes as defaults for its options
 _RUN_DEFAULTS = ("model", "data", "family", "model_iteration", "format", "images", "holdout", "white_background",
-                 "resolution", "allow_unquantized", "effects", "rasterizer", "renderer")
+                 "resolution", "allow_unquantized", "effects", "rasterizer", "renderer", "lens")
 
 
 def add_data_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,6 +50,30 @@ def add_data_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--cache-mib", type=int, default=DEFAULT_CACHE_MIB,
                    help="memory budget of the decoded-image cache (MiB; images are read lazily, never all at once)")
     g.add_argument("--device", default="cpu", help="torch device of the model and the whole pipeline (cpu, cuda, cuda:1)")
+
+
+def add_lens_argument(p: argparse.ArgumentParser, from_run: bool = False) -> None:
+    """``--lens``: the headset lens the downstream path simulates (docs/how-to/own-lens.md)."""
+    from ..downstream.optics.lenses import DEFAULT_LENS, SHIPPED_LENSES
+
+    p.add_argument("--lens", default=None, metavar="NAME|PATH",
+                   help=f"headset lens the downstream path simulates: a shipped lens ({', '.join(SHIPPED_LENSES)}), a PSF "
+                        "bank .safetensors, a prescription or distortion-profile .json (default "
+                        + ("the run's, else " if from_run else "") + f"{DEFAULT_LENS}; docs/how-to/own-lens.md)")
+
+
+def load_lens_arg(args: argparse.Namespace) -> "Lens":
+    """The :class:`~controlgs_adapter.downstream.optics.lenses.Lens` of ``--lens`` (unset: Cardboard)."""
+    from ..downstream.optics.lenses import DEFAULT_LENS, check_lens_spec, load_lens
+
+    spec = args.lens or DEFAULT_LENS
+    check_lens_spec(spec, "--lens")
+    return load_lens(spec)
+
+
+def lens_record(lens: "Lens") -> str:
+    """A lens for ``run.json``: a shipped lens by name, a file by its absolute path."""
+    return lens.spec if lens.kind == "shipped" else str(Path(lens.spec).resolve())
 
 
 def user_scene(args: argparse.Namespace) -> bool:
@@ -93,6 +120,7 @@ def _run_fields() -> dict[str, tuple[str, Callable[[Any], bool]]]:
         "effects": (f"a non-empty list of stage names among {effects}",
                     lambda v: words(v) and bool(v) and all(x in DEFAULT_EFFECTS for x in v)),
         "adapters": ("a list of adapter names", words),
+        "lens": ("a shipped lens name or a file path (string)", text),
         "distributed": ("an object (processes, backend, exchange)",
                         lambda v: isinstance(v, dict) and all(isinstance(x, (str, int, type(None))) for x in v.values())),
     }
@@ -129,6 +157,8 @@ def apply_run_defaults(args: argparse.Namespace, run_dir: Path) -> dict[str, Any
     """Fill the options left unset from ``run_dir/run.json`` (:func:`read_run`); returns it. The run's
     renderer (code) is taken only with ``--trust-run-renderer``; otherwise a run that names one is
     refused unless ``--renderer`` is given again."""
+    from ..downstream.optics.lenses import check_lens_spec
+
     run = read_run(run_dir)
     if run is None:
         return None
@@ -140,6 +170,11 @@ def apply_run_defaults(args: argparse.Namespace, run_dir: Path) -> dict[str, Any
                     check_rasterizer_name(run[key])
                 except InputValueError as e:
                     raise InputValueError(f"{run_dir / RUN_FILE}: field 'rasterizer': {e} (give --rasterizer NAME)") from None
+            if key == "lens":
+                try:
+                    check_lens_spec(run[key])
+                except ControlGSError as e:
+                    raise InputValueError(f"{run_dir / RUN_FILE}: field 'lens': {e} (give --lens NAME|PATH)") from None
     spec = run.get("renderer")
     if spec is not None and getattr(args, "renderer", None) is None:
         if not getattr(args, "trust_run_renderer", False):
@@ -206,6 +241,7 @@ def check_options(args: argparse.Namespace) -> None:
     """Check, before anything is loaded or written, every option of a command that it has: the numbers
     (one line naming ``--option`` and the value), ``--effects``, ``--device``, ``--rasterizer``."""
     from ..checks import check_number
+    from ..downstream.optics.lenses import check_lens_spec
     from .adapters import effects_from
 
     for dest, limits in _NUMBER_OPTIONS.items():
@@ -220,6 +256,8 @@ def check_options(args: argparse.Namespace) -> None:
         parse_device(args.device)
     if hasattr(args, "rasterizer"):
         check_rasterizer_name(args.rasterizer)
+    if getattr(args, "lens", None) is not None:
+        check_lens_spec(args.lens, "--lens")
 
 
 def check_out_path(path: Any, option: str, *, folder: bool) -> Path:

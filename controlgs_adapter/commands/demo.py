@@ -15,10 +15,13 @@ from .adapters import add_training, effects_from, train_adapters, training_job
 DEFAULT_RESOLUTION = 96
 
 
-def add_common(p: argparse.ArgumentParser) -> None:
+def add_common(p: argparse.ArgumentParser, from_run: bool = False) -> None:
     """Options shared by demo, train and eval (``--optics`` and ``--seed`` default to the
-    :class:`~controlgs_adapter.training.TrainConfig` fields they set)."""
+    :class:`~controlgs_adapter.training.TrainConfig` fields they set; ``from_run``: ``--lens`` defaults to
+    the run's)."""
     from controlgs_adapter.training import TrainConfig
+
+    from .common import add_lens_argument
 
     base = TrainConfig()
     p.add_argument("--variant", choices=("ar", "vr"), default="ar", help="built-in scene: object-centric AR or immersive VR")
@@ -33,6 +36,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
                    help="train / evaluate K seeds: --seed, --seed + 1, ... (adapters in seed-<s>/ when K > 1; "
                         "the report shows mean ± std over seeds; default 1, eval: the seed-<s>/ folders found)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    add_lens_argument(p, from_run=from_run)
 
 
 def add_lpips(p: argparse.ArgumentParser) -> None:
@@ -96,17 +100,18 @@ def run(args: argparse.Namespace) -> int:
     from controlgs_adapter.lock import run_lock
 
     from .adapters import train_config
-    from .common import check_options, check_out_path
+    from .common import check_options, check_out_path, load_lens_arg
 
     check_options(args)  # before the lock: a refused demo creates nothing
     out = check_out_path(args.out, "--out", folder=True)
     for seed, _ in seed_runs(out, args.seed, args.seeds):
         train_config(args, "controlgs", seed)
+    lens = load_lens_arg(args)
     with run_lock(out):
-        return _run(args)
+        return _run(args, lens)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, lens: Any) -> int:
     import torch
 
     from controlgs_adapter.ablations import ABLATIONS
@@ -129,22 +134,22 @@ def _run(args: argparse.Namespace) -> int:
     names = ["controlgs", *(ABLATIONS if args.ablations else [])]
     trained: dict[str, int] = {}
     job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
-    adapters = {s: train_adapters(scene.views("train"), model, folder, args, names, trained=trained, seed=s, job=job)
-                for s, folder in runs}
+    adapters = {s: train_adapters(scene.views("train"), model, folder, args, names, trained=trained, seed=s, job=job,
+                                  lens=lens) for s, folder in runs}
     timings["train_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     views = scene.data.views("test", first=args.test_views)
     effects = effects_from(args.effects)
     results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
-                             progress=args.progress)
+                             progress=args.progress, lens=lens)
     timings["eval_s"] = time.perf_counter() - t
     t = time.perf_counter()
     comparison, response = report_figures(model, adapters[runs[0][0]]["controlgs"], views, effects=effects,
-                                          optics_mode=args.optics)
+                                          optics_mode=args.optics, lens=lens)
     timings["figures_s"] = time.perf_counter() - t
     info = {"scene": scene.name, "resolution": args.resolution, "iterations": trained["controlgs"], "test_views": len(views),
-            "optics": args.optics, "seed": args.seed, "seeds": len(runs), "threads": torch.get_num_threads(),
+            "optics": args.optics, "lens": lens.spec, "seed": args.seed, "seeds": len(runs), "threads": torch.get_num_threads(),
             **({"lpips_weights": lpips.source} if lpips is not None else {}),
             **{k: round(v, 1) for k, v in timings.items()}}
     paths = write_report(out, results, info=info, comparison=comparison, response=response)
@@ -155,9 +160,10 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def report_figures(model: Any, adapter: Path, views: Any, *, effects: dict[str, Any] | None = None,
-                   optics_mode: str, renderer: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The report's comparison (:func:`side_by_side`) and condition strip (:func:`condition_response`) on the
-    first of ``views``, on the model's device, rendered by ``renderer`` (None: the model's own)."""
+                   optics_mode: str, renderer: Any = None, lens: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The report's comparison (:func:`side_by_side`, through ``lens``) and condition strip
+    (:func:`condition_response`) on the first of ``views``, on the model's device, rendered by ``renderer``
+    (None: the model's own)."""
     from controlgs_adapter.evaluation import condition_response, side_by_side
     from controlgs_adapter.rendering.protocol import model_device
 
@@ -165,6 +171,6 @@ def report_figures(model: Any, adapter: Path, views: Any, *, effects: dict[str, 
     cam, gt = views[0]
     bg = views.background.to(device)
     comparison = side_by_side(model, adapter, cam, gt.to(device), effects=effects, background=bg, optics_mode=optics_mode,
-                              renderer=renderer)
+                              renderer=renderer, lens=lens)
     response = condition_response(model, adapter, cam, background=bg, renderer=renderer)
     return comparison, response

@@ -12,7 +12,8 @@ import time
 from pathlib import Path
 
 from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_options,
-                     check_out_path, check_rasterizer_name, make_renderer, render_record, user_scene)
+                     check_out_path, check_rasterizer_name, lens_record, load_lens_arg, make_renderer, render_record,
+                     user_scene)
 from .adapters import effects_from
 from .demo import add_common, add_lpips, evaluate_seeds, load_lpips_arg, report_figures, seed_runs
 
@@ -22,7 +23,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     p.add_argument("--run", default="controlgs-run",
                    help="folder written by `controlgs train` (every <name>.controlgs.safetensors in it is evaluated)")
     p.add_argument("--out", default=None, help="report folder (default: the run folder)")
-    add_common(p)
+    add_common(p, from_run=True)
     add_data_arguments(p)
     add_render_arguments(p, from_run=True)
     p.add_argument("--effects", default=None, help="downstream stages, comma-separated (default: the run's, else all)")
@@ -54,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
                               + "); train every seed with the same ablations")
     lpips = load_lpips_arg(args)
     check_rasterizer_name(args.rasterizer)  # before loading anything
+    lens = load_lens_arg(args)
     t = time.perf_counter()
     if user_scene(args):
         from .common import load_user_scene
@@ -76,13 +78,14 @@ def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     effects = effects_from(args.effects)
     results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
-                             progress=args.progress, renderer=renderer)
+                             progress=args.progress, renderer=renderer, lens=lens)
     eval_s = time.perf_counter() - t
     first = next(iter(adapters.values()))
     comparison, response = report_figures(model, first["controlgs"], views, effects=effects, optics_mode=args.optics,
-                                          renderer=renderer)
+                                          renderer=renderer, lens=lens)
     info = {"scene": name, "resolution": args.resolution, "test_views": len(views), "optics": args.optics,
-            "adapters": list(first), "seeds": len(results), "effects": sorted(effects), "device": str(args.device),
+            "adapters": list(first), "seeds": len(results), "effects": sorted(effects), "lens": lens_record(lens),
+            "device": str(args.device),
             **render_record(args),
             "threads": torch.get_num_threads(),
             "load_s": round(load_s, 1), "eval_s": round(eval_s, 1),

@@ -17,6 +17,8 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     b = osub.add_parser("build-bank", help="trace a PSF bank (built-in ray tracer; Google Cardboard by default)")
     b.add_argument("--prescription", type=Path, default=None,
                    help="JSON prescription (same keys as controlgs_adapter.downstream.optics.prescription.CARDBOARD)")
+    b.add_argument("--lens", default=None, metavar="NAME|PRESCRIPTION",
+                   help="the prescription to trace: a shipped lens's (cardboard, compact) or a JSON file (as --prescription)")
     b.add_argument("--out", type=Path, default=Path("psf_bank.safetensors"), help="output .safetensors file")
     b.add_argument("--grid", type=int, nargs=2, default=(30, 30), metavar=("GY", "GX"), help="PSF field grid")
     b.add_argument("--psf-size", type=int, default=33, help="samples per PSF side (odd)")
@@ -49,6 +51,9 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
     w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a bank's optics")
     w.add_argument("--bank", type=Path, default=None, help="PSF bank .safetensors (default: the shipped Cardboard bank)")
+    w.add_argument("--lens", default=None, metavar="NAME|PATH",
+                   help="instead of --bank: the bank of a lens as `controlgs train --lens` takes it (a shipped name, a bank, "
+                        "a prescription or distortion-profile .json)")
     w.add_argument("--out", type=Path, required=True, help="output LUT .safetensors ({'lens': {'lut': OUT}})")
     w.add_argument("--size", type=int, nargs="+", default=[64, 96, 128, 192, 256],
                    help="display pixels along its shorter side for the fit; several: one table per size, an image uses "
@@ -59,25 +64,34 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     w.set_defaults(func=run_fit_prewarp)
 
 
-def _prescription(path: Path | None):
-    """The prescription of ``--prescription`` (Cardboard if None); errors name the file."""
+def _prescription(path: Path | None, lens: str | None = None):
+    """The prescription of ``--prescription`` or ``--lens`` (a shipped lens's or a file; Cardboard if neither);
+    errors name the option and the file."""
+    from controlgs_adapter.downstream.optics.lenses import SHIPPED_LENSES, shipped_prescription
     from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
     from controlgs_adapter.errors import FileFormatError, InputValueError
 
+    if path is not None and lens is not None:
+        raise InputValueError(f"give --prescription or --lens, not both (got {path} and {lens})")
+    if lens in SHIPPED_LENSES:
+        return Prescription(shipped_prescription(lens))
+    option = "--prescription" if lens is None else "--lens"
+    path = path if lens is None else Path(lens)
     if path is None:
         return Prescription(CARDBOARD)
     if not path.is_file():
-        raise InputValueError(f"--prescription {path}: no such file")
+        raise InputValueError(f"{option} {path}: no such file" + (f" (nor a shipped lens: {', '.join(SHIPPED_LENSES)})"
+                                                                  if lens is not None else ""))
     if path.stat().st_size > 1 << 20:
-        raise FileFormatError(f"--prescription {path}: {path.stat().st_size} bytes, too large for a prescription")
+        raise FileFormatError(f"{option} {path}: {path.stat().st_size} bytes, too large for a prescription")
     try:
         spec = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, RecursionError) as e:
-        raise FileFormatError(f"--prescription {path}: not a JSON file: {e}") from None
+        raise FileFormatError(f"{option} {path}: not a JSON file: {e}") from None
     try:
         return Prescription(spec)
     except InputValueError as e:
-        raise InputValueError(f"--prescription {path}: {e}") from None
+        raise InputValueError(f"{option} {path}: {e}") from None
 
 
 def run_build(args: argparse.Namespace) -> int:
@@ -95,7 +109,7 @@ def run_build(args: argparse.Namespace) -> int:
     if not (args.min_pitch_px > 0 and args.min_pitch_px < float("inf")):
         raise InputValueError(f"--min-pitch-px must be a finite number > 0, got {args.min_pitch_px}")
     check_out_path(args.out, "--out", folder=False)
-    rx = _prescription(args.prescription)
+    rx = _prescription(args.prescription, args.lens)
     t0 = time.perf_counter()
     bank = build_bank(rx, grid=tuple(args.grid), psf_size=args.psf_size, pupil_samples=args.pupil_samples,
                       min_pitch_px=args.min_pitch_px, progress=True)
@@ -143,7 +157,15 @@ def run_fit_prewarp(args: argparse.Namespace) -> int:
     bad = [n for n in args.size if n < 8 or n % 2]
     if bad or len(set(args.size)) < len(args.size):
         raise InputValueError(f"--size must be different even integers >= 8, got {' '.join(map(str, args.size))}")
-    lut = fit_bank_prewarp(PSFOptics(args.bank, radiometry=args.radiometry), list(args.size), modes=tuple(args.modes))
+    if args.bank is not None and args.lens is not None:
+        raise InputValueError(f"give --bank or --lens, not both (got {args.bank} and {args.lens})")
+    bank = args.bank
+    if args.lens is not None:
+        from controlgs_adapter.downstream.optics.lenses import check_lens_spec, load_lens
+
+        check_lens_spec(args.lens, "--lens")
+        bank = load_lens(args.lens).bank
+    lut = fit_bank_prewarp(PSFOptics(bank, radiometry=args.radiometry), list(args.size), modes=tuple(args.modes))
     lut.save(args.out)
     print(json.dumps(lut.meta, indent=2))
     print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.2f} MB)")

@@ -12,15 +12,18 @@ import argparse
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..ablations import ABLATIONS
 from ..distributed import DistContext, init_distributed, shard_scenes
 from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters, train_config, training_job
 from .common import (RUN_FILE, add_data_arguments, add_render_arguments, anchor_positions, cache_bytes, check_line,
-                     check_options, check_out_path, check_rasterizer_name, load_user_scene, make_renderer, parse_device,
-                     read_run, render_record, user_scene)
+                     check_options, check_out_path, check_rasterizer_name, lens_record, load_lens_arg, load_user_scene,
+                     make_renderer, parse_device, read_run, render_record, user_scene)
 from .demo import add_common, seed_runs
+
+if TYPE_CHECKING:
+    from ..downstream.optics.lenses import Lens
 
 ABLATION_NAMES = tuple(ABLATIONS)
 
@@ -46,10 +49,11 @@ def run(args: argparse.Namespace) -> int:
     from controlgs_adapter.lock import run_lock
 
     _check(args)  # every option and --out before the lock (a refused run creates nothing)
+    lens = load_lens_arg(args)
     if args.scenes or os.environ.get("RANK", "0") != "0":
-        return _run(args)
+        return _run(args, lens)
     with run_lock(Path(args.out)):
-        return _run(args)
+        return _run(args, lens)
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -72,7 +76,7 @@ def _check(args: argparse.Namespace) -> None:
 
 #: run.json fields naming what a run folder's adapters were trained on: a later train into the folder must agree
 SCENE_FIELDS = ("variant", "model", "data", "family", "model_iteration", "allow_unquantized", "format", "images",
-                "holdout", "white_background", "resolution", "effects")
+                "holdout", "white_background", "resolution", "effects", "lens")
 
 
 def check_same_scene(out: Path, record: dict[str, Any], keys: tuple[str, ...] = SCENE_FIELDS) -> None:
@@ -90,7 +94,7 @@ def check_same_scene(out: Path, record: dict[str, Any], keys: tuple[str, ...] = 
                                   "scene: choose another --out")
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, lens: Lens) -> int:
     from controlgs_adapter.errors import InputValueError
     from controlgs_adapter.lock import run_lock
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
@@ -103,7 +107,7 @@ def _run(args: argparse.Namespace) -> int:
     if user_scene(args):
         if args.scenes:
             raise InputValueError("--scenes trains built-in scenes; it does not combine with --model/--data")
-        return _run_user(args, names, out)
+        return _run_user(args, names, out, lens)
     if args.resolution is None:
         args.resolution = DEFAULT_RESOLUTION
     device = parse_device(args.device)
@@ -122,20 +126,21 @@ def _run(args: argparse.Namespace) -> int:
                     job = training_job(args, names, len(scene_runs))
                     for seed, folder in scene_runs:
                         paths = train_adapters(views, model, folder, args, names, dist=DistContext(), seed=seed,
-                                               renderer=renderer, job=job)
+                                               renderer=renderer, job=job, lens=lens)
                         for name, path in paths.items():
                             print(f"[rank {dist.rank}] {variant} {name}: {path}")
             return 0
         views, model = load(args.variant)
         renderer = make_renderer(args, model)
         runs = seed_runs(out, args.seed, args.seeds)
-        record = {"variant": args.variant, "effects": sorted(effects_from(args.effects)), "iterations": args.iterations,
-                  "seed": args.seed, "seeds": len(runs), "adapters": names, **render_record(args),
-                  "distributed": _dist_record(dist)}
+        record = {"variant": args.variant, "effects": sorted(effects_from(args.effects)), "lens": lens_record(lens),
+                  "iterations": args.iterations, "seed": args.seed, "seeds": len(runs), "adapters": names,
+                  **render_record(args), "distributed": _dist_record(dist)}
         check_same_scene(out, record)
         job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
         for seed, folder in runs:
-            paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed, renderer=renderer, job=job)
+            paths = train_adapters(views, model, folder, args, names, dist=dist, seed=seed, renderer=renderer, job=job,
+                                   lens=lens)
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")
@@ -144,7 +149,7 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
+def _run_user(args: argparse.Namespace, names: list[str], out: Path, lens: Lens) -> int:
     """Train on ``--model`` / ``--data``: load, check the scene, train, then record ``run.json``."""
     from controlgs_adapter.datasets.sanity import check_scene
 
@@ -156,8 +161,9 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
         scene.model.to(dist.device)  # loaded on --device; under NCCL this rank's own GPU, cuda:<LOCAL_RANK>
         views = scene.data.views("train", resolution=scene.resolution, cache_bytes=cache_bytes(args))
         renderer = make_renderer(args, scene.model)
-        record = scene.record(args, effects=sorted(effects_from(args.effects)), iterations=args.iterations, seed=args.seed,
-                              seeds=len(runs), adapters=names, **render_record(args), distributed=_dist_record(dist))
+        record = scene.record(args, effects=sorted(effects_from(args.effects)), lens=lens_record(lens),
+                              iterations=args.iterations, seed=args.seed, seeds=len(runs), adapters=names,
+                              **render_record(args), distributed=_dist_record(dist))
         check_same_scene(out, record)
         if dist.is_main:
             print(check_line(report))
@@ -165,7 +171,7 @@ def _run_user(args: argparse.Namespace, names: list[str], out: Path) -> int:
         job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
         for seed, folder in runs:
             paths = train_adapters(views, scene.model, folder, args, names, dist=dist, seed=seed, renderer=renderer,
-                                   job=job)
+                                   job=job, lens=lens)
             if dist.is_main:
                 for name, path in paths.items():
                     print(f"{name}: {path}")

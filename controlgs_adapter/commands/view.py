@@ -10,8 +10,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
-from .common import (add_data_arguments, add_render_arguments, apply_run_defaults, cache_bytes, check_options,
-                     check_rasterizer_name, make_renderer, parse_device, user_scene)
+from .common import (add_data_arguments, add_lens_argument, add_render_arguments, apply_run_defaults, cache_bytes,
+                     check_options, check_rasterizer_name, load_lens_arg, make_renderer, parse_device, user_scene)
 
 #: the built-in scene's default resolution in the viewer (the latency benchmark's 128 px)
 VIEW_RESOLUTION = 128
@@ -37,6 +37,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
                         f"{QUICK_ITERATIONS}: a stand-in for a run, kept short; `controlgs train` runs {DEMO_ITERATIONS})")
     p.add_argument("--threads", type=int, default=None,
                    help="torch intra-op threads on the CPU (default: torch's; 1 can be faster on a busy machine)")
+    add_lens_argument(p, from_run=True)
     add_data_arguments(p)
     add_render_arguments(p, from_run=True)
     p.set_defaults(func=run)
@@ -53,11 +54,12 @@ def _adapters(run_dir: Path) -> dict[str, Path]:
     return found
 
 
-def _quick_adapter(model: Any, views: Any, folder: Path, iterations: int, renderer: Any = None) -> dict[str, Path]:
-    """Train a short ControlGS adapter on the built-in scene's training views (a stand-in for a run)."""
+def _quick_adapter(model: Any, views: Any, folder: Path, iterations: int, renderer: Any = None,
+                   lens: Any = None) -> dict[str, Path]:
+    """Train a short ControlGS adapter on the built-in scene's training views through ``lens`` (a stand-in for a run)."""
     from controlgs_adapter.training import TrainConfig, Trainer
 
-    trainer = Trainer(model, views, TrainConfig(iterations=iterations, checkpoint_every=0), renderer=renderer)
+    trainer = Trainer(model, views, TrainConfig(iterations=iterations, checkpoint_every=0), renderer=renderer, lens=lens)
     try:
         trainer.train(progress=True)
         path = trainer.cgs.save(folder / "controlgs.controlgs.safetensors")
@@ -92,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         apply_run_defaults(args, run_dir)
         adapters = _adapters(run_dir)
     check_rasterizer_name(args.rasterizer)  # before loading anything
+    lens = load_lens_arg(args)
     with tempfile.TemporaryDirectory(prefix="controlgs-view-") as tmp:
         truth: Callable[[Any], Any] | None = None
         if user_scene(args):
@@ -119,8 +122,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"no --run: training a quick ControlGS adapter ({args.iterations} iterations) on {name}; "
                       "`controlgs demo --out report` then `controlgs view --run report` shows a fully trained one")
                 train = load_builtin_scene(args.variant, DEFAULT_RESOLUTION, cache=True).views("train")  # the demo's size
-                adapters = _quick_adapter(model, train, Path(tmp), args.iterations, renderer)
-        session = ViewerSession(model, views, adapters, truth=truth, name=name, renderer=renderer)
+                adapters = _quick_adapter(model, train, Path(tmp), args.iterations, renderer, lens)
+        session = ViewerSession(model, views, adapters, truth=truth, name=name, renderer=renderer, lens=lens)
         server = make_server(session, args.port)
         print(f"controlgs view: {name}, methods {', '.join(session.methods)} on {session.device}", flush=True)
         print(f"serving on {server.url} (loopback only; Ctrl-C stops)", flush=True)

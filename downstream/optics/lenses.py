@@ -35,7 +35,7 @@ from .generate import build_bank
 from .prescription import CARDBOARD, Prescription
 
 __all__ = ["Lens", "LensSpec", "SHIPPED_LENSES", "DEFAULT_LENS", "load_lens", "effects_for_lens", "shipped_prescription",
-           "prewarp_for_bank"]
+           "prewarp_for_bank", "check_lens_spec"]
 
 
 class ShippedLens(NamedTuple):
@@ -98,7 +98,7 @@ def shipped_prescription(name: str) -> dict[str, Any]:
         return dict(CARDBOARD)
     path = _data_file(entry.prescription)
     if not path.is_file():
-        raise InputValueError(f"lens {name!r}: its prescription {entry.prescription} is not installed")
+        raise InputValueError(f"lens {name}: its prescription {entry.prescription} is not installed")
     spec = _read_json(path)
     if "surfaces" not in spec:
         raise FileFormatError(f"{path}: a prescription must be a JSON object with 'surfaces'")
@@ -107,7 +107,7 @@ def shipped_prescription(name: str) -> dict[str, Any]:
 
 def _shipped(name: str) -> ShippedLens:
     if name not in SHIPPED_LENSES:
-        raise InputValueError(f"lens {name!r}: not a shipped lens ({', '.join(SHIPPED_LENSES)})")
+        raise InputValueError(f"lens {name}: not a shipped lens ({', '.join(SHIPPED_LENSES)})")
     return SHIPPED_LENSES[name]
 
 
@@ -165,18 +165,18 @@ def _profile_bank(path: Path, spec: dict[str, Any]) -> PSFBank:
         raise FileFormatError(str(e)) from None
 
 
-def check_lens_spec(spec: str) -> None:
-    """Refuse a command line's lens ``spec`` that cannot name a lens, without loading it: neither a shipped
-    name nor an existing ``.safetensors`` or ``.json`` file (one line naming it)."""
+def check_lens_spec(spec: str, what: str = "lens") -> None:
+    """Refuse a lens ``spec`` that cannot name a lens, without loading it: neither a shipped name (with its
+    bank installed) nor an existing ``.safetensors`` or ``.json`` file; one line starting ``<what> <spec>:``."""
     if spec in SHIPPED_LENSES:
         if not _data_file(SHIPPED_LENSES[spec].bank).is_file():
-            raise InputValueError(f"lens {spec!r}: its PSF bank {SHIPPED_LENSES[spec].bank} is not installed")
+            raise InputValueError(f"{what} {spec}: its PSF bank {SHIPPED_LENSES[spec].bank} is not installed")
         return
     path = Path(spec)
     if not path.is_file():
         looks_like_name = not path.suffix and len(path.parts) == 1
-        raise InputValueError(f"lens {spec!r}: " + (f"not a shipped lens ({', '.join(SHIPPED_LENSES)}) nor a file"
-                                                      if looks_like_name else "no such file"))
+        raise InputValueError(f"{what} {spec}: " + (f"not a shipped lens ({', '.join(SHIPPED_LENSES)}) nor a file"
+                                                     if looks_like_name else "no such file"))
     if path.suffix.lower() not in (".safetensors", ".json"):
         raise FileFormatError(f"{path}: not a lens file: expected a PSF bank (.safetensors), a prescription or a "
                               "distortion profile (.json)")
@@ -199,7 +199,7 @@ def load_lens(spec: LensSpec = None) -> Lens:
         entry = SHIPPED_LENSES[spec]
         bank_file = _data_file(entry.bank)
         if not bank_file.is_file():
-            raise InputValueError(f"lens {spec!r}: its PSF bank {entry.bank} is not installed")
+            raise InputValueError(f"lens {spec}: its PSF bank {entry.bank} is not installed")
         bank = PSFBank.default() if spec == DEFAULT_LENS else PSFBank.load(bank_file)
         lut = _data_file(entry.prewarp)
         return Lens(spec, bank, lut if lut.is_file() else None, "shipped")
