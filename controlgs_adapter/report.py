@@ -216,6 +216,13 @@ def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[st
         notes.append(f"FLIP is NVIDIA's LDR-FLIP (flip-evaluator) at {FLIP_PPD:.2f} pixels per degree (its default observer), mean error per image.")
     notes.append(f"LPIPS (AlexNet) from {info['lpips_weights']}." if info and info.get("lpips_weights") and "lpips" in metrics
                  else LPIPS_NOT_COMPUTED)
+    cvvdp = info.get("cvvdp") if info else None
+    if isinstance(cvvdp, Mapping) and "cvvdp" in metrics and isinstance(cvvdp.get("ppd"), Mapping):
+        ppd = ", ".join(f"{v:.2f} at {k}" for k, v in cvvdp["ppd"].items())
+        notes.append(f"CVVDP is ColorVideoVDP's JOD (cvvdp) on the display seen through {cvvdp.get('lens')}: {ppd} pixels per "
+                     f"degree (on axis), {cvvdp.get('display')} photometry.")
+    elif isinstance(cvvdp, Mapping) and cvvdp.get("skipped"):
+        notes.append(f"ColorVideoVDP was not computed: {cvvdp['skipped']}")
     lines += notes + [""]
     ablations = [a for a in ABLATIONS if a in result.methods]
     if ablations:

@@ -111,6 +111,19 @@ def test_metric_formats_and_arrows():
     assert METHOD_LABELS["state_blind"] == "w/o State-Aware" and METHOD_LABELS["wo_resample"] == "w/o Resampling"
 
 
+def test_cvvdp_note_gives_the_pixels_per_degree_or_why_it_was_skipped():
+    r = GridResult((1.0,), (0.0,), {m: {k: torch.full((1, 1, 1), 9.5, dtype=F64) for k in ("psnr", "cvvdp")}
+                                    for m in ("ss", "controlgs")})
+    info = {"cvvdp": {"lens": "google-cardboard", "placement": "fit", "display": "standard_4k",
+                      "ppd": {"256x256": 8.532851, "128x96": 4.2664}}}
+    line = _line(markdown_tables(r, info), "ColorVideoVDP")
+    assert _numbers(line) == [8.53, 256, 256, 4.27, 128, 96, 4] and "google-cardboard" in line and "standard_4k" in line
+    skipped = markdown_tables(GridResult((1.0,), (0.0,), {"ss": {"psnr": torch.zeros(1, 1, 1, dtype=F64)}}),
+                              {"cvvdp": {"skipped": "ColorVideoVDP does not import (no pycvvdp)"}})
+    assert "ColorVideoVDP was not computed: ColorVideoVDP does not import (no pycvvdp)" in skipped
+    assert "ColorVideoVDP" not in markdown_tables(r, {})
+
+
 def test_per_setting_grids():
     """One grid per method and metric, and ControlGS minus SS-backbone / the ideal render, signed; the
     difference grids need both methods, and two methods alone are enough."""
