@@ -41,7 +41,9 @@ def psf_optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "e
     :mod:`controlgs_adapter.downstream.placement`. ``radiometry``: ``"radiance"`` (a lossless lens
     conserves radiance: a uniform display stays uniform up to the pupil transmission) or
     ``"energy"`` (the paper's Eq. S3: each display pixel's energy kept; a flat field falls as 1 / area
-    magnification), docs/explanation/optics.md "Radiometry"."""
+    magnification), docs/explanation/optics.md "Radiometry". A bank without PSFs (``bank.has_psf``
+    False: made from a distortion profile, :mod:`.profiles`) gives distortion and lateral colour only:
+    every mode runs the chief-ray warp (``"fast"`` and ``"exact"`` equal ``"distortion"``, at its cost)."""
     check_image("image", image)
     if not _is_mode(mode):
         raise InputValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -52,7 +54,7 @@ def psf_optics(image: torch.Tensor, bank: PSFBank | None = None, mode: Mode = "e
     H, W = image.shape[-2:]
     rb = bank.resample_to(H, W, device=image.device, dtype=image.dtype, placement=placement, radiometry=radiometry)
     prim = rgb_to_primaries(image)
-    if mode == "distortion":
+    if mode == "distortion" or not bank.has_psf:
         out = psf_distortion(prim, rb)
     elif mode == "fast":
         out = psf_fast(prim, rb, tol, zone)
