@@ -70,8 +70,8 @@ class LensFrame:
         if not bool(torch.isfinite(field_map).all()):
             raise InputValueError("lens frame field_map holds NaN/Inf values")
         self.field_map = field_map.detach().to("cpu", torch.float64).contiguous()
-        self._origin = self._lookup(torch.tensor([self.axis], dtype=torch.float64), *self._table(
-            torch.device("cpu"), torch.float64))[0]
+        self._origin = self._lookup(torch.tensor([self.axis], dtype=torch.float64),
+                                    self.field_map.permute(2, 0, 1).unsqueeze(0), self._origin)[0]
 
     # ------------------------------------------------------------------ construction
     @classmethod

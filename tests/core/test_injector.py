@@ -158,3 +158,66 @@ def test_hook_adds_rows_per_anchor_groups_and_checks_row_count():
     assert torch.equal(fc1(x).detach(), ref)  # no module active: FC1's output as is
     inj.detach()
     assert inj.context is None and not fc1._forward_hooks
+
+
+def test_xy_strength_pairs_scale_the_two_halves_of_the_condition():
+    """A ``[R, 2]`` strength (the lens in its xy frame): lambda_x A(C_first) + lambda_y A(C_second), C_first and
+    C_second the first and second halves of the N condition columns, in float64 by hand; with the
+    other modules' strengths added as usual; through the hook as well."""
+    inj = _injector(n=4, widths={"t": 5})
+    ids = torch.tensor([3, 0, 3, 1])
+    pair = torch.tensor([[0.5, -1.0], [0.0, 0.25], [-0.75, 1.0], [1.0, 0.0]], dtype=torch.float64)
+    got = inj.injection(InjectionContext(ids, {"lens": pair, "display": 0.5}), 5)
+    c = inj.conditions.detach()[ids, 0]  # [R, 4]
+    a = inj.projections["lens"]["d5"].weight.detach()  # [5, 4]
+    want = pair[:, :1] * (c[:, :2] @ a[:, :2].T) + pair[:, 1:] * (c[:, 2:] @ a[:, 2:].T)
+    want += _float64_injection(inj, ids, {"display": 0.5}, 5)
+    assert torch.allclose(got, want, rtol=0, atol=1e-13)
+    same = pair.new_tensor([0.3, 0.3, 0.3, 0.3])  # equal halves: the scalar strength
+    assert torch.allclose(inj.injection(InjectionContext(ids, {"lens": same[:, None].expand(4, 2)}), 5),
+                          inj.injection(InjectionContext(ids, {"lens": same}), 5), rtol=0, atol=1e-14)
+    fc1 = nn.Linear(3, 5, dtype=torch.float64)
+    inj.attach("t", fc1)
+    x = torch.randn(4, 3, dtype=torch.float64)
+    ref = fc1(x).detach()
+    inj.activate(InjectionContext(ids, {"lens": pair}))
+    hooked = fc1(x).detach()
+    inj.deactivate()
+    lens_only = pair[:, :1] * (c[:, :2] @ a[:, :2].T) + pair[:, 1:] * (c[:, 2:] @ a[:, 2:].T)
+    assert torch.allclose(hooked, ref + lens_only, rtol=0, atol=1e-13)
+    with pytest.raises(ShapeError, match=r"strengths\['lens'\]: 3 strengths per anchor do not split the 4 condition columns"):
+        inj.activate(InjectionContext(ids, {"lens": torch.zeros(4, 3, dtype=torch.float64)}))
+    assert inj.context is None
+
+
+def test_xy_injection_gradcheck():
+    """Gradients of the xy injection w.r.t. the conditions, the projection and the strength pair."""
+    inj = _injector(n=4, modules=("lens", "display"), a=3)
+    ids = torch.tensor([2, 0, 2])
+    pair = torch.tensor([[0.5, -0.25], [1.0, 0.75], [-0.5, 0.0]], dtype=torch.float64, requires_grad=True)
+    weight = inj.projections["lens"]["d4"].weight
+
+    def f(conditions, w, lam):
+        with torch.no_grad():
+            inj.conditions.copy_(conditions)
+            weight.copy_(w)
+        z = conditions.index_select(0, ids)[:, 0]  # the injector's own path, with the inputs as leaves
+        scaled = z * lam.repeat_interleave(2, dim=1)
+        return scaled @ w.T
+
+    c = inj.conditions.detach().clone().requires_grad_(True)
+    w = weight.detach().clone().requires_grad_(True)
+    assert torch.allclose(f(c, w, pair), inj.injection(InjectionContext(ids, {"lens": pair.detach()}), 4), atol=1e-13)
+    assert torch.autograd.gradcheck(f, (c, w, pair))
+
+    def through_injector(lam):
+        return inj.injection(InjectionContext(ids, {"lens": lam}), 4)
+
+    assert torch.autograd.gradcheck(through_injector, (pair,))
+    out = through_injector(pair.detach())
+    out.sum().backward()
+    g = inj.conditions.grad[:, 0]
+    want = torch.zeros(3, 4, dtype=torch.float64)  # d/dC of sum(lam * C @ A^T): lam-scaled column sums of A
+    for r, i in enumerate(ids.tolist()):
+        want[i] += pair.detach()[r].repeat_interleave(2) * weight.detach().sum(0)
+    assert torch.allclose(g, want, atol=1e-13) and not bool(inj.conditions.grad[:, 1].any())

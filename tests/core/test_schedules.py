@@ -71,6 +71,16 @@ def test_schedule_strengths_by_hand():
                        torch.zeros(2))
 
 
+def test_lens_xy_strength_is_signed_q_over_hi_clamped():
+    """(lambda_x, lambda_y) = clamp(q / hi, -1, 1): signed, lo unused, saturating per axis."""
+    q = torch.tensor([[0.0, 0.0], [0.3, -0.6], [-2.0, 0.9], [math.inf, -math.inf]], dtype=D)
+    got = LensSchedule(lo=0.5, hi=1.2).xy_strength(q)
+    want = torch.tensor([[0, 0], [0.25, -0.5], [-1, 0.75], [1, -1]], dtype=D)
+    assert got.dtype == D and torch.allclose(got, want, rtol=0, atol=1e-12)
+    with pytest.raises(ShapeError, match="q"):
+        LensSchedule().xy_strength(torch.zeros(3))
+
+
 def test_strength_device_follows_screen_xy_unless_given():
     assert DisplaySchedule().strength(RuntimeState(), rows=2, device="meta").device.type == "meta"
     assert LensSchedule().strength(RuntimeState(), torch.zeros(2, 2)).device.type == "cpu"

@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 import torch
 import torch.distributed as dist
+from helpers.banks import affine_bank
 from helpers.rawfiles import write_raw
 from torch.utils._python_dispatch import TorchDispatchMode
 
@@ -26,10 +27,13 @@ from controlgs_adapter.backends.models.reference_model import NeuralGaussianMode
 from controlgs_adapter.controlgs import ControlGS
 from controlgs_adapter.datasets.memory import posed_images
 from controlgs_adapter.distributed import DistContext
+from controlgs_adapter.downstream.bank_maps import BankMap
+from controlgs_adapter.downstream.lens import LensPrewarp
 from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import ControlGSError, FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND
 from controlgs_adapter.formats.safetensors import load_tensors
+from controlgs_adapter.lens_frame import LensFrame
 from controlgs_adapter.losses import LossWeights, image_loss
 from controlgs_adapter.rendering.protocol import FunctionRenderer, ModelRenderer, render_view
 from controlgs_adapter.scene import load_builtin_scene
@@ -933,3 +937,16 @@ def test_trainer_seconds_is_zero_before_training_then_the_wall_time_of_train():
         assert t.iteration == 1 and 0.0 < t.seconds <= wall
     finally:
         t.cgs.unwrap()
+
+
+def test_the_trainer_wraps_with_the_lens_frame_of_its_optics_else_its_pre_warp_bank(tiny):
+    decentred = affine_bank([[0.75, 0.125], [-0.25, 1.5]], [0.0625, -0.125], axis=(0.25, -0.125))
+    want = LensFrame.from_bank(decentred)
+    for effects in ({"resample": True, "optics": {"bank": decentred, "mode": "distortion"}},
+                    {"resample": True, "lens": LensPrewarp(BankMap(decentred))}):
+        t = _trainer(tiny, effects=effects, cond_dim=4)
+        assert t.cgs.lens_frame == want and t.cgs.lens_frame.mode == "xy"
+        t.cgs.unwrap()
+    t = _trainer(tiny, cond_dim=4)  # the shipped Cardboard optics: the centred radius frame
+    assert t.cgs.lens_frame == LensFrame()
+    t.cgs.unwrap()

@@ -61,3 +61,19 @@ def random_bank(L=3, G=3, K=5, pitch_mm=1.0, chief=None, C=9, seed=0, pincushion
     f = -1 + (2 * torch.arange(G, dtype=D64) + 1) / G
     return PSFBank(psf=psf, psf_pitch_mm=torch.full((L, G, G), pitch_mm, dtype=D64), field_x=f, field_y=f, chief=ch,
                    chief_x=c, chief_y=c, wavelengths_nm=(656.0, 550.0, 486.0, 420.0)[:L], display_mm=(24.0, 24.0))
+
+
+def affine_bank(a, b, axis=(0.0, 0.0), symmetric=False, C=9):
+    """A 3-wavelength bank whose green (reference) chief rays are the affine map ``G(d) = a d + b`` (``a`` 2 x 2,
+    ``b`` 2) on a ``C x C`` grid, red and blue the identity; ``meta.lens`` gives ``axis`` and ``symmetric``.
+    Bilinear interpolation of an affine map is exact, so ``G`` is known everywhere."""
+    bank = random_bank(L=3, C=C)
+    c = torch.linspace(-1, 1, C, dtype=D64)
+    cy, cx = torch.meshgrid(c, c, indexing="ij")
+    d = torch.stack([cx, cy], -1)
+    chief = bank.chief.double().clone()
+    chief[1] = d @ torch.as_tensor(a, dtype=D64).T + torch.as_tensor(b, dtype=D64)
+    bank.chief = chief.float()
+    bank.validate()
+    bank.meta["lens"] = {"axis": list(axis), "rotationally_symmetric": symmetric, "psf": True, "kind": "prescription"}
+    return bank
