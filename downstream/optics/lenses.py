@@ -9,7 +9,7 @@ A lens spec is one of
   finds ``my_prewarp_lut.safetensors``), else from the shipped LUTs by bank fingerprint;
 - a path to a JSON prescription (an object with ``"surfaces"``, see
   :data:`.prescription.CARDBOARD`): its bank is traced on load (:func:`.generate.build_bank`);
-- a path to a JSON distortion profile (any other JSON object; :mod:`.profiles`);
+- a path to a JSON distortion profile (:mod:`.profiles`: an object whose ``kind`` is a profile form);
 - a :class:`Lens` or a :class:`PSFBank`; None: ``"cardboard"``.
 
 Loading never runs code: banks and LUTs are safetensors, prescriptions and profiles plain JSON.
@@ -17,7 +17,6 @@ Loading never runs code: banks and LUTs are safetensors, prescriptions and profi
 
 from __future__ import annotations
 
-import importlib
 import json
 import os
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ from ..stage import Stage
 from .bank import PSFBank
 from .generate import build_bank
 from .prescription import CARDBOARD, Prescription
+from .profiles import PROFILE_KINDS, bank_from_profile, is_profile, load_profile
 
 __all__ = ["Lens", "LensSpec", "SHIPPED_LENSES", "DEFAULT_LENS", "load_lens", "effects_for_lens", "shipped_prescription",
            "prewarp_for_bank", "check_lens_spec"]
@@ -151,16 +151,11 @@ def _read_json(path: Path) -> dict[str, Any]:
 
 def _profile_bank(path: Path, spec: dict[str, Any]) -> PSFBank:
     """The bank of a distortion profile (:mod:`.profiles`: chief rays only, every PSF an impulse)."""
-    try:
-        profiles = importlib.import_module(f"{__package__}.profiles")
-    except ModuleNotFoundError:
-        raise FileFormatError(f"{path}: not a prescription (no 'surfaces'), and this installation reads no "
-                              "distortion profiles") from None
-    if not profiles.is_profile(spec):
+    if not is_profile(spec):
         raise FileFormatError(f"{path}: neither a prescription (an object with 'surfaces') nor a distortion profile "
-                              f"(an object whose 'kind' is one of {', '.join(profiles.PROFILE_KINDS)})")
+                              f"(an object whose 'kind' is one of {', '.join(PROFILE_KINDS)})")
     try:
-        return profiles.bank_from_profile(profiles.load_profile(path))
+        return bank_from_profile(load_profile(path))
     except InputValueError as e:  # the profile's map itself (it names the file)
         raise FileFormatError(str(e)) from None
 
