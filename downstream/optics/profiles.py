@@ -58,7 +58,8 @@ import json
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Callable
 
@@ -88,10 +89,6 @@ class _Invalid(Exception):
     """One invalid field: ``(field, what is wrong)``."""
 
 
-def _fail(name: str, what: str) -> _Invalid:
-    return _Invalid(name, what)
-
-
 @dataclass(frozen=True)
 class DistortionProfile:
     """A parsed, validated profile (see the module docstring for the file).
@@ -109,7 +106,6 @@ class DistortionProfile:
     channel_scales: tuple[float, float, float]
     fields: dict[str, Any]
     source: str = "<profile>"
-    _radial: list[Callable[[torch.Tensor], torch.Tensor]] = field(default_factory=list, repr=False, compare=False)
 
     # ------------------------------------------------------------------ the map
     @property
@@ -175,29 +171,30 @@ class DistortionProfile:
                 return th * _odd_poly(coef, r / R)
             t = _invert_increasing(lambda s: _odd_poly(coef, s), r / R, math.pi / 2 / th, f"{self.source}: coefficients")
             return th * t
-        rad_of = self._table_radius()
-        deg_end, r_end = f["samples"][-1][0], f["samples"][-1][1] * self._table_unit_mm()
-        inside = torch.deg2rad(_invert_increasing(rad_of, r.clamp_max(r_end), deg_end + 1e-9, f"{self.source}: samples"))
-        th_end = math.radians(deg_end)
-        step = 1e-6 * r_end                                          # d tan(theta) / dr at the table's end
-        slope = (math.tan(th_end) - math.tan(float(torch.deg2rad(
-            _invert_increasing(rad_of, torch.tensor(r_end - step, dtype=_D), deg_end + 1e-9, "")))) ) / step
-        return torch.where(r > r_end, torch.atan(math.tan(th_end) + slope * (r - r_end)), inside)
+        deg, rad, slopes = self._table
+        deg_end, r_end = float(deg[-1]), float(rad[-1])
+        inside = _invert_increasing(lambda t: _interp_table(deg, rad, slopes, t), r.clamp_max(r_end), deg_end + 1e-9,
+                                    f"{self.source}: samples")
+        th_end = math.radians(deg_end)                     # beyond the table: tan(theta) linear in r, its end slope
+        slope = math.radians(1.0) / self._table_slope(-1) / math.cos(th_end) ** 2
+        return torch.where(r > r_end, torch.atan(math.tan(th_end) + slope * (r - r_end)), torch.deg2rad(inside))
 
-    def _table_unit_mm(self) -> float:
-        """Millimetres per unit of the table's display-radius column."""
+    @cached_property
+    def _table(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The table: field angles (deg), display radii (mm) and, for the monotone cubic, node slopes."""
         f = self.fields
-        return f["radius_mm"] / 100 if f["radius_unit"] == "percent" else 1.0
+        unit = f["radius_mm"] / 100 if f["radius_unit"] == "percent" else 1.0
+        deg = torch.tensor([s[0] for s in f["samples"]], dtype=_D)
+        rad = torch.tensor([s[1] for s in f["samples"]], dtype=_D) * unit
+        return deg, rad, _pchip_slopes(deg, rad) if f["interpolation"] == "monotone_cubic" else None
 
-    def _table_radius(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        """Display radius (mm) as a function of the field angle (deg), from the table."""
-        if not self._radial:
-            f = self.fields
-            deg = torch.tensor([s[0] for s in f["samples"]], dtype=_D)
-            rad = torch.tensor([s[1] for s in f["samples"]], dtype=_D) * self._table_unit_mm()
-            slopes = _pchip_slopes(deg, rad) if f["interpolation"] == "monotone_cubic" else None
-            self._radial.append(lambda t: _interp_table(deg, rad, slopes, t))
-        return self._radial[0]
+    def _table_slope(self, end: int) -> float:
+        """d r / d theta (mm per deg) of the table at its first (``end`` 0) or last (-1) sample."""
+        deg, rad, slopes = self._table
+        if slopes is not None:
+            return float(slopes[end])
+        i = 0 if end == 0 else len(deg) - 2
+        return float((rad[i + 1] - rad[i]) / (deg[i + 1] - deg[i]))
 
     def axis_slope(self) -> float:
         """``G``: d tan(theta) / dr at the centre for green (rad per mm), radial forms."""
@@ -205,10 +202,7 @@ class DistortionProfile:
         if self.kind == "polynomial":
             th, R, k1 = math.radians(f["half_fov_deg"]), f["radius_mm"], f["coefficients"][1][0]
             return th * k1 / R if f["direction"] == "display_to_eye" else th / (k1 * R)
-        deg = torch.tensor([s[0] for s in f["samples"]], dtype=_D)
-        rad = torch.tensor([s[1] for s in f["samples"]], dtype=_D) * self._table_unit_mm()
-        d0 = float(_pchip_slopes(deg, rad)[0]) if f["interpolation"] == "monotone_cubic" else float(rad[1] / deg[1])
-        return math.radians(1.0) / d0
+        return math.radians(1.0) / self._table_slope(0)
 
     def _radial_gain(self, r: torch.Tensor, ci: int) -> torch.Tensor:
         """Landing radius over display radius at display radius ``r`` (mm); its limit 1 (green) at 0."""
@@ -385,7 +379,7 @@ def _number(obj: Mapping, name: str, *, default: float | None = None, positive: 
             below: float | None = None) -> float:
     if name not in obj:
         if default is None:
-            raise _fail(name, "is missing")
+            raise _Invalid(name, "is missing")
         return default
     return _value(obj[name], name, positive=positive, below=below)
 
@@ -393,26 +387,26 @@ def _number(obj: Mapping, name: str, *, default: float | None = None, positive: 
 def _value(v: Any, name: str, *, positive: bool = False, below: float | None = None) -> float:
     """``v`` as a finite float (positive, below ``below`` if asked), else the field ``name`` is invalid."""
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise _fail(name, f"must be a finite number, got {v!r}")
+        raise _Invalid(name, f"must be a finite number, got {v!r}")
     if positive and not v > 0:
-        raise _fail(name, f"must be positive, got {v!r}")
+        raise _Invalid(name, f"must be positive, got {v!r}")
     if below is not None and not v < below:
-        raise _fail(name, f"must be below {below}, got {v!r}")
+        raise _Invalid(name, f"must be below {below}, got {v!r}")
     return float(v)
 
 
 def _pair(obj: Mapping, name: str, *, positive: bool, integer: bool = False) -> tuple[float, float]:
     v = obj.get(name)
     if v is None:
-        raise _fail(name, "is missing")
+        raise _Invalid(name, "is missing")
     kind = "integers" if integer else "numbers"
     if not isinstance(v, list) or len(v) != 2 or not all(
             isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a) for a in v):
-        raise _fail(name, f"must be two finite {kind}, got {v!r}")
+        raise _Invalid(name, f"must be two finite {kind}, got {v!r}")
     if integer and not all(float(a).is_integer() for a in v):
-        raise _fail(name, f"must be two integers, got {v!r}")
+        raise _Invalid(name, f"must be two integers, got {v!r}")
     if positive and not all(a > 0 for a in v):
-        raise _fail(name, f"must be positive, got {v!r}")
+        raise _Invalid(name, f"must be positive, got {v!r}")
     return float(v[0]), float(v[1])
 
 
@@ -423,7 +417,7 @@ def _per_primary(obj: Mapping, name: str, default: float | None) -> tuple[float,
     v = obj.get(name)
     if isinstance(v, list):
         if len(v) != 3:
-            raise _fail(name, f"must be a number or [R, G, B], got {len(v)} values")
+            raise _Invalid(name, f"must be a number or [R, G, B], got {len(v)} values")
         vals = [_value(a, name) for a in v]
         return vals[0], vals[1], vals[2]
     x = _number(obj, name)
@@ -433,26 +427,26 @@ def _per_primary(obj: Mapping, name: str, default: float | None) -> tuple[float,
 def _choice(obj: Mapping, name: str, options: tuple[str, ...], default: str) -> str:
     v = obj.get(name, default)
     if v not in options:
-        raise _fail(name, f"must be one of {list(options)}, got {v!r}")
+        raise _Invalid(name, f"must be one of {list(options)}, got {v!r}")
     return str(v)
 
 
 def _build(obj: Any, source: str) -> DistortionProfile:
     if not isinstance(obj, Mapping):
-        raise _fail("kind", f"is missing: a profile is a JSON object, got {type(obj).__name__}")
+        raise _Invalid("kind", f"is missing: a profile is a JSON object, got {type(obj).__name__}")
     kind = obj.get("kind")
     if kind not in PROFILE_KINDS:
-        raise _fail("kind", f"must be one of {list(PROFILE_KINDS)}, got {kind!r}")
+        raise _Invalid("kind", f"must be one of {list(PROFILE_KINDS)}, got {kind!r}")
     unknown = sorted(set(obj) - _COMMON - _FIELDS[kind])
     if unknown:
-        raise _fail(unknown[0], f"is not a field of a {kind!r} profile (fields: {sorted(_COMMON | _FIELDS[kind])})")
+        raise _Invalid(unknown[0], f"is not a field of a {kind!r} profile (fields: {sorted(_COMMON | _FIELDS[kind])})")
     for name in ("name", "source", "licence"):
         if name in obj and not isinstance(obj[name], str):
-            raise _fail(name, f"must be a string, got {obj[name]!r}")
+            raise _Invalid(name, f"must be a string, got {obj[name]!r}")
     w_px, h_px = _pair(obj, "display_px", positive=True, integer=True)
     display_mm = _pair(obj, "display_mm", positive=True)
     if "centre_px" in obj and "centre_norm" in obj:
-        raise _fail("centre_norm", "cannot be given with 'centre_px' (give one)")
+        raise _Invalid("centre_norm", "cannot be given with 'centre_px' (give one)")
     if "centre_px" in obj:
         px = _pair(obj, "centre_px", positive=False)
         centre = (2 * px[0] / w_px - 1, 2 * px[1] / h_px - 1)
@@ -461,10 +455,10 @@ def _build(obj: Any, source: str) -> DistortionProfile:
         centre = _pair(obj, "centre_norm", positive=False) if "centre_norm" in obj else (0.0, 0.0)
         name = "centre_norm"
     if not all(abs(c) < 1 for c in centre):
-        raise _fail(name, f"must lie inside the display, got normalised {list(centre)}")
+        raise _Invalid(name, f"must lie inside the display, got normalised {list(centre)}")
     scales = _per_primary(obj, "channel_scales", 1.0)
     if not all(s > 0 for s in scales) or not isinstance(obj.get("channel_scales", []), list):
-        raise _fail("channel_scales", f"must be three positive numbers [R, G, B], got {obj.get('channel_scales')!r}")
+        raise _Invalid("channel_scales", f"must be three positive numbers [R, G, B], got {obj.get('channel_scales')!r}")
     fields: dict[str, Any] = {}
     half_w = display_mm[0] / 2
     if kind == "opencv":
@@ -494,15 +488,15 @@ def _build(obj: Any, source: str) -> DistortionProfile:
 def _coefficients(v: Any) -> tuple[tuple[float, ...], ...]:
     name = "coefficients"
     if not isinstance(v, Mapping) or set(v) != set(CHANNELS):
-        raise _fail(name, f"must be an object with lists 'R', 'G', 'B' of k1, k3, k5, k7, k9, got {v!r}")
+        raise _Invalid(name, f"must be an object with lists 'R', 'G', 'B' of k1, k3, k5, k7, k9, got {v!r}")
     out = []
     for c in CHANNELS:
         k = v[c]
         if not isinstance(k, list) or not 1 <= len(k) <= 5:
-            raise _fail(name, f"{c} must be a list of 1 to 5 numbers (k1, k3, k5, k7, k9), got {k!r}")
+            raise _Invalid(name, f"{c} must be a list of 1 to 5 numbers (k1, k3, k5, k7, k9), got {k!r}")
         vals = tuple(_value(a, f"{name}.{c}") for a in k)
         if not vals[0] > 0:
-            raise _fail(f"{name}.{c}", f"k1 must be positive (the map's slope on the axis), got {vals[0]!r}")
+            raise _Invalid(f"{name}.{c}", f"k1 must be positive (the map's slope on the axis), got {vals[0]!r}")
         out.append(vals)
     return tuple(out)
 
@@ -510,20 +504,20 @@ def _coefficients(v: Any) -> tuple[tuple[float, ...], ...]:
 def _samples(v: Any) -> tuple[tuple[float, float], ...]:
     name = "samples"
     if not isinstance(v, list) or len(v) < 2:
-        raise _fail(name, f"must be a list of at least 2 [field_angle_deg, display_radius] pairs, got {v!r}")
+        raise _Invalid(name, f"must be a list of at least 2 [field_angle_deg, display_radius] pairs, got {v!r}")
     pts = []
     for i, s in enumerate(v):
         if not isinstance(s, list) or len(s) != 2:
-            raise _fail(name, f"entry {i} must be a pair [field_angle_deg, display_radius], got {s!r}")
+            raise _Invalid(name, f"entry {i} must be a pair [field_angle_deg, display_radius], got {s!r}")
         pts.append((_value(s[0], f"{name}[{i}][0]"), _value(s[1], f"{name}[{i}][1]")))
     if pts[0] != (0.0, 0.0):
-        raise _fail(name, f"must start at [0, 0] (the axis), got {list(pts[0])}")
+        raise _Invalid(name, f"must start at [0, 0] (the axis), got {list(pts[0])}")
     for i in range(1, len(pts)):
         if not (pts[i][0] > pts[i - 1][0] and pts[i][1] > pts[i - 1][1]):
-            raise _fail(name, f"must increase strictly in both columns: entry {i} {list(pts[i])} after "
+            raise _Invalid(name, f"must increase strictly in both columns: entry {i} {list(pts[i])} after "
                         f"{list(pts[i - 1])}")
     if not pts[-1][0] < 90:
-        raise _fail(name, f"field angles must stay below 90 deg, got {pts[-1][0]}")
+        raise _Invalid(name, f"field angles must stay below 90 deg, got {pts[-1][0]}")
     return tuple(pts)
 
 
@@ -540,7 +534,7 @@ def _check_monotone(profile: DistortionProfile) -> None:
         for ci in range(3):
             out = profile._brown(u, torch.zeros_like(u), ci)[0]
             if not bool((out.diff() > 0).all()):
-                raise _fail("k1", f"gives a radial map that folds over inside the display (primary {CHANNELS[ci]})")
+                raise _Invalid("k1", f"gives a radial map that folds over inside the display (primary {CHANNELS[ci]})")
         return
     if profile.kind == "polynomial":
         f = profile.fields
@@ -552,12 +546,12 @@ def _check_monotone(profile: DistortionProfile) -> None:
             if f["direction"] == "display_to_eye":
                 bad = bad or float(vals[-1]) * f["half_fov_deg"] >= 90
             if bad:
-                raise _fail("coefficients", f"{CHANNELS[ci]} must increase (and stay below 90 deg) out to the "
+                raise _Invalid("coefficients", f"{CHANNELS[ci]} must increase (and stay below 90 deg) out to the "
                             f"display corner ({r_max:.4g} mm from the centre)")
     try:
         profile._theta(torch.tensor([r_max], dtype=_D), 1)
     except InputValueError:
-        raise _fail("samples" if profile.kind == "radial_table" else "coefficients",
+        raise _Invalid("samples" if profile.kind == "radial_table" else "coefficients",
                     f"do not reach the display corner ({r_max:.4g} mm from the centre) below 90 deg") from None
 
 

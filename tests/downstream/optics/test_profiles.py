@@ -119,6 +119,18 @@ def test_radial_table_linear_is_field_angle_to_display_radius():
     assert lens["half_fov_deg"] == pytest.approx(48.31, abs=1e-9)
 
 
+def test_radial_table_landing_goes_on_linearly_past_its_last_sample():
+    """Past 100 % (12 mm, x = 1 on the axis) the landing grows by equal steps, with the slope it has just
+    inside the table (a corner at 141 % stays finite, below 90 deg)."""
+    p = parse_profile(_table())
+    x = torch.tensor([1 - 1e-6, 1.0, 1.1, 1.2], dtype=D)
+    q = p.landing(x, torch.zeros_like(x))[1, :, 0]
+    inside = float(q[1] - q[0]) / 1e-6
+    assert float(q[2] - q[1]) == pytest.approx(float(q[3] - q[2]), rel=1e-12)
+    assert float(q[2] - q[1]) / 0.1 == pytest.approx(inside, rel=1e-4)
+    assert float(p.field_angle_deg(torch.tensor(12 * math.sqrt(2), dtype=D))) < 90
+
+
 def test_radial_table_monotone_cubic_matches_scipy_pchip():
     """The monotone cubic table equals SciPy's PCHIP of the same samples (display radius of an angle),
     checked by inverting at radii PCHIP gives for 40 angles."""
