@@ -362,10 +362,11 @@ class ViewerSession:
 
     def _strengths(self, cgs: ControlGS, model: Any, cam: Camera, rs: RuntimeState) -> tuple[dict[str, Any], str | None]:
         """The adapter's strengths at ``rs``: global ones as numbers, per-anchor ones as mean / min / max
-        over the visible anchors, and the lens (else foveation) strength as a heat overlay (base64 PNG)."""
+        over the visible anchors, and the lens (else foveation) strength as a heat overlay (base64 PNG).
+        A lens conditioned in its (x, y) frame shows the larger of ``|lambda_x|``, ``|lambda_y|``."""
         visible = self.renderer.visible(model, cam)
         ids = cgs.anchor_ids(visible)
-        lam = cgs.strengths(rs, cam, ids)
+        lam = {m: v.abs().amax(-1) if v.dim() == 2 else v for m, v in cgs.strengths(rs, cam, ids).items()}
         out: dict[str, Any] = {}
         overlay = None
         one: dict[str, torch.Tensor] | None = None  # strengths of anchor 0: the global values when none is visible

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from helpers.banks import affine_bank
 from helpers.viewer_sessions import SIZE, builtin_session, decode_png
 from PIL import Image
 
@@ -690,3 +691,22 @@ def test_session_info(small: Any) -> None:
     assert info["orbit_truth"] is True and info["device"] == "cpu"
     assert info["extra_metrics"] == list(session.extra_metrics)
 
+
+
+def test_a_lens_conditioned_in_its_xy_frame_shows_the_larger_strength_magnitude(tmp_path: Any) -> None:
+    """An adapter trained for a decentred lens keeps its (x, y) frame in the viewer: the lens strength
+    reported and overlaid is max(|lambda_x|, |lambda_y|) over the visible anchors."""
+    lens = affine_bank([[0.75, 0.125], [-0.25, 1.5]], [0.0625, -0.125], axis=(0.25, -0.125))
+    session, _ = builtin_session(tmp_path, {"xy": {"lens": lens, "modules": ("lens", "display")}})
+    state = parse_state({"power_saving": 0.3}, 1)
+    out = session.render(state, tag=1)
+    got = next(m for m in out["methods"] if m["name"] == "xy")
+    copy_, cgs = session.adapters["xy"]
+    assert cgs.lens_frame.mode == "xy"
+    cam = session._frame(state)[0]
+    pair = cgs.strengths(state.runtime, cam, cgs.anchor_ids(session.renderer.visible(copy_, cam)))["lens"]
+    want = pair.abs().amax(-1)
+    assert pair.shape[1] == 2 and float(pair.min()) < 0
+    assert got["strengths"]["lens"] == pytest.approx(
+        {"mean": float(want.mean()), "min": float(want.min()), "max": float(want.max())}, abs=1e-6)
+    assert decode_png(got["overlay"]).shape == (SIZE, SIZE, 4)
