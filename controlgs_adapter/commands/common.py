@@ -162,19 +162,18 @@ def apply_run_defaults(args: argparse.Namespace, run_dir: Path) -> dict[str, Any
     run = read_run(run_dir)
     if run is None:
         return None
-    for key in _RUN_DEFAULTS:
-        if key != "renderer" and getattr(args, key, None) is None and run.get(key) is not None:
-            setattr(args, key, run[key])
-            if key == "rasterizer":
-                try:
-                    check_rasterizer_name(run[key])
-                except InputValueError as e:
-                    raise InputValueError(f"{run_dir / RUN_FILE}: field 'rasterizer': {e} (give --rasterizer NAME)") from None
-            if key == "lens":
-                try:
-                    check_lens_spec(run[key])
-                except ControlGSError as e:
-                    raise InputValueError(f"{run_dir / RUN_FILE}: field 'lens': {e} (give --lens NAME|PATH)") from None
+    taken = [k for k in _RUN_DEFAULTS if k != "renderer" and getattr(args, k, None) is None and run.get(k) is not None]
+    checks: dict[str, tuple[Callable[[str], None], str]] = {"rasterizer": (check_rasterizer_name, "--rasterizer NAME"),
+                                                           "lens": (check_lens_spec, "--lens NAME|PATH")}
+    for key in taken:  # the values that name something outside the file, before any is taken
+        if key in checks:
+            check, option = checks[key]
+            try:
+                check(run[key])
+            except ControlGSError as e:
+                raise InputValueError(f"{run_dir / RUN_FILE}: field {key!r}: {e} (give {option})") from None
+    for key in taken:
+        setattr(args, key, run[key])
     spec = run.get("renderer")
     if spec is not None and getattr(args, "renderer", None) is None:
         if not getattr(args, "trust_run_renderer", False):

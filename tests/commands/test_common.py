@@ -1,6 +1,6 @@
 """Tests of ``controlgs_adapter.commands.common``, the pieces the commands share: ``read_run`` (every run.json field
 checked, naming the file and the field), ``apply_run_defaults`` (a run's renderer only with the user's say),
-``--model``/``--data``, ``parse_device``, ``check_out_path`` (creates nothing), ``--cache-mib``, the scene-check
+``--model``/``--data``, ``--lens`` (a run's lens, checked before it is taken), ``parse_device``, ``check_out_path`` (creates nothing), ``--cache-mib``, the scene-check
 line, loading a user's scene, and ``--renderer``/``--rasterizer`` (``load_renderer``, ``make_renderer``)."""
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ from controlgs_adapter.commands.common import (
     check_line,
     check_out_path,
     check_rasterizer_name,
+    lens_record,
+    load_lens_arg,
     load_renderer,
     load_user_scene,
     make_renderer,
@@ -43,7 +45,7 @@ from controlgs_adapter.scene import load_builtin_scene
 FULL = {"model": "/m", "data": "/d", "family": "scaffold_gs", "model_iteration": 30000, "allow_unquantized": False,
         "format": "colmap", "images": "images_4", "holdout": 8, "white_background": False, "resolution": 256,
         "effects": ["display", "lens"], "iterations": 1000, "seed": 0, "seeds": 2, "adapters": ["controlgs", "no_lens"],
-        "rasterizer": "auto", "renderer": "/r/mine.py:render",
+        "rasterizer": "auto", "renderer": "/r/mine.py:render", "lens": "/l/mine_psf_bank.safetensors",
         "distributed": {"processes": 1, "backend": None, "exchange": "sparse"}}
 
 
@@ -111,7 +113,7 @@ def test_read_run_takes_a_full_record_and_nothing(tmp_path: Path) -> None:
     ("allow_unquantized", 1), ("format", 3), ("images", {}), ("holdout", 2.5), ("white_background", "false"),
     ("resolution", True), ("effects", []), ("effects", "display"), ("effects", ["display", 1]), ("iterations", -5),
     ("seed", 2**63), ("seeds", 0), ("adapters", "controlgs"), ("rasterizer", 0), ("renderer", ["x.py:r"]),
-    ("distributed", {"processes": [1]}), ("variant", "xr"),
+    ("distributed", {"processes": [1]}), ("variant", "xr"), ("lens", ""), ("lens", 3), ("lens", ["cardboard"]),
 ])
 def test_each_field_is_checked_naming_file_and_field(tmp_path: Path, field: str, value: Any) -> None:
     path = _write(tmp_path, {**FULL, field: value})
@@ -164,6 +166,39 @@ def test_a_run_renderer_needs_the_users_say(tmp_path: Path) -> None:
     args = _ns(**RUN_ARGS, trust_run_renderer=True)
     assert apply_run_defaults(args, tmp_path) is not None
     assert (args.renderer, args.model, args.data) == (spec, "/m", "/d")
+
+
+def test_a_runs_lens_is_taken_unless_given_and_a_missing_file_is_named(tmp_path: Path) -> None:
+    bank = tmp_path / "mine_psf_bank.safetensors"
+    bank.write_bytes(b"")  # only its existence is checked here
+    _write(tmp_path, {"model": "/m", "data": "/d", "lens": str(bank)})
+    args = _ns(**RUN_ARGS, lens=None)
+    apply_run_defaults(args, tmp_path)
+    assert args.lens == str(bank)
+    args = _ns(**RUN_ARGS, lens="cardboard")  # named on the command line: kept
+    apply_run_defaults(args, tmp_path)
+    assert args.lens == "cardboard"
+    for recorded, why in ((str(tmp_path / "gone.json"), "no such file"), ("cardbaord", "not a shipped lens"),
+                          (str(tmp_path / "lens.txt"), "not a lens file")):
+        (tmp_path / "lens.txt").write_text("{}")
+        path = _write(tmp_path, {"model": "/m", "data": "/d", "lens": recorded})
+        args = _ns(**RUN_ARGS, lens=None)
+        with pytest.raises(InputValueError) as e:
+            apply_run_defaults(args, tmp_path)
+        assert str(e.value).startswith(f"{path}: field 'lens': ") and why in str(e.value) and "--lens" in str(e.value)
+        assert args.lens is None and args.model is None  # nothing taken from a refused run file
+
+
+def test_the_lens_option_loads_the_lens_and_records_a_file_by_its_absolute_path(tmp_path, monkeypatch) -> None:
+    from helpers.banks import random_bank
+
+    assert lens_record(load_lens_arg(_ns(lens=None))) == "cardboard"
+    random_bank(C=5).save(tmp_path / "b.safetensors")
+    monkeypatch.chdir(tmp_path)
+    lens = load_lens_arg(_ns(lens="b.safetensors"))
+    assert lens.spec == "b.safetensors" and lens_record(lens) == str(tmp_path / "b.safetensors")
+    with pytest.raises(InputValueError, match="^--lens nope.json: no such file$"):
+        load_lens_arg(_ns(lens="nope.json"))
 
 
 # ----------------------------------------------------------------------------- options
