@@ -21,7 +21,9 @@ foveation     ||p - gaze||_2 (0 when gaze is None)          yes         0 .. e_m
 headset display as the optics does (``controlgs_adapter.downstream.placement``, default ``"fit"``:
 square pixels, the longer image axis spans [-1, 1], the shorter one ``short / long`` of it), so a
 strength follows the radial distance on the display; for a square image they are the normalised
-screen positions.
+screen positions. For a lens that is not rotationally symmetric and centred, ``ControlGS`` conditions
+the lens module on the anchor's position in the lens's own frame instead: a signed pair
+(:meth:`LensSchedule.xy_strength`, :mod:`controlgs_adapter.lens_frame`).
 
 The endpoints are configuration (``ControlGS.wrap(endpoints={"lens": (0.0, 1.2)})``); the
 foveation default ``e_max = sqrt(2)`` (gaze at the centre, anchor at a corner) is this library's
