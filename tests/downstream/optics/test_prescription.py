@@ -126,3 +126,61 @@ def test_cauchy_index_against_catalogue_data():
         assert cauchy_index(1.5168, 64.17, lam) == pytest.approx(n_cat, abs=6e-5)
 
 
+
+
+# ----------------------------------------------------------------------------- conics, aspheres, moves, mirrors
+_MIRROR_PAIR = [{"radius_mm": -80.0, "thickness_mm": -30.0, "after": "mirror"}, {"thickness_mm": 50.0, "after": "mirror"}]
+
+
+@pytest.mark.parametrize("surfaces, over, match", [
+    ([_surface(0, semi_diameter_mm=0.0), _surface(1)], {}, r"surfaces\[0\].semi_diameter_mm.*positive number, got 0.0"),
+    ([_surface(0), _surface(1, semi_diameter_mm=-2.0)], {}, r"surfaces\[1\].semi_diameter_mm.*positive number, got -2.0"),
+    # sphere R = 10 cannot reach 11 mm; an ellipsoid k = 1 (oblate) of R = 20 reaches 20 / sqrt(2) = 14.1 mm only
+    ([{"radius_mm": 10.0, "thickness_mm": 2.0, "semi_diameter_mm": 11.0}], {}, r"surfaces\[0\]: the conic .*no sag at its semi_diameter_mm 11"),
+    ([{"radius_mm": 20.0, "conic": 1.0, "thickness_mm": 2.0, "semi_diameter_mm": 14.2}], {}, r"surfaces\[0\]: the conic"),
+    ([_surface(0), _surface(1, conic=math.nan)], {}, r"surfaces\[1\].conic must be a finite number, got nan"),
+    ([_surface(0, conic=math.inf), _surface(1)], {}, r"surfaces\[0\].conic"),
+    ([_surface(0, conic="1"), _surface(1)], {}, r"surfaces\[0\].conic"),
+    ([_surface(0, aspheric=[1e-5, math.inf]), _surface(1)], {}, r"surfaces\[0\].aspheric must be a list of finite numbers"),
+    ([_surface(0), _surface(1, aspheric=1e-5)], {}, r"surfaces\[1\].aspheric must be a list"),
+    ([_surface(0, decenter_mm=[1.0]), _surface(1)], {}, r"surfaces\[0\].decenter_mm must be \[x, y\]"),
+    ([_surface(0), _surface(1, tilt_deg=[0.0, math.nan])], {}, r"surfaces\[1\].tilt_deg must be \[x, y\]"),
+    ([_surface(0, radius=5.0), _surface(1)], {}, r"surfaces\[0\] has unknown keys \['radius'\]"),
+    ([_surface(0), _surface(1, after="Mirror")], {}, r"surfaces\[1\]\['after'\] must be 'air', 'mirror'"),
+    # mirrors: an odd number leaves the light travelling away from the eye; thickness signs follow the direction
+    ([_MIRROR_PAIR[0], {"thickness_mm": -5.0}], {}, r"1 mirrors.*even number"),
+    ([_MIRROR_PAIR[0], {"thickness_mm": 5.0}, _MIRROR_PAIR[1]], {}, r"surfaces\[1\].thickness_mm.*negative"),
+    ([dict(_MIRROR_PAIR[0], thickness_mm=30.0), _MIRROR_PAIR[1]], {}, r"surfaces\[0\].thickness_mm.*negative"),
+    ([_MIRROR_PAIR[0], dict(_MIRROR_PAIR[1], thickness_mm=-50.0)], {}, r"surfaces\[1\].thickness_mm.*must be a positive"),
+    ([_surface(0), _surface(1)], {"display_offset_mm": [1.0, math.inf]}, r"display_offset_mm'\] must be \[x, y\]"),
+    ([_surface(0), _surface(1)], {"display_offset_mm": 1.0}, r"display_offset_mm'\] must be \[x, y\]"),
+    *[([_surface(0), _surface(1)], {"efficiency": e}, r"efficiency'\] must be a number in \(0, 1\]") for e in (0.0, 1.5, True, math.nan)],
+    ([_surface(0), _surface(1)], {"focal_mm": 40.0}, r"prescription has unknown keys \['focal_mm'\]"),
+])
+def test_bad_surfaces_and_system_keys_are_refused_by_name(surfaces, over, match):
+    with pytest.raises(InputValueError, match=match):
+        lens(surfaces, **over)
+
+
+def test_new_keys_are_read_with_defaults_that_keep_today_s_lenses():
+    rx = Prescription.cardboard()
+    assert rx.rotationally_symmetric and rx.display_offset == (0.0, 0.0) and rx.efficiency == 1.0
+    assert all(sf.conic == 0.0 and sf.aspheric == () and not sf.moved and not sf.mirror for sf in rx.surfaces)
+    assert rx.path_length == rx.pupil_z
+    rx = lens([_surface(0, conic=-1, aspheric=[1e-5, 0], decenter_mm=[0.5, 0]), _surface(1, tilt_deg=[0, 2])],
+              display_offset_mm=[1.0, -2.0], efficiency=0.25)
+    s1, s2 = rx.surfaces
+    assert (s1.conic, s1.aspheric, s1.decenter, s1.tilt) == (-1.0, (1e-5, 0.0), (0.5, 0.0), (0.0, 0.0))
+    assert s2.tilt == (0.0, 2.0) and s1.moved and s2.moved
+    assert rx.display_offset == (1.0, -2.0) and rx.efficiency == 0.25 and not rx.rotationally_symmetric
+    assert not lens([_surface(0), _surface(1)], display_offset_mm=[0.0, 0.5]).rotationally_symmetric
+    assert lens([_surface(0, decenter_mm=[0, 0], tilt_deg=[-0.0, 0]), _surface(1)]).rotationally_symmetric
+    # a mirror keeps the medium before it; thicknesses after it are negative, the path is unfolded
+    glass = {"nd": 1.5, "vd": 50.0}
+    rx = lens([{"radius_mm": 100.0, "thickness_mm": 3.0, "after": glass}, {"thickness_mm": -2.0, "after": "mirror"},
+               {"radius_mm": 100.0, "thickness_mm": 2.0, "after": "mirror"}, {"thickness_mm": 10.0}],
+              object_distance_mm=30.0)
+    assert [sf.mirror for sf in rx.surfaces] == [False, True, True, False]
+    assert rx.surfaces[1].material == glass and rx.surfaces[2].material == glass   # the medium before each mirror
+    assert rx.vertices == pytest.approx([30.0, 33.0, 31.0, 33.0]) and rx.pupil_z == pytest.approx(43.0)
+    assert rx.path_length == pytest.approx(30.0 + 3 + 2 + 2 + 10)

@@ -11,7 +11,8 @@ import pytest
 from helpers.prescriptions import cardboard_spec, lens
 
 from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription, cauchy_index
-from controlgs_adapter.downstream.optics.raytrace import chief_ray, paraxial, real_magnification, trace, trace_exit
+from controlgs_adapter.downstream.optics.raytrace import chief_ray, chief_ray_2d, paraxial, real_magnification, trace, trace_exit
+from controlgs_adapter.errors import InputValueError
 
 
 @pytest.mark.parametrize("lam, efl, dist, mag", [(486.0, 47.51, 725.6, 15.88), (550.0, 47.91, 650.8, 14.20),
@@ -308,3 +309,113 @@ def test_an_asphere_is_hit_on_its_sag():
     r2 = p[..., 0] ** 2 + p[..., 1] ** 2
     sag = c * r2 / (1 + np.sqrt(1 - (1 + k) * c * c * r2)) + a4 * r2 ** 2 + a6 * r2 ** 3
     assert ok.all() and np.abs(p[..., 2] - 40.0 - sag).max() < 1e-12
+
+
+def _folded_aspheric_system(**over):
+    """An aspheric glass element (front: decentred, tilted even asphere; back: tilted sphere), then a
+    slightly tilted plane fold mirror and a decentred concave conic mirror sending the light on to the
+    pupil: every feature of the tracer at once (n = 1.6 at any wavelength)."""
+    glass = {"nd": 1.6, "vd": 1e12}
+    return lens([{"radius_mm": 35.0, "conic": -1.7, "aspheric": [3e-5, -2e-8], "decenter_mm": [0.4, -0.3],
+                  "tilt_deg": [2.0, -1.5], "thickness_mm": 7.0, "after": glass, "semi_diameter_mm": 14.0},
+                 {"radius_mm": -40.0, "tilt_deg": [-1.0, 0.5], "thickness_mm": 12.0, "after": "air"},
+                 {"tilt_deg": [0.7, 0.3], "thickness_mm": -8.0, "after": "mirror"},
+                 {"radius_mm": 150.0, "conic": -0.6, "decenter_mm": [-0.2, 0.5], "thickness_mm": 30.0,
+                  "after": "mirror"}], object_distance_mm=30.0, **over)
+
+
+def _tilted_cardboard():
+    """The Cardboard lens with an aspheric, decentred, tilted first surface and a tilted second one."""
+    s1, s2 = CARDBOARD["surfaces"]
+    return lens([dict(s1, conic=-2.0, aspheric=[1e-6], decenter_mm=[0.4, -0.3], tilt_deg=[2.0, -1.5]),
+                 dict(s2, tilt_deg=[-1.0, 0.5])])
+
+
+def test_trace_matches_an_independent_brute_force_tracer():
+    """Random rays through the folded aspheric system: the exit point and direction agree with the
+    reference tracer (bisection on the sag, complex-step normals, Snell by angles) to 1e-9 mm / 1e-11."""
+    from helpers.reference_tracer import trace_one
+
+    rx = _folded_aspheric_system()
+    rng = np.random.default_rng(11)
+    x, y, u, v = rng.uniform(-8, 8, 40), rng.uniform(-8, 8, 40), rng.uniform(-0.2, 0.2, 40), rng.uniform(-0.2, 0.2, 40)
+    p, d, ok = trace_exit(rx, 550.0, x, y, u, v)
+    assert ok.sum() >= 30
+    for i in range(40):
+        ref = trace_one(rx, 550.0, x[i], y[i], u[i], v[i])
+        assert ok[i] == (ref is not None)
+        if ref is not None:
+            assert np.abs(p[i] - ref[0]).max() < 1e-9 and np.abs(d[i] - ref[1]).max() < 1e-11
+
+
+def test_a_decentred_lens_is_the_centred_lens_seen_from_a_shifted_field():
+    """Decentring every surface by (dx, dy) equals tracing the centred lens from display points shifted by
+    (-dx, -dy), with every output shifted back by (dx, dy) (the pupil and image planes are planes)."""
+    dx, dy = 0.7, -1.3
+    centred = Prescription.cardboard()
+    moved = lens([dict(sf, decenter_mm=[dx, dy]) for sf in CARDBOARD["surfaces"]])
+    rng = np.random.default_rng(12)
+    x, y, u, v = rng.uniform(-10, 10, 500), rng.uniform(-10, 10, 500), rng.uniform(-0.3, 0.3, 500), rng.uniform(-0.3, 0.3, 500)
+    xp, yp, X, Y, ok = trace(moved, 550.0, x, y, u, v)
+    xp0, yp0, X0, Y0, ok0 = trace(centred, 550.0, x - dx, y - dy, u, v)
+    assert np.array_equal(ok, ok0) and ok.mean() > 0.5
+    for a, b in ((xp, xp0 + dx), (yp, yp0 + dy), (X, X0 + dx), (Y, Y0 + dy)):
+        assert np.abs(a - b)[ok].max() < 1e-9
+
+
+def test_mirror_symmetry_is_kept_in_x_and_broken_by_a_y_decentre():
+    """A lens decentred and tilted only in the y-z plane (decenter [0, dy], tilt about x) stays mirror
+    symmetric in x: the ray (-x, y, -u, v) is the mirror image of (x, y, u, v). The y mirror image is
+    not a ray of this lens (it is one of the lens decentred by -dy)."""
+    over = [{"decenter_mm": [0.0, 0.8], "tilt_deg": [3.0, 0.0]}, {"decenter_mm": [0.0, 0.8]}]
+    rx = lens([dict(sf, **o) for sf, o in zip(CARDBOARD["surfaces"], over)])
+    flipped = lens([dict(sf, decenter_mm=[0.0, -0.8], tilt_deg=[-o["tilt_deg"][0], 0.0] if "tilt_deg" in o else [0.0, 0.0])
+                    for sf, o in zip(CARDBOARD["surfaces"], over)])
+    rng = np.random.default_rng(13)
+    x, y, u, v = rng.uniform(-10, 10, 300), rng.uniform(-10, 10, 300), rng.uniform(-0.3, 0.3, 300), rng.uniform(-0.3, 0.3, 300)
+    xp, yp, X, Y, ok = trace(rx, 550.0, x, y, u, v)
+    xm, ym, Xm, Ym, okm = trace(rx, 550.0, -x, y, -u, v)
+    assert np.array_equal(ok, okm) and ok.mean() > 0.5
+    assert np.abs(xp + xm)[ok].max() < 1e-12 and np.abs(yp - ym)[ok].max() < 1e-12
+    assert np.abs(X + Xm)[ok].max() < 1e-10 and np.abs(Y - Ym)[ok].max() < 1e-10
+    _, yn, _, Yn, okn = trace(rx, 550.0, x, -y, u, -v)
+    both = ok & okn
+    assert np.abs(yp + yn)[both].min() > 1e-3                     # y symmetry broken for every ray
+    _, yf, _, Yf, okf = trace(flipped, 550.0, x, -y, u, -v)        # ... and restored by the flipped lens
+    assert np.array_equal(ok, okf) and np.abs(yp + yf)[ok].max() < 1e-12 and np.abs(Y + Yf)[ok].max() < 1e-10
+
+
+def test_the_2d_chief_ray_solver_agrees_with_the_meridional_one_on_a_symmetric_lens():
+    """On the Cardboard lens the 2-D solver from (x, y) finds the meridional chief ray of radius
+    hypot(x, y), turned to the field's direction; on a tilted lens its rays cross the pupil centre."""
+    rx = Prescription.cardboard()
+    h = np.linspace(0.0, 16.5, 12)
+    ang = np.linspace(0.0, 2 * math.pi, 12)
+    v, Y, ok = chief_ray(rx, 550.0, h)
+    u2, v2, X2, Y2, ok2 = chief_ray_2d(rx, 550.0, h * np.sin(ang), h * np.cos(ang))
+    assert ok.all() and ok2.all()
+    assert np.abs(u2 - v * np.sin(ang)).max() < 1e-12 and np.abs(v2 - v * np.cos(ang)).max() < 1e-12
+    assert np.abs(X2 - Y * np.sin(ang)).max() < 1e-9 and np.abs(Y2 - Y * np.cos(ang)).max() < 1e-9
+    tilted = _tilted_cardboard()
+    x, y = np.meshgrid(np.linspace(-10, 10, 5), np.linspace(-10, 10, 5))
+    u, v, X, Y, ok = chief_ray_2d(tilted, 550.0, x, y)
+    xp, yp, X2, Y2, ok2 = trace(tilted, 550.0, x, y, u, v)
+    assert ok.all() and np.hypot(xp, yp).max() < 1e-9 and np.array_equal(X, X2) and np.array_equal(Y, Y2)
+    _, _, _, _, ok0 = chief_ray_2d(tilted, 550.0, x, y, iters=0)
+    assert not ok0.any()                                            # the straight-line guess is not a chief ray
+
+
+def test_paraxial_refuses_moved_surfaces_and_folds_mirrors():
+    tilted = _folded_aspheric_system()
+    with pytest.raises(InputValueError, match=r"paraxial: surfaces\[0\] is decentred or tilted"):
+        paraxial(tilted, 550.0)
+    # a concave mirror of radius R (focal length R / 2) between two plane folds, display 30 mm before it:
+    # 1 / s' = 2 / |R| - 1 / 30 (mirror equation), magnification -s' / 30, seen through the last fold
+    rx = lens([{"radius_mm": -40.0, "thickness_mm": -10.0, "after": "mirror"},
+               {"thickness_mm": 60.0, "after": "mirror"}], object_distance_mm=30.0)
+    p = paraxial(rx, 550.0)
+    s_img = 1 / (2 / 40.0 - 1 / 30.0)                               # 60 mm in front of the mirror (real)
+    assert p.efl == pytest.approx(20.0, rel=1e-12) and p.magnification == pytest.approx(-s_img / 30.0, rel=1e-12)
+    assert p.image_distance == pytest.approx(60.0 - (s_img - 10.0), rel=1e-12)   # from the pupil: fold 50 mm before
+    m667 = p.magnification * rx.image_distance / p.image_distance
+    assert real_magnification(rx, 550.0) == pytest.approx(m667, rel=1e-4)
