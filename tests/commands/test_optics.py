@@ -117,6 +117,9 @@ def test_optics_figures_prints_json(capsys):
     (["--prescription", "{d}/bad.json"], "--prescription {d}/bad.json: not a JSON file: "),
     (["--prescription", "{d}/wrong.json"], "--prescription {d}/wrong.json: "),
     (["--prescription", "{d}/big.json"], "--prescription {d}/big.json: 1048577 bytes, too large"),
+    (["--lens", "{d}/none.json"], "--lens {d}/none.json: no such file (nor a shipped lens: cardboard, compact)"),
+    (["--lens", "{d}/wrong.json"], "--lens {d}/wrong.json: "),
+    (["--lens", "cardboard", "--prescription", "{d}/wrong.json"], "give --prescription or --lens, not both"),
 ])
 def test_build_bank_refusals(capsys, tmp_path, args, message):
     (tmp_path / "bad.json").write_text("{not json")
@@ -127,6 +130,28 @@ def test_build_bank_refusals(capsys, tmp_path, args, message):
     assert main(argv) == 2
     assert error_line(capsys, "optics").startswith(message.replace("{d}", d))
     assert not (tmp_path / "b.safetensors").exists()
+
+
+def test_build_bank_lens_traces_the_shipped_or_given_prescription(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    small = ["--grid", "1", "1", "--psf-size", "5", "--pupil-samples", "4"]
+    own = {**CARDBOARD, "object_distance_mm": 38.0}
+    (tmp_path / "own.json").write_text(json.dumps(own))
+    for name, lens in (("named", "cardboard"), ("file", str(tmp_path / "own.json"))):
+        assert main(["optics", "build-bank", "--lens", lens, *small, "--out", str(tmp_path / f"{name}.safetensors")]) == 0
+    assert main(["optics", "build-bank", *small, "--out", str(tmp_path / "default.safetensors")]) == 0
+    named, file, default = (PSFBank.load(tmp_path / f"{n}.safetensors") for n in ("named", "file", "default"))
+    assert named.meta["prescription"] == default.meta["prescription"] == CARDBOARD
+    assert file.meta["prescription"] == own and not bool((file.chief == default.chief).all())
+
+
+def test_fit_prewarp_takes_a_bank_or_a_lens_not_both(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                     no_work: None) -> None:
+    lut = str(tmp_path / "lut.safetensors")
+    assert main(["optics", "fit-prewarp", "--bank", "b.safetensors", "--lens", "cardboard", "--out", lut]) == 2
+    assert error_line(capsys, "optics") == "give --bank or --lens, not both (got b.safetensors and cardboard)"
+    assert main(["optics", "fit-prewarp", "--lens", "cardbaord", "--out", lut]) == 2
+    assert error_line(capsys, "optics") == "--lens cardbaord: not a shipped lens (cardboard, compact) nor a file"
+    assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("argv, pattern", [

@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from helpers.capture import cropped_capture
 import torch
+from helpers.banks import random_bank
 from helpers.cli_runs import FAST, MODEL, error_line, needs_backbone, snapshot, write_tiny_colmap
 from helpers.progress import record_bars
 from helpers.scene_writers import write_blender, write_colmap, write_instant_ngp
@@ -148,6 +149,7 @@ def test_train_defaults():
     ("--cond-dim", "0"), ("--checkpoint-every", "-2"), ("--batch-size", "0"), ("--seeds", "0"),
     ("--test-views", "0"), ("--resolution", "0"), ("--holdout", "-1"), ("--cache-mib", "-1"),
     ("--effects", "blur"), ("--device", "meta"), ("--device", "cuda:99"), ("--device", "nodevice"),
+    ("--lens", "cardbaord"), ("--lens", "no/such/lens.json"),
 ])
 def test_a_refused_option_writes_nothing(tmp_path: Path, data: Path, capsys: pytest.CaptureFixture[str],
                                          option: str, value: str) -> None:
@@ -157,6 +159,18 @@ def test_a_refused_option_writes_nothing(tmp_path: Path, data: Path, capsys: pyt
     line = error_line(capsys, "train")
     assert line.startswith(f"{option} ") and value in line, line
     assert not new.exists()  # no folder, no lock file, no run.json
+
+
+@needs_backbone
+def test_a_lens_file_that_does_not_load_writes_nothing(tmp_path: Path, data: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    bank = tmp_path / "broken.safetensors"
+    bank.write_bytes(b"not a bank")
+    new = tmp_path / "new"
+    argv = ["train", "--model", str(MODEL), "--data", str(data), "--out", str(new), "--iterations", "2", *FAST]
+    assert main([*argv, "--lens", str(bank)]) == 2
+    assert error_line(capsys, "train").startswith(f"{bank}: not a readable safetensors file")
+    assert not new.exists()
 
 
 @pytest.mark.parametrize("command", ["train", "eval"])
@@ -274,7 +288,7 @@ def test_run_json_is_written_only_with_the_adapters(tmp_path: Path, data: Path, 
 
 
 @needs_backbone
-@pytest.mark.parametrize("what", ["--model", "--data", "--effects", "--resolution"])
+@pytest.mark.parametrize("what", ["--model", "--data", "--effects", "--resolution", "--lens"])
 def test_a_run_folder_of_another_scene_is_refused_and_kept(tmp_path: Path, data: Path, trained: Path,
                                                            capsys: pytest.CaptureFixture[str], what: str) -> None:
     run = _copy(trained, tmp_path)
@@ -287,6 +301,9 @@ def test_a_run_folder_of_another_scene_is_refused_and_kept(tmp_path: Path, data:
         scene = Path(shutil.copytree(data, tmp_path / "other_data"))
     elif what == "--effects":
         extra = ["--effects", "display"]
+    elif what == "--lens":
+        random_bank(C=5).save(tmp_path / "mine.safetensors")
+        extra = ["--lens", str(tmp_path / "mine.safetensors")]
     else:
         extra = ["--resolution", "16"]
     argv = ["train", "--model", str(model), "--data", str(scene), "--out", str(run), "--iterations", "3", *FAST, *extra]
