@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 import torch
+from helpers.banks import affine_bank
 from helpers.scaffold_standin import ScaffoldStandIn, make_camera
 from helpers.strength_oracle import STATES, reference_strengths
 from helpers.wrapping import assert_unchanged, decode, model_record, refusing_stand_in
@@ -178,3 +179,35 @@ def test_endpoints_take_a_headers_lo_hi_mapping():
     cgs = ControlGS.wrap(ScaffoldStandIn(10, seed=1), modules=("lens",), endpoints={"lens": {"lo": 0.2, "hi": 0.9, "x": 1}})
     assert (cgs.schedules["lens"].lo, cgs.schedules["lens"].hi) == (0.2, 0.9)
     cgs.unwrap()
+
+
+_A = ((0.75, 0.125), (-0.25, 1.5))  # the decentred lens's green chief rays: G(d) = A d + b
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.sampled_from(["radius", "xy"]), st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5)),
+       st.floats(0.0, 0.5), st.floats(0.6, 2.0))
+def test_lens_strengths_in_a_decentred_lens_frame_at_each_anchors_display_position(mode, axis, lo, hi):
+    """radius: clamp((||p - axis|| - lo) / (hi - lo), 0, 1); xy: clamp(A (p - axis) / hi, -1, 1) per axis, p
+    clamped to the display, in plain floats from an independent float64 projection."""
+    cam = make_camera(width=40, height=30)
+    cgs = ControlGS.wrap(_MODEL, modules=("lens",), cond_dim=2, endpoints={"lens": (lo, hi)},
+                         lens=affine_bank(_A, (0.0625, -0.125), axis=axis), lens_conditioning=mode)
+    try:
+        pts = _MODEL._anchor.detach().double()
+        k = cam.intrinsics.double()
+        z = pts[:, 2] + float(cam.world_to_camera[2, 3])
+        x = (2 * (k[0, 0] * pts[:, 0] / z + k[0, 2]) / cam.width - 1).tolist()
+        y = ((2 * (k[1, 1] * pts[:, 1] / z + k[1, 2]) / cam.height - 1) * 30 / 40).tolist()  # "fit" on the display
+        got = cgs.strengths(RuntimeState(), cam)["lens"]
+        for i, (px, py) in enumerate(zip(x, y)):
+            if mode == "radius":
+                r = math.hypot(px - axis[0], py - axis[1])
+                assert math.isclose(float(got[i]), min(max((r - lo) / (hi - lo), 0.0), 1.0), abs_tol=2e-6), i
+                continue
+            dx, dy = min(max(px, -1.0), 1.0) - axis[0], min(max(py, -1.0), 1.0) - axis[1]
+            q = (_A[0][0] * dx + _A[0][1] * dy, _A[1][0] * dx + _A[1][1] * dy)
+            for j in range(2):
+                assert math.isclose(float(got[i, j]), min(max(q[j] / hi, -1.0), 1.0), abs_tol=2e-6), (i, j)
+    finally:
+        cgs.unwrap()
