@@ -56,7 +56,7 @@ def add_lens_argument(p: argparse.ArgumentParser, from_run: bool = False) -> Non
     """``--lens``: the headset lens the downstream path simulates (docs/how-to/own-lens.md)."""
     from ..downstream.optics.lenses import DEFAULT_LENS, SHIPPED_LENSES
 
-    p.add_argument("--lens", default=None, metavar="NAME|PATH",
+    p.add_argument("--lens", default=None, metavar="LENS",
                    help=f"headset lens the downstream path simulates: a shipped lens ({', '.join(SHIPPED_LENSES)}), a PSF "
                         "bank .safetensors, a prescription or distortion-profile .json (default "
                         + ("the run's, else " if from_run else "") + f"{DEFAULT_LENS}; docs/how-to/own-lens.md)")

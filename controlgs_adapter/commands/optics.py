@@ -17,7 +17,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     b = osub.add_parser("build-bank", help="trace a PSF bank (built-in ray tracer; Google Cardboard by default)")
     b.add_argument("--prescription", type=Path, default=None,
                    help="JSON prescription (same keys as controlgs_adapter.downstream.optics.prescription.CARDBOARD)")
-    b.add_argument("--lens", default=None, metavar="NAME|PRESCRIPTION",
+    b.add_argument("--lens", default=None, metavar="LENS",
                    help="the prescription to trace: a shipped lens's (cardboard, compact) or a JSON file (as --prescription)")
     b.add_argument("--out", type=Path, default=Path("psf_bank.safetensors"), help="output .safetensors file")
     b.add_argument("--grid", type=int, nargs=2, default=(30, 30), metavar=("GY", "GX"), help="PSF field grid")
@@ -51,7 +51,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
 
     w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a bank's optics")
     w.add_argument("--bank", type=Path, default=None, help="PSF bank .safetensors (default: the shipped Cardboard bank)")
-    w.add_argument("--lens", default=None, metavar="NAME|PATH",
+    w.add_argument("--lens", default=None, metavar="LENS",
                    help="instead of --bank: the bank of a lens as `controlgs train --lens` takes it (a shipped name, a bank, "
                         "a prescription or distortion-profile .json)")
     w.add_argument("--out", type=Path, required=True, help="output LUT .safetensors ({'lens': {'lut': OUT}})")
