@@ -46,7 +46,9 @@ ASSUMPTIONS = [
     "only the primary image branch is modelled: near the lens rim the display corner is also seen a second "
     "time through a fold of the rim zone; those rays are outside the local pupil grid and are not in the bank",
     "PSFs are normalised to unit sum; the pupil transmission per field (rays blocked by a lens aperture, "
-    "uniform pupil-area weighting) is recorded in meta.transmission and applied by the radiance radiometry",
+    "uniform pupil-area weighting) times the prescription's efficiency (the modelled path's throughput; light "
+    "on other paths, e.g. a pancake's ghosts, is not modelled) is recorded in meta.transmission and applied by "
+    "the radiance radiometry",
     "each display primary is one wavelength (656 / 550 / 486 nm)",
 ]
 

@@ -216,7 +216,10 @@ class Prescription:
     @property
     def path_length(self) -> float:
         """Display -> pupil along the (unfolded) axis, mm: ``pupil_z`` when there are no mirrors."""
-        return self.object_distance + sum(abs(sf.thickness) for sf in self.surfaces)
+        z = self.object_distance
+        for sf in self.surfaces:
+            z += abs(sf.thickness)
+        return z
 
     @property
     def vertices(self) -> list[float]:

@@ -143,12 +143,13 @@ def trace(rx: Prescription, wavelength_nm: float, x: ArrayLike, y: ArrayLike, u:
 def chief_ray(rx: Prescription, wavelength_nm: float, h: np.ndarray, iters: int = 40
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Meridional chief rays from display heights ``h`` (mm, on +y): the slope ``v`` whose ray crosses
-    the pupil centre, found by damped Newton from the paraxial guess on the primary branch.
+    the pupil centre, found by damped Newton from the straight-line guess ``-h / path_length`` (``path_length``
+    is ``pupil_z`` unless there are mirrors) on the primary branch.
 
     Returns ``(v, Y, ok)``: slope, virtual-image-plane height (mm) and convergence mask.
     """
     h = np.asarray(h, dtype=np.float64)
-    v = -h / rx.pupil_z
+    v = -h / rx.path_length
     eps = 1e-7
     for _ in range(iters):
         _, y0, _, _, _ = trace(rx, wavelength_nm, 0.0, h, 0.0, v)

@@ -447,3 +447,25 @@ def test_lens_figures_of_asymmetric_lenses_at_the_four_corners():
     (x0, y0), (x1, y1), (x2, y2), (x3, y3) = g["corner_landing_px_at_1024"]
     assert (x0, y0) == pytest.approx((-x1, y1), abs=1e-9) and (x2, y2) == pytest.approx((-x3, y3), abs=1e-9)
     assert abs(y0 + y2) > 1 and g["efl_mm"] is None and g["paraxial_magnification"] is None
+
+
+def test_a_folded_mirror_magnifier_builds_a_bank():
+    """A pancake-like double pass in air: a window, a plane fold mirror 10 mm on, back to a concave mirror
+    (R = 70, f = 35) at the window, forward through the fold plane to the pupil. The display is 30 mm from
+    the mirror along the path: magnification 35 / (35 - 30) = 7 at 210 mm behind the mirror, 235 mm from the
+    pupil (mirror equation); on the 667 mm plane the chief rays scale that by 667 / 235. Efficiency 0.25 (two
+    half-mirror passes) is the transmission; both bank paths agree on the chief rays and the PSF centroids."""
+    sd = 20.0
+    spec = cardboard_spec(object_distance_mm=10.0, efficiency=0.25, display_mm=[10.0, 10.0],
+                          surfaces=[{"thickness_mm": 10.0, "semi_diameter_mm": sd},
+                                    {"thickness_mm": -10.0, "after": "mirror", "semi_diameter_mm": sd},
+                                    {"radius_mm": 70.0, "thickness_mm": 10.0, "after": "mirror", "semi_diameter_mm": sd},
+                                    {"thickness_mm": 15.0, "semi_diameter_mm": sd}])
+    rx = Prescription(spec)
+    assert real_magnification(rx, 550.0) == pytest.approx(7.0 * 667.0 / 235.0, rel=1e-8)
+    a = build_bank(rx, **_SMALL)
+    b = build_bank(rx, **_SMALL, use_symmetry=False)
+    assert np.array(a.meta["transmission"]).tolist() == [[[0.25] * 3] * 3] * 3
+    assert a.meta["lens"]["rotationally_symmetric"] and a.meta["figures"]["550nm"]["efl_mm"] == pytest.approx(35.0)
+    assert (a.chief - b.chief).abs().max() < 1e-6
+    assert max((x - y).abs().max().item() for x, y in zip(_centroid(a), _centroid(b))) < 2e-4
