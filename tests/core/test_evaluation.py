@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers.banks import tiny_bank
+from helpers.banks import random_bank, tiny_bank
 from helpers.cvvdp_reference import CVVDP_COLUMN, direct_cvvdp, needs_cvvdp
 from helpers.grid_results import DOWNSAMPLE, POWER_SAVING, PSNR, grid_result
 from helpers.lpips_weights import random_lpips_weights
@@ -19,6 +19,7 @@ from helpers.progress import record_bars
 
 from controlgs_adapter import ControlGS, RuntimeState, evaluation, plugins
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
+from controlgs_adapter.downstream.lens import LensPrewarp
 from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import InputValueError
@@ -164,6 +165,24 @@ def test_evaluate_grid_scores_lpips_with_the_network_it_is_given():
                 want = float(net(eye.double(), gt.double()))
                 assert float(r.per_view[IDEAL]["lpips"][0, j, v]) == pytest.approx(want, rel=1e-6, abs=1e-9)
     assert float(r.per_view[IDEAL]["lpips"][0, 1].min()) > 0  # dimmed: a distance, not 0
+
+
+def test_evaluate_grid_scores_through_the_lens_it_is_given():
+    """``lens=`` (a bank here): the ideal render is scored through that lens's chief-ray pre-warp, as through a
+    pipeline holding the stage built by hand; the default (Cardboard radial map) scores otherwise."""
+    bank = random_bank(C=9, pincushion=0.08)
+    views = _GroundTruths()
+    kw = dict(effects={"lens": True}, downsample=(1.0,), power_saving=(0.0,), baselines=(), extra_metrics=False,
+              progress=False, renderer=lambda *a, **k: None)
+    got = evaluate_grid(torch.nn.Linear(1, 1), views, {}, lens=bank, **kw).per_view[IDEAL]["psnr"][0, 0]
+    default = evaluate_grid(torch.nn.Linear(1, 1), views, {}, **kw).per_view[IDEAL]["psnr"][0, 0]
+    pipe = make_pipeline({"lens": LensPrewarp.from_psf_bank(bank)})
+    with torch.no_grad():
+        want = [float(psnr(pipe(gt, RuntimeState(), reference=gt).clamp(0, 1).double(), gt.double())) for _, gt in
+                views.items]
+    assert got.tolist() == pytest.approx(want, rel=1e-6)
+    assert not torch.allclose(got, default)
+    assert make_pipeline({"optics": True}, lens=bank)["optics"].bank is bank
 
 
 def test_lens_ppd_is_the_angle_a_pixel_subtends_on_axis():

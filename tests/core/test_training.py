@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 import torch
 import torch.distributed as dist
-from helpers.banks import affine_bank
+from helpers.banks import affine_bank, random_bank
 from helpers.rawfiles import write_raw
 from torch.utils._python_dispatch import TorchDispatchMode
 
@@ -29,6 +29,7 @@ from controlgs_adapter.datasets.memory import posed_images
 from controlgs_adapter.distributed import DistContext
 from controlgs_adapter.downstream.bank_maps import BankMap
 from controlgs_adapter.downstream.lens import LensPrewarp
+from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.downstream.stage import Stage, StageContext
 from controlgs_adapter.errors import ControlGSError, FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.checkpoint import CHECKPOINT_KIND
@@ -251,6 +252,26 @@ class _ModelessOptics(Stage):
 
     def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:
         return image
+
+
+def test_the_trainer_simulates_the_lens_it_is_given(tiny):
+    """``lens=``: the optics stage holds that lens's bank and the lens stage follows its chief rays (no fitted
+    LUT: with a warning); the default is the shipped Cardboard bank."""
+    scene, model = tiny
+    bank = random_bank(C=9, pincushion=0.05)
+    with pytest.warns(UserWarning, match="no fitted pre-warp LUT"):
+        t = Trainer(model, scene.views("train"), TrainConfig(iterations=1, psf_fraction=0.0), effects=FULL, lens=bank)
+    try:
+        assert t.pipeline["optics"].bank is bank
+        assert isinstance(t.pipeline["lens"].map, BankMap) and t.pipeline["lens"].map.bank is bank
+        assert math.isfinite(t.step())
+    finally:
+        t.cgs.unwrap()
+    t = _trainer(tiny)
+    try:
+        assert t.pipeline["optics"].bank is PSFBank.default()
+    finally:
+        t.cgs.unwrap()
 
 
 def test_trainer_refusals_leave_the_model_unwrapped(tiny):
