@@ -471,6 +471,22 @@ def test_shared_copy_shares_tensors_not_modules() -> None:
 
 # ----------------------------------------------------------------------------- the session
 
+def test_the_session_pipelines_simulate_its_lens() -> None:
+    """``lens=``: every pipeline the page asks for holds that lens's bank (the optics) and chief rays (the lens
+    stage, no fitted LUT: with a warning); without it, the shipped Cardboard bank."""
+    from controlgs_adapter.downstream.bank_maps import BankMap
+    from controlgs_adapter.downstream.optics.bank import PSFBank
+    from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
+
+    bank = affine_bank([[1.02, 0.0], [0.0, 0.98]], [0.01, 0.0])
+    views = load_builtin_scene("ar", SIZE, views=4, test_every=4, samples=1).views("test")
+    model = load_builtin_backbone("ar")
+    with pytest.warns(UserWarning, match="no fitted pre-warp LUT"):
+        pipe = ViewerSession(model, views, {}, lens=bank)._pipeline(ViewState())
+    assert pipe["optics"].bank is bank and isinstance(pipe["lens"].map, BankMap) and pipe["lens"].map.bank is bank
+    assert ViewerSession(model, views, {})._pipeline(ViewState())["optics"].bank is PSFBank.default()
+
+
 def test_small_refuses_baseline_names_and_no_views():
     with pytest.raises(InputValueError, match=r"adapter names \['ss'\] clash with the baselines \('no_ss', 'ss'\)"):
         ViewerSession(None, [object()], {"controlgs": "a.safetensors", "ss": "b.safetensors"})
