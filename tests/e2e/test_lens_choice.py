@@ -1,7 +1,8 @@
 """Choosing the headset lens from the command line only: a distortion profile (the Oculus DK1 example) gets its
 pre-warp fitted (`controlgs optics fit-prewarp --lens`), an adapter is trained through it (`controlgs train
---lens`), the run records it and `controlgs eval` takes it back; the eye images are those of that lens (the
-ideal render scored through it differs from the Cardboard's), and a lens that cannot load writes nothing."""
+--lens`), the run records it, and `controlgs eval` and `controlgs view` take it back; the eye images are those
+of that lens (the ideal render scored through it differs from the Cardboard's), and a lens that cannot load
+writes nothing."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from helpers.cli_runs import MODEL, error_line, needs_backbone, snapshot, write_
 
 from controlgs_adapter.cli import main
 from controlgs_adapter.downstream.optics.lenses import load_lens
+from controlgs_adapter.viewer.server import ViewerServer
 
 #: a profile shipped with the examples
 PROFILE = Path(__file__).resolve().parents[2] / "examples" / "lenses" / "oculus_dk1_left.opencv.json"
@@ -27,7 +29,8 @@ ADAPTER = ["--iterations", "3", "--no-ablations", "--effects", "lens,optics", "-
 
 
 @needs_backbone
-def test_train_and_eval_through_a_distortion_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_train_eval_and_view_through_a_distortion_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     data = write_tiny_colmap(tmp_path / "scene")
     profile = Path(shutil.copy(PROFILE, tmp_path / "dk1.json"))
     run, report, cardboard = tmp_path / "run", tmp_path / "report", tmp_path / "cardboard"
@@ -53,6 +56,12 @@ def test_train_and_eval_through_a_distortion_profile(tmp_path: Path, capsys: pyt
                  "--lens", "cardboard"]) == 0
     ideal = [json.loads((f / "results.json").read_text())["methods"]["ideal"]["psnr"]["mean"] for f in (report, cardboard)]
     assert ideal[0] != pytest.approx(ideal[1], abs=1e-3), ideal  # the ground truth seen through two different lenses
+
+    served: list[ViewerServer] = []  # the viewer serves the run's lens (its server returns at once here)
+    monkeypatch.setattr(ViewerServer, "serve_forever", lambda self, poll_interval=0.5: served.append(self))
+    assert main(["view", "--run", str(run), "--port", "0", "--test-views", "1"]) == 0
+    (server,) = served
+    assert server.session.lens.spec == str(profile.resolve()) and server.session.lens.prewarp == lut
     capsys.readouterr()
 
     # a lens that cannot load: one line, exit 2, the report folder as it was
