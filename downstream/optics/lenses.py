@@ -190,15 +190,12 @@ def load_lens(spec: LensSpec = None) -> Lens:
     if not isinstance(spec, (str, os.PathLike)):
         raise InputValueError(f"lens must be a shipped lens name, a path, a Lens or a PSFBank, got {type(spec).__name__}")
     text = os.fspath(spec)
-    if isinstance(spec, str) and spec in SHIPPED_LENSES:
-        entry = SHIPPED_LENSES[spec]
-        bank_file = _data_file(entry.bank)
-        if not bank_file.is_file():
-            raise InputValueError(f"lens {spec}: its PSF bank {entry.bank} is not installed")
-        bank = PSFBank.default() if spec == DEFAULT_LENS else PSFBank.load(bank_file)
-        lut = _data_file(entry.prewarp)
-        return Lens(spec, bank, lut if lut.is_file() else None, "shipped")
     check_lens_spec(text)
+    if text in SHIPPED_LENSES:
+        entry = SHIPPED_LENSES[text]
+        bank = PSFBank.default() if text == DEFAULT_LENS else PSFBank.load(_data_file(entry.bank))
+        lut = _data_file(entry.prewarp)
+        return Lens(text, bank, lut if lut.is_file() else None, "shipped")
     path = Path(text)
     if path.suffix.lower() == ".safetensors":
         bank = PSFBank.load(path)
