@@ -8,6 +8,7 @@ primary's error (px) over the field and, in brackets, the error at (0.6, -0.5).
 
     python benchmarks/bench_prewarp_dots.py                  # sizes 256, 96 and 96x54 (minutes at 256 px)
     python benchmarks/bench_prewarp_dots.py --sizes 96 96x54
+    python benchmarks/bench_prewarp_dots.py --lens compact    # any lens spec that `controlgs train --lens` takes
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import torch
 from controlgs_adapter import RuntimeState
 from controlgs_adapter.downstream.color import linear_to_srgb, rgb_to_primaries, srgb_to_linear
 from controlgs_adapter.downstream.lens import DisplayLUTMap
+from controlgs_adapter.downstream.optics.lenses import DEFAULT_LENS, Lens, effects_for_lens, load_lens
 from controlgs_adapter.downstream.pipeline import Pipeline
 
 D = torch.float64
@@ -44,11 +46,12 @@ def dot_errors(pipe: Pipeline, h: int, w: int, field: list[tuple[float, float]])
     return torch.stack(errs)
 
 
-def variants(mode: str) -> dict[str, Pipeline]:
-    """The default pre-warp (fitted tables per display size, 2 x 2 samples per display pixel) and the same
-    table fitted at 256 px only, sampled once per display pixel."""
-    default = Pipeline.from_config({"lens": True, "optics": {"mode": mode}}).double()
-    single = Pipeline.from_config({"lens": {"supersample": 1}, "optics": {"mode": mode}}).double()
+def variants(mode: str, lens: Lens | None = None) -> dict[str, Pipeline]:
+    """Through ``lens`` (None: the shipped Cardboard lens): the default pre-warp (fitted tables per display
+    size, 2 x 2 samples per display pixel) and the same table fitted at 256 px only, sampled once per
+    display pixel."""
+    default = Pipeline.from_config(effects_for_lens({"lens": True, "optics": {"mode": mode}}, lens)).double()
+    single = Pipeline.from_config(effects_for_lens({"lens": {"supersample": 1}, "optics": {"mode": mode}}, lens)).double()
     lut = single["lens"].map
     main = {mode: (getattr(lut, f"displacement_{mode}"), getattr(lut, f"gain_{mode}"))}
     single["lens"].map = DisplayLUTMap(main, lut.display_mm, meta=lut.meta).follow(single["optics"]).double()
@@ -60,13 +63,15 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", nargs="+", default=["256", "96", "96x54"], help="N or WxH")
     ap.add_argument("--modes", nargs="+", default=["distortion", "exact"], choices=["distortion", "exact"])
+    ap.add_argument("--lens", default=DEFAULT_LENS, help="a shipped lens name or a lens file (default: %(default)s)")
     args = ap.parse_args(argv)
+    lens = load_lens(args.lens)
     torch.set_num_threads(1)
     sizes = [(int(s.split("x")[1]), int(s.split("x")[0])) if "x" in s else (int(s), int(s)) for s in args.sizes]
     print("| pre-warp | optics | " + " | ".join(args.sizes) + " |")
     print("|---|---|" + "---:|" * len(sizes))
     for mode in args.modes:
-        for name, pipe in variants(mode).items():
+        for name, pipe in variants(mode, lens).items():
             cells = []
             for h, w in sizes:
                 field = GRID if h == w else [(u, v * h / w) for u, v in GRID]
