@@ -143,6 +143,9 @@ class TrainConfig:
         seed: seeds view and state sampling.
         batch_size: (view, state) samples per step, the global batch (split over the processes
             of a distributed run, :mod:`controlgs_adapter.distributed`); the loss is their mean.
+        lens_conditioning: the lens condition's frame (``ControlGS.wrap``): ``"radius"`` about the
+            lens axis, ``"xy"`` the signed position in the lens's own coordinates (``cond_dim`` even),
+            None: from the lens (radius for a centred, rotationally symmetric one, else xy).
     """
 
     iterations: int = 10_000
@@ -158,6 +161,7 @@ class TrainConfig:
     checkpoint_every: int = 500
     seed: int = 0
     batch_size: int = 1
+    lens_conditioning: str | None = None
 
     def __post_init__(self) -> None:
         numbers: dict[str, dict[str, Any]] = {
@@ -174,6 +178,8 @@ class TrainConfig:
             raise InputValueError(f"TrainConfig.state_blind must be a bool, got {self.state_blind!r}")
         if self.psf_mode not in ("fast", "exact"):
             raise InputValueError(f"TrainConfig.psf_mode must be 'fast' or 'exact', got {self.psf_mode!r}")
+        if self.lens_conditioning not in (None, "radius", "xy"):
+            raise InputValueError(f"TrainConfig.lens_conditioning must be 'radius', 'xy' or None, got {self.lens_conditioning!r}")
         if not isinstance(self.loss, LossWeights):
             raise InputValueError(f"TrainConfig.loss must be a LossWeights, got {type(self.loss).__name__}")
         modules = self.modules
@@ -244,7 +250,8 @@ class Trainer:
         self.pipeline = Pipeline.from_config(self.effects).to(self.device)
         with seeded(int(config.seed), self.device):  # the projections' initialisation follows the seed, not the global RNG
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind,
-                                      lens=_pipeline_lens(self.pipeline))
+                                      lens=_pipeline_lens(self.pipeline),
+                                      lens_conditioning=config.lens_conditioning if "lens" in modules else None)
         try:  # a failure below leaves the user's model as it was
             set_optics_mode(self.pipeline, self.optics_mode(0))  # refuses an optics stage without modes before any step
             self.optimizer = torch.optim.Adam(list(self.cgs.trainable_parameters()), lr=config.lr)

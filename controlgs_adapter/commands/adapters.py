@@ -45,6 +45,9 @@ def add_training(p: argparse.ArgumentParser) -> None:
                    help=f"final fraction of iterations with the full PSF (default {base.psf_fraction:g})")
     p.add_argument("--lr", type=float, default=base.lr, help=f"Adam learning rate (default {base.lr:g})")
     p.add_argument("--cond-dim", type=int, default=base.cond_dim, help=f"N per module (default {base.cond_dim})")
+    p.add_argument("--lens-conditioning", choices=("radius", "xy"), default=None,
+                   help="the lens condition's frame: radius about the lens axis or the signed (x, y) position in the "
+                        "lens's own coordinates (default: radius for a centred, rotationally symmetric lens, else xy)")
     p.add_argument("--checkpoint-every", type=int, default=base.checkpoint_every,
                    help=f"checkpoint every this many iterations (default {base.checkpoint_every}; 0: only at the end)")
 
@@ -86,7 +89,8 @@ def train_config(args: argparse.Namespace, name: str, seed: int | None = None) -
     return TrainConfig(iterations=args.iterations, lr=args.lr, modules=modules, cond_dim=args.cond_dim,
                        state_blind=blind, psf_fraction=args.psf_fraction, psf_mode=args.optics,
                        checkpoint_every=args.checkpoint_every, seed=args.seed if seed is None else seed,
-                       batch_size=getattr(args, "batch_size", base.batch_size))
+                       batch_size=getattr(args, "batch_size", base.batch_size),
+                       lens_conditioning=getattr(args, "lens_conditioning", None))
 
 
 def training_job(args: argparse.Namespace, names: Sequence[str], seeds: int = 1) -> Any:

@@ -56,9 +56,9 @@ def test_training_defaults_come_from_train_config() -> None:
 def test_training_options_reach_train_config() -> None:
     args = build_parser().parse_args(["train", "--iterations", "7", "--lr", "0.02", "--cond-dim", "3", "--psf-fraction",
                                       "0.25", "--optics", "exact", "--checkpoint-every", "2", "--seed", "5",
-                                      "--batch-size", "4"])
+                                      "--batch-size", "4", "--lens-conditioning", "xy"])
     want = TrainConfig(iterations=7, lr=0.02, cond_dim=3, psf_fraction=0.25, psf_mode="exact", checkpoint_every=2,
-                       seed=5, batch_size=4)
+                       seed=5, batch_size=4, lens_conditioning="xy")
     assert train_config(args, "controlgs") == want
     assert train_config(args, "controlgs", seed=9) == replace(want, seed=9)
     assert train_config(args, "controlgs", seed=0).seed == 0

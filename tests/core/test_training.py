@@ -971,3 +971,25 @@ def test_the_trainer_wraps_with_the_lens_frame_of_its_optics_else_its_pre_warp_b
     t = _trainer(tiny, cond_dim=4)  # the shipped Cardboard optics: the centred radius frame
     assert t.cgs.lens_frame == LensFrame()
     t.cgs.unwrap()
+
+
+@pytest.mark.parametrize("mode", ["radius", "xy"])
+def test_lens_conditioning_overrides_the_frame_the_lens_calls_for(tiny, mode):
+    """TrainConfig.lens_conditioning: Cardboard's centred frame conditioned on (x, y) on request, a decentred lens on
+    its radius about the axis; an ablation without the lens module trains as before."""
+    decentred = affine_bank([[0.75, 0.125], [-0.25, 1.5]], [0.0625, -0.125], axis=(0.25, -0.125))
+    for bank in (None, decentred):
+        effects = None if bank is None else {"resample": True, "optics": {"bank": bank, "mode": "distortion"}}
+        t = _trainer(tiny, effects=effects, cond_dim=4, lens_conditioning=mode)
+        frame = t.cgs.lens_frame
+        t.cgs.unwrap()
+        assert frame.mode == mode
+        assert frame.axis == (LensFrame.from_bank(bank).axis if bank is not None else (0.0, 0.0))
+    t = _trainer(tiny, cond_dim=4, lens_conditioning=mode, modules=("resample",))
+    assert "lens" not in t.cgs.modules
+    t.cgs.unwrap()
+
+
+def test_lens_conditioning_must_be_a_known_frame():
+    with pytest.raises(InputValueError, match="lens_conditioning"):
+        TrainConfig(lens_conditioning="polar")
