@@ -1,0 +1,141 @@
+"""The GPU path checked on the CPU: the training step, the pipeline with every stage in each optics mode,
+the grid evaluation and the viewer's render run with the model on the guard's model device
+(:mod:`helpers.device_guard`: the host and the model's device kept apart on one CPU), give the same numbers
+as without the guard, and each of three device mistakes put back into the library is caught."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+from helpers.adapters import random_adapter
+from helpers.device_guard import MODEL_DEVICE, DeviceGuard, DevicePlacementError, on_model, patch_everywhere, with_edit
+
+from controlgs_adapter.downstream import display, warp
+from controlgs_adapter.downstream.pipeline import Pipeline
+from controlgs_adapter.evaluation import evaluate_grid
+from controlgs_adapter.rendering import splatter
+from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene, render_planes
+from controlgs_adapter.state import RuntimeState
+from controlgs_adapter.training import TrainConfig, Trainer
+from controlgs_adapter.viewer.session import ViewerSession, ViewState
+
+pytest.importorskip("skimage")  # the built-in scene
+
+#: every stage; the optics mode is set per test
+ALL = {"lens": True, "resample": True, "display": True, "oled": True}
+MODES = ("distortion", "fast", "exact")
+
+
+@pytest.fixture(scope="module")
+def placed(tiny) -> tuple[Any, Any]:
+    """``(scene, model)``: the tiny scene loaded as the commands load it (its tensors on the host) and a copy
+    of ``tiny``'s backbone moved to the model's device."""
+    with DeviceGuard():
+        scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=1)
+        model = copy.deepcopy(tiny[1]).to(MODEL_DEVICE)
+    assert not on_model(scene.views("train")[0][1]) and all(on_model(p) for p in model.parameters())
+    return scene, model
+
+
+def _train(scene: Any, model: Any, device: Any) -> list[float]:
+    """Two steps of a fresh adapter on a copy of ``model`` (on ``device``), the second one through the PSF."""
+    t = Trainer(copy.deepcopy(model).to(device), scene.views("train"),
+                TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.5, seed=1),
+                effects={**ALL, "optics": {"mode": "distortion"}})
+    t.train(progress=False)
+    return t.history
+
+
+def test_a_training_step_keeps_to_the_model_device(placed):
+    scene, model = placed
+    with DeviceGuard() as guard:
+        guarded = _train(scene, model, MODEL_DEVICE)
+    assert guard.made > 0  # the step makes host tensors (the view and state draws) and keeps them apart
+    assert guarded == _train(scene, model, "cpu")
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_the_pipeline_with_every_stage_keeps_to_the_model_device(mode):
+    torch.manual_seed(0)
+    image, gt = torch.rand(3, 16, 16, dtype=torch.float64), torch.rand(3, 16, 16, dtype=torch.float64)
+
+    def run(device: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        p = Pipeline.from_config({**ALL, "optics": {"mode": mode}}).double().to(device)
+        x = image.to(device).requires_grad_(True)
+        out = p(x, RuntimeState(2.0, 0.3), reference=gt.to(device))
+        (grad,) = torch.autograd.grad((out * out).sum(), x)
+        return out.detach(), grad
+
+    with DeviceGuard():
+        out, grad = run(MODEL_DEVICE)
+    ref_out, ref_grad = run("cpu")
+    assert torch.equal(out, ref_out) and torch.equal(grad, ref_grad)
+
+
+def test_the_grid_evaluation_keeps_to_the_model_device(placed, tmp_path):
+    scene, model = placed
+    adapter = random_adapter(model, tmp_path / "a.controlgs.safetensors", cond_dim=4)
+
+    def run() -> dict[str, Any]:
+        return evaluate_grid(model, scene.views("test"), {"controlgs": adapter}, downsample=(1.0, 2.0),
+                             power_saving=(0.0, 0.4), optics_mode="fast", progress=False).to_json()
+
+    with DeviceGuard():
+        guarded = run()
+    assert guarded == run()
+
+
+def _session(adapter: Path, device: Any) -> ViewerSession:
+    """A viewer session built as ``controlgs view`` builds one on the built-in scene, the backbone on ``device``."""
+    scene = load_builtin_scene("ar", 16, views=4, test_every=4, samples=1)
+    model = load_builtin_backbone("ar").to(device)
+    background = tuple(scene.background.tolist())
+    return ViewerSession(model, scene.views("test"), {"controlgs": adapter},
+                         truth=lambda cam: render_planes(scene.planes, cam, background=background, samples=1)[0].float())
+
+
+def test_the_viewer_render_keeps_to_the_model_device(tmp_path):
+    adapter = random_adapter(load_builtin_backbone("ar"), tmp_path / "v.controlgs.safetensors", 3, cond_dim=4)
+    states = [ViewState(), ViewState(optics="exact"), ViewState(azimuth=10.0, elevation=5.0, optics="distortion")]
+    with DeviceGuard():
+        session = _session(adapter, MODEL_DEVICE)
+        guarded = [session.render(s) for s in states]
+    plain = _session(adapter, "cpu")
+    for a, b in zip(guarded, (plain.render(s) for s in states)):
+        del a["server_ms"], b["server_ms"]
+        assert a == b
+
+
+# ----------------------------------------------------------------------------- the guard catches each mistake
+#: (function, code with device=, the same without, what runs it): a dropped device= of an index table (the
+#: splatter's owner of each tile record), of an arange (the pixel grid of the lens pre-warp) and of a tensor
+#: built from a Python list (the display's luminance weights)
+MISTAKES = [
+    (splatter._bin_tiles, "torch.arange(ids.numel(), device=dev)", "torch.arange(ids.numel())", "train"),
+    (warp.pixel_grid, "torch.arange(h, dtype=dtype, device=device)", "torch.arange(h, dtype=dtype)", "pipeline"),
+    (display._power, "torch.tensor(c, dtype=linear.dtype, device=linear.device)", "torch.tensor(c, dtype=linear.dtype)",
+     "pipeline"),
+]
+
+
+def _workload(where: str, scene: Any, model: Any, device: Any) -> None:
+    if where == "train":
+        _train(scene, model, device)
+    else:
+        p = Pipeline.from_config({**ALL, "optics": {"mode": "distortion"}}).to(device)
+        p(torch.rand(3, 16, 16, device=device), RuntimeState(2.0, 0.3))
+
+
+@pytest.mark.parametrize("func, old, new, where", MISTAKES, ids=[m[0].__name__ for m in MISTAKES])
+def test_a_dropped_device_is_caught(placed, monkeypatch, func, old, new, where):
+    """Each mistake runs on the CPU as it stands and fails under the guard, naming the line."""
+    assert patch_everywhere(monkeypatch, func, with_edit(func, old, new)) >= 1
+    scene, model = placed
+    _workload(where, scene, model, "cpu")
+    with pytest.raises(DevicePlacementError, match=rf"made at .*{Path(func.__code__.co_filename).name}:\d+"):
+        with DeviceGuard():
+            _workload(where, scene, model, MODEL_DEVICE)
