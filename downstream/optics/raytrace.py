@@ -55,10 +55,12 @@ def _hit(sf: Surface, q: np.ndarray, d: np.ndarray, ok: np.ndarray) -> tuple[np.
         cc = cc + c * k * q[..., 2] ** 2
     disc = b * b - a * cc
     ok &= disc >= 0
+    # the root without cancellation; a ray starting beyond the centre of curvature (b d_z > 0) may meet
+    # the far half first: then the other root
     qa = -b - np.copysign(np.sqrt(np.maximum(disc, 0.0)), b)
-    t = cc / qa                                      # the root without cancellation; a ray starting past the
+    t = cc / qa
     off = (disc >= 0) & (b * d[..., 2] > 0) & ((1.0 + k) * c * (q[..., 2] + t * d[..., 2]) > 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):  # centre of curvature meets the far half first: the other
+    with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(off, qa / a, t)
     q = q + t[..., None] * d
     if not any(sf.aspheric):                              # all-zero coefficients: the conic itself
