@@ -11,11 +11,12 @@ import copy
 import pytest
 import torch
 from helpers.banks import synthetic_bank
+from helpers.lens_checks import GRID_FIELD, gaussian_dot_errors
 from helpers.prewarp_tables import display_tables
 
 from controlgs_adapter import RuntimeState
 from controlgs_adapter.downstream.bank_maps import DISPLAY_LUT_KIND
-from controlgs_adapter.downstream.color import linear_to_srgb, primaries_to_rgb, rgb_to_primaries, srgb_to_linear
+from controlgs_adapter.downstream.color import primaries_to_rgb, rgb_to_primaries
 from controlgs_adapter.downstream.lens import BankMap, DisplayLUTMap, LensPrewarp, bank_fingerprint, pixel_grid
 from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.downstream.optics.stage import psf_optics
@@ -243,30 +244,6 @@ def test_a_chief_ray_prewarp_for_the_wrong_region_misses():
     assert float(_pixel_dot_errors(eye, where).max()) > 0.3
 
 
-FIELD = [(0.0, 0.0), (0.85, 0.85), (-0.85, -0.85), (0.85, -0.85), (-0.85, 0.0), (0.0, 0.85), (0.5, 0.5)]
-#: every point of a 0.1 grid over [-0.8, 0.8]^2, and the corners of FIELD
-GRID_FIELD = [(round(0.1 * i, 1), round(0.1 * j, 1)) for j in range(-8, 9) for i in range(-8, 9)] + FIELD[1:4]
-
-
-def _gaussian_dot_errors(pipe: Pipeline, size: tuple[int, int], field=FIELD) -> torch.Tensor:
-    """``[dots, 3]`` distance (px) of each primary's eye centroid from the centre of a Gaussian dot
-    (sigma 1 px) rendered at each ``field`` point, through the whole pipeline (sRGB in and out)."""
-    h, w = size
-    yy, xx = torch.meshgrid(torch.arange(h, dtype=D) + 0.5, torch.arange(w, dtype=D) + 0.5, indexing="ij")
-    centres = [((u + 1) / 2 * w, (v + 1) / 2 * h) for u, v in field]
-    dots = torch.stack([0.5 * torch.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / 2).expand(3, h, w) for cx, cy in centres])
-    with torch.no_grad():
-        prim = torch.cat([rgb_to_primaries(srgb_to_linear(pipe(linear_to_srgb(chunk), STATE)))   # [dots, 3, H, W]
-                          for chunk in dots.split(64)])
-    r = max(6, min(h, w) // 8)
-    errs = []
-    for k, (cx, cy) in enumerate(centres):
-        m = prim[k] * (((xx - cx).abs() < r) & ((yy - cy).abs() < r))
-        s = m.sum((1, 2))
-        errs.append(torch.hypot((m * xx).sum((1, 2)) / s - cx, (m * yy).sum((1, 2)) / s - cy))
-    return torch.stack(errs)
-
-
 @pytest.mark.parametrize("mode", ["distortion", "exact"])
 @pytest.mark.parametrize("size", [(96, 96), (54, 96)])
 def test_the_shipped_display_lut_lands_every_primary_of_a_dot_within_a_tenth_of_a_pixel(mode, size):
@@ -277,7 +254,7 @@ def test_the_shipped_display_lut_lands_every_primary_of_a_dot_within_a_tenth_of_
     assert isinstance(pipe["lens"].map, DisplayLUTMap) and pipe["lens"].basis == "primaries"
     field = GRID_FIELD if size[0] == size[1] else [(u, v * 0.5) for u, v in GRID_FIELD]
     assert ((0.6, -0.5) if size[0] == size[1] else (0.6, -0.25)) in field
-    err = _gaussian_dot_errors(pipe, size, field)
+    err = gaussian_dot_errors(pipe, size, field)
     worst = int(err.amax(1).argmax())
     assert float(err.max()) < 0.1, (field[worst], err[worst])
 
@@ -291,7 +268,7 @@ def test_one_sample_per_display_pixel_and_one_fitted_size_miss_the_tenth_of_a_pi
     assert pipe["lens"].supersample == 1 and lut.sizes[mode] == (64, 96, 128, 192, 256)
     main = {mode: (getattr(lut, f"displacement_{mode}"), getattr(lut, f"gain_{mode}"))}  # fitted at 256 px
     pipe["lens"].map = DisplayLUTMap(main, lut.display_mm, meta=lut.meta).follow(pipe["optics"]).double()
-    assert float(_gaussian_dot_errors(pipe, (96, 96), GRID_FIELD).max()) > 0.1
+    assert float(gaussian_dot_errors(pipe, (96, 96), GRID_FIELD).max()) > 0.1
 
 
 def test_the_paper_per_rgb_chief_ray_warp_misses_by_lateral_colour():
@@ -299,7 +276,7 @@ def test_the_paper_per_rgb_chief_ray_warp_misses_by_lateral_colour():
     apart by more than a pixel at 256 px in exact mode (here more than 0.3 px at 96 px)."""
     pipe = Pipeline.from_config({"lens": {"source": "chief_rays", "basis": "rgb"}, "optics": {"mode": "exact"}}).double()
     assert isinstance(pipe["lens"].map, BankMap)
-    err = _gaussian_dot_errors(pipe, (96, 96), [(0.85, 0.85)])
+    err = gaussian_dot_errors(pipe, (96, 96), [(0.85, 0.85)])
     assert float(err.max()) > 0.3
 
 

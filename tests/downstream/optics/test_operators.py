@@ -11,6 +11,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 from helpers.banks import random_bank, synthetic_bank
+from helpers.lens_checks import inner as _inner
+from helpers.lens_checks import steps as _steps
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -63,21 +65,6 @@ def _uniform_identity_bank(S: int, K: int = 7, G: int = 4) -> PSFBank:
 @functools.lru_cache(maxsize=1)
 def _rb8():
     return random_bank().resample_to(8, 8)                                       # float32
-
-
-def _inner(o: torch.Tensor, frac: float = 0.9) -> torch.Tensor:
-    H, W = o.shape[-2:]
-    a, b = round(H * (1 - frac) / 2), round(W * (1 - frac) / 2)
-    return o[..., a:H - a, b:W - b]
-
-
-def _steps(o: torch.Tensor) -> float:
-    """Largest step between adjacent pixels beyond the local linear trend (first difference minus
-    the mean of its two neighbours), both axes."""
-    dx, dy = o[..., :, 1:] - o[..., :, :-1], o[..., 1:, :] - o[..., :-1, :]
-    sx = dx[..., 1:-1] - 0.5 * (dx[..., 2:] + dx[..., :-2])
-    sy = dy[..., 1:-1, :] - 0.5 * (dy[..., 2:, :] + dy[..., :-2, :])
-    return max(sx.abs().max().item(), sy.abs().max().item())
 
 
 # ----------------------------------------------------------------------------- closed forms
