@@ -172,7 +172,8 @@ class LensPrewarp(Stage):
             source: ``"fitted"``: map and gain fitted through the optics
                 (:func:`.prewarp_fit.fit_bank_prewarp`), read from ``lut`` (default: a shipped lens's LUT
                 fitted for this bank, found by its fingerprint, :func:`.optics.lenses.prewarp_for_bank`;
-                for another bank without a LUT this falls back to ``"chief_rays"`` with a warning); ``"chief_rays"``: the bank's chief rays
+                for another bank without a LUT this falls back to ``"chief_rays"`` with a warning, without one for a
+                bank without PSFs, whose chief rays are its whole optics); ``"chief_rays"``: the bank's chief rays
                 (:class:`BankMap`, gain ``gain``).
             basis: see :class:`LensPrewarp`.
             lut: a file written by :meth:`DisplayLUTMap.save` (``controlgs optics fit-prewarp``).
@@ -195,6 +196,9 @@ class LensPrewarp(Stage):
             radiometry = getattr(optics, "radiometry", None)
             if fitted is None or fitted.meta.get("radiometry") != radiometry:
                 fallback: Literal["jacobian"] | None = "jacobian" if radiometry == "energy" else None
+                if not bank.has_psf:  # a distortion profile: its chief rays are the whole optics, nothing to fit
+                    return cls(BankMap(bank, placement, fallback), basis=basis,
+                               supersample=FITTED_SUPERSAMPLE if supersample is None else supersample)
                 warn_user(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
                           f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "
                           "and pass it as {'lens': {'lut': LUT}}", UserWarning)

@@ -321,3 +321,16 @@ def test_unreadable_and_oversized_files(tmp_path):
     with pytest.raises(FileFormatError, match="'kind'"):
         (tmp_path / "c.json").write_text("[1, 2]")
         load_profile(tmp_path / "c.json")
+
+
+def test_the_default_prewarp_of_a_profile_is_its_chief_rays_without_a_warning(recwarn):
+    """A bank without PSFs has nothing to fit: ``for_optics``'s default is its chief-ray map at 2 x 2 samples per
+    display pixel, the same stage as asked for explicitly, and no 'no fitted pre-warp LUT' warning."""
+    bank = bank_from_profile(_dot_profile())
+    optics = PSFOptics(bank, mode="exact")
+    default = LensPrewarp.for_optics(optics)
+    explicit = LensPrewarp.for_optics(optics, source="chief_rays", supersample=2)
+    assert not [w for w in recwarn if "pre-warp" in str(w.message)]
+    img = torch.rand(1, 3, 24, 24, generator=torch.Generator().manual_seed(0))
+    ctx = StageContext((24, 24))
+    assert isinstance(default.map, BankMap) and torch.equal(default(img, RuntimeState(), ctx), explicit(img, RuntimeState(), ctx))
