@@ -35,6 +35,7 @@ from .controlgs import ControlGS
 from .distributed import DistContext
 from .downstream.oled import oled_emission
 from .downstream.optics.lenses import LensSpec, effects_for_lens
+from .downstream.bank_maps import bank_fingerprint
 from .downstream.optics.bank import PSFBank
 from .downstream.optics.stage import set_optics_mode
 from .downstream.pipeline import Pipeline
@@ -249,8 +250,10 @@ class Trainer:
         self.data_fingerprint = views_fingerprint(views)
         self.pipeline = Pipeline.from_config(self.effects).to(self.device)
         with seeded(int(config.seed), self.device):  # the projections' initialisation follows the seed, not the global RNG
+            lens = _pipeline_lens(self.pipeline)
+            self._lens_fingerprint = None if lens is None else bank_fingerprint(lens)
             self.cgs = ControlGS.wrap(model, modules=modules, cond_dim=config.cond_dim, state_blind=config.state_blind,
-                                      lens=_pipeline_lens(self.pipeline),
+                                      lens=lens,
                                       lens_conditioning=config.lens_conditioning if "lens" in modules else None)
         try:  # a failure below leaves the user's model as it was
             set_optics_mode(self.pipeline, self.optics_mode(0))  # refuses an optics stage without modes before any step
@@ -399,7 +402,7 @@ class Trainer:
                           param_groups=opt["param_groups"], rng=self.generator.get_state(), iteration=self.iteration,
                           history=self.history, config=self.config.as_header(), modules=list(self.cgs.modules),
                           effects=sorted(k for k, v in self.effects.items() if v is not None and v is not False),
-                          fingerprint=self.cgs.fingerprint, data=self.data_fingerprint)
+                          fingerprint=self.cgs.fingerprint, data=self.data_fingerprint, lens=self._lens_fingerprint)
 
     def save_checkpoint(self, path: str | Path) -> Path:
         """Write adapter, optimizer state, RNG state and iteration to ``path`` (atomically,

@@ -5,7 +5,8 @@ Tensors: the adapter's state dict as ``adapter.<key>``, Adam's per-parameter sta
 JSON header (on top of the container's ``kind``, ``format_version``, ``library_version``):
 ``iteration``, ``config`` (:meth:`~controlgs_adapter.training.TrainConfig.as_header`),
 ``modules``, ``effects`` (the downstream stages that are on), ``fingerprint`` (the backbone's),
-``data`` (the training views'), ``param_groups`` (Adam's, without tensors) and ``history`` (the
+``data`` (the training views'), ``lens`` (the fingerprint of the PSF bank the run simulates; a file
+without it was written before lenses were recorded and resumes under any), ``param_groups`` (Adam's, without tensors) and ``history`` (the
 loss of every iteration). Written atomically (:mod:`controlgs_adapter.formats.safetensors`).
 :meth:`Trainer.save_checkpoint <controlgs_adapter.training.Trainer.save_checkpoint>` and
 :meth:`~controlgs_adapter.training.Trainer.load_checkpoint` are the API; this module only
@@ -51,6 +52,7 @@ class Checkpoint:
         effects: names of the downstream stages that are on, sorted.
         fingerprint: the backbone's fingerprint.
         data: the training views' fingerprint.
+        lens: the fingerprint of the PSF bank of the lens the run simulates (None: no bank).
     """
 
     adapter: dict[str, torch.Tensor]
@@ -64,11 +66,12 @@ class Checkpoint:
     effects: list[str]
     fingerprint: str
     data: str
+    lens: str | None = None
 
     def header(self) -> dict[str, Any]:
         """The JSON header of the file (without the container's fields)."""
         return {"iteration": self.iteration, "config": self.config, "modules": self.modules, "effects": self.effects,
-                "fingerprint": self.fingerprint, "data": self.data, "param_groups": self.param_groups,
+                "fingerprint": self.fingerprint, "data": self.data, "lens": self.lens, "param_groups": self.param_groups,
                 "history": self.history}
 
     def tensors(self) -> dict[str, torch.Tensor]:
@@ -116,7 +119,8 @@ def read_checkpoint(path: str | Path, like: Checkpoint, param_shapes: Sequence[t
                               f"{list(want.shape)}, got " + ("none" if rng is None else f"{rng.dtype} {list(rng.shape)}"))
     return Checkpoint(adapter=adapter, optimizer_state=state, param_groups=groups, rng=rng, iteration=iteration,
                       history=list(history), config=header["config"], modules=header["modules"],
-                      effects=header["effects"], fingerprint=header["fingerprint"], data=header["data"])
+                      effects=header["effects"], fingerprint=header["fingerprint"], data=header["data"],
+                      lens=header.get("lens", like.lens))
 
 
 def _check_run(path: str | Path, header: dict[str, Any], like: Checkpoint) -> None:
@@ -137,6 +141,9 @@ def _check_run(path: str | Path, header: dict[str, Any], like: Checkpoint) -> No
     if header.get("data") != like.data:
         raise FileFormatError(f"{path}: checkpoint was trained on other views (data {header.get('data')}), this "
                               f"trainer's views are {like.data}")
+    if "lens" in header and header["lens"] != like.lens:
+        raise FileFormatError(f"{path}: checkpoint was trained through another lens (PSF bank {header['lens']}), this "
+                              f"trainer's is {like.lens}")
     if header.get("modules") != like.modules:
         raise FileFormatError(f"{path}: checkpoint trains modules {header.get('modules')}, this trainer {like.modules}")
 

@@ -707,7 +707,8 @@ def test_resume_is_exact(tiny, tmp_path):
     ({"effects": {k: v for k, v in FULL.items() if k != "oled"}}, r"stages .*'oled'"),  # same modules, a stage off
     ({"lr": 1e-2}, "lr"),
     ({"views": "test"}, "other views"),
-], ids=["stages", "config", "views"])
+    ({"lens": "compact"}, "another lens"),
+], ids=["stages", "config", "views", "lens"])
 def test_a_checkpoint_of_another_run_is_refused_naming_what_differs(tiny, tmp_path, other, named):
     path = tmp_path / "run.ckpt.safetensors"
     t = _trainer(tiny, checkpoint=path, iterations=1)
@@ -716,7 +717,9 @@ def test_a_checkpoint_of_another_run_is_refused_naming_what_differs(tiny, tmp_pa
     kw = dict(other)
     if kw.get("views") == "test":
         kw["views"] = tiny[0].views("test")
-    refused = _trainer(tiny, checkpoint=path, iterations=1, **kw)
+    refused = _trainer(tiny, checkpoint=path, iterations=1, **kw) if "lens" not in kw else Trainer(
+        tiny[1], tiny[0].views("train"), TrainConfig(iterations=1, checkpoint_every=0, psf_fraction=0.0), effects=FULL,
+        checkpoint=path, lens=kw["lens"])
     try:
         with pytest.raises(FileFormatError, match=rf"run\.ckpt\.safetensors.*{named}"):
             refused.resume()

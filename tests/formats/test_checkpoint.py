@@ -102,6 +102,7 @@ def test_checkpoint_round_trip_and_tensor_names(tmp_path):
     (dict(fingerprint="other"), "another backbone"),
     (dict(data="other"), "other views (data views)"),
     (dict(modules=["lens", "display"]), "trains modules ['lens'], this trainer ['lens', 'display']"),
+    (dict(lens="0123456789abcdef"), "another lens (PSF bank None), this trainer's is 0123456789abcdef"),
     (dict(rng=torch.arange(9, dtype=torch.uint8)), "'rng' must be a torch.uint8 tensor of shape [9], got torch.uint8 [8]"),
     (dict(rng=torch.arange(8, dtype=torch.int64)), "'rng' must be a torch.int64 tensor of shape [8], got torch.uint8 [8]"),
     (dict(param_groups=[{"lr": 0.01, "params": [0]}, {"lr": 0.01, "params": [1]}]), "'param_groups' does not describe"),
@@ -175,3 +176,16 @@ def test_checkpoint_at_iteration_zero_with_integer_losses(tmp_path):
     back = read_checkpoint(p, c, [torch.Size([2, 1, 2])])
     assert back.iteration == 0 and back.history == [2, 1] and back.optimizer_state == {}
     assert back.param_groups == [{"lr": 0.1, "params": [0]}] and back.effects == []
+
+
+def test_a_checkpoint_without_a_lens_record_resumes_under_the_trainers_lens(tmp_path):
+    """Files written before the lens was recorded carry no ``lens``: they resume (under whatever lens the trainer
+    simulates), while one that names a bank must name the trainer's."""
+    p = write_checkpoint(tmp_path / "c.safetensors", _ckpt(lens="aaaa"))
+    t, h = load_tensors(p, kind=CHECKPOINT_KIND, max_version=1)
+    h = {k: v for k, v in h.items() if k not in ("kind", "format_version", "library_version", "lens")}
+    _raw_ckpt(tmp_path / "old.safetensors", t, h)
+    assert read_checkpoint(tmp_path / "old.safetensors", _ckpt(lens="bbbb"), _SHAPES).lens == "bbbb"
+    assert read_checkpoint(p, _ckpt(lens="aaaa"), _SHAPES).lens == "aaaa"
+    with pytest.raises(FileFormatError, match="another lens"):
+        read_checkpoint(p, _ckpt(lens="bbbb"), _SHAPES)
