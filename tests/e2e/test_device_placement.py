@@ -6,6 +6,9 @@ as without the guard, and each of three device mistakes put back into the librar
 from __future__ import annotations
 
 import copy
+import importlib.util
+import subprocess
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +27,8 @@ from controlgs_adapter.training import TrainConfig, Trainer
 from controlgs_adapter.viewer.session import ViewerSession, ViewState
 
 pytest.importorskip("skimage")  # the built-in scene
+
+ROOT = Path(__file__).resolve().parents[2]
 
 #: every stage; the optics mode is set per test
 ALL = {"lens": True, "resample": True, "display": True, "oled": True}
@@ -139,3 +144,53 @@ def test_a_dropped_device_is_caught(placed, monkeypatch, func, old, new, where):
     with pytest.raises(DevicePlacementError, match=rf"made at .*{Path(func.__code__.co_filename).name}:\d+"):
         with DeviceGuard():
             _workload(where, scene, model, MODEL_DEVICE)
+
+
+# ----------------------------------------------------------------------------- the prepared device check
+def _gpu_check() -> Any:
+    spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "scripts" / "gpu_check.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_device_check_command_lines_parse(tmp_path, monkeypatch):
+    """Every command line of ``scripts/gpu_check.py`` (controlgs, torchrun, the step benchmark, on cpu and cuda)
+    parses, and one that does not is named."""
+    check = _gpu_check()
+    assert check.parse_problems(tmp_path) == []
+    good = check.commands
+    monkeypatch.setattr(check, "commands", lambda *a: {**good(*a), "bad": ["train", "--iterations", "many"]})
+    assert check.parse_problems(tmp_path) == ["controlgs train --iterations many: argparse refused it (exit 2)"] * 2
+
+
+def _wheel(folder: Path, name: str, version: str, requires: list[str]) -> None:
+    with zipfile.ZipFile(folder / f"{name}-{version}-py3-none-any.whl", "w") as z:
+        z.writestr(f"{name}-{version}.dist-info/METADATA", "Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n"
+                   + "".join(f"Requires-Dist: {r}\n" for r in requires))
+
+
+def test_the_device_check_names_each_missing_wheel(tmp_path):
+    """One line per requirement no carried wheel satisfies, following the carried wheels' own dependencies
+    for Linux x86_64 Python 3.11 (a local version like +cu126 satisfies ==)."""
+    check = _gpu_check()
+    _wheel(tmp_path, "torch", "2.13.0+cu126", ["nvidia_cudnn_cu12==9.1; platform_system == 'Linux'",
+                                               "pywin32; sys_platform == 'win32'", "filelock"])
+    _wheel(tmp_path, "filelock", "3.0", [])
+    _wheel(tmp_path, "gsplat", "1.3.0", [])
+    assert check.missing_wheels(tmp_path, ["torch==2.13.0", "gsplat>=1.4", "rich"]) == [
+        "missing wheel: gsplat>=1.4 (requested)",
+        "missing wheel: nvidia_cudnn_cu12==9.1 (needed by torch-2.13.0+cu126-py3-none-any.whl)",
+        "missing wheel: rich (requested)"]
+    _wheel(tmp_path, "nvidia_cudnn_cu12", "9.1", [])
+    _wheel(tmp_path, "gsplat", "1.5.3", ["jaxtyping"])
+    _wheel(tmp_path, "jaxtyping", "0.2", [])
+    _wheel(tmp_path, "rich", "13", [])
+    assert check.missing_wheels(tmp_path, ["torch==2.13.0", "gsplat>=1.4", "rich"]) == []
+
+
+def test_the_device_check_script_refuses_an_unknown_argument():
+    res = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_check.sh"), "--bogus"], capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 2 and "unknown argument --bogus" in res.stderr

@@ -18,8 +18,10 @@ copies (``.to``, ``copy_``) and host index tensors in ``t[index]`` of a model te
 allowed. Everything computes on real values, so host-side tables built on the CPU and moved once work as
 on a GPU.
 
-Move the model inside the guard (``model.to(MODEL_DEVICE)``): outside it nothing is labelled. Limit: a
-``.to("cpu")`` written literally moves to the host, a ``.to(device)`` with the model's device to the model.
+Move the model inside the guard (``model.to(MODEL_DEVICE)``): outside it nothing is labelled. Limits: only
+operations called from Python are checked (torch's own Python functions count as one call); a tensor made
+where the mode cannot see it (inside a C++ call) counts as on the host, which can give a false alarm but
+never hides two labelled tensors meeting.
 """
 
 from __future__ import annotations
