@@ -5,7 +5,8 @@ On a GPU machine the model is moved to ``cuda`` and a tensor created without ``d
 both are on the CPU, so :class:`DeviceGuard` (a :class:`~torch.overrides.TorchFunctionMode`) labels the
 tensors it sees:
 
-- on the *model's device* (:data:`MODEL_DEVICE`, ``cpu:1``, what their ``.device`` says): tensors made with
+- on the *model's device* (:data:`MODEL_DEVICE`, ``cpu:1``, what their ``.device`` says; their ``.is_cuda`` is
+  True, so the library's CUDA-only branches run): tensors made with
   ``device=MODEL_DEVICE`` (or a ``.device`` read from such a tensor), moved there (``.to``, ``Module.to``,
   ``.cuda()``), and anything computed from them;
 - on the *host* (``cpu``): every other tensor: made without ``device=`` (by the library, by torch on its
@@ -61,6 +62,7 @@ _METADATA = frozenset({torch._has_compatible_shallow_copy_type, torch.Tensor.dat
 
 _DEVICE_GET = torch.Tensor.device.__get__  # type: ignore[attr-defined]
 _DATA_SET = torch.Tensor.data.__set__  # type: ignore[attr-defined]
+_IS_CUDA_GET = torch.Tensor.is_cuda.__get__  # type: ignore[attr-defined]
 
 
 def on_model(t: torch.Tensor) -> bool:
@@ -148,6 +150,8 @@ class DeviceGuard(TorchFunctionMode):
         kwargs = kwargs or {}
         if func == _DEVICE_GET:
             return MODEL_DEVICE if on_model(args[0]) else HOST_DEVICE
+        if func == _IS_CUDA_GET:  # the library's CUDA-only branches run on the model's tensors
+            return on_model(args[0])
         if func == _DATA_SET:  # param.data = t (Module.to): the parameter is now where t is
             func(*args, **kwargs)
             setattr(args[0], LABEL, getattr(args[1], LABEL, None))
