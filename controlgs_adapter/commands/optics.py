@@ -15,10 +15,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     osub = p.add_subparsers(dest="optics_command", metavar="ACTION", required=True)
 
     b = osub.add_parser("build-bank", help="trace a PSF bank (built-in ray tracer; Google Cardboard by default)")
-    b.add_argument("--prescription", type=Path, default=None,
-                   help="JSON prescription (same keys as controlgs_adapter.downstream.optics.prescription.CARDBOARD)")
-    b.add_argument("--lens", default=None, metavar="LENS",
-                   help="the prescription to trace: a shipped lens's (cardboard, compact) or a JSON file (as --prescription)")
+    _add_lens(b, "the prescription to trace")
     b.add_argument("--out", type=Path, default=Path("psf_bank.safetensors"), help="output .safetensors file")
     b.add_argument("--grid", type=int, nargs=2, default=(30, 30), metavar=("GY", "GX"), help="PSF field grid")
     b.add_argument("--psf-size", type=int, default=33, help="samples per PSF side (odd)")
@@ -28,7 +25,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     b.set_defaults(func=run_build)
 
     f = osub.add_parser("figures", help="print paraxial and real-ray figures of a prescription")
-    f.add_argument("--prescription", type=Path, default=None, help="JSON prescription (default: Google Cardboard)")
+    _add_lens(f, "the prescription whose figures to print")
     f.set_defaults(func=run_figures)
 
     c = osub.add_parser("bench", help="speed and error of the PSF operators, both radiometries: table build, fwd, "
@@ -64,34 +61,39 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     w.set_defaults(func=run_fit_prewarp)
 
 
-def _prescription(path: Path | None, lens: str | None = None):
-    """The prescription of ``--prescription`` or ``--lens`` (a shipped lens's or a file; Cardboard if neither);
-    errors name the option and the file."""
+def _add_lens(p: argparse.ArgumentParser, what: str) -> None:
+    """``--lens NAME|PRESCRIPTION.json`` of ``build-bank`` and ``figures``."""
+    p.add_argument("--lens", default="cardboard", metavar="LENS",
+                   help=f"{what}: a shipped lens's (cardboard, compact) or a JSON prescription file (same keys as "
+                        "controlgs_adapter.downstream.optics.prescription.CARDBOARD; default cardboard)")
+
+
+def _prescription(lens: str):
+    """The prescription of ``--lens``: a shipped lens's or a JSON file's; errors are one line naming
+    ``--lens FILE``."""
     from controlgs_adapter.downstream.optics.lenses import SHIPPED_LENSES, shipped_prescription
-    from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
+    from controlgs_adapter.downstream.optics.prescription import Prescription
     from controlgs_adapter.errors import FileFormatError, InputValueError
 
-    if path is not None and lens is not None:
-        raise InputValueError(f"give --prescription or --lens, not both (got {path} and {lens})")
     if lens in SHIPPED_LENSES:
         return Prescription(shipped_prescription(lens))
-    option = "--prescription" if lens is None else "--lens"
-    path = path if lens is None else Path(lens)
-    if path is None:
-        return Prescription(CARDBOARD)
+    path = Path(lens)
+    if not path.exists():
+        raise InputValueError(f"--lens {path}: no such file (nor a shipped lens: {', '.join(SHIPPED_LENSES)})")
     if not path.is_file():
-        raise InputValueError(f"{option} {path}: no such file" + (f" (nor a shipped lens: {', '.join(SHIPPED_LENSES)})"
-                                                                  if lens is not None else ""))
+        raise InputValueError(f"--lens {path}: not a regular file")
     if path.stat().st_size > 1 << 20:
-        raise FileFormatError(f"{option} {path}: {path.stat().st_size} bytes, too large for a prescription")
+        raise FileFormatError(f"--lens {path}: {path.stat().st_size} bytes, too large for a prescription")
     try:
         spec = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:  # a special file that stat calls regular (/proc/self/mem)
+        raise FileFormatError(f"--lens {path}: not readable: {e.strerror or e}") from None
     except (ValueError, RecursionError) as e:
-        raise FileFormatError(f"{option} {path}: not a JSON file: {e}") from None
+        raise FileFormatError(f"--lens {path}: not a JSON file: {e}") from None
     try:
         return Prescription(spec)
     except InputValueError as e:
-        raise InputValueError(f"{option} {path}: {e}") from None
+        raise InputValueError(f"--lens {path}: {e}") from None
 
 
 def run_build(args: argparse.Namespace) -> int:
@@ -109,7 +111,7 @@ def run_build(args: argparse.Namespace) -> int:
     if not (args.min_pitch_px > 0 and args.min_pitch_px < float("inf")):
         raise InputValueError(f"--min-pitch-px must be a finite number > 0, got {args.min_pitch_px}")
     check_out_path(args.out, "--out", folder=False)
-    rx = _prescription(args.prescription, args.lens)
+    rx = _prescription(args.lens)
     t0 = time.perf_counter()
     bank = build_bank(rx, grid=tuple(args.grid), psf_size=args.psf_size, pupil_samples=args.pupil_samples,
                       min_pitch_px=args.min_pitch_px, progress=True)
@@ -121,7 +123,7 @@ def run_build(args: argparse.Namespace) -> int:
 def run_figures(args: argparse.Namespace) -> int:
     from controlgs_adapter.downstream.optics.generate import lens_figures
 
-    print(json.dumps(lens_figures(_prescription(args.prescription)), indent=2))
+    print(json.dumps(lens_figures(_prescription(args.lens)), indent=2))
     return 0
 
 

@@ -18,6 +18,7 @@ from helpers.cli_runs import error_line
 from controlgs_adapter import cli
 from controlgs_adapter.cli import main
 from controlgs_adapter.downstream.optics.bank import PSFBank
+from controlgs_adapter.downstream.optics.generate import lens_figures
 from controlgs_adapter.downstream.optics.prescription import CARDBOARD, Prescription
 from controlgs_adapter.errors import FileFormatError
 
@@ -48,8 +49,9 @@ def _page_command(page: Path) -> list[str]:
 
 def test_optics_defaults() -> None:
     o = cli.build_parser().parse_args(["optics", "build-bank"])
-    assert (o.out, tuple(o.grid), o.psf_size, o.pupil_samples, o.min_pitch_px, o.prescription) == \
-        (Path("psf_bank.safetensors"), (30, 30), 33, 192, 0.125, None)
+    assert (o.out, tuple(o.grid), o.psf_size, o.pupil_samples, o.min_pitch_px, o.lens) == \
+        (Path("psf_bank.safetensors"), (30, 30), 33, 192, 0.125, "cardboard")
+    assert cli.build_parser().parse_args(["optics", "figures"]).lens == "cardboard"
     c = cli.build_parser().parse_args(["optics", "bench"])
     assert (c.sizes, c.radiometry, c.tols, c.repeat, c.scaling, c.zone, c.exact_max, c.threads, c.out) == \
         (["256", "512", "1024", "576x1024"], ["radiance", "energy"], [0.02], 3, True, 5, 1024, 2, None)
@@ -100,6 +102,33 @@ def test_optics_figures_prints_json(capsys):
     figures = json.loads(capsys.readouterr().out)
     assert figures["half_width_mm"] == 12.0  # Cardboard: a 24 mm wide display half
     assert figures["px_per_mm_display_at_1024"] == pytest.approx(1024 / 24.0)
+    assert main(["optics", "figures", "--lens", "cardboard"]) == 0
+    assert json.loads(capsys.readouterr().out) == figures
+
+
+def test_optics_figures_of_the_compact_lens(capsys):
+    """``--lens compact``: the figures of the shipped file's prescription, read here on its own."""
+    spec = json.loads((Path(cli.__file__).parent / "data" / "compact_prescription.json").read_text(encoding="utf-8"))
+    assert main(["optics", "figures", "--lens", "compact"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures == json.loads(json.dumps(lens_figures(Prescription(spec))))
+    assert figures["half_width_mm"] == spec["display_mm"][0] / 2 != 12.0
+    assert figures["px_per_mm_display_at_1024"] == pytest.approx(1024 / spec["display_mm"][0])
+
+
+def test_optics_figures_of_an_asymmetric_lens_file(capsys, tmp_path):
+    """A decentred lens: per wavelength the 4 corners' landings ``[x, y]`` and distortions, paraxial figures
+    null; mirror-symmetric about x = 0 (the decentre is along y), so the -x and +x corners mirror."""
+    spec = {**CARDBOARD, "surfaces": [dict(sf, decenter_mm=[0.0, 0.6]) for sf in CARDBOARD["surfaces"]]}
+    (tmp_path / "decentred.json").write_text(json.dumps(spec))
+    assert main(["optics", "figures", "--lens", str(tmp_path / "decentred.json")]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    for lam in ("656nm", "550nm", "486nm"):
+        f = figures[lam]
+        assert f["efl_mm"] is None and f["paraxial_magnification"] is None
+        (x0, y0), (x1, y1), (x2, y2), (x3, y3) = f["corner_landing_px_at_1024"]
+        assert (x1, y1, x3, y3) == pytest.approx((-x0, y0, -x2, y2)) and y0 < 0 < y2 and y2 != pytest.approx(-y0)
+        assert len(f["corner_distortion_pct"]) == 4
 
 
 # ----------------------------------------------------------------------------- refusals before any work
@@ -113,23 +142,46 @@ def test_optics_figures_prints_json(capsys):
     (["--min-pitch-px", "0"], "--min-pitch-px must be a finite number > 0, got 0.0"),
     (["--min-pitch-px", "inf"], "--min-pitch-px must be a finite number > 0, got inf"),
     (["--min-pitch-px", "nan"], "--min-pitch-px must be a finite number > 0, got nan"),
-    (["--prescription", "{d}/none.json"], "--prescription {d}/none.json: no such file"),
-    (["--prescription", "{d}/bad.json"], "--prescription {d}/bad.json: not a JSON file: "),
-    (["--prescription", "{d}/wrong.json"], "--prescription {d}/wrong.json: "),
-    (["--prescription", "{d}/big.json"], "--prescription {d}/big.json: 1048577 bytes, too large"),
-    (["--lens", "{d}/none.json"], "--lens {d}/none.json: no such file (nor a shipped lens: cardboard, compact)"),
-    (["--lens", "{d}/wrong.json"], "--lens {d}/wrong.json: "),
-    (["--lens", "cardboard", "--prescription", "{d}/wrong.json"], "give --prescription or --lens, not both"),
 ])
-def test_build_bank_refusals(capsys, tmp_path, args, message):
+def test_build_bank_refusals(capsys, tmp_path, args, message, no_work):
+    assert main(["optics", "build-bank", "--out", f"{tmp_path}/b.safetensors", *args]) == 2
+    assert error_line(capsys, "optics") == message
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--lens", "{d}/none.json"], "--lens {d}/none.json: no such file (nor a shipped lens: cardboard, compact)"),
+    (["--lens", "cardbaord"], "--lens cardbaord: no such file (nor a shipped lens: cardboard, compact)"),
+    (["--lens", "{d}"], "--lens {d}: not a regular file"),
+    (["--lens", "{d}/bad.json"], "--lens {d}/bad.json: not a JSON file: "),
+    (["--lens", "{d}/latin1.json"], "--lens {d}/latin1.json: not a JSON file: "),
+    (["--lens", "{d}/wrong.json"], "--lens {d}/wrong.json: "),
+    (["--lens", "{d}/big.json"], "--lens {d}/big.json: 1048577 bytes, too large"),
+    (["--lens", "/proc/self/mem"], "--lens /proc/self/mem: not readable: "),
+])
+@pytest.mark.parametrize("action", ["build-bank", "figures"])
+def test_lens_refusals(capsys, tmp_path, action, args, message, no_work):
+    """Both actions refuse a bad ``--lens`` in one line naming it, before any work and writing nothing."""
+    if "/proc/self/mem" in args and not Path("/proc/self/mem").is_file():
+        pytest.skip("no /proc/self/mem here")
     (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "latin1.json").write_bytes('{"name": "\xe9"}'.encode("latin-1"))
     (tmp_path / "wrong.json").write_text('{"surfaces": 3}')
     (tmp_path / "big.json").write_bytes(b" " * ((1 << 20) + 1))
     d = str(tmp_path)
-    argv = ["optics", "build-bank", "--out", f"{d}/b.safetensors", *[a.replace("{d}", d) for a in args]]
-    assert main(argv) == 2
+    before = sorted(tmp_path.iterdir())
+    out = ["--out", f"{d}/b.safetensors"] if action == "build-bank" else []
+    assert main(["optics", action, *out, *[a.replace("{d}", d) for a in args]]) == 2
     assert error_line(capsys, "optics").startswith(message.replace("{d}", d))
-    assert not (tmp_path / "b.safetensors").exists()
+    assert capsys.readouterr().out == "" and sorted(tmp_path.iterdir()) == before
+
+
+def test_prescription_is_gone(capsys):
+    """``--lens`` is the one way to give a prescription: ``--prescription`` is refused by both actions."""
+    for action in ("build-bank", "figures"):
+        with pytest.raises(SystemExit) as e:
+            main(["optics", action, "--prescription", "rx.json"])
+        assert e.value.code == 2 and "unrecognized arguments: --prescription" in capsys.readouterr().err
 
 
 def test_build_bank_lens_traces_the_shipped_or_given_prescription(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -220,13 +272,13 @@ CLI_CASES = [
     ("pupil-samples 1", ["optics", "build-bank", "--pupil-samples", "1"], "--pupil-samples"),
     ("min-pitch-px 0", ["optics", "build-bank", "--min-pitch-px", "0"], "--min-pitch-px"),
     ("min-pitch-px nan", ["optics", "build-bank", "--min-pitch-px", "nan"], "--min-pitch-px"),
-    ("prescription missing", ["optics", "build-bank", "--prescription", "{d}/none.json"], "none.json"),
-    ("prescription not JSON", ["optics", "build-bank", "--prescription", "{d}/bad.json"], "bad.json"),
-    ("prescription a list", ["optics", "build-bank", "--prescription", "{d}/list.json"], "list.json"),
-    ("prescription bad field", ["optics", "build-bank", "--prescription", "{d}/field.json"], "display_mm"),
+    ("prescription missing", ["optics", "build-bank", "--lens", "{d}/none.json"], "none.json"),
+    ("prescription not JSON", ["optics", "build-bank", "--lens", "{d}/bad.json"], "bad.json"),
+    ("prescription a list", ["optics", "build-bank", "--lens", "{d}/list.json"], "list.json"),
+    ("prescription bad field", ["optics", "build-bank", "--lens", "{d}/field.json"], "display_mm"),
     ("out a folder", ["optics", "build-bank", "--out", "{d}"], "--out"),
-    ("figures prescription missing", ["optics", "figures", "--prescription", "{d}/none.json"], "none.json"),
-    ("figures prescription a list", ["optics", "figures", "--prescription", "{d}/list.json"], "list.json"),
+    ("figures prescription missing", ["optics", "figures", "--lens", "{d}/none.json"], "none.json"),
+    ("figures prescription a list", ["optics", "figures", "--lens", "{d}/list.json"], "list.json"),
     ("demo out under a file", ["demo", "--out", "{d}/a_file/report"], "a_file"),
 ]
 
@@ -247,11 +299,11 @@ def test_build_bank_smallest_accepted_values_pass_the_checks(tmp_path):
     is not JSON here)."""
     from controlgs_adapter.commands.optics import _prescription
 
-    assert _prescription(None).spec == Prescription(CARDBOARD).spec
+    assert _prescription("cardboard").spec == Prescription(CARDBOARD).spec
     p = tmp_path / "rx.json"
     p.write_text(json.dumps(CARDBOARD))
-    assert _prescription(p).spec == Prescription(CARDBOARD).spec
+    assert _prescription(str(p)).spec == Prescription(CARDBOARD).spec
     big = tmp_path / "big.json"
     big.write_bytes(b" " * (1 << 20))  # exactly 1 MiB is read (and is not JSON)
     with pytest.raises(FileFormatError, match="not a JSON file"):
-        _prescription(big)
+        _prescription(str(big))

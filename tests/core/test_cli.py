@@ -38,16 +38,15 @@ def test_usage_names_the_sub_command_as_COMMAND():
 
 
 # (command, option, dest, action, type, choices, default, metavar, nargs, required)
-OPTIONS: list[tuple[str, str, str, str, str, list[str] | None, Any, Any, Any, bool]] = [
+OPTIONS: list[tuple[str, str, str, str, str, list[str] | tuple[str, ...] | None, Any, Any, Any, bool]] = [
     ('plugins', '--strict', 'strict', 'true', 'str', None, False, None, 0, False),
-    ('optics build-bank', '--prescription', 'prescription', 'store', 'Path', None, None, None, None, False),
-    ('optics build-bank', '--lens', 'lens', 'store', 'str', None, None, 'LENS', None, False),
+    ('optics build-bank', '--lens', 'lens', 'store', 'str', None, 'cardboard', 'LENS', None, False),
     ('optics build-bank', '--out', 'out', 'store', 'Path', None, Path('psf_bank.safetensors'), None, None, False),
     ('optics build-bank', '--grid', 'grid', 'store', 'int', None, (30, 30), ('GY', 'GX'), 2, False),
     ('optics build-bank', '--psf-size', 'psf_size', 'store', 'int', None, 33, None, None, False),
     ('optics build-bank', '--pupil-samples', 'pupil_samples', 'store', 'int', None, 192, None, None, False),
     ('optics build-bank', '--min-pitch-px', 'min_pitch_px', 'store', 'float', None, 0.125, None, None, False),
-    ('optics figures', '--prescription', 'prescription', 'store', 'Path', None, None, None, None, False),
+    ('optics figures', '--lens', 'lens', 'store', 'str', None, 'cardboard', 'LENS', None, False),
     ('optics bench', '--sizes', 'sizes', 'store', 'str', None, ['256', '512', '1024', '576x1024'], None, '+', False),
     ('optics bench', '--radiometry', 'radiometry', 'store', 'str', ['radiance', 'energy'], ['radiance', 'energy'], None, '+', False),
     ('optics bench', '--tols', 'tols', 'store', 'float', None, [0.02], None, '+', False),
@@ -423,8 +422,9 @@ def test_eval_needs_matplotlib_only(capsys, monkeypatch, tmp_path):
     assert error_line(capsys, "eval") == (f"{tmp_path}: no controlgs.controlgs.safetensors (train one with "
                                           f"`controlgs train --out {tmp_path}`)")
     # optics figures needs neither
-    assert main(["optics", "figures", "--prescription", str(tmp_path / "none.json")]) == 2
-    assert error_line(capsys, "optics") == f"--prescription {tmp_path / 'none.json'}: no such file"
+    assert main(["optics", "figures", "--lens", str(tmp_path / "none.json")]) == 2
+    assert error_line(capsys, "optics") == (f"--lens {tmp_path / 'none.json'}: no such file "
+                                            "(nor a shipped lens: cardboard, compact)")
     monkeypatch.setitem(sys.modules, "matplotlib", types.ModuleType("matplotlib"))
     assert main(["eval", "--run", str(tmp_path)]) == 2
     assert error_line(capsys, "eval").startswith("controlgs eval (the report's plots) needs matplotlib")
@@ -454,10 +454,10 @@ def test_main_help_version_and_errors(capsys, tmp_path):
         main(["--version"])
     assert e.value.code == 0
     assert capsys.readouterr().out.strip() == f"controlgs-adapter {__version__}"
-    # an OSError (an unreadable file) is one line naming its type, exit 2
+    # an unreadable file is one line naming the option and the file, exit 2
     if Path("/proc/self/mem").is_file():
-        assert main(["optics", "figures", "--prescription", "/proc/self/mem"]) == 2
-        assert error_line(capsys, "optics").startswith("OSError: ")
+        assert main(["optics", "figures", "--lens", "/proc/self/mem"]) == 2
+        assert error_line(capsys, "optics").startswith("--lens /proc/self/mem: not readable: ")
 
 
 def test_main_missing_module_is_one_line(capsys, monkeypatch):
