@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 CLI = [sys.executable, "-m", "controlgs_adapter.cli"]
 LENSES = ("cardboard", "compact")
-METRICS = ("psnr", "ssim", "flip")
+METRICS = ("psnr", "ssim", "flip", "cvvdp")
 #: the decentred lens: Cardboard's prescription with the lens axis 1.5 mm off the display centre (one eye of a
 #: headset whose lens sits nearer the nose); a 15 x 15 field grid keeps its 2-D trace under a minute
 DECENTRE_MM = (1.5, 0.0)
@@ -54,8 +54,10 @@ def summary(report: Path) -> dict[str, dict[str, tuple[float, float]]]:
     return {m: {k: (v["mean"], 0.0) for k, v in ms.items()} for m, ms in data["methods"].items()}
 
 
-def fmt(v: tuple[float, float], metric: str) -> str:
-    digits = 2 if metric == "psnr" else 4
+def fmt(v: tuple[float, float] | None, metric: str) -> str:
+    if v is None:
+        return "–"
+    digits = {"psnr": 2, "cvvdp": 3}.get(metric, 4)
     return f"{v[0]:.{digits}f} ± {v[1]:.{digits}f}" if v[1] > 0 else f"{v[0]:.{digits}f}"
 
 
@@ -169,7 +171,7 @@ def page(a: argparse.Namespace, res: dict[str, Any]) -> list[str]:
         s = {lens: res[key][lens]["summary"] for lens in LENSES}
         for m, label in names.items():
             if all(m in s[lens] for lens in LENSES):
-                lines.append(f"| {label} | " + " | ".join(fmt(s[lens][m][k], k) for lens in LENSES for k in METRICS) + " |")
+                lines.append(f"| {label} | " + " | ".join(fmt(s[lens][m].get(k), k) for lens in LENSES for k in METRICS) + " |")
         lines += ["", "| | " + " | ".join(LENSES) + " |", "|---|" + "---:|" * len(LENSES)]
         for (a_, b_), label in ((("controlgs", "ss"), "ControlGS − SS-backbone, PSNR dB"),
                                 (("controlgs", "wo_lens"), "ControlGS − w/o Lens, PSNR dB"),
@@ -183,11 +185,11 @@ def page(a: argparse.Namespace, res: dict[str, Any]) -> list[str]:
         lines += ["## Radius vs (x, y) lens conditioning on a decentred lens", "",
                   f"Cardboard's prescription with `display_offset_mm` {list(DECENTRE_MM)} (15 x 15 field grid, traced in "
                   f"2-D: {d['bank_s']:.0f} s), the built-in AR scene; the same training but for `--lens-conditioning`.", "",
-                  "| conditioning | ControlGS PSNR | SSIM | FLIP | ControlGS − w/o Lens, PSNR dB | ControlGS − SS-backbone |",
-                  "|---|---:|---:|---:|---:|---:|"]
+                  "| conditioning | ControlGS PSNR | SSIM | FLIP | CVVDP (JOD) | ControlGS − w/o Lens, PSNR dB | "
+                  "ControlGS − SS-backbone |", "|---|---:|---:|---:|---:|---:|---:|"]
         for mode in ("radius", "xy"):
             s = d[mode]["summary"]
-            lines.append(f"| {mode} | " + " | ".join(fmt(s["controlgs"][k], k) for k in METRICS)
+            lines.append(f"| {mode} | " + " | ".join(fmt(s["controlgs"].get(k), k) for k in METRICS)
                          + f" | {gain(s, 'controlgs', 'wo_lens', 'psnr')} | {gain(s, 'controlgs', 'ss', 'psnr')} |")
         lines.append("")
     if "steps" in res:
