@@ -7,7 +7,8 @@ with each lens's bank.
 
 Every training and evaluation runs in its own process through the CLI (``python -m controlgs_adapter.cli``), as a
 user would run it; the per-lens rows read each run's ``results.json`` (mean over the test views and the 20
-run-time settings, mean ± sample std over seeds). ``--doc`` writes ``docs/benchmarks/lenses.md``.
+run-time settings, mean ± sample std over seeds). Results accumulate in ``WORK/results.json`` (a part run again
+replaces its own); ``--doc`` writes ``docs/benchmarks/lenses.md``.
 """
 
 from __future__ import annotations
@@ -219,10 +220,14 @@ def main() -> None:
     ap.add_argument("--no-steps", dest="steps", action="store_false")
     ap.add_argument("--work", default=str(Path(os.environ.get("TMPDIR", "/tmp")) / "controlgs-bench-lenses"))
     ap.add_argument("--doc", action="store_true", help="write docs/benchmarks/lenses.md (default: print only)")
+    ap.add_argument("--page-only", action="store_true", help="no runs: the page from WORK/results.json")
     a = ap.parse_args()
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
-    res: dict[str, Any] = {}
+    saved = work / "results.json"  # the parts measured earlier; each part run now replaces its own
+    res: dict[str, Any] = json.loads(saved.read_text()) if saved.is_file() else {}
+    if a.page_only:
+        a.steps = a.builtin = a.own = a.decentred = False
     if a.steps:
         res["steps"] = step_times(a)
     if a.builtin:
@@ -231,7 +236,7 @@ def main() -> None:
         res["own"] = own_scene_runs(a, work)
     if a.decentred:
         res["decentred"] = decentred_runs(a, work)
-    (work / "results.json").write_text(json.dumps(res, indent=1, default=lambda o: list(o) if isinstance(o, tuple) else o))
+    saved.write_text(json.dumps(res, indent=1))
     text = "\n".join(page(a, res)) + "\n"
     print(text)
     if a.doc:
