@@ -77,3 +77,21 @@ def affine_bank(a, b, axis=(0.0, 0.0), symmetric=False, C=9):
     bank.validate()
     bank.meta["lens"] = {"axis": list(axis), "rotationally_symmetric": symmetric, "psf": True, "kind": "prescription"}
     return bank
+
+
+def radial_lens_bank(k=0.2, C=257, distance_mm=600.0, magnification=15.0, lens=None):
+    """A traced-looking bank on a 24 x 24 mm display whose chief rays are the radial polynomial
+    ``q = d (1 + k |d|^2)`` (every wavelength) on a ``C x C`` grid, with ``meta`` giving the virtual image
+    at ``distance_mm`` and the reference ``magnification``: tan(angle) = q * 12 * magnification / distance_mm
+    per axis. ``lens``: a ``meta["lens"]`` instead of the prescription (a distortion-profile bank)."""
+    bank = random_bank(L=3, C=C)
+    c = torch.linspace(-1, 1, C, dtype=D64)
+    cy, cx = torch.meshgrid(c, c, indexing="ij")
+    s = 1 + k * (cx ** 2 + cy ** 2)
+    bank.chief = torch.stack([cx * s, cy * s], -1).expand(3, C, C, 2).clone().float()
+    if lens is None:
+        bank.meta.update(prescription={"virtual_image_distance_mm": distance_mm, "display_mm": [24.0, 24.0]},
+                         figures={"reference_magnification": magnification})
+    else:
+        bank.meta["lens"] = {"axis": [0.0, 0.0], "rotationally_symmetric": True, "psf": False, "kind": "profile", **lens}
+    return bank
