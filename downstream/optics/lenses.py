@@ -248,6 +248,9 @@ def effects_for_lens(effects: Mapping[str, Any] | Iterable[str], lens: LensSpec 
                                   f"lens= (got lens {lens.spec!r})")
     elif optics is True or isinstance(optics, Mapping):
         out["optics"] = {**(optics if isinstance(optics, Mapping) else {}), "bank": lens.bank}
+    foveation = out.get("foveation")
+    if foveation is True or (isinstance(foveation, Mapping) and not {"bank", "angles"} & set(foveation)):
+        out["foveation"] = {**(foveation if isinstance(foveation, Mapping) else {}), "bank": lens.bank}
     value = out.get("lens")
     if not _on(value) or isinstance(value, Stage):
         return out

@@ -13,7 +13,7 @@ from helpers.stage_contract import check_stage
 from controlgs_adapter import RuntimeState, plugins
 from controlgs_adapter.downstream import color
 from controlgs_adapter.downstream.display import DisplayMapping, display_mapping
-from controlgs_adapter.downstream.foveation import Foveation, foveation
+from controlgs_adapter.downstream.foveation import Foveation, FoveationModel, foveation
 from controlgs_adapter.downstream.lens import DisplayLUTMap, LensPrewarp, lens_prewarp
 from controlgs_adapter.downstream.oled import OLEDEmission, oled_emission
 from controlgs_adapter.downstream.optics.stage import PSFOptics, psf_optics
@@ -42,8 +42,8 @@ def _optics(mode: str) -> dict[str, Any]:
 #: name of a registered stage -> configurations (id, keyword arguments of check_stage)
 CASES: dict[str, list[tuple[str, Callable[[], dict[str, Any]]]]] = {
     "foveation": [("foveation", lambda: dict(
-        stage=Foveation(), functional=lambda x, s, c: foveation(x, s.gaze),
-        state=RuntimeState(gaze=(0.3, -0.2)), off_state=RuntimeState(2.0, 0.5, gaze=(0.3, -0.2))))],
+        stage=Foveation(FoveationModel(slope=1.0)), functional=lambda x, s, c: foveation(x, s.gaze, preset=FoveationModel(slope=1.0)),
+        state=RuntimeState(gaze=(3.0, -2.0)), off_state=RuntimeState(2.0, 0.5)))],
     "lens": [
         ("lens-cardboard-primaries", lambda: _lens(LensPrewarp())),
         ("lens-cardboard-rgb", lambda: _lens(LensPrewarp(basis="rgb"))),
