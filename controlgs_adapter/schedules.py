@@ -14,7 +14,7 @@ module        control value f_m                             per anchor  endpoint
 lens          ||p||_2, p = anchor's display position        yes         0 .. sqrt(2)
 resample      log2(d), d = S / display sampling rate        no          0 .. 3
 display       rho = 1 - P_target / P_ref                    no          0 .. 0.8
-foveation     ||p - gaze||_2 (0 when gaze is None)          yes         0 .. e_max
+foveation     angle(dir(p), gaze) in degrees (0: no gaze)    yes         0 .. 30
 ============  ============================================  ==========  ============
 
 ``p`` (and the gaze) are display-normalised positions: ``ControlGS`` places the image on the
@@ -25,22 +25,27 @@ screen positions. For a lens that is not rotationally symmetric and centred, ``C
 the lens module on the anchor's position in the lens's own frame instead: a signed pair
 (:meth:`LensSchedule.xy_strength`, :mod:`controlgs_adapter.lens_frame`).
 
-The endpoints are configuration (``ControlGS.wrap(endpoints={"lens": (0.0, 1.2)})``); the
-foveation default ``e_max = sqrt(2)`` (gaze at the centre, anchor at a corner) is this library's
-choice, the paper does not give one. A plug-in adds a schedule by subclassing
+The foveation control is an angle: ``dir(p)`` is the direction (degrees from the lens axis) in which
+the display position ``p`` is seen through the lens (:mod:`controlgs_adapter.downstream.optics.visual_angles`),
+the gaze is ``RuntimeState.gaze`` in degrees. The endpoints are configuration
+(``ControlGS.wrap(endpoints={"lens": (0.0, 1.2)})``); the foveation default 0 .. 30 degrees is this
+library's choice, the paper does not give one. A plug-in adds a schedule by subclassing
 :class:`StrengthSchedule` and returning an instance from ``controlgs_register_schedules``.
 """
 
 from __future__ import annotations
 
 import math
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import torch
 
 from .checks import check_tensor
 from .errors import InputValueError
 from .state import RuntimeState
+
+if TYPE_CHECKING:
+    from .downstream.optics.visual_angles import VisualAngles
 
 __all__ = [
     "StrengthSchedule", "LensSchedule", "ResampleSchedule", "DisplaySchedule", "FoveationSchedule",
@@ -173,20 +178,52 @@ class DisplaySchedule(StrengthSchedule):
 
 
 class FoveationSchedule(StrengthSchedule):
-    """Foveation: eccentricity ``||p - gaze||_2`` in display-normalised units; no gaze -> 0."""
+    """Foveation: each anchor's eccentricity in degrees, the angle between the direction its display
+    position is seen in through the lens and the gaze (``RuntimeState.gaze``, degrees); no gaze -> 0.
+
+    Args:
+        lo, hi: endpoints in degrees (default 0 .. 30).
+        angles: the lens's :class:`~controlgs_adapter.downstream.optics.visual_angles.VisualAngles`;
+            None: the shipped Cardboard lens's (built on first use).
+    """
 
     name = "foveation"
     per_anchor = True
-    default_lo, default_hi = 0.0, math.sqrt(2.0)
-    control_doc = "||p - gaze||_2"
+    default_lo, default_hi = 0.0, 30.0
+    control_doc = "eccentricity from the gaze [deg]"
+
+    def __init__(self, lo: float | None = None, hi: float | None = None, angles: VisualAngles | None = None) -> None:
+        super().__init__(lo, hi)
+        self._angles = angles
+
+    @property
+    def angles(self) -> VisualAngles:
+        """The visual-angle map anchors are measured in."""
+        if self._angles is None:
+            from .downstream.optics.bank import PSFBank  # the shipped bank's file is read only when needed
+            from .downstream.optics.visual_angles import VisualAngles
+            self._angles = VisualAngles.of_bank(PSFBank.default())
+        return self._angles
+
+    def with_endpoints(self, lo: float | None = None, hi: float | None = None) -> "FoveationSchedule":
+        return FoveationSchedule(self.lo if lo is None else lo, self.hi if hi is None else hi, self._angles)
+
+    def for_lens(self, angles: VisualAngles) -> "FoveationSchedule":
+        """A copy measuring eccentricities through the lens of ``angles``."""
+        return FoveationSchedule(self.lo, self.hi, angles)
 
     def control(self, state: RuntimeState, screen_xy: torch.Tensor | None) -> torch.Tensor:
         if screen_xy is None:
             raise self._missing_screen_xy()
         if state.gaze is None:
             return torch.zeros(screen_xy.shape[:-1], dtype=screen_xy.dtype, device=screen_xy.device)
-        gaze = torch.tensor(state.gaze, dtype=screen_xy.dtype, device=screen_xy.device)
-        return torch.linalg.vector_norm(screen_xy - gaze, dim=-1)
+        from .downstream.optics.visual_angles import eccentricity  # loads the optics only where a gaze is given
+
+        self.angles.check_gaze(state.gaze)
+        finite = torch.isfinite(screen_xy).all(-1, keepdim=True)
+        directions = self.angles.directions(torch.where(finite, screen_xy, torch.zeros_like(screen_xy)))
+        ecc = eccentricity(directions, state.gaze)
+        return torch.where(finite[..., 0], ecc, torch.full_like(ecc, math.inf))  # behind the camera: far out
 
 
 #: the built-in schedules, registered (one instance each) by :mod:`controlgs_adapter.builtin`

@@ -74,7 +74,10 @@ class RuntimeState:
     Attributes:
         downsample: d = native rendering resolution S / display sampling rate, >= 1 (continuous).
         power_saving: rho = 1 - P_target / P_ref, in [0, 1).
-        gaze: gaze point in normalised screen coordinates ``(x, y)`` in [-1, 1]^2, or None.
+        gaze: gaze direction ``(azimuth, elevation)`` in degrees from the lens axis (x right, y down as the
+            display: positive elevation looks down), each in (-90, 90), or None (no eye tracking).
+            Whether it lies in a lens's field is checked where the lens is known (the foveation stage
+            and schedule).
     """
 
     downsample: float = 1.0
@@ -92,10 +95,10 @@ class RuntimeState:
         if self.gaze is not None:
             gaze = self.gaze.tolist() if isinstance(self.gaze, torch.Tensor) else self.gaze
             if isinstance(gaze, (str, bytes)) or not isinstance(gaze, (tuple, list)) or len(gaze) != 2:
-                raise StateRangeError(f"gaze must be None or a pair (x, y) in [-1, 1]^2, got {brief(self.gaze)}")
+                raise StateRangeError(f"gaze must be None or a pair (azimuth, elevation) in degrees, got {brief(self.gaze)}")
             g = tuple(_real("gaze", v, StateRangeError) for v in gaze)
-            if not all(math.isfinite(v) and -1.0 <= v <= 1.0 for v in g):
-                raise StateRangeError(f"gaze must be None or (x, y) in [-1, 1]^2, got {brief(self.gaze)}")
+            if not all(math.isfinite(v) and -90.0 < v < 90.0 for v in g):
+                raise StateRangeError(f"gaze must be None or (azimuth, elevation) in (-90, 90) degrees, got {brief(self.gaze)}")
             object.__setattr__(self, "gaze", g)
 
 

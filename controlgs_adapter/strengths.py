@@ -3,7 +3,6 @@ endpoints) and their values for a run-time state, per anchor where a schedule is
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Any, Callable, Mapping, Sequence
 
 import torch
@@ -105,11 +104,8 @@ def lens_strength(schedule: LensSchedule, frame: LensFrame, state: RuntimeState,
 
 def display_positions(camera: Camera, screen: torch.Tensor, state: RuntimeState,
                       placement: Placement) -> tuple[torch.Tensor, RuntimeState]:
-    """Image-normalised anchor positions ``[R, 2]`` and gaze -> display-normalised ones (p_v of the
-    lens and foveation schedules): the image placed on the Cardboard display as the optics
-    places it, so a strength follows the radial distance on the display (a square image: as is)."""
-    h, w = camera.height, camera.width
-    if state.gaze is not None:
-        gaze = to_display(torch.tensor(state.gaze, dtype=torch.float64), h, w, placement)
-        state = replace(state, gaze=tuple(gaze.tolist()))
-    return to_display(screen, h, w, placement), state
+    """Image-normalised anchor positions ``[R, 2]`` -> display-normalised ones (p_v of the lens and
+    foveation schedules), with ``state`` (its gaze is a direction in degrees, independent of the
+    image's placement): the image placed on the display as the optics places it, so a strength
+    follows the position on the display (a square image: as is)."""
+    return to_display(screen, camera.height, camera.width, placement), state

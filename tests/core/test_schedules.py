@@ -7,12 +7,14 @@ import math
 
 import pytest
 import torch
+from helpers.banks import radial_lens_bank
 from helpers.strength_oracle import STATES, reference_strengths
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controlgs_adapter import RuntimeState, plugins
 from controlgs_adapter.builtin import controlgs_register_schedules
+from controlgs_adapter.downstream.optics.visual_angles import VisualAngles
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.schedules import (
     BUILTIN_SCHEDULES,
@@ -60,13 +62,24 @@ def test_schedule_strengths_by_hand():
     inverted = LensSchedule(lo=1.0, hi=0.0)  # strongest injection at the centre
     assert torch.allclose(inverted.strength(RuntimeState(), torch.tensor([[0.0, 0.0], [0.6, 0.8]])), torch.tensor([1.0, 0.0]))
 
-    # foveation: alpha = |p - gaze|; distances 1, 0, 5 from the gaze (0.6, 0.8) with the default (0, sqrt 2)
-    got = FoveationSchedule().strength(RuntimeState(gaze=(0.6, 0.8)), xy, dtype=D)
-    assert torch.allclose(got, torch.tensor([1 / math.sqrt(2.0), 0.0, 1.0], dtype=D), rtol=1e-12, atol=0)
-    fov = FoveationSchedule(lo=0.1, hi=0.6)
-    xy = torch.tensor([[0.4, 0.2], [0.1, -0.2], [-0.2, -0.6]], dtype=D)  # distances 0.5, 0, 0.5 from the gaze
-    assert fov.strength(RuntimeState(gaze=(0.1, -0.2)), xy, dtype=D).tolist() == pytest.approx([0.8, 0.0, 0.8])
-    assert fov.strength(RuntimeState(), xy, dtype=D).tolist() == [0.0, 0.0, 0.0]  # no gaze: eccentricity 0
+    # foveation: alpha = the angle in degrees between the gaze and the direction p is seen in, here
+    # through a distortion-free lens with tan(angle) = 0.3 q (default endpoints 0 .. 30 degrees)
+    flat = VisualAngles.of_bank(radial_lens_bank(0.0, C=9))
+    fov = FoveationSchedule(angles=flat)
+    got = fov.strength(RuntimeState(gaze=(0.0, 0.0)), xy, dtype=D)  # (3, 4) is clamped to the corner (1, 1)
+    want = [0.0, math.degrees(math.atan(0.3)) / 30, math.degrees(math.atan(0.3 * math.sqrt(2))) / 30]
+    assert torch.allclose(got, torch.tensor(want, dtype=D), rtol=0, atol=1e-12)
+    horizon = torch.tensor([[0.2, 0.0], [-0.5, 0.0], [1.0, 0.0]], dtype=D)  # on the horizon angles subtract
+    fov = FoveationSchedule(lo=2.0, hi=12.0, angles=flat)
+    got = fov.strength(RuntimeState(gaze=(10.0, 0.0)), horizon, dtype=D)
+    want = [min(max((abs(math.degrees(math.atan(0.3 * q)) - 10.0) - 2.0) / 10.0, 0.0), 1.0) for q in (0.2, -0.5, 1.0)]
+    assert torch.allclose(got, torch.tensor(want, dtype=D), rtol=0, atol=1e-12)
+    assert fov.strength(RuntimeState(), horizon, dtype=D).tolist() == [0.0, 0.0, 0.0]  # no gaze: eccentricity 0
+    assert fov.with_endpoints(hi=20.0).angles is flat
+    behind = fov.strength(RuntimeState(gaze=(0.0, 0.0)), torch.tensor([[math.inf, math.inf]], dtype=D))
+    assert behind.tolist() == [1.0]  # an anchor behind the camera is far from the gaze
+    with pytest.raises(InputValueError, match=r"^gaze \(17, 0\) deg is outside the lens's field"):
+        fov.strength(RuntimeState(gaze=(17.0, 0.0)), horizon)  # atan(0.3) = 16.7 deg at the edge
     assert torch.equal(FoveationSchedule().strength(RuntimeState(), torch.tensor([[0.5, 0.5], [-1.0, 1.0]])),
                        torch.zeros(2))
 
@@ -122,7 +135,7 @@ def test_schedule_refusals_name_the_argument():
 
 def test_schedule_defaults_registration_and_repr():
     table = {LensSchedule: ("lens", True, 0.0, math.sqrt(2.0)), ResampleSchedule: ("resample", False, 0.0, 3.0),
-             DisplaySchedule: ("display", False, 0.0, 0.8), FoveationSchedule: ("foveation", True, 0.0, math.sqrt(2.0))}
+             DisplaySchedule: ("display", False, 0.0, 0.8), FoveationSchedule: ("foveation", True, 0.0, 30.0)}
     registered = plugins.schedules()
     for cls, (name, per_anchor, lo, hi) in table.items():
         s = cls()

@@ -30,8 +30,8 @@ HUGE = 10**400  # beyond float range: float(HUGE) raises OverflowError
 def test_runtime_state_defaults_and_conversions() -> None:
     s = RuntimeState()
     assert (s.downsample, s.power_saving, s.gaze) == (1.0, 0.0, None)
-    s = RuntimeState(downsample=2, power_saving=torch.tensor(0.25), gaze=torch.tensor([1.0, -1.0]))
-    assert (s.downsample, s.power_saving, s.gaze) == (2.0, 0.25, (1.0, -1.0))  # gaze bounds are inclusive
+    s = RuntimeState(downsample=2, power_saving=torch.tensor(0.25), gaze=torch.tensor([89.5, -12.0]))
+    assert (s.downsample, s.power_saving, s.gaze) == (2.0, 0.25, (89.5, -12.0))  # gaze in degrees
     assert type(s.downsample) is float and type(s.power_saving) is float
     assert RuntimeState(downsample=1.0, power_saving=0.999999).power_saving == 0.999999  # below the open bound
     assert RuntimeState(downsample=10**300).downsample == 1e300  # an int within float range is converted
@@ -62,25 +62,25 @@ STATE_REFUSALS = [  # id, keyword arguments, what the message shows after the fi
     ("rho huge", dict(power_saving=HUGE), r"in \[0, 1\), got an int of about 401 digits"),
     ("rho None", dict(power_saving=None), r"real number, got None"),
     ("rho '0.2'", dict(power_saving="0.2"), r"real number, got '0\.2'"),
-    ("gaze (huge, 0)", dict(gaze=(HUGE, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(1000"),
-    ("gaze (0, -huge)", dict(gaze=(0.0, -HUGE)), r"\(x, y\) in \[-1, 1\]\^2, got \(0\.0, -1000"),
-    ("gaze (nan, 0)", dict(gaze=(math.nan, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(nan, 0\.0\)"),
-    ("gaze (0, nan)", dict(gaze=(0.0, math.nan)), r"\(x, y\) in \[-1, 1\]\^2, got \(0\.0, nan\)"),
-    ("gaze (2, 0)", dict(gaze=(2.0, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(2\.0, 0\.0\)"),
-    ("gaze (0, 1.0001)", dict(gaze=(0.0, 1.0001)), r"\(x, y\) in \[-1, 1\]\^2, got \(0\.0, 1\.0001\)"),
-    ("gaze (-1.0001, 0)", dict(gaze=(-1.0001, 0.0)), r"\(x, y\) in \[-1, 1\]\^2, got \(-1\.0001, 0\.0\)"),
+    ("gaze (huge, 0)", dict(gaze=(HUGE, 0.0)), r"\(azimuth, elevation\) in \(-90, 90\) degrees, got \(1000"),
+    ("gaze (0, -huge)", dict(gaze=(0.0, -HUGE)), r"\(azimuth, elevation\) in \(-90, 90\) degrees, got \(0\.0, -1000"),
+    ("gaze (nan, 0)", dict(gaze=(math.nan, 0.0)), r"\(azimuth, elevation\) in \(-90, 90\) degrees, got \(nan, 0\.0\)"),
+    ("gaze (0, nan)", dict(gaze=(0.0, math.nan)), r"\(azimuth, elevation\) in \(-90, 90\) degrees, got \(0\.0, nan\)"),
+    ("gaze (90, 0)", dict(gaze=(90.0, 0.0)), r"\(azimuth, elevation\) in \(-90, 90\) degrees, got \(90\.0, 0\.0\)"),
+    ("gaze (0, 90.0001)", dict(gaze=(0.0, 90.0001)), r"\(azimuth, elevation\) in \(-90, 90\) degrees, got \(0\.0, 90\.0001\)"),
+    ("gaze (-90, 0)", dict(gaze=(-90.0, 0.0)), r"\(azimuth, elevation\) in \(-90, 90\) degrees, got \(-90\.0, 0\.0\)"),
     ("gaze (True, 0)", dict(gaze=(True, 0.0)), r"real number, got True"),
     ("gaze (0, True)", dict(gaze=(0.0, True)), r"real number, got True"),
     ("gaze ('0', 0)", dict(gaze=("0", 0.0)), r"real number, got '0'"),
     ("gaze ('a', 0)", dict(gaze=("a", 0.0)), r"real number, got 'a'"),
     ("gaze (None, 0)", dict(gaze=(None, 0.0)), r"real number, got None"),
-    ("gaze [[[0]]]", dict(gaze=[[[0.0]]]), r"a pair \(x, y\).*got \[\[\[0\.0\]\]\]"),
-    ("gaze 5", dict(gaze=5), r"a pair \(x, y\).*got 5"),
-    ("gaze 0.5", dict(gaze=0.5), r"a pair \(x, y\).*got 0\.5"),
-    ("gaze 'ab'", dict(gaze="ab"), r"a pair \(x, y\).*got 'ab'"),
-    ("gaze (0,)", dict(gaze=(0.0,)), r"a pair \(x, y\).*got \(0\.0,\)"),
-    ("gaze (0, 0, 0)", dict(gaze=(0.0, 0.0, 0.0)), r"a pair \(x, y\).*got \(0\.0, 0\.0, 0\.0\)"),
-    ("gaze {'x': 0}", dict(gaze={"x": 0}), r"a pair \(x, y\).*got \{'x': 0\}"),
+    ("gaze [[[0]]]", dict(gaze=[[[0.0]]]), r"a pair \(azimuth, elevation\) in degrees.*got \[\[\[0\.0\]\]\]"),
+    ("gaze 5", dict(gaze=5), r"a pair \(azimuth, elevation\) in degrees.*got 5"),
+    ("gaze 0.5", dict(gaze=0.5), r"a pair \(azimuth, elevation\) in degrees.*got 0\.5"),
+    ("gaze 'ab'", dict(gaze="ab"), r"a pair \(azimuth, elevation\) in degrees.*got 'ab'"),
+    ("gaze (0,)", dict(gaze=(0.0,)), r"a pair \(azimuth, elevation\) in degrees.*got \(0\.0,\)"),
+    ("gaze (0, 0, 0)", dict(gaze=(0.0, 0.0, 0.0)), r"a pair \(azimuth, elevation\) in degrees.*got \(0\.0, 0\.0, 0\.0\)"),
+    ("gaze {'x': 0}", dict(gaze={"x": 0}), r"a pair \(azimuth, elevation\) in degrees.*got \{'x': 0\}"),
 ]
 
 

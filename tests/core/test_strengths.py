@@ -9,14 +9,16 @@ from typing import Any
 
 import pytest
 import torch
-from helpers.banks import affine_bank
+from helpers.banks import affine_bank, radial_lens_bank
 from helpers.scaffold_standin import ScaffoldStandIn, make_camera
-from helpers.strength_oracle import STATES, reference_strengths
+from helpers.strength_oracle import STATES, cardboard_eccentricity, reference_strengths
 from helpers.wrapping import assert_unchanged, decode, model_record, refusing_stand_in
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controlgs_adapter import ControlGS, RuntimeState
+from controlgs_adapter.downstream.optics.bank import PSFBank
+from controlgs_adapter.downstream.optics.visual_angles import VisualAngles
 from controlgs_adapter.downstream.placement import to_display
 from controlgs_adapter.errors import InputValueError
 
@@ -58,12 +60,15 @@ def test_lens_strength_follows_the_radial_distance_on_the_display():
                                           [0.0, 0.0, 0.0], [-32 * dist / fx, 18 * dist / fx, 0.0]]))
     cgs = ControlGS.wrap(model, modules=("lens", "foveation"))
     try:
-        lam = cgs.strengths(RuntimeState(gaze=(0.0, -1.0)), cam)
+        top = (0.0, -9 / 16)  # the image's top edge's middle on the display
+        gaze = tuple(VisualAngles.of_bank(PSFBank.default()).directions(torch.tensor(top, dtype=torch.float64)).tolist())
+        lam = cgs.strengths(RuntimeState(gaze=gaze), cam)
         r2 = math.sqrt(2)
         assert torch.allclose(lam["lens"], torch.tensor([1 / r2, 9 / 16 / r2, 0.0, math.hypot(1, 9 / 16) / r2]), atol=1e-6)
-        # gaze at the top edge's middle, also placed on the display
-        fov = (torch.tensor([math.hypot(1, 9 / 16), 0.0, 9 / 16, math.hypot(1, 9 / 8)]) / r2).clamp(max=1)
-        assert torch.allclose(lam["foveation"], fov, atol=1e-6)
+        # the gaze is seen where that display position is: eccentricities in degrees over the default 30
+        fov = [cardboard_eccentricity(p, gaze) / 30 for p in ((1.0, 0.0), top, (0.0, 0.0), (-1.0, 9 / 16))]
+        assert float(lam["foveation"][1]) < 1e-4 and fov[3] > fov[0] > fov[2] > 0.2
+        assert torch.allclose(lam["foveation"], torch.tensor(fov), atol=1e-5)
         square = make_camera(width=36, height=36)
         lam_sq = cgs.strengths(RuntimeState(), square)["lens"]
         xy = square.normalized_screen(model._anchor.detach())
@@ -74,23 +79,31 @@ def test_lens_strength_follows_the_radial_distance_on_the_display():
         cgs.unwrap()
 
 
-def test_gaze_is_placed_on_the_display_like_the_anchors():
-    """"fit" placement on a 64 x 48 image: y is scaled by 48 / 64 = 0.75; an anchor at the gaze has
-    eccentricity 0."""
+def test_foveation_strength_is_the_eccentricity_in_degrees_through_the_lens():
+    """"fit" placement on a 64 x 48 image: y is scaled by 48 / 64 = 0.75 on the display; an anchor seen
+    in the gaze direction has eccentricity 0; the lens passed to wrap() is the one measured through."""
     model = ScaffoldStandIn(6, feat_dim=4, n_offsets=2, seed=1)
     cam = make_camera()
     cgs = ControlGS.wrap(model, modules=("foveation",))
-    screen = cam.normalized_screen(model._anchor.detach()[[2]])[0]
-    gaze = (float(screen[0]), float(screen[1]))
+    screen = cam.normalized_screen(model._anchor.detach()[[2]])[0].double()
+    shown = (float(screen[0]), 0.75 * float(screen[1]))
+    cardboard = VisualAngles.of_bank(PSFBank.default())
+    gaze = tuple(cardboard.directions(torch.tensor(shown, dtype=torch.float64)).tolist())
     lam = cgs.strengths(RuntimeState(gaze=gaze), cam, torch.tensor([2]))["foveation"]
     assert float(lam[0]) < 1e-6
-    # gaze at the image centre: eccentricity = |(x, 0.75 y)| / sqrt 2
     lam = cgs.strengths(RuntimeState(gaze=(0.0, 0.0)), cam, torch.tensor([2]))["foveation"]
-    want = math.hypot(gaze[0], 0.75 * gaze[1]) / math.sqrt(2.0)
-    assert math.isclose(float(lam[0]), want, rel_tol=1e-5)
+    assert math.isclose(float(lam[0]), cardboard_eccentricity(shown, (0.0, 0.0)) / 30, rel_tol=1e-5)
     cgs.placement = "stretch"  # stretched: display positions are the screen positions
     lam = cgs.strengths(RuntimeState(gaze=(0.0, 0.0)), cam, torch.tensor([2]))["foveation"]
-    assert math.isclose(float(lam[0]), math.hypot(*gaze) / math.sqrt(2.0), rel_tol=1e-5)
+    want = cardboard_eccentricity((float(screen[0]), float(screen[1])), (0.0, 0.0)) / 30
+    assert math.isclose(float(lam[0]), want, rel_tol=1e-5)
+    with pytest.raises(InputValueError, match=r"^gaze \(40, 0\) deg is outside the lens's field"):
+        cgs.strengths(RuntimeState(gaze=(40.0, 0.0)), cam)
+    cgs.unwrap()
+    # through another lens: tan(angle) = 0.3 q (helpers.banks.radial_lens_bank without distortion)
+    cgs = ControlGS.wrap(model, modules=("foveation",), lens=radial_lens_bank(0.0, C=9))
+    lam = cgs.strengths(RuntimeState(gaze=(0.0, 0.0)), cam, torch.tensor([2]))["foveation"]
+    assert math.isclose(float(lam[0]), math.degrees(math.atan(0.3 * math.hypot(*shown))) / 30, rel_tol=1e-5)
     cgs.unwrap()
 
 
@@ -102,7 +115,7 @@ _MODEL = ScaffoldStandIn(num_anchors=25, seed=3)
 def test_strengths_follow_eqs_10_11_at_each_anchors_display_position(state, lo, hi, seed):
     cam = make_camera(width=40, height=30)
     cgs = ControlGS.wrap(_MODEL, modules=("lens", "resample", "display", "foveation"),
-                         endpoints={"lens": (lo, hi), "foveation": (lo, hi)})
+                         endpoints={"lens": (lo, hi), "foveation": (10 * lo, 10 * hi)})
     try:
         # independent pinhole projection in float64 of every anchor
         pts = _MODEL._anchor.detach().double()
@@ -118,12 +131,10 @@ def test_strengths_follow_eqs_10_11_at_each_anchors_display_position(state, lo, 
         got = cgs.strengths(state, cam, ids)
         xy = xy_all[ids]
         assert bool((xy.abs() > 1).any())  # some anchors are off screen
-        # anchors and gaze on the display ("fit" placement: the 40 px width spans it, the height 30/40)
+        # anchors on the display ("fit" placement: the 40 px width spans it, the height 30/40)
         xy = xy * torch.tensor([1.0, 30 / 40], dtype=torch.float64)
-        if state.gaze is not None:
-            state = RuntimeState(state.downsample, state.power_saving, (state.gaze[0], state.gaze[1] * 30 / 40))
         for i in range(len(ids)):
-            want = reference_strengths(state, (float(xy[i, 0]), float(xy[i, 1])), (lo, hi), (lo, hi))
+            want = reference_strengths(state, (float(xy[i, 0]), float(xy[i, 1])), (lo, hi), (10 * lo, 10 * hi))
             for m in want:
                 assert math.isclose(float(got[m][i]), want[m], abs_tol=2e-6), (m, i)
     finally:
