@@ -33,11 +33,12 @@ from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_K
                                                lens_frame_of, valid_fingerprint, write_adapter)
 from .lens_frame import LensFrame
 from .load_plan import load_into, plan_load, spec_endpoints
-from .schedules import LensSchedule, StrengthSchedule
+from .schedules import FoveationSchedule, LensSchedule, StrengthSchedule
 from .state import Camera, RuntimeState
 from .strengths import check_modules, module_strengths
 from .targets import ATTACHED, Target, check_shared_layers, inspect_target
 from .downstream.optics.bank import PSFBank
+from .downstream.optics.visual_angles import VisualAngles
 from .downstream.placement import Placement
 
 __all__ = ["ControlGS", "Target", "ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "DEFAULT_ADAPTER"]
@@ -142,6 +143,9 @@ class ControlGS:
         chosen = select_backend(model, backend)
         schedules = check_modules(modules, cond_dim, endpoints)
         lens_frame = _lens_frame(lens, lens_conditioning, schedules, cond_dim)
+        fov = schedules.get("foveation")
+        if isinstance(fov, FoveationSchedule) and isinstance(lens, PSFBank):  # eccentricities through this lens
+            schedules["foveation"] = fov.for_lens(VisualAngles.of_bank(lens))
         if targets is None:
             targets = chosen.default_targets(model)
         if isinstance(targets, str) or not isinstance(targets, Sequence) or not targets:
