@@ -22,7 +22,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Protocol, runtime_checkable
 
@@ -53,7 +53,8 @@ __all__ = ["TrainConfig", "Trainer", "TrainingJob", "Views", "DEFAULT_EFFECTS", 
 DEFAULT_EFFECTS: dict[str, Any] = {"lens": True, "resample": True, "display": True, "oled": True, "optics": True}
 
 # condition module -> downstream stages that make it useful
-_MODULE_STAGES = {"lens": ("lens", "optics"), "resample": ("resample",), "display": ("display",)}
+_MODULE_STAGES = {"lens": ("lens", "optics"), "resample": ("resample",), "display": ("display",),
+                  "foveation": ("foveation",)}
 
 
 def _pipeline_lens(pipeline: Pipeline) -> PSFBank | None:
@@ -147,6 +148,9 @@ class TrainConfig:
         lens_conditioning: the lens condition's frame (``ControlGS.wrap``): ``"radius"`` about the
             lens axis, ``"xy"`` the signed position in the lens's own coordinates (``cond_dim`` even),
             None: from the lens (radius for a centred, rotationally symmetric one, else xy).
+        gaze_jitter_deg: with a foveation stage, the adapter is conditioned on the sampled gaze offset by
+            up to this many degrees (uniform in a disc) from the gaze the stage uses: robustness to
+            eye-tracker lag; 0: the same gaze.
     """
 
     iterations: int = 10_000
@@ -163,6 +167,7 @@ class TrainConfig:
     seed: int = 0
     batch_size: int = 1
     lens_conditioning: str | None = None
+    gaze_jitter_deg: float = 0.0
 
     def __post_init__(self) -> None:
         numbers: dict[str, dict[str, Any]] = {
@@ -170,7 +175,7 @@ class TrainConfig:
                    "cond_dim": dict(integer=True, low=1), "max_downsample": dict(low=1.0, high=1e4),
                    "max_power_saving": dict(low=0.0, high=1.0, high_open=True), "psf_fraction": dict(low=0.0, high=1.0),
                    "checkpoint_every": dict(integer=True, low=0), "seed": dict(integer=True, low=0, high=2**63 - 1),
-                   "batch_size": dict(integer=True, low=1)}
+                   "batch_size": dict(integer=True, low=1), "gaze_jitter_deg": dict(low=0.0, high=30.0)}
         for name, limits in numbers.items():
             if limits.get("integer"):  # counts and sizes fit an int64 (a float product of them stays finite)
                 limits = {"high": 2**63 - 1, **limits}
@@ -273,13 +278,29 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def sample(self) -> tuple[int, RuntimeState]:
-        """Draw a training view index and a run-time state (from :attr:`generator`)."""
+        """Draw a training view index and a run-time state (from :attr:`generator`); with a foveation
+        stage, the gaze is the direction of a display position drawn uniformly (inside the lens's field)."""
         g, c = self.generator, self.config
         view = int(torch.randint(len(self.views), (1,), generator=g))
         u = torch.rand(2, generator=g, dtype=torch.float64)
         d = math.exp(float(u[0]) * math.log(c.max_downsample)) if "resample" in self.pipeline else 1.0
         rho = float(u[1]) * c.max_power_saving if "display" in self.pipeline else 0.0
-        return view, RuntimeState(downsample=min(d, c.max_downsample), power_saving=rho)
+        gaze = None
+        if "foveation" in self.pipeline and hasattr(self.pipeline["foveation"], "angles"):
+            xy = torch.rand(2, generator=g, dtype=torch.float64) * 2 - 1
+            gaze = tuple(self.pipeline["foveation"].angles.directions(xy).tolist())
+        return view, RuntimeState(downsample=min(d, c.max_downsample), power_saving=rho, gaze=gaze)
+
+    def conditioning_state(self, state: RuntimeState) -> RuntimeState:
+        """The state the adapter is conditioned on: ``state`` with its gaze offset by up to
+        ``gaze_jitter_deg`` (uniform in a disc, from :attr:`generator`; kept where it would leave the field)."""
+        jitter = self.config.gaze_jitter_deg
+        if state.gaze is None or jitter == 0.0:
+            return state
+        u = torch.rand(2, generator=self.generator, dtype=torch.float64)
+        r, t = jitter * math.sqrt(float(u[0])), 2 * math.pi * float(u[1])
+        gaze = (state.gaze[0] + r * math.cos(t), state.gaze[1] + r * math.sin(t))
+        return replace(state, gaze=gaze) if self.pipeline["foveation"].angles.in_field(gaze) else state
 
     def load_view(self, i: int) -> tuple[Camera, torch.Tensor]:
         """``views[i]``; the first time a view is read (a lazily loaded image: when it is first
@@ -315,13 +336,15 @@ class Trainer:
             clock.start()
         set_optics_mode(self.pipeline, self.optics_mode(self.iteration))
         batch = [self.sample() for _ in range(self.config.batch_size)]  # the global batch, the same on every rank
+        conditioned = [self.conditioning_state(state) for _, state in batch]  # drawn on every rank alike
         self.optimizer.zero_grad()  # set_to_none=True: the default since torch 2.0
         value = 0.0
-        for view, state in self.dist.shard(batch):  # this process's share
+        for view, state, cond_state in self.dist.shard([(v, s, c) for (v, s), c in zip(batch, conditioned)]):
             cam, gt = self.load_view(view)
             lap("sample")
             with value_checks(False):  # no host syncs in the forward; the loss is checked below
-                image = render_view(self.cgs, self.model, cam, state, self.background, renderer=self.renderer)
+                image = render_view(self.cgs, self.model, cam, cond_state, self.background,
+                                    renderer=self.renderer)
                 if tuple(gt.shape) != tuple(image.shape):
                     raise InputValueError(f"view {view}: image is {list(gt.shape)}, its camera renders {list(image.shape)}")
                 gt = gt.to(image.device, non_blocking=True)

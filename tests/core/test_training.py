@@ -100,7 +100,7 @@ def test_train_config_defaults_are_the_papers():
     assert c.as_header() == {"iterations": 10_000, "lr": 3e-3, "modules": None, "cond_dim": 8, "state_blind": False,
                              "max_downsample": 8.0, "max_power_saving": 0.8, "psf_fraction": 0.1, "psf_mode": "fast",
                              "loss": {"l1": 0.8, "ssim": 0.2, "mse": 10.0, "lpips": 0.0}, "checkpoint_every": 500,
-                             "seed": 0, "batch_size": 1}
+                             "seed": 0, "batch_size": 1, "lens_conditioning": None, "gaze_jitter_deg": 0.0}
     h = TrainConfig(modules=["lens", "display"]).as_header()
     assert h["modules"] == ["lens", "display"] and TrainConfig(modules=["lens"]).modules == ("lens",)
     assert TrainConfig(modules="lens").modules == ("lens",)  # one module name is one module
@@ -143,7 +143,7 @@ def test_effects_to_modules():
     assert modules_for({"lens": None, "optics": None, "resample": False, "display": 0.5}) == ("display",)
     assert modules_for({"display": True, "resample": True}) == ("resample", "display")  # the library's order
     assert modules_for({"resample": True, "oled": True}) == ("resample",)
-    assert modules_for({"oled": True, "foveation": True}) == ()
+    assert modules_for({"oled": True, "foveation": True}) == ("foveation",)
 
 
 def test_views_fingerprint_and_cameras():
@@ -185,6 +185,38 @@ def test_trainer_setup_and_sampling_branches(trainer, tiny):
     trainer.generator.manual_seed(3)
     v, s = trainer.sample()
     assert v == view and s.downsample == math.exp(float(u[0]) * math.log(8.0)) and s.power_saving == float(u[1]) * 0.8
+
+
+def test_gaze_is_sampled_in_the_field_and_jittered_for_the_adapter(tiny):
+    """With a foveation stage the gaze is the direction (through the lens) of a display position drawn
+    after d and rho; the adapter is conditioned on it offset by at most gaze_jitter_deg; the foveation
+    module trains and moves."""
+    scene, model = tiny
+    config = TrainConfig(iterations=1, checkpoint_every=0, seed=4, gaze_jitter_deg=2.0, lr=0.1)
+    t = Trainer(model, scene.views("train"), config, effects={"foveation": True, "resample": True})
+    try:
+        assert t.cgs.modules == ("resample", "foveation")
+        angles = t.pipeline["foveation"].angles
+        g = torch.Generator().manual_seed(config.seed)
+        offsets = []
+        for _ in range(10):
+            torch.randint(len(t.views), (1,), generator=g)
+            torch.rand(2, generator=g, dtype=torch.float64)
+            xy = torch.rand(2, generator=g, dtype=torch.float64) * 2 - 1
+            _, state = t.sample()
+            assert state.gaze == pytest.approx(tuple(angles.directions(xy).tolist()), abs=1e-12) and angles.in_field(state.gaze)
+            cond = t.conditioning_state(state)
+            torch.rand(2, generator=g, dtype=torch.float64)  # the jitter's draw
+            offsets.append(math.dist(cond.gaze, state.gaze))
+            assert (cond.downsample, cond.power_saving) == (state.downsample, state.power_saving)
+        assert max(offsets) <= 2.0 and len(set(offsets)) > 5
+        before = _adapter(t)
+        t.step()
+        assert any(not torch.equal(before[k], v) for k, v in t.cgs.injector.state_dict().items())
+    finally:
+        t.cgs.unwrap()
+    with pytest.raises(InputValueError, match=r"TrainConfig\.gaze_jitter_deg"):
+        TrainConfig(gaze_jitter_deg=-1.0)
 
 
 @pytest.mark.parametrize("effects", [{"resample": True}, {"display": True}], ids=["resample", "display"])
