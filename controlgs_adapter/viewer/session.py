@@ -16,25 +16,29 @@ import io
 import math
 import time
 from collections import OrderedDict
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Hashable, Mapping
 
 import torch
 import torch.nn.functional as F
 
+from controlgs_adapter.rendering.protocol import Renderer, model_device, render_view, renderer_for
+
 from ..checks import brief, check_number
 from ..controlgs import ControlGS
 from ..downstream.oled import oled_emission
+from ..downstream.optics.bank import PSFBank
+from ..downstream.optics.lenses import LensSpec, load_lens
 from ..downstream.optics.stage import MODES, set_optics_mode
+from ..downstream.optics.visual_angles import VisualAngles
+from ..downstream.placement import to_display
 from ..errors import InputValueError
 from ..evaluation import BASELINES, make_pipeline, scores
-from ..report import METHOD_LABELS
 from ..metrics import optional_metrics
-from controlgs_adapter.rendering.protocol import Renderer, model_device, render_view, renderer_for
+from ..report import METHOD_LABELS
 from ..state import Camera, RuntimeState
 from ..training import DEFAULT_EFFECTS, view_cameras
-from ..downstream.optics.lenses import LensSpec, load_lens
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..downstream.pipeline import Pipeline
@@ -75,7 +79,9 @@ class ViewState:
 
     @property
     def runtime(self) -> RuntimeState:
-        return RuntimeState(downsample=self.downsample, power_saving=self.power_saving, gaze=self.gaze)
+        """The run-time state without the gaze: a clicked image position becomes a direction in degrees
+        through the session's lens (:meth:`ViewerSession.runtime`)."""
+        return RuntimeState(downsample=self.downsample, power_saving=self.power_saving)
 
     @property
     def effects(self) -> dict[str, bool]:
@@ -121,7 +127,8 @@ def parse_state(data: Any, views: int) -> ViewState:
     gaze = data.get("gaze")
     if gaze is not None:
         if not isinstance(gaze, list) or len(gaze) != 2:
-            raise InputValueError(f"gaze must be null or [x, y] in [-1, 1] (normalised image coordinates), got {brief(gaze)}")
+            raise InputValueError(f"gaze must be null or [x, y] in [-1, 1] (the clicked image position, normalised), "
+                                  f"got {brief(gaze)}")
         gaze = (check_number("gaze x", gaze[0], low=-1, high=1), check_number("gaze y", gaze[1], low=-1, high=1))
     return ViewState(int(view), values["azimuth"], values["elevation"], values["downsample"], values["power_saving"],
                      optics, tuple(s for s in STAGES if s in stages), gaze)
@@ -282,6 +289,7 @@ class ViewerSession:
         self._frames = _Cache(16)    # (camera key) -> (camera, gt or None, ss render, png of both)
         self._small = _Cache(32)     # (camera key, w, h) -> no-SS render
         self._last: tuple[int, dict[str, torch.Tensor], torch.Tensor | None] | None = None
+        self._angles: tuple[PSFBank, VisualAngles] | None = None  # the lens's visual angles, for the gaze
 
     def info(self) -> dict[str, Any]:
         """What the page needs to build its controls."""
@@ -313,6 +321,19 @@ class ViewerSession:
 
         return self._frames.get_or((state.view, state.azimuth, state.elevation), make)
 
+    def runtime(self, state: ViewState, camera: Camera) -> RuntimeState:
+        """``state``'s run-time state, its gaze (a position on ``camera``'s image, image-normalised) turned
+        into the direction in degrees it is seen in through the session's lens (the image placed "fit")."""
+        rs = state.runtime
+        if state.gaze is None:
+            return rs
+        bank = PSFBank.default() if self.lens is None else self.lens.bank
+        if self._angles is None or self._angles[0] is not bank:
+            self._angles = (bank, VisualAngles.of_bank(bank))
+        xy = torch.tensor(state.gaze, dtype=torch.float64).clamp(-0.999, 0.999)  # inside the display's outline
+        gaze = self._angles[1].directions(to_display(xy, camera.height, camera.width))
+        return replace(rs, gaze=(float(gaze[0]), float(gaze[1])))
+
     def render(self, state: ViewState, check: Callable[[], None] = lambda: None, tag: int = 0) -> dict[str, Any]:
         """Every method at ``state``: base64 PNGs (``rendered``, ``eye``, ``diff``, lens ``overlay``),
         PSNR / SSIM against the ground truth (as :func:`evaluate_grid` computes them) and the
@@ -322,7 +343,7 @@ class ViewerSession:
         with torch.no_grad():
             cam, gt, full, pngs = self._frame(state)
             check()
-            pipeline, rs = self._pipeline(state), state.runtime
+            pipeline, rs = self._pipeline(state), self.runtime(state, cam)
             reference = full if gt is None else gt
             out: dict[str, Any] = {"state": state.to_json(), "size": [cam.width, cam.height], "has_truth": gt is not None,
                                    "gt": pngs.get("gt"), "methods": []}

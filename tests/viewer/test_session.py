@@ -19,6 +19,8 @@ from helpers.viewer_sessions import SIZE, builtin_session, decode_png
 from PIL import Image
 
 from controlgs_adapter import plugins
+from controlgs_adapter.downstream.optics.bank import PSFBank
+from controlgs_adapter.downstream.optics.visual_angles import VisualAngles
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.evaluation import evaluate_grid
 from controlgs_adapter.rendering import FunctionRenderer
@@ -148,7 +150,7 @@ def test_parse_state_values_effects_and_json_round_trip() -> None:
     assert (s.view, s.azimuth, s.elevation, s.downsample, s.power_saving, s.optics) == (1, -30.0, 12.5, 3.7, 0.25, "exact")
     assert s.stages == ("lens", "optics") and s.gaze == (0.5, -1.0) and s.orbit
     assert s.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": True}
-    assert s.runtime.downsample == 3.7 and s.runtime.gaze == (0.5, -1.0)
+    assert s.runtime.downsample == 3.7 and s.runtime.gaze is None  # the session turns the click into degrees
     js = s.to_json()
     assert js["stages"] == ["lens", "optics"] and js["gaze"] == [0.5, -1.0]
     assert parse_state(json.loads(json.dumps(js)), 2) == s
@@ -159,7 +161,7 @@ def test_parse_state_values_effects_and_json_round_trip() -> None:
     assert parse_state({"elevation": 5}, 1).orbit and ViewState(azimuth=0.0, elevation=-5.0).orbit and ViewState(azimuth=3.0).orbit
     lens = ViewState(stages=("lens",), gaze=(0.25, -0.5))
     assert lens.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": False}
-    assert lens.runtime.gaze == (0.25, -0.5)
+    assert lens.runtime.gaze is None and lens.gaze == (0.25, -0.5)
 
 
 def test_parse_state_bounds_are_inclusive() -> None:
@@ -526,6 +528,13 @@ def test_render_matches_evaluate_grid(small: Any) -> None:
 
 def test_session_render_strengths_diffs_and_extra(small: Any) -> None:
     session, _ = small
+    cam = session.cameras[0]
+    square = VisualAngles.of_bank(PSFBank.default())  # a square image spans the Cardboard display
+    for click in ((0.0, 0.0), (0.5, -0.25), (1.0, 1.0)):
+        rs = session.runtime(parse_state({"downsample": 4.0, "gaze": list(click)}, 1), cam)
+        inside = [min(max(v, -0.999), 0.999) for v in click]
+        want = square.directions(torch.tensor(inside, dtype=torch.float64)).tolist()
+        assert rs.downsample == 4.0 and rs.gaze == pytest.approx(tuple(want), abs=1e-12) and square.in_field(rs.gaze)
     out = session.render(parse_state({"downsample": 4.0, "power_saving": 0.8, "gaze": [0.0, 0.0]}, 1), tag=11)
     assert out["size"] == [SIZE, SIZE] and out["has_truth"] and out["server_ms"] >= 0
     by = {m["name"]: m for m in out["methods"]}
