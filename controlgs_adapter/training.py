@@ -33,11 +33,13 @@ from .clock import PhaseClock
 from .checks import check_number, value_checks
 from .controlgs import ControlGS
 from .distributed import DistContext
+from .downstream.foveation import Foveation
 from .downstream.oled import oled_emission
 from .downstream.optics.lenses import LensSpec, effects_for_lens
 from .downstream.bank_maps import bank_fingerprint
 from .downstream.optics.bank import PSFBank
 from .downstream.optics.stage import set_optics_mode
+from .downstream.optics.visual_angles import VisualAngles
 from .downstream.pipeline import Pipeline
 from .errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.checkpoint import Checkpoint, read_checkpoint, write_checkpoint
@@ -286,10 +288,16 @@ class Trainer:
         d = math.exp(float(u[0]) * math.log(c.max_downsample)) if "resample" in self.pipeline else 1.0
         rho = float(u[1]) * c.max_power_saving if "display" in self.pipeline else 0.0
         gaze = None
-        if "foveation" in self.pipeline and hasattr(self.pipeline["foveation"], "angles"):
-            xy = torch.rand(2, generator=g, dtype=torch.float64) * 2 - 1
-            gaze = tuple(self.pipeline["foveation"].angles.directions(xy).tolist())
+        angles = self._gaze_angles()
+        if angles is not None:
+            a, e = angles.directions(torch.rand(2, generator=g, dtype=torch.float64) * 2 - 1).tolist()
+            gaze = (a, e)
         return view, RuntimeState(downsample=min(d, c.max_downsample), power_saving=rho, gaze=gaze)
+
+    def _gaze_angles(self) -> VisualAngles | None:
+        """The visual angles of the pipeline's foveation stage (where gazes are drawn), or None."""
+        stage = self.pipeline["foveation"] if "foveation" in self.pipeline else None
+        return stage.angles if isinstance(stage, Foveation) else None
 
     def conditioning_state(self, state: RuntimeState) -> RuntimeState:
         """The state the adapter is conditioned on: ``state`` with its gaze offset by up to
@@ -300,7 +308,8 @@ class Trainer:
         u = torch.rand(2, generator=self.generator, dtype=torch.float64)
         r, t = jitter * math.sqrt(float(u[0])), 2 * math.pi * float(u[1])
         gaze = (state.gaze[0] + r * math.cos(t), state.gaze[1] + r * math.sin(t))
-        return replace(state, gaze=gaze) if self.pipeline["foveation"].angles.in_field(gaze) else state
+        angles = self._gaze_angles()
+        return replace(state, gaze=gaze) if angles is None or angles.in_field(gaze) else state
 
     def load_view(self, i: int) -> tuple[Camera, torch.Tensor]:
         """``views[i]``; the first time a view is read (a lazily loaded image: when it is first

@@ -117,7 +117,7 @@ def _blend(image: torch.Tensor, level: torch.Tensor, count: int) -> torch.Tensor
     return out.reshape(image.shape)
 
 
-def foveation(image: torch.Tensor, gaze: Sequence[float] | None, *, preset: str | FoveationModel | None = "guenter-0.022",
+def foveation(image: torch.Tensor, gaze: tuple[float, float] | None, *, preset: str | FoveationModel | None = "guenter-0.022",
               angles: VisualAngles | None = None, fixed: bool = False, placement: Placement = "fit") -> torch.Tensor:
     """Functional twin of :class:`Foveation`.
 
