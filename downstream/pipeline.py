@@ -7,7 +7,7 @@ so the pipeline decodes the sRGB render once before the first stage that runs an
 result once at the end):
 
     order  name       paper            resolution           domain
-      5    foveation  (stub)           keep                 linear   (identity, always skipped)
+      5    foveation  (gaze, degrees)  keep                 linear   (identity without a gaze)
      10    lens       P_lens           keep (S)             linear
      20    resample   P_res            S -> round(S/d)      linear
      30    display    P_disp           keep (S/d)           linear
