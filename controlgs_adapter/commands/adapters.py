@@ -19,16 +19,18 @@ DEMO_ITERATIONS = 1000
 
 
 def effects_from(names: str | list[str] | None) -> dict[str, Any]:
-    """Downstream effects from a comma-separated list of stages (None: all, :data:`DEFAULT_EFFECTS`)."""
+    """Downstream effects from a comma-separated list of stages (None: :data:`DEFAULT_EFFECTS`; ``foveation``
+    is on only where named)."""
     from ..training import DEFAULT_EFFECTS
 
     if names is None:
         return dict(DEFAULT_EFFECTS)
+    known = ("foveation", *DEFAULT_EFFECTS)
     chosen = [n.strip() for n in names.split(",") if n.strip()] if isinstance(names, str) else list(names)
-    bad = [n for n in chosen if n not in DEFAULT_EFFECTS]
+    bad = [n for n in chosen if n not in known]
     if bad or not chosen:
-        raise InputValueError(f"--effects must be a comma-separated list of {', '.join(DEFAULT_EFFECTS)}, got {names!r}")
-    return {n: True for n in DEFAULT_EFFECTS if n in chosen}
+        raise InputValueError(f"--effects must be a comma-separated list of {', '.join(known)}, got {names!r}")
+    return {n: True for n in known if n in chosen}
 
 
 def add_training(p: argparse.ArgumentParser) -> None:
@@ -48,6 +50,9 @@ def add_training(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lens-conditioning", choices=("radius", "xy"), default=None,
                    help="the lens condition's frame: radius about the lens axis or the signed (x, y) position in the "
                         "lens's own coordinates (default: radius for a centred, rotationally symmetric lens, else xy)")
+    p.add_argument("--gaze-jitter-deg", type=float, default=base.gaze_jitter_deg,
+                   help="with the foveation effect: condition the adapter on the gaze offset by up to this many "
+                        "degrees from the one the stage uses (eye-tracker lag; default 0)")
     p.add_argument("--checkpoint-every", type=int, default=base.checkpoint_every,
                    help=f"checkpoint every this many iterations (default {base.checkpoint_every}; 0: only at the end)")
 
@@ -90,7 +95,8 @@ def train_config(args: argparse.Namespace, name: str, seed: int | None = None) -
                        state_blind=blind, psf_fraction=args.psf_fraction, psf_mode=args.optics,
                        checkpoint_every=args.checkpoint_every, seed=args.seed if seed is None else seed,
                        batch_size=getattr(args, "batch_size", base.batch_size),
-                       lens_conditioning=getattr(args, "lens_conditioning", None))
+                       lens_conditioning=getattr(args, "lens_conditioning", None),
+                       gaze_jitter_deg=getattr(args, "gaze_jitter_deg", base.gaze_jitter_deg))
 
 
 def training_job(args: argparse.Namespace, names: Sequence[str], seeds: int = 1) -> Any:

@@ -26,6 +26,7 @@ def test_effects_from_keeps_pipeline_order() -> None:
     assert effects_from([names[-1], names[0]]) == got
     assert effects_from(f" {names[0]} ,, ") == {names[0]: True}
     assert effects_from(None) == dict(DEFAULT_EFFECTS) and effects_from(None) is not DEFAULT_EFFECTS
+    assert "foveation" not in DEFAULT_EFFECTS and list(effects_from(f"{names[0]},foveation")) == ["foveation", names[0]]
     for bad in ("", " , ", "nope", f"{names[0]},bloom", []):
         with pytest.raises(InputValueError, match="^--effects must be a comma-separated list of"):
             effects_from(bad)  # type: ignore[arg-type]
@@ -56,9 +57,9 @@ def test_training_defaults_come_from_train_config() -> None:
 def test_training_options_reach_train_config() -> None:
     args = build_parser().parse_args(["train", "--iterations", "7", "--lr", "0.02", "--cond-dim", "3", "--psf-fraction",
                                       "0.25", "--optics", "exact", "--checkpoint-every", "2", "--seed", "5",
-                                      "--batch-size", "4", "--lens-conditioning", "xy"])
+                                      "--batch-size", "4", "--lens-conditioning", "xy", "--gaze-jitter-deg", "1.5"])
     want = TrainConfig(iterations=7, lr=0.02, cond_dim=3, psf_fraction=0.25, psf_mode="exact", checkpoint_every=2,
-                       seed=5, batch_size=4, lens_conditioning="xy")
+                       seed=5, batch_size=4, lens_conditioning="xy", gaze_jitter_deg=1.5)
     assert train_config(args, "controlgs") == want
     assert train_config(args, "controlgs", seed=9) == replace(want, seed=9)
     assert train_config(args, "controlgs", seed=0).seed == 0
