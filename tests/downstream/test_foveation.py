@@ -118,3 +118,20 @@ def test_pixel_savings_order_of_the_presets():
     f = {name: pixel_savings(ecc, ppd, m) for name, m in PRESETS.items() if m is not None}
     assert 1 > f["guenter-0.022"] > f["guenter-0.0275"] and f["level-4x"] > f["level-16x"]
     assert f["level-4x"] >= 0.25 and f["level-16x"] >= 1 / 16
+
+
+def test_the_stage_measures_through_the_runs_lens():
+    """effects_for_lens hands the foveation stage the lens's bank (unless its options name one): the compact
+    lens's field and pixels per degree differ from Cardboard's."""
+    from controlgs_adapter.downstream.optics.lenses import effects_for_lens, load_lens
+
+    compact = load_lens("compact").bank
+    effects = effects_for_lens({"foveation": {"preset": "level-4x"}, "oled": False}, "compact")
+    assert effects["foveation"]["preset"] == "level-4x" and torch.equal(effects["foveation"]["bank"].chief, compact.chief)
+    stage = Pipeline.from_config(effects)["foveation"]
+    assert isinstance(stage, Foveation) and stage.model == PRESETS["level-4x"]
+    want = VisualAngles.of_bank(compact).pixels_per_degree(32, 32)
+    assert torch.equal(stage.maps(32, 32)[1], want)
+    assert not torch.allclose(want, VisualAngles.of_bank(PSFBank.default()).pixels_per_degree(32, 32), rtol=0.05)
+    kept = {"angles": VisualAngles.of_bank(PSFBank.default())}
+    assert effects_for_lens({"foveation": kept}, "compact")["foveation"] is kept
