@@ -28,7 +28,7 @@ import torch
 
 from controlgs_adapter import __version__
 from controlgs_adapter.downstream.foveation import PRESETS, Foveation, pixel_savings
-from controlgs_adapter.downstream.optics.visual_angles import eccentricity
+from controlgs_adapter.downstream.optics.visual_angles import angle_to
 from controlgs_adapter.state import RuntimeState
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "foveation.md"
@@ -39,12 +39,12 @@ SIZES = (256, 512, 1024)
 def savings() -> list[tuple[str, float, float]]:
     """(preset, fraction with the gaze on the axis, fraction at GAZE) at 1024 x 1024."""
     stage = Foveation()
-    directions, ppd, _ = stage.maps(1024, 1024)
+    unit, ppd, _ = stage.maps(1024, 1024)
     out = []
     for name, model in PRESETS.items():
         if model is not None:
-            out.append((name, pixel_savings(eccentricity(directions, (0.0, 0.0)), ppd, model),
-                        pixel_savings(eccentricity(directions, GAZE), ppd, model)))
+            out.append((name, pixel_savings(angle_to(unit, (0.0, 0.0)), ppd, model),
+                        pixel_savings(angle_to(unit, GAZE), ppd, model)))
     return out
 
 

@@ -6,8 +6,9 @@ needs a local sampling rate ``min(ppd, 1 / omega(e))`` (pixels per degree; ``ppd
 through the lens: :class:`~controlgs_adapter.downstream.optics.visual_angles.VisualAngles`). The blur
 scale ``s = ppd / rate >= 1`` (capped at ``max_scale`` for the product levels) sets a continuous mip level
 ``l = log2(s)``; the output blends a mip pyramid (2 x 2 box prefilter per level, bilinear reconstruction
-to full size) per pixel: ``out = L0 + sum_k clamp(l - k + 1, 0, 1) (L_k - L_{k-1})``. Where ``s = 1`` (the
-foveal plateau, ``1 / omega(e) >= ppd``) every weight is 0 and the output is the input exactly. The
+to full size) per pixel: ``out = L0 + sum_k w_k (L_k - L_{k-1})``, ``w_k = clamp(l - k + 1, 0, 1)`` (computed as
+``sum_k (w_k - w_{k+1}) L_k``). Where ``s = 1`` (the foveal plateau, ``1 / omega(e) >= ppd``) ``L0``'s weight is
+1, every other 0, and the output is the input exactly. The
 operation is linear in the image (differentiable); the gaze only sets the weights.
 
 Presets (slope ``m`` in deg/deg, ``omega0 = 1/60`` deg): ``"guenter-0.022"``, ``"guenter-0.0275"``;
@@ -29,7 +30,7 @@ from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.state import RuntimeState
 
 from .optics.bank import PSFBank
-from .optics.visual_angles import VisualAngles, eccentricity
+from .optics.visual_angles import VisualAngles, angle_to, direction_vectors
 from .placement import PLACEMENTS, Placement
 from .stage import Stage, StageContext
 
@@ -106,14 +107,17 @@ def _levels(image: torch.Tensor, count: int) -> list[torch.Tensor]:
 
 def _blend(image: torch.Tensor, level: torch.Tensor, count: int) -> torch.Tensor:
     """Per-pixel blend of ``image`` ``[..., C, H, W]`` and its first ``count`` mip levels at the continuous
-    level ``level`` ``[H, W]`` >= 0 (levels above ``count`` clamp to it)."""
+    level ``level`` ``[H, W]`` >= 0 (levels above ``count`` clamp to it): ``sum_k (w_k - w_{k+1}) L_k`` with
+    ``w_0 = 1``, ``w_k = clamp(level - k + 1, 0, 1)``."""
     if count == 0:
         return image
     flat = image.reshape(-1, *image.shape[-3:])
     levels = _levels(flat, count)
-    out = flat
+    w = [torch.ones_like(level)] + [(level - (k - 1)).clamp(0.0, 1.0) for k in range(1, count + 1)]
+    w.append(torch.zeros_like(level))
+    out = levels[0] * (w[0] - w[1])
     for k in range(1, count + 1):
-        out = out + (level - (k - 1)).clamp(0.0, 1.0) * (levels[k] - levels[k - 1])
+        out = out.addcmul(levels[k], w[k] - w[k + 1])
     return out.reshape(image.shape)
 
 
@@ -167,8 +171,8 @@ class Foveation(Stage):
 
     def maps(self, height: int, width: int, device: torch.device | str = "cpu",
              dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor, int]:
-        """``(directions [H, W, 2] deg, ppd [H, W], levels)`` of an ``H x W`` image (cached per size,
-        device and dtype); ``levels``: mip levels enough for any gaze in the field (no host sync per frame)."""
+        """``(unit direction vectors [H, W, 3], ppd [H, W], levels)`` of an ``H x W`` image's pixels (cached per
+        size, device and dtype); ``levels``: mip levels enough for any gaze in the field (no host sync per frame)."""
         key = (height, width, torch.device(device), dtype)
         if key not in self._maps:
             directions = self.angles.pixel_directions(height, width, self.placement)
@@ -177,7 +181,7 @@ class Foveation(Stage):
             span = float(torch.rad2deg(torch.atan(self.angles.tangents)).abs().amax()) * 2 * math.sqrt(2)
             top = float(blur_scale(torch.tensor(span, dtype=torch.float64), ppd.max(), self.model))
             levels = min(math.ceil(math.log2(top) - 1e-9), math.floor(math.log2(max(height, width))))
-            self._maps[key] = (directions.to(device, dtype), ppd.to(device, dtype), max(0, levels))
+            self._maps[key] = (direction_vectors(directions).to(device, dtype), ppd.to(device, dtype), max(0, levels))
         return self._maps[key]
 
     def _gaze(self, state: RuntimeState) -> tuple[float, float] | None:
@@ -194,8 +198,8 @@ class Foveation(Stage):
         if self.model is None:
             raise InputValueError("foveation: the preset is 'off', it has no levels")
         self.angles.check_gaze(gaze)
-        directions, ppd, _ = self.maps(height, width, device, dtype)
-        return torch.log2(blur_scale(eccentricity(directions, gaze), ppd, self.model))
+        unit, ppd, _ = self.maps(height, width, device, dtype)
+        return torch.log2(blur_scale(angle_to(unit, gaze), ppd, self.model))
 
     def process(self, image: torch.Tensor, state: RuntimeState, ctx: StageContext) -> torch.Tensor:  # noqa: D102
         gaze = self._gaze(state)

@@ -38,7 +38,7 @@ from controlgs_adapter.errors import InputValueError
 from ..placement import Placement, image_region
 from .bank import PSFBank
 
-__all__ = ["VisualAngles", "eccentricity", "direction_vectors", "REFERENCE_CHANNEL"]
+__all__ = ["VisualAngles", "eccentricity", "angle_to", "direction_vectors", "REFERENCE_CHANNEL"]
 
 #: the bank channel whose chief rays define the directions: green (550 nm)
 REFERENCE_CHANNEL = 1
@@ -55,10 +55,16 @@ def direction_vectors(angles_deg: torch.Tensor) -> torch.Tensor:
 def eccentricity(angles_deg: torch.Tensor, gaze_deg: Sequence[float] | torch.Tensor) -> torch.Tensor:
     """Angle in degrees ``[...]`` between directions ``angles_deg`` ``[..., 2]`` and the gaze
     direction ``(azimuth, elevation)`` in degrees (``atan2(|u x v|, u . v)``: accurate near 0)."""
-    g = torch.as_tensor(gaze_deg, dtype=angles_deg.dtype, device=angles_deg.device)
-    u, v = direction_vectors(angles_deg), direction_vectors(g).expand(*angles_deg.shape[:-1], 3)
-    cross = torch.linalg.vector_norm(torch.linalg.cross(u, v, dim=-1), dim=-1)
-    return torch.rad2deg(torch.atan2(cross, (u * v).sum(-1)))
+    return angle_to(direction_vectors(angles_deg), gaze_deg)
+
+
+def angle_to(unit: torch.Tensor, gaze_deg: Sequence[float] | torch.Tensor) -> torch.Tensor:
+    """Degrees ``[...]`` between unit direction vectors ``unit`` ``[..., 3]`` (:func:`direction_vectors`) and
+    the gaze direction ``(azimuth, elevation)`` in degrees."""
+    g = torch.as_tensor(gaze_deg, dtype=unit.dtype, device=unit.device)
+    v = direction_vectors(g)
+    cross = torch.linalg.vector_norm(torch.linalg.cross(unit, v.expand_as(unit), dim=-1), dim=-1)
+    return torch.rad2deg(torch.atan2(cross, unit @ v))
 
 
 @dataclass(frozen=True)

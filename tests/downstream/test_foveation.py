@@ -14,7 +14,7 @@ from helpers.banks import radial_lens_bank
 from controlgs_adapter.downstream.foveation import PRESETS, Foveation, FoveationModel, _blend, foveation, pixel_savings
 from controlgs_adapter.downstream.lens import LensPrewarp
 from controlgs_adapter.downstream.optics.bank import PSFBank
-from controlgs_adapter.downstream.optics.visual_angles import VisualAngles, eccentricity
+from controlgs_adapter.downstream.optics.visual_angles import VisualAngles, angle_to
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.state import RuntimeState
@@ -113,8 +113,8 @@ def test_a_gaze_outside_the_lens_field_is_refused():
 
 def test_pixel_savings_order_of_the_presets():
     stage = Foveation(bank=PSFBank.default())
-    directions, ppd, _ = stage.maps(1024, 1024)
-    ecc = eccentricity(directions, (0.0, 0.0))
+    unit, ppd, _ = stage.maps(1024, 1024)
+    ecc = angle_to(unit, (0.0, 0.0))
     f = {name: pixel_savings(ecc, ppd, m) for name, m in PRESETS.items() if m is not None}
     assert 1 > f["guenter-0.022"] > f["guenter-0.0275"] and f["level-4x"] > f["level-16x"]
     assert f["level-4x"] >= 0.25 and f["level-16x"] >= 1 / 16
