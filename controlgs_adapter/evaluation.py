@@ -16,7 +16,6 @@ Eye images are clamped to [0, 1] (what a display-encoded image can hold) before 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -29,8 +28,9 @@ from .downstream.oled import oled_emission
 from .downstream.optics.bank import PSFBank
 from .downstream.optics.lenses import LensSpec, effects_for_lens
 from .downstream.optics.stage import set_optics_mode
+from .downstream.optics.visual_angles import VisualAngles
 from .downstream.pipeline import Pipeline
-from .downstream.placement import Placement, image_region
+from .downstream.placement import Placement
 from .errors import InputValueError
 from .metrics import CVVDP_DISPLAY, ColorVideoVDP, cvvdp_missing, optional_metrics, psnr, ssim
 from .state import Camera, RuntimeState
@@ -131,22 +131,12 @@ def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "
 
 
 def lens_ppd(bank: PSFBank, height: int, width: int, placement: Placement = "fit") -> float:
-    """On-axis pixels per degree of an ``height x width`` image seen through the lens of ``bank``: a display
-    pixel of pitch p mm (the image placed on the bank's display, :func:`~.downstream.placement.image_region`)
-    is M p mm wide on the virtual image plane D mm in front of the eye's pupil (M =
-    ``meta.figures.reference_magnification``, D = ``meta.prescription.virtual_image_distance_mm``), so near
-    the axis it subtends M p / D radians: ppd = (pi / 180) D / (M p); with anisotropic pixels
-    (``"stretch"``) the geometric mean of the two axes'. The shipped Cardboard bank at 1024 x 1024: 34.13."""
-    try:
-        m = float(bank.meta["figures"]["reference_magnification"])
-        d = float(bank.meta["prescription"]["virtual_image_distance_mm"])
-    except (KeyError, TypeError, ValueError):
-        raise InputValueError("PSF bank: pixels per degree need meta.figures.reference_magnification and "
-                              "meta.prescription.virtual_image_distance_mm (numbers), which this bank lacks") from None
-    if not (math.isfinite(m) and math.isfinite(d) and m > 0 and d > 0):
-        raise InputValueError(f"PSF bank: reference_magnification {m} and virtual_image_distance_mm {d} must be finite and > 0")
-    px, py = image_region(height, width, bank.display_mm, placement).pitch_mm
-    return math.pi / 180.0 * d / (m * math.sqrt(px * py))
+    """On-axis pixels per degree of an ``height x width`` image seen through the lens of ``bank``
+    (:meth:`VisualAngles.axis_pixels_per_degree <controlgs_adapter.downstream.optics.visual_angles.VisualAngles.axis_pixels_per_degree>`:
+    a display pixel of pitch p mm centred on the axis subtends ``2 atan(M p / 2 D)``, M the reference
+    magnification, D the virtual image distance; a distortion profile's from its field angles). The shipped
+    Cardboard bank at 1024 x 1024: 34.13."""
+    return VisualAngles.of_bank(bank).axis_pixels_per_degree(height, width, placement)
 
 
 def pipeline_lens(pipeline: Pipeline) -> tuple[PSFBank, Placement]:

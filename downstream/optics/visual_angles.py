@@ -75,12 +75,14 @@ class VisualAngles:
         tangents: ``[Sy, Sx, 2]`` float64 ``(X / D, Y / D)`` of the chief rays, relative to the axis's
             landing, at display positions ``grid_x`` ``[Sx]``, ``grid_y`` ``[Sy]`` (uniform, -1 .. 1).
         display_mm: ``(width, height)`` of the display in mm.
+        axis: display-normalised position of the lens axis (:attr:`PSFBank.axis`), where the tangents are 0.
     """
 
     tangents: torch.Tensor
     grid_x: torch.Tensor
     grid_y: torch.Tensor
     display_mm: tuple[float, float]
+    axis: tuple[float, float] = (0.0, 0.0)
 
     @classmethod
     def of_bank(cls, bank: PSFBank) -> "VisualAngles":
@@ -113,7 +115,7 @@ class VisualAngles:
                                   "with meta.figures.reference_magnification, or meta.lens.deg_per_output_unit "
                                   "or meta.lens.half_fov_deg")
         tangents = (chief - origin) * torch.tensor(scale, dtype=_D)
-        return cls(tangents, gx, gy, (float(w), float(h)))
+        return cls(tangents, gx, gy, (float(w), float(h)), bank.axis)
 
     # ------------------------------------------------------------------ positions -> directions
     def directions(self, xy: torch.Tensor) -> torch.Tensor:
@@ -146,6 +148,17 @@ class VisualAngles:
         jy = at(0.0, 0.5) - at(0.0, -0.5)   # d(az, el) / d row
         det = (jx[..., 0] * jy[..., 1] - jx[..., 1] * jy[..., 0]).abs()
         return det.rsqrt()
+
+    def axis_pixels_per_degree(self, height: int, width: int, placement: Placement = "fit") -> float:
+        """Pixels per degree on the lens axis (:meth:`pixels_per_degree`'s Jacobian there): a pixel
+        centred on the axis subtends ``2 atan(M p / 2 D)`` per side for pitch p on a distortion-free
+        lens; the headset's ppd that ColorVideoVDP is given."""
+        r = image_region(height, width, self.display_mm, placement)
+        step = torch.tensor([[r.half_x / width, 0.0], [0.0, r.half_y / height]], dtype=_D)  # half a pixel per axis
+        axis = torch.tensor(self.axis, dtype=_D)
+        d = self.directions(torch.stack([axis + step[0], axis - step[0], axis + step[1], axis - step[1]]))
+        jx, jy = d[0] - d[1], d[2] - d[3]
+        return float((jx[0] * jy[1] - jx[1] * jy[0]).abs().rsqrt())
 
     # ------------------------------------------------------------------ the field
     def in_field(self, gaze_deg: Sequence[float]) -> bool:

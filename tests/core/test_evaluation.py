@@ -194,16 +194,17 @@ def test_lens_ppd_is_the_angle_a_pixel_subtends_on_axis():
     def exact(pitch: float) -> float:  # the angle of a pixel centred on the axis
         return 1.0 / math.degrees(2 * math.atan(8.0 * pitch / 2 / 400.0))
 
-    # the local (small-angle) ppd differs from the whole pixel's by about (M p / D)^2 / 12: 8e-6 at p = 0.5 mm
-    assert lens_ppd(bank, 40, 80) == pytest.approx(exact(0.25), rel=3e-6)       # width-limited: 20 mm / 80 px
-    assert lens_ppd(bank, 50, 60) == pytest.approx(exact(0.2), rel=3e-6)        # height-limited: 10 mm / 50 px
-    assert lens_ppd(bank, 40, 40, "stretch") == pytest.approx(math.sqrt(exact(0.5) * exact(0.25)), rel=1.2e-5)
+    assert lens_ppd(bank, 40, 80) == pytest.approx(exact(0.25), rel=1e-12)      # width-limited: 20 mm / 80 px
+    assert lens_ppd(bank, 50, 60) == pytest.approx(exact(0.2), rel=1e-12)       # height-limited: 10 mm / 50 px
+    assert lens_ppd(bank, 40, 40, "stretch") == pytest.approx(math.sqrt(exact(0.5) * exact(0.25)), rel=1e-12)
     assert 60 / lens_ppd(PSFBank.default(), 1024, 1024) == pytest.approx(1.76, abs=0.005)
-    for meta in ({}, {"figures": {"reference_magnification": 8.0}}, {"figures": {"reference_magnification": "x"},
-                                                                     "prescription": {"virtual_image_distance_mm": 400.0}}):
-        with pytest.raises(InputValueError, match=r"^PSF bank: pixels per degree need meta\.figures\.reference_magnification"):
+    for meta in ({}, {"figures": {"reference_magnification": 8.0}}):
+        with pytest.raises(InputValueError, match=r"^PSF bank: no visual angles"):
             lens_ppd(tiny_bank(meta=meta), 40, 40)
-    with pytest.raises(InputValueError, match=r"^PSF bank: reference_magnification -8\.0 .* must be finite and > 0$"):
+    with pytest.raises(InputValueError, match=r"must be > 0, got 400.0, 'x'$"):
+        lens_ppd(tiny_bank(meta={"figures": {"reference_magnification": "x"},
+                                 "prescription": {"virtual_image_distance_mm": 400.0}}), 40, 40)
+    with pytest.raises(InputValueError, match=r"reference_magnification must be > 0, got 400.0, -8.0$"):
         lens_ppd(tiny_bank(meta={"figures": {"reference_magnification": -8.0},
                                  "prescription": {"virtual_image_distance_mm": 400.0}}), 40, 40)
 
@@ -223,9 +224,11 @@ def test_evaluate_grid_scores_cvvdp_at_the_simulated_lens_ppd():
     views, effects = _GroundTruths(), {"optics": {"bank": bank}, "display": True}
     r = evaluate_grid(torch.nn.Linear(1, 1), views, {}, effects=effects, downsample=(1.0,), power_saving=(0.6,),
                       baselines=(), progress=False, renderer=lambda *a, **k: None)
-    ppd = math.pi / 180 * 600.0 / (12.0 * 24.0 / 32)
+    ppd = 1.0 / math.degrees(2 * math.atan(12.0 * 24.0 / 32 / 2 / 600.0))  # a pixel centred on the axis
     assert r.metrics == ["psnr", "ssim", "flip", "cvvdp"]
-    assert r.info["cvvdp"] == {"lens": "synthetic", "placement": "fit", "display": "standard_4k", "ppd": {"32x32": ppd}}
+    assert r.info["cvvdp"]["ppd"]["32x32"] == pytest.approx(ppd, rel=1e-12)
+    assert r.info["cvvdp"] == {"lens": "synthetic", "placement": "fit", "display": "standard_4k",
+                               "ppd": {"32x32": r.info["cvvdp"]["ppd"]["32x32"]}}
     pipe = make_pipeline(effects)
     with torch.no_grad():
         for v in range(2):
@@ -236,7 +239,7 @@ def test_evaluate_grid_scores_cvvdp_at_the_simulated_lens_ppd():
     bare = evaluate_grid(torch.nn.Linear(1, 1), views, {}, effects={"optics": {"bank": tiny_bank()}}, downsample=(1.0,),
                          power_saving=(0.0,), baselines=(), progress=False, renderer=lambda *a, **k: None)
     assert bare.metrics == ["psnr", "ssim", "flip"]
-    assert bare.info["cvvdp"]["skipped"].startswith("PSF bank: pixels per degree need meta.figures.reference_magnification")
+    assert bare.info["cvvdp"]["skipped"].startswith("PSF bank: no visual angles")
 
 
 def test_evaluate_grid_renders_on_the_views_background(tiny):
