@@ -21,7 +21,7 @@ from .checks import check_image
 from .cvvdp_shim import import_pycvvdp
 from .errors import InputValueError, MissingDependencyError, ShapeError
 
-__all__ = ["psnr", "ssim", "flip", "FLIP_PPD", "gaussian_window", "check_image_pair", "optional_metrics", "ColorVideoVDP",
+__all__ = ["psnr", "ssim", "ssim_map", "flip", "FLIP_PPD", "gaussian_window", "check_image_pair", "optional_metrics", "ColorVideoVDP",
            "CVVDP_DISPLAY", "cvvdp_missing"]
 
 #: FLIP's default observer: pixels per degree of a 0.7 m wide 4K display seen from 0.7 m
@@ -56,9 +56,16 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, *, dtype: torch.dtype = 
 
 def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_size: int = 11,
          sigma: float = 1.5) -> torch.Tensor:
-    """Structural similarity of each image: ``x, y`` ``[..., 3, H, W]`` -> ``[...]``.
+    """Structural similarity of each image: ``x, y`` ``[..., 3, H, W]`` -> ``[...]``, the mean of :func:`ssim_map`.
 
     Needs ``H, W >= window_size`` (valid window positions only)."""
+    return ssim_map(x, y, data_range=data_range, window_size=window_size, sigma=sigma).mean(dim=(-3, -2, -1))
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_size: int = 11,
+             sigma: float = 1.5) -> torch.Tensor:
+    """Per-window SSIM ``[..., 3, H - window_size + 1, W - window_size + 1]`` of ``x, y`` ``[..., 3, H, W]``: entry
+    ``(i, j)`` is the window centred on pixel ``(i + window_size // 2, j + window_size // 2)``."""
     check_image_pair(x, y)
     h, w = x.shape[-2:]
     if h < window_size or w < window_size:
@@ -79,7 +86,7 @@ def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_si
     sxy = blur(xs * ys) - mu_x * mu_y
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     smap = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
-    return smap.mean(dim=(-3, -2, -1)).reshape(lead)
+    return smap.reshape(*lead, *smap.shape[-3:])
 
 
 def flip(test: torch.Tensor, reference: torch.Tensor, *, ppd: float = FLIP_PPD) -> float:
