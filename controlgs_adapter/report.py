@@ -24,7 +24,7 @@ import torch
 
 from .ablations import ABLATIONS
 from .errors import InputValueError
-from .evaluation import IDEAL, GridResult
+from .evaluation import IDEAL, FoveationAxis, GridResult
 from controlgs_adapter.formats.safetensors import atomic_write
 from .metrics import FLIP_PPD
 
@@ -39,6 +39,7 @@ METHOD_LABELS: dict[str, str] = {
     "wo_display": "w/o Display Mapping",
     "wo_resample": "w/o Resampling",
     "state_blind": "w/o State-Aware",
+    "wo_foveation": "w/o Foveation",
     IDEAL: "Ideal render (GT through E_s)",
 }
 #: a difference of seed means "exceeds the spread" when larger than this many pooled std over seeds
@@ -79,7 +80,41 @@ def _pooled(runs: Sequence[GridResult]) -> GridResult:
     first = runs[0]
     per_view = {m: {k: torch.stack([r.per_view[m][k] for r in runs]).mean(dim=0) for k in first.metrics}
                 for m in first.methods}
-    return GridResult(first.downsample, first.power_saving, per_view, first.optics_mode, dict(first.info))
+    fov = first.foveation
+    if fov is not None and all(r.foveation is not None for r in runs):
+        fov = FoveationAxis(fov.gazes, fov.settings, fov.model, fov.bands,
+                            {m: {k: torch.stack([r.foveation.per_view[m][k] for r in runs if r.foveation]).mean(dim=0)
+                                 for k in mv} for m, mv in fov.per_view.items()})
+    return GridResult(first.downsample, first.power_saving, per_view, first.optics_mode, dict(first.info), fov)
+
+
+def _foveation_tables(fov: FoveationAxis) -> list[str]:
+    """The foveation axis: per gaze, PSNR / SSIM of each method on the whole image and per eccentricity band
+    (means over the settings and views; "–" for a band without pixels)."""
+    def band(lo: float, hi: float) -> str:
+        return f"< {hi:g}°" if lo == 0 else (f"≥ {lo:g}°" if hi == float("inf") else f"{lo:g}-{hi:g}°")
+
+    settings = ", ".join(f"(d={d:g}, ρ={r:g})" for d, r in fov.settings)
+    m = fov.model
+    lines = ["## Foveation", "",
+             f"At each gaze the foveation stage (ω(e) = {m['omega0']:.4g}° + {m['slope']:g} e"
+             + (f", blur scale at most {m['max_scale']:g}" if m.get("max_scale") is not None else "")
+             + f") runs with the gaze in the state, at the settings {settings}; PSNR / SSIM on the whole image and "
+             "per eccentricity band, in visual degrees through the lens from the gaze (PSNR from the band's MSE, SSIM "
+             "the SSIM map over the windows centred in the band; – : no pixel in that band), means over the settings "
+             "and the test views.", ""]
+    cols = [("", "All")] + [(f"_{n}", f"{n.capitalize()} ({band(lo, hi)})") for n, lo, hi in fov.bands]
+    for g, (az, el) in enumerate(fov.gazes):
+        lines += [f"Gaze ({az:g}°, {el:g}°):", "", "| Method | " + " | ".join(c[1] for c in cols) + " |",
+                  "|---|" + "---:|" * len(cols)]
+        for method in fov.per_view:
+            cells = []
+            for suffix, _ in cols:
+                p, q = fov.mean(method, "psnr" + suffix, g), fov.mean(method, "ssim" + suffix, g)
+                cells.append(f"{'–' if p is None else f'{p:.2f}'} / {'–' if q is None else f'{q:.4f}'}")
+            lines.append(f"| {_label(method)} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
 
 
 def seed_summary(results: GridResult | Sequence[GridResult]) -> dict[str, dict[str, dict[str, Any]]]:
@@ -229,6 +264,8 @@ def markdown_tables(results: GridResult | Sequence[GridResult], info: Mapping[st
         lines += ["Ablations (paper Tbl. 4):", ""]
         lines += _table(summary, ["controlgs", *ablations, *(["ss"] if "ss" in result.methods else [])], metrics, seeds,
                         fixed) + [""]
+    if result.foveation is not None:
+        lines += _foveation_tables(result.foveation)
     spread = _spread(summary, metrics, result.methods, seeds)
     if spread:
         lines += ["## Differences against the seed spread", "",

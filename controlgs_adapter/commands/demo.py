@@ -1,5 +1,5 @@
 """``controlgs demo``: the main job. Loads the built-in scene and its baked backbone, trains the
-ControlGS adapter (and with ``--ablations`` the four ablations) for one or ``--seeds K`` seeds,
+ControlGS adapter (and with ``--ablations`` the ablations) for one or ``--seeds K`` seeds,
 evaluates the 4 x 5 run-time grid and writes the report (tables, heatmaps, images) to a folder."""
 
 from __future__ import annotations
@@ -37,6 +37,42 @@ def add_common(p: argparse.ArgumentParser, from_run: bool = False) -> None:
                         "the report shows mean ± std over seeds; default 1, eval: the seed-<s>/ folders found)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     add_lens_argument(p, from_run=from_run)
+
+
+def add_gazes(p: argparse.ArgumentParser) -> None:
+    """``--gazes``: the foveation axis's gazes (with the foveation effect)."""
+    p.add_argument("--gazes", nargs="+", default=None, metavar="AZ,EL",
+                   help="with the foveation effect: the gazes of the evaluation's foveation axis, (azimuth, elevation) "
+                        "in degrees from the lens axis, each inside the lens's field (default 0,0 10,0 14,14)")
+
+
+def gazes_arg(args: argparse.Namespace, lens: Any) -> list[tuple[float, float]] | None:
+    """``--gazes`` as ``[(azimuth, elevation)]`` degrees (None: the default), each checked to lie in ``lens``'s
+    field; InputValueError naming --gazes."""
+    import math
+
+    from controlgs_adapter.downstream.optics.visual_angles import VisualAngles
+    from controlgs_adapter.errors import InputValueError
+
+    if args.gazes is None:
+        return None
+    gazes = []
+    for item in args.gazes:
+        parts = item.split(",")
+        try:
+            az, el = (float(v) for v in parts)
+        except ValueError:
+            raise InputValueError(f"--gazes takes AZ,EL pairs of degrees (e.g. 0,0 10,0), got {item!r}") from None
+        if not (math.isfinite(az) and math.isfinite(el)):
+            raise InputValueError(f"--gazes takes finite degrees, got {item!r}")
+        gazes.append((az, el))
+    angles = VisualAngles.of_bank(lens.bank)
+    for g in gazes:
+        try:
+            angles.check_gaze(g)
+        except InputValueError as e:
+            raise InputValueError(f"--gazes: {e}") from None
+    return gazes
 
 
 def add_lpips(p: argparse.ArgumentParser) -> None:
@@ -79,6 +115,9 @@ def evaluate_seeds(model: Any, views: Any, adapters: dict[int, dict[str, Path]],
         if first is not None:
             shared = [m for m in first.methods if m not in paths]
             r.per_view = {**{m: first.per_view[m] for m in shared}, **r.per_view}
+            if first.foveation is not None and r.foveation is not None:
+                fixed = {m: v for m, v in first.foveation.per_view.items() if m not in paths}
+                r.foveation.per_view = {**fixed, **r.foveation.per_view}
         r.info["seed"] = seed
         results.append(r)
     return results
@@ -90,8 +129,10 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     add_common(p)
     add_training(p)
     add_lpips(p)
+    add_gazes(p)
     p.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
-                   help="also train and evaluate w/o lens, display, resample, state-blind (default: on)")
+                   help="also train and evaluate w/o lens, display, resample, state-blind, and w/o foveation when "
+                        "--effects has foveation (default: on)")
     p.set_defaults(func=run)
 
 
@@ -107,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
     for seed, _ in seed_runs(out, args.seed, args.seeds):
         train_config(args, "controlgs", seed)
     lens = load_lens_arg(args)
+    gazes_arg(args, lens)
     with run_lock(out):
         return _run(args, lens)
 
@@ -114,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace, lens: Any) -> int:
     import torch
 
-    from controlgs_adapter.ablations import ABLATIONS
+    from controlgs_adapter.ablations import ablations_for
     from controlgs_adapter.report import seed_summary, write_report
     from controlgs_adapter.scene import load_builtin_backbone, load_builtin_scene
 
@@ -131,7 +173,7 @@ def _run(args: argparse.Namespace, lens: Any) -> int:
     timings["load_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    names = ["controlgs", *(ABLATIONS if args.ablations else [])]
+    names = ["controlgs", *(ablations_for(effects_from(args.effects)) if args.ablations else [])]
     trained: dict[str, int] = {}
     job = training_job(args, names, len(runs))  # seeds x adapters trainings, one bar each
     adapters = {s: train_adapters(scene.views("train"), model, folder, args, names, trained=trained, seed=s, job=job,
@@ -142,7 +184,7 @@ def _run(args: argparse.Namespace, lens: Any) -> int:
     views = scene.data.views("test", first=args.test_views)
     effects = effects_from(args.effects)
     results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
-                             progress=args.progress, lens=lens)
+                             progress=args.progress, lens=lens, gazes=gazes_arg(args, lens))
     timings["eval_s"] = time.perf_counter() - t
     t = time.perf_counter()
     comparison, response = report_figures(model, adapters[runs[0][0]]["controlgs"], views, effects=effects,

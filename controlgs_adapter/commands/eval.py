@@ -15,7 +15,7 @@ from .common import (add_data_arguments, add_render_arguments, apply_run_default
                      check_out_path, check_rasterizer_name, lens_record, load_lens_arg, make_renderer, render_record,
                      user_scene)
 from .adapters import effects_from
-from .demo import add_common, add_lpips, evaluate_seeds, load_lpips_arg, report_figures, seed_runs
+from .demo import add_common, add_gazes, add_lpips, evaluate_seeds, gazes_arg, load_lpips_arg, report_figures, seed_runs
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -28,6 +28,7 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     add_render_arguments(p, from_run=True)
     p.add_argument("--effects", default=None, help="downstream stages, comma-separated (default: the run's, else all)")
     add_lpips(p)
+    add_gazes(p)
     p.set_defaults(func=run)
 
 
@@ -56,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     lpips = load_lpips_arg(args)
     check_rasterizer_name(args.rasterizer)  # before loading anything
     lens = load_lens_arg(args)
+    gazes = gazes_arg(args, lens)
     t = time.perf_counter()
     if user_scene(args):
         from .common import load_user_scene
@@ -78,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     effects = effects_from(args.effects)
     results = evaluate_seeds(model, views, adapters, effects=effects, optics_mode=args.optics, lpips=lpips,
-                             progress=args.progress, renderer=renderer, lens=lens)
+                             progress=args.progress, renderer=renderer, lens=lens, gazes=gazes)
     eval_s = time.perf_counter() - t
     first = next(iter(adapters.values()))
     comparison, response = report_figures(model, first["controlgs"], views, effects=effects, optics_mode=args.optics,

@@ -1,4 +1,4 @@
-"""``controlgs train``: train a ControlGS adapter (and by default the four ablations) on a frozen
+"""``controlgs train``: train a ControlGS adapter (and by default the ablations) on a frozen
 backbone: a user's trained model folder and its dataset (``--model`` / ``--data``), or the built-in
 scene's baked backbone (``--variant``). Checkpoints resume exactly after an interruption; adapters
 are saved as safetensors (with ``--seeds K``, one folder ``RUN/seed-<s>`` per seed); ``RUN/run.json``
@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..ablations import ABLATIONS
+from ..ablations import ABLATIONS, ablations_for
 from ..distributed import DistContext, init_distributed, shard_scenes
 from .adapters import add_distributed_arguments, add_training, effects_from, train_adapters, train_config, training_job
 from .common import (RUN_FILE, add_data_arguments, add_render_arguments, anchor_positions, cache_bytes, check_line,
@@ -37,7 +37,8 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     add_render_arguments(p)
     add_distributed_arguments(p, scene_choices=("ar", "vr"))
     p.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=True,
-                   help="also train w/o lens, display, resample and state-blind (default: on; --ablation picks some)")
+                   help="also train w/o lens, display, resample and state-blind, and w/o foveation when --effects has "
+                        "foveation (default: on; --ablation picks some)")
     p.add_argument("--ablation", choices=ABLATION_NAMES, action="append", default=[],
                    help="train only these ablations besides ControlGS (repeatable)")
     p.set_defaults(func=run)
@@ -70,7 +71,7 @@ def _check(args: argparse.Namespace) -> None:
                  else {"variant": args.variant, "model": None})
         check_same_scene(out, scene, keys=tuple(scene))
     for seed, _ in seed_runs(out, args.seed, args.seeds):
-        for name in ["controlgs", *(args.ablation or (ABLATION_NAMES if args.ablations else ()))]:
+        for name in ["controlgs", *(args.ablation or (ablations_for(effects_from(args.effects)) if args.ablations else ()))]:
             train_config(args, name, seed)
 
 
@@ -101,7 +102,7 @@ def _run(args: argparse.Namespace, lens: Lens) -> int:
 
     from .demo import DEFAULT_RESOLUTION
 
-    names = ["controlgs", *(args.ablation or (ABLATION_NAMES if args.ablations else ()))]
+    names = ["controlgs", *(args.ablation or (ablations_for(effects_from(args.effects)) if args.ablations else ()))]
     out = Path(args.out)
     check_rasterizer_name(args.rasterizer)  # before loading anything
     if user_scene(args):
