@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers.banks import random_bank, tiny_bank
+from helpers.banks import affine_bank, random_bank, tiny_bank
 from helpers.cvvdp_reference import CVVDP_COLUMN, direct_cvvdp, needs_cvvdp
 from helpers.grid_results import DOWNSAMPLE, POWER_SAVING, PSNR, grid_result
 from helpers.lpips_weights import random_lpips_weights
@@ -21,6 +21,7 @@ from controlgs_adapter import ControlGS, RuntimeState, evaluation, plugins
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.downstream.lens import LensPrewarp
 from controlgs_adapter.downstream.optics.bank import PSFBank
+from controlgs_adapter.downstream.optics.visual_angles import VisualAngles
 from controlgs_adapter.downstream.pipeline import Pipeline
 from controlgs_adapter.errors import InputValueError
 from controlgs_adapter.evaluation import (
@@ -614,3 +615,116 @@ def test_evaluate_seeds_shares_the_baselines(tiny_adapter, tmp_path):
     cam, gt = views[0]
     assert torch.equal(comparison["gt"], gt) and list(response) == ["resample", "display", "lens"]
     assert torch.equal(response["lens"][0][1], render_view(None, model, cam, None, views.background))
+
+
+# ------------------------------------------------------------------------------ the foveation axis
+#: an affine lens: chief rays G(d) = A d, seen at tan(angle) = G * radians(DPU) per axis (square display)
+AFFINE, DPU = [[0.8, 0.1], [0.0, 0.6]], 30.0
+FOVEATED = {**CHEAP, "foveation": True}
+
+
+def _affine_angles() -> VisualAngles:
+    bank = affine_bank(AFFINE, [0.0, 0.0])
+    bank.meta["lens"]["deg_per_output_unit"] = DPU
+    return VisualAngles.of_bank(bank)
+
+
+def test_band_masks_match_the_hand_eccentricities_of_an_affine_lens():
+    """Each pixel centre d of a 64 x 48 image ("fit" on the square display: |y| <= 0.75) is seen along
+    (tan az, tan el) = A d radians(DPU); its eccentricity from the gaze is the angle between the two direction
+    vectors, banded < 5, 5-15, >= 15 degrees. Pixels within 1e-3 deg of a boundary (float32 chief rays) are skipped."""
+    h, w, gaze = 48, 64, (5.0, -3.0)
+    x = (2 * torch.arange(w, dtype=F64) + 1) / w - 1
+    y = ((2 * torch.arange(h, dtype=F64) + 1) / h - 1) * h / w
+    yy, xx = torch.meshgrid(y, x, indexing="ij")
+    a = torch.tensor(AFFINE, dtype=F64)
+    t = torch.stack([xx, yy], -1) @ a.T * math.radians(DPU)
+    u = torch.cat([t, torch.ones(h, w, 1, dtype=F64)], -1)
+    g = torch.tensor([math.tan(math.radians(gaze[0])), math.tan(math.radians(gaze[1])), 1.0], dtype=F64)
+    ecc = torch.rad2deg(torch.acos((u @ g / (u.norm(dim=-1) * g.norm())).clamp(-1, 1)))
+    want = torch.stack([ecc < 5, (ecc >= 5) & (ecc < 15), ecc >= 15])
+    got = evaluation.band_masks(_affine_angles(), h, w, gaze)
+    assert got.shape == (3, h, w) and got.dtype == torch.bool
+    clear = ((ecc - 5).abs() > 1e-3) & ((ecc - 15).abs() > 1e-3)
+    assert bool(clear.all()) and torch.equal(got, want)
+    assert all(int(m.sum()) > 0 for m in want)  # every band is exercised
+    assert torch.equal(got.sum(0), torch.ones(h, w, dtype=torch.long))  # the bands partition the image
+
+
+def test_band_scores_are_the_masked_brute_force_psnr_and_skimage_ssim():
+    """PSNR of a band: 10 log10(1 / MSE) over its pixels and channels (a float64 loop); SSIM of a band: skimage's
+    SSIM map (Gaussian 1.5, population covariance), mean over channels, averaged over the band's pixels whose
+    11 x 11 window lies inside the image. A band without pixels is NaN, not 0."""
+    from skimage.metrics import structural_similarity
+
+    g = torch.Generator().manual_seed(5)
+    gt = torch.rand(3, 20, 24, generator=g, dtype=F64)
+    eye = (gt + 0.2 * torch.randn(3, 20, 24, generator=g, dtype=F64)).clamp(0, 1)
+    masks = torch.zeros(3, 20, 24, dtype=torch.bool)
+    masks[0, 2:9, 3:20] = True   # partly in the border (no window there)
+    masks[1, 9:, :] = True
+    got = evaluation.band_scores(eye, gt, masks, ["a", "b", "empty"])
+    _, smap = structural_similarity(eye.permute(1, 2, 0).numpy(), gt.permute(1, 2, 0).numpy(), channel_axis=2,
+                                    gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0,
+                                    full=True)
+    smap = torch.from_numpy(smap).mean(-1)
+    for name, m in (("a", 0), ("b", 1)):
+        sq, n = 0.0, 0
+        for c in range(3):
+            for i in range(20):
+                for j in range(24):
+                    if masks[m, i, j]:
+                        sq, n = sq + float(eye[c, i, j] - gt[c, i, j]) ** 2, n + 1
+        assert got[f"psnr_{name}"] == pytest.approx(10 * math.log10(n / sq), abs=1e-10)
+        inner = torch.zeros_like(masks[m])
+        inner[5:-5, 5:-5] = masks[m, 5:-5, 5:-5]
+        assert got[f"ssim_{name}"] == pytest.approx(float(smap[inner].mean()), abs=1e-6)
+    assert math.isnan(got["psnr_empty"]) and math.isnan(got["ssim_empty"])
+    border = torch.zeros_like(masks)
+    border[0, :3] = True  # pixels, but no window centred on them
+    only = evaluation.band_scores(eye, gt, border, ["edge", "x", "y"])
+    assert math.isfinite(only["psnr_edge"]) and math.isnan(only["ssim_edge"])
+
+
+def test_the_foveation_axis_appears_only_with_the_foveation_effect(tiny_adapter):
+    """Without the stage: no axis. With it: the gazes x settings for the SS-backbone, the ideal render and the
+    adapters but the ablations other than wo_foveation; the whole-image score is the stage's eye image's, and the
+    bands partition it (the whole MSE is the pixel-weighted mean of the bands')."""
+    model, views, path = tiny_adapter
+    kw = dict(downsample=(2.0,), power_saving=(0.0,), extra_metrics=False, progress=False)
+    adapters = {"controlgs": path, "wo_lens": path, "wo_foveation": path}
+    assert evaluate_grid(model, views, {}, effects=CHEAP, **kw).foveation is None
+    gazes, settings = [(0.0, 0.0), (10.0, 0.0)], [(2.0, 0.4)]
+    r = evaluate_grid(model, views, adapters, effects=FOVEATED, gazes=gazes, foveation_settings=settings, **kw)
+    fov = r.foveation
+    assert fov is not None and fov.gazes == ((0.0, 0.0), (10.0, 0.0)) and fov.settings == ((2.0, 0.4),)
+    assert list(fov.per_view) == ["ss", IDEAL, "controlgs", "wo_foveation"] and r.methods[-3:] == list(adapters)
+    assert fov.model == {"omega0": 1 / 60, "slope": 0.022, "max_scale": None}
+    assert fov.per_view["ss"]["psnr_foveal"].shape == (2, 1, len(views))
+    pipe = make_pipeline(FOVEATED)
+    cam, gt = views[1]
+    state = RuntimeState(downsample=2.0, power_saving=0.4, gaze=(10.0, 0.0))
+    with torch.no_grad():
+        eye = pipe(render_view(None, model, cam, None, views.background), state, reference=gt)
+    assert float(fov.per_view["ss"]["psnr"][1, 0, 1]) == pytest.approx(scores(eye, gt, {})["psnr"], abs=1e-12)
+    masks = evaluation.band_masks(pipe["foveation"].angles, gt.shape[-2], gt.shape[-1], (10.0, 0.0))
+    mse = sum(int(m.sum()) * 10 ** (-float(fov.per_view["ss"][f"psnr_{b}"][1, 0, 1]) / 10)
+              for m, b in zip(masks, ("foveal", "parafoveal", "periphery")) if m.any()) / masks[0].numel()
+    assert -10 * math.log10(mse) == pytest.approx(float(fov.per_view["ss"]["psnr"][1, 0, 1]), abs=1e-9)
+    # the default gazes; the axis round-trips through JSON, a band without pixels as null
+    d = evaluate_grid(model, views, {}, effects=FOVEATED, baselines=(), foveation_settings=settings, **kw)
+    assert d.foveation is not None and d.foveation.gazes == evaluation.FOVEATION_GAZES
+    data = json.loads(json.dumps(d.to_json()))
+    assert GridResult.from_json(data) == d
+    assert None in data["foveation"]["methods"][IDEAL]["ssim_foveal"]["per_view"][1][0]  # 16 px: no window < 5 deg off axis
+
+
+def test_foveation_axis_refusals_before_any_render(tiny_adapter):
+    model, views, path = tiny_adapter
+    kw = dict(downsample=(2.0,), power_saving=(0.0,), extra_metrics=False, progress=False, effects=FOVEATED)
+    with pytest.raises(InputValueError, match=r"^gaze \(40, 0\) deg is outside the lens's field"):
+        evaluate_grid(model, views, {"controlgs": "/nonexistent"}, gazes=[(40.0, 0.0)], **kw)
+    with pytest.raises(InputValueError, match=r"^gazes must be a non-empty list of"):
+        evaluate_grid(model, views, {}, gazes=[(1.0,)], **kw)
+    with pytest.raises(InputValueError, match=r"^foveation_settings must be a non-empty list of finite"):
+        evaluate_grid(model, views, {}, foveation_settings=[], **kw)
