@@ -103,7 +103,8 @@ def _run_fields() -> dict[str, tuple[str, Callable[[Any], bool]]]:
     def words(v: Any) -> bool:
         return isinstance(v, list) and all(isinstance(x, str) for x in v)
 
-    effects = ", ".join(DEFAULT_EFFECTS)
+    stages = (*DEFAULT_EFFECTS, "foveation")
+    effects = ", ".join(stages)
     return {
         "model": ("a folder path (string)", text), "data": ("a folder path (string)", text),
         "images": ("a folder under the dataset (a relative path without '..')",
@@ -118,7 +119,7 @@ def _run_fields() -> dict[str, tuple[str, Callable[[Any], bool]]]:
         "allow_unquantized": ("true or false", lambda v: isinstance(v, bool)),
         "white_background": ("true or false", lambda v: isinstance(v, bool)),
         "effects": (f"a non-empty list of stage names among {effects}",
-                    lambda v: words(v) and bool(v) and all(x in DEFAULT_EFFECTS for x in v)),
+                    lambda v: words(v) and bool(v) and all(x in stages for x in v)),
         "adapters": ("a list of adapter names", words),
         "lens": ("a shipped lens name or a file path (string)", text),
         "distributed": ("an object (processes, backend, exchange)",

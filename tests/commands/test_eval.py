@@ -253,3 +253,52 @@ def test_eval_of_a_built_in_run(tmp_path: Path, capsys: pytest.CaptureFixture[st
 # ----------------------------------------------------------------------------- optional packages
 
 
+
+
+# ----------------------------------------------------------------------------- the foveation axis
+FOVEATED = "lens,resample,display,oled,foveation"
+
+
+@needs_backbone
+def test_eval_of_a_foveated_run_writes_the_band_tables(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """train --effects ...,foveation --ablation wo_foveation, then eval --gazes: results.json holds the axis (the
+    gazes asked, the three settings, SS-backbone, ideal, ControlGS and w/o foveation, per band); report.md a table
+    per gaze. The untrained w/o foveation adapter lacks the foveation module."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    run, out = tmp_path / "run", tmp_path / "report"
+    assert main(["train", "--out", str(run), "--iterations", "2", "--resolution", "16", "--effects", FOVEATED,
+                 "--ablation", "wo_foveation", "--no-progress", "--checkpoint-every", "0"]) == 0
+    from controlgs_adapter import ControlGS
+    from controlgs_adapter.scene import load_builtin_backbone
+
+    model = load_builtin_backbone("ar")
+    for name, has in (("controlgs", True), ("wo_foveation", False)):
+        cgs = ControlGS.load(run / f"{name}.controlgs.safetensors", model)
+        assert ("foveation" in cgs.modules) is has
+        cgs.unwrap()
+    capsys.readouterr()
+    assert main(["eval", "--run", str(run), "--out", str(out), "--resolution", "16", "--test-views", "1",
+                 "--no-progress", "--gazes", "0,0", "10,0"]) == 0
+    data = json.loads((out / "results.json").read_text())
+    assert data["info"]["effects"] == sorted(FOVEATED.split(","))
+    fov = data["foveation"]
+    assert fov["gazes"] == [[0.0, 0.0], [10.0, 0.0]] and fov["settings"] == [[1.0, 0.0], [2.0, 0.4], [8.0, 0.8]]
+    assert list(fov["methods"]) == ["ss", "ideal", "controlgs", "wo_foveation"]
+    assert set(fov["methods"]["ss"]) == {f"{k}{b}" for k in ("psnr", "ssim") for b in ("", "_foveal", "_parafoveal",
+                                                                                        "_periphery")}
+    assert torch.tensor(fov["methods"]["controlgs"]["psnr"]["per_view"]).shape == (2, 3, 1)
+    md = (out / "report.md").read_text()
+    assert md.count("| Method | All | Foveal (< 5°) | Parafoveal (5-15°) | Periphery (≥ 15°) |") == 2
+    assert "Gaze (10°, 0°):" in md and "| w/o Foveation |" in md
+
+
+def test_gazes_outside_the_field_or_malformed_are_one_line(base_run: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    run = _run(base_run, tmp_path, effects=FOVEATED.split(","))
+    before = snapshot(run)
+    for gazes, want in ((["40,0"], "--gazes: gaze (40, 0) deg is outside the lens's field"),
+                        (["0;0"], "--gazes takes AZ,EL pairs of degrees")):
+        assert main(["eval", "--run", str(run), *FAST, "--gazes", *gazes]) == 2
+        assert error_line(capsys, "eval").startswith(want)
+    assert snapshot(run) == before
