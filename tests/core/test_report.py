@@ -533,3 +533,29 @@ def _seed_result(seed: int, values: dict[str, float]) -> GridResult:
 def test_pooled_seeds_must_hold_the_same_methods() -> None:
     with pytest.raises(InputValueError, match="pooled"):
         markdown_tables([_seed_result(0, {"ss": 1.0}), _seed_result(1, {"controlgs": 1.0})])
+
+
+def test_foveation_tables_per_gaze_with_missing_bands_and_seed_means(tmp_path: Path):
+    """A table per gaze: PSNR / SSIM per band, the mean over settings and views without the views that lack the
+    band ("–" when none has it); over two seeds the per-view values are averaged; results.json keeps the axis."""
+    from controlgs_adapter.evaluation import FoveationAxis
+
+    def axis(offset: float) -> FoveationAxis:
+        names = ["psnr", "ssim", *(f"{k}_{b}" for b in ("foveal", "parafoveal", "periphery") for k in ("psnr", "ssim"))]
+        pv = {k: torch.full((2, 1, 2), 0.5 if k.startswith("ssim") else 20.0, dtype=torch.float64) for k in names}
+        pv["psnr_foveal"][0, 0] = torch.tensor([30.0, 34.0]) + offset   # gaze 0: mean 32 + offset
+        pv["psnr_foveal"][1, 0] = torch.tensor([math.nan, 10.0])       # gaze 1: one view has no foveal pixel
+        pv["ssim_periphery"][1] = math.nan                              # gaze 1: no periphery window at all
+        return FoveationAxis(((0.0, 0.0), (10.0, 0.0)), ((2.0, 0.4),), {"omega0": 1 / 60, "slope": 0.022,
+                                                                      "max_scale": 4.0}, per_view={"ss": pv})
+
+    runs = [grid_result(("ss", "controlgs")), grid_result(("ss", "controlgs"))]
+    runs[0].foveation, runs[1].foveation = axis(0.0), axis(2.0)
+    md = markdown_tables(runs)
+    rows = [line for line in md.splitlines() if line.startswith("| SS-backbone | 20.00 / 0.5000")]
+    assert rows == ["| SS-backbone | 20.00 / 0.5000 | 33.00 / 0.5000 | 20.00 / 0.5000 | 20.00 / 0.5000 |",
+                    "| SS-backbone | 20.00 / 0.5000 | 10.00 / 0.5000 | 20.00 / 0.5000 | 20.00 / – |"]
+    assert "Gaze (0°, 0°):" in md and "Gaze (10°, 0°):" in md and "blur scale at most 4" in md
+    write_report(tmp_path, runs[:1])
+    back = read_results(json.loads((tmp_path / "results.json").read_text()))[0]
+    assert back.foveation == runs[0].foveation
