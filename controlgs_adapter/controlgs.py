@@ -8,7 +8,8 @@
 
 ``wrap(model, lens=bank)`` conditions the lens module in the frame of the optics' lens
 (:mod:`controlgs_adapter.lens_frame`: the radius for a centred, rotationally symmetric lens, the
-position ``(x, y)`` in the lens's frame otherwise); the file records the frame.
+position ``(x, y)`` in the lens's frame otherwise) and the foveation module's eccentricities through
+that lens; the file records both.
 
 ``wrap`` follows PEFT's rule: it checks everything (backend, targets, widths, modules, endpoints)
 before it changes anything on the model, and ``unwrap`` puts back exactly what was there.
@@ -30,7 +31,7 @@ from .backend import Backend, anchor_ids_from_mask, get_attr_path, set_attr_path
 from .errors import InjectionMissedError, InputValueError, LifecycleError, ShapeError, TargetError, warn_user
 from .injector import ConditionInjector, InjectionContext
 from controlgs_adapter.formats.adapter import (ADAPTER_FORMAT_VERSION, ADAPTER_KIND, AdapterSpec, build_header,
-                                               lens_frame_of, valid_fingerprint, write_adapter)
+                                               lens_frame_of, valid_fingerprint, visual_angles_of, write_adapter)
 from .lens_frame import LensFrame
 from .load_plan import load_into, plan_load, spec_endpoints
 from .schedules import FoveationSchedule, LensSchedule, StrengthSchedule
@@ -129,7 +130,8 @@ class ControlGS:
             name: name of this parameter set (more are added with :meth:`load_adapter`).
             lens: the optics' lens, for the lens module's condition: a
                 :class:`~controlgs_adapter.downstream.optics.bank.PSFBank`, a
-                :class:`~controlgs_adapter.lens_frame.LensFrame`, or None (a centred radius frame).
+                :class:`~controlgs_adapter.lens_frame.LensFrame`, or None (a centred radius frame); a bank
+                also sets the lens the foveation module measures eccentricities through (otherwise Cardboard).
             lens_conditioning: ``"radius"`` (``||p - axis||``), ``"xy"`` (the position in the lens's
                 frame: a signed strength pair scaling the two halves of the N condition columns, so
                 ``cond_dim`` must be even), or None: ``"radius"`` for a rotationally symmetric, centred
@@ -144,8 +146,8 @@ class ControlGS:
         schedules = check_modules(modules, cond_dim, endpoints)
         lens_frame = _lens_frame(lens, lens_conditioning, schedules, cond_dim)
         fov = schedules.get("foveation")
-        if isinstance(fov, FoveationSchedule) and isinstance(lens, PSFBank):  # eccentricities through this lens
-            schedules["foveation"] = fov.for_lens(VisualAngles.of_bank(lens))
+        if isinstance(fov, FoveationSchedule) and isinstance(lens, PSFBank) and lens is not PSFBank.default():
+            schedules["foveation"] = fov.for_lens(VisualAngles.of_bank(lens))  # eccentricities through this lens
         if targets is None:
             targets = chosen.default_targets(model)
         if isinstance(targets, str) or not isinstance(targets, Sequence) or not targets:
@@ -336,7 +338,9 @@ class ControlGS:
     # ------------------------------------------------------------------ files
     def adapter_spec(self) -> AdapterSpec:
         """The active adapter as plain data (backend, modules, schedules' endpoints, targets, anchors,
-        backbone fingerprints): what its file header records."""
+        backbone fingerprints, the lens frame, the foveation module's lens): what its file header records."""
+        fov = self.schedules.get("foveation")
+        angles = fov.lens_angles if isinstance(fov, FoveationSchedule) else None
         return AdapterSpec(
             backend=self.backend.name,
             modules=list(self.modules),
@@ -350,6 +354,7 @@ class ControlGS:
             fingerprint=self.fingerprint,
             valid_fingerprint=valid_fingerprint(self.model, self.backend),
             lens_frame=None if self.lens_frame.is_default else self.lens_frame.header(),
+            visual_angles=None if angles is None else angles.header(),
         )
 
     def header(self) -> dict[str, Any]:
@@ -391,6 +396,7 @@ class ControlGS:
         cgs = cls.wrap(model, modules=spec["modules"], cond_dim=spec["cond_dim"], backend=plan.backend,
                        targets=plan.targets, endpoints=spec_endpoints(spec), state_blind=spec["state_blind"],
                        name=name, lens=lens_frame_of(path, spec))
+        _foveation_through(cgs.schedules, visual_angles_of(path, spec))
         load_into(cgs.injector, plan.tensors)
         cgs._adapters[name].skipped = plan.skipped
         return cgs
@@ -406,6 +412,7 @@ class ControlGS:
         plan = plan_load(path, self.model, strict=strict, wrapped=self)
         spec = plan.spec
         schedules = check_modules(spec["modules"], spec["cond_dim"], spec_endpoints(spec))
+        _foveation_through(schedules, visual_angles_of(path, spec))
         widths = {t.decoder: t.out_features for t in self.targets if t.decoder in plan.targets}
         injector = ConditionInjector(self.num_anchors, spec["modules"], spec["cond_dim"], widths,
                                      device=self.injector.conditions.device, dtype=self.injector.dtype)
@@ -488,6 +495,13 @@ def _lens_frame(lens: PSFBank | LensFrame | None, mode: str | None, schedules: M
         raise InputValueError(f"cond_dim must be even for lens_conditioning 'xy' (lambda_x and lambda_y scale its two "
                               f"halves), got {cond_dim}")
     return frame
+
+
+def _foveation_through(schedules: dict[str, StrengthSchedule], angles: VisualAngles | None) -> None:
+    """Measure the foveation module's eccentricities (where wrapped) through the lens of ``angles`` (None: as is)."""
+    fov = schedules.get("foveation")
+    if isinstance(fov, FoveationSchedule) and angles is not None:
+        schedules["foveation"] = fov.for_lens(angles)
 
 
 def _check_name(name: str) -> None:

@@ -185,6 +185,9 @@ class FoveationSchedule(StrengthSchedule):
         lo, hi: endpoints in degrees (default 0 .. 30).
         angles: the lens's :class:`~controlgs_adapter.downstream.optics.visual_angles.VisualAngles`;
             None: the shipped Cardboard lens's (built on first use).
+
+    Attributes:
+        lens_angles: ``angles`` as given (None: the Cardboard lens's); an adapter file records it.
     """
 
     name = "foveation"
@@ -194,11 +197,12 @@ class FoveationSchedule(StrengthSchedule):
 
     def __init__(self, lo: float | None = None, hi: float | None = None, angles: VisualAngles | None = None) -> None:
         super().__init__(lo, hi)
+        self.lens_angles = angles
         self._angles = angles
 
     @property
     def angles(self) -> VisualAngles:
-        """The visual-angle map anchors are measured in."""
+        """The visual-angle map anchors are measured in (:attr:`lens_angles`, None there: the Cardboard lens's)."""
         if self._angles is None:
             from .downstream.optics.bank import PSFBank  # the shipped bank's file is read only when needed
             from .downstream.optics.visual_angles import VisualAngles
@@ -206,7 +210,7 @@ class FoveationSchedule(StrengthSchedule):
         return self._angles
 
     def with_endpoints(self, lo: float | None = None, hi: float | None = None) -> "FoveationSchedule":
-        return FoveationSchedule(self.lo if lo is None else lo, self.hi if hi is None else hi, self._angles)
+        return FoveationSchedule(self.lo if lo is None else lo, self.hi if hi is None else hi, self.lens_angles)
 
     def for_lens(self, angles: VisualAngles) -> "FoveationSchedule":
         """A copy measuring eccentricities through the lens of ``angles``."""

@@ -18,16 +18,17 @@ import torch
 from controlgs_adapter.backend import Backend
 from controlgs_adapter.errors import FileFormatError, InputValueError, NonFiniteError
 from controlgs_adapter.formats.safetensors import load_tensors, read_header, save_tensors
+from controlgs_adapter.downstream.optics.visual_angles import VisualAngles
 from controlgs_adapter.lens_frame import LensFrame
 
 __all__ = ["ADAPTER_KIND", "ADAPTER_FORMAT_VERSION", "Problem", "AdapterSpec", "build_header", "check_header", "read_spec",
            "read_tensors", "write_adapter", "valid_fingerprint", "row_map", "map_conditions", "fingerprint_mismatch",
-           "tensor_mismatches", "lens_frame_of"]
+           "tensor_mismatches", "lens_frame_of", "visual_angles_of"]
 
 ADAPTER_KIND = "controlgs_adapter"
-#: the newest format: 2 adds the optional ``lens_frame`` field; a file without one (a centred radius
-#: lens condition, as every format-1 file) is written as format 1, which older readers read as it is meant
-ADAPTER_FORMAT_VERSION = 2
+#: the newest format: 2 adds the optional ``lens_frame`` field, 3 the optional ``visual_angles`` field; a file
+#: is written in the oldest format that holds its fields (neither: format 1), which older readers read as meant
+ADAPTER_FORMAT_VERSION = 3
 
 # what a non-strict load leaves out for one mismatch: tensor keys, ("target", decoder), "conditions",
 # None (only reported: the adapter still loads) or "fatal" (cannot be skipped)
@@ -52,6 +53,8 @@ class AdapterSpec:
             (None for backends without ``valid_anchors``, :func:`valid_fingerprint`).
         lens_frame: the lens condition's frame (:meth:`LensFrame.header
             <controlgs_adapter.lens_frame.LensFrame.header>`); None for a centred radius frame.
+        visual_angles: the foveation module's visual-angle map (:meth:`VisualAngles.header
+            <controlgs_adapter.downstream.optics.visual_angles.VisualAngles.header>`); None for the Cardboard lens's.
     """
 
     backend: str
@@ -65,6 +68,7 @@ class AdapterSpec:
     fingerprint: str
     valid_fingerprint: str | None = None
     lens_frame: dict[str, Any] | None = None
+    visual_angles: dict[str, Any] | None = None
 
 
 def build_header(spec: AdapterSpec) -> dict[str, Any]:
@@ -81,6 +85,7 @@ def build_header(spec: AdapterSpec) -> dict[str, Any]:
         "fingerprint": spec.fingerprint,
         **({} if spec.valid_fingerprint is None else {"valid_fingerprint": spec.valid_fingerprint}),
         **({} if spec.lens_frame is None else {"lens_frame": spec.lens_frame}),
+        **({} if spec.visual_angles is None else {"visual_angles": spec.visual_angles}),
     }
 
 
@@ -97,7 +102,7 @@ def write_adapter(path: str | Path, tensors: dict[str, torch.Tensor], header: di
     if dtype is not None:
         tensors = {**tensors, "conditions": tensors["conditions"].to(dtype)}
     header = {**header, "condition_dtype": str(tensors["conditions"].dtype).removeprefix("torch.")}
-    version = ADAPTER_FORMAT_VERSION if "lens_frame" in header else 1
+    version = 3 if "visual_angles" in header else 2 if "lens_frame" in header else 1
     return save_tensors(path, tensors, header, kind=ADAPTER_KIND, format_version=version)
 
 
@@ -138,6 +143,7 @@ def check_header(path: str | Path, header: dict[str, Any]) -> dict[str, Any]:
             raise FileFormatError(f"{path}: adapter header field schedules.{m}: endpoints lo={lo!r}, hi={hi!r} must be "
                                   "finite and differ")
     lens_frame_of(path, header)
+    visual_angles_of(path, header)
     return header
 
 
@@ -155,6 +161,21 @@ def lens_frame_of(path: str | Path, header: dict[str, Any]) -> LensFrame:
         raise FileFormatError(f"{path}: adapter header field lens_frame.mode: 'xy' needs the 'lens' module and an "
                               f"even cond_dim, got modules {header['modules']} and cond_dim {header['cond_dim']}")
     return frame
+
+
+def visual_angles_of(path: str | Path, header: dict[str, Any]) -> VisualAngles | None:
+    """The foveation module's visual-angle map the header records (none: the Cardboard lens's, as every file
+    before format 3); :class:`FileFormatError` naming ``path`` and the field if it is malformed or comes
+    without the foveation module."""
+    if "visual_angles" not in header:
+        return None
+    if "foveation" not in header["modules"]:
+        raise FileFormatError(f"{path}: adapter header field visual_angles: only the 'foveation' module has one, got "
+                              f"modules {header['modules']}")
+    try:
+        return VisualAngles.from_header(header["visual_angles"])
+    except InputValueError as e:
+        raise FileFormatError(f"{path}: adapter header field {e}") from None
 
 
 def valid_fingerprint(model: Any, backend: Backend) -> str | None:

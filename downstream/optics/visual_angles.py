@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -38,10 +38,12 @@ from controlgs_adapter.errors import InputValueError
 from ..placement import Placement, image_region
 from .bank import PSFBank
 
-__all__ = ["VisualAngles", "eccentricity", "angle_to", "direction_vectors", "REFERENCE_CHANNEL"]
+__all__ = ["VisualAngles", "eccentricity", "angle_to", "direction_vectors", "REFERENCE_CHANNEL", "HEADER_SAMPLES"]
 
 #: the bank channel whose chief rays define the directions: green (550 nm)
 REFERENCE_CHANNEL = 1
+#: the most samples per axis :meth:`VisualAngles.header` records (the shipped Cardboard bank's chief-ray grid)
+HEADER_SAMPLES = 65
 _D = torch.float64
 
 
@@ -117,6 +119,50 @@ class VisualAngles:
         tangents = (chief - origin) * torch.tensor(scale, dtype=_D)
         return cls(tangents, gx, gy, (float(w), float(h)), bank.axis)
 
+    # ------------------------------------------------------------------ header
+    def header(self) -> dict[str, Any]:
+        """The map as JSON data: ``{"tangents": Sy x Sx x 2, "display_mm": [w, h], "axis": [ax, ay]}``. An axis
+        of more than :data:`HEADER_SAMPLES` samples is resampled (bilinearly) onto ``HEADER_SAMPLES``."""
+        sy, sx = (min(n, HEADER_SAMPLES) for n in self.tangents.shape[:2])
+        tangents = self.tangents
+        if (sy, sx) != tuple(tangents.shape[:2]):
+            gy, gx = torch.meshgrid(torch.linspace(-1, 1, sy, dtype=_D), torch.linspace(-1, 1, sx, dtype=_D),
+                                    indexing="ij")
+            points = torch.stack([gx, gy], -1).reshape(-1, 2)
+            tangents = _bilinear(tangents.double(), self.grid_x.double(), self.grid_y.double(), points).view(sy, sx, 2)
+        return {"tangents": tangents.double().tolist(), "display_mm": list(self.display_mm), "axis": list(self.axis)}
+
+    @classmethod
+    def from_header(cls, value: Any) -> "VisualAngles":
+        """The map recorded by :meth:`header` (tangents at ``linspace(-1, 1, S)`` per axis);
+        :class:`InputValueError` naming the field otherwise."""
+        if not isinstance(value, dict):
+            raise InputValueError(f"visual_angles: must be an object, got {type(value).__name__}")
+        stray = sorted(set(value) - {"tangents", "display_mm", "axis"})
+        if stray:
+            raise InputValueError(f"visual_angles: unknown field(s) {stray}")
+        raw: Any = value.get("tangents")
+        display_mm: Any = value.get("display_mm")
+        axis: Any = value.get("axis")
+        if not _finite_pair(display_mm) or not min(display_mm) > 0:
+            raise InputValueError(f"visual_angles.display_mm: must be two finite numbers > 0, got {display_mm!r}")
+        if not _finite_pair(axis):
+            raise InputValueError(f"visual_angles.axis: must be two finite numbers, got {axis!r}")
+        if not _numbers(raw, depth=3):
+            raise InputValueError("visual_angles.tangents: must be Sy x Sx x 2 nested lists of numbers")
+        try:
+            tangents = torch.tensor(raw, dtype=_D)
+        except (TypeError, ValueError) as e:  # ragged lists
+            raise InputValueError(f"visual_angles.tangents: must be Sy x Sx x 2 nested lists of numbers ({e})") from None
+        if tangents.dim() != 3 or tangents.shape[-1] != 2 or not all(2 <= n <= HEADER_SAMPLES for n in tangents.shape[:2]):
+            raise InputValueError(f"visual_angles.tangents: must be [Sy, Sx, 2] with 2 <= Sy, Sx <= {HEADER_SAMPLES}, "
+                                  f"got {list(tangents.shape)}")
+        if not bool(torch.isfinite(tangents).all()):
+            raise InputValueError("visual_angles.tangents: holds NaN/Inf values")
+        sy, sx = tangents.shape[:2]
+        return cls(tangents, torch.linspace(-1, 1, sx, dtype=_D), torch.linspace(-1, 1, sy, dtype=_D),
+                   (float(display_mm[0]), float(display_mm[1])), (float(axis[0]), float(axis[1])))
+
     # ------------------------------------------------------------------ positions -> directions
     def directions(self, xy: torch.Tensor) -> torch.Tensor:
         """Display-normalised positions ``[..., 2]`` -> ``(azimuth, elevation)`` ``[..., 2]`` in degrees
@@ -182,6 +228,18 @@ class VisualAngles:
                 f"gaze ({gaze_deg[0]:g}, {gaze_deg[1]:g}) deg is outside the lens's field (azimuth "
                 f"{float(az.min()):.1f} .. {float(az.max()):.1f}, elevation {float(el.min()):.1f} .. "
                 f"{float(el.max()):.1f} deg at the display's edge)")
+
+
+def _numbers(value: Any, depth: int) -> bool:
+    """True if ``value`` is ``depth`` levels of lists ending in numbers (no bool, no string)."""
+    if depth == 0:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, list) and all(_numbers(v, depth - 1) for v in value)
+
+
+def _finite_pair(value: Any) -> bool:
+    """True if ``value`` is a list of two finite numbers."""
+    return isinstance(value, list) and len(value) == 2 and _numbers(value, 1) and all(math.isfinite(v) for v in value)
 
 
 def _bilinear(grid: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:

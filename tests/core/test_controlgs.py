@@ -12,6 +12,8 @@ import warnings
 import pytest
 import torch
 from helpers.adapter_files import saved_adapter, trained
+from helpers.banks import affine_bank
+from helpers.rawfiles import write_raw
 from helpers.scaffold_standin import ScaffoldStandIn, make_camera, script_decoders
 from helpers.wrapping import (
     DECODERS,
@@ -30,6 +32,7 @@ from controlgs_adapter import ControlGS, RuntimeState, __version__
 from controlgs_adapter.backend import get_attr_path, set_attr_path
 from controlgs_adapter.backends.models.reference_model import NeuralGaussianModel
 from controlgs_adapter.backends.scaffold_gs import ScaffoldGSBackend
+from controlgs_adapter.downstream.optics.bank import PSFBank
 from controlgs_adapter.controlgs import ADAPTER_FORMAT_VERSION, ADAPTER_KIND, DEFAULT_ADAPTER, DEFAULT_MODULES, _backbone_tensors
 from controlgs_adapter.errors import (
     FileFormatError,
@@ -622,6 +625,78 @@ def test_header_describes_the_adapter(tmp_path):
     assert h["fingerprint"] == cgs.backend.fingerprint(model) and h["condition_dtype"] == "float32"
     cgs.unwrap()
     assert ControlGS.load(path, model).state_blind
+
+
+#: a gaze in the field of both the Cardboard lens and :func:`_fov_bank`'s
+GAZE_STATE = RuntimeState(power_saving=0.3, gaze=(4.0, -3.0))
+
+
+def _fov_bank():
+    """A decentred, sheared lens (affine green chief rays: bilinear maps of it are exact) seen 40 deg wide."""
+    bank = affine_bank([[1.1, 0.2], [-0.1, 0.9]], [0.05, -0.03], axis=(0.1, -0.05))
+    bank.meta["lens"]["half_fov_deg"] = 40.0
+    return bank
+
+
+def test_a_foveation_adapter_loads_measuring_through_its_lens(tmp_path):
+    model, cam = ScaffoldStandIn(30), make_camera()
+    cgs = trained(model, modules=("display", "foveation"), lens=_fov_bank())
+    want = cgs.strengths(GAZE_STATE, cam)["foveation"]
+    path = cgs.save(tmp_path / "a.safetensors")
+    h = read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+    assert h["format_version"] == 3 and "lens_frame" not in h
+    assert (len(h["visual_angles"]["tangents"]), len(h["visual_angles"]["tangents"][0])) == (9, 9)  # the bank's grid
+    cgs.unwrap()
+    cardboard = ControlGS.wrap(model, modules=("display", "foveation"))
+    other = cardboard.strengths(GAZE_STATE, cam)["foveation"]
+    cardboard.unwrap()
+    assert (want - other).abs().max() > 0.05  # the lens matters at this gaze
+    loaded = ControlGS.load(path, model)
+    assert torch.equal(loaded.strengths(GAZE_STATE, cam)["foveation"], want)  # the bank's own grid: exact
+    assert loaded.header() == cgs.header()
+
+
+def test_a_file_without_visual_angles_measures_through_cardboard(tmp_path):
+    """Files before format 3 record no visual-angle map: the foveation module sees through the Cardboard lens."""
+    model, cam = ScaffoldStandIn(30), make_camera()
+    cgs = trained(model, modules=("display", "foveation"), lens=_fov_bank())
+    path = cgs.save(tmp_path / "a.safetensors")
+    cgs.unwrap()
+    h = read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+    header = {k: v for k, v in h.items() if k not in ("kind", "format_version", "library_version", "visual_angles")}
+    tensors = load_tensors(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)[0]
+    write_raw(path, tensors, header, kind=ADAPTER_KIND, format_version=1)
+    loaded = ControlGS.load(path, model)
+    assert loaded.schedules["foveation"].lens_angles is None
+    cardboard = ControlGS.wrap(ScaffoldStandIn(30), modules=("display", "foveation"))
+    assert torch.equal(loaded.strengths(GAZE_STATE, cam)["foveation"], cardboard.strengths(GAZE_STATE, cam)["foveation"])
+
+
+@pytest.mark.parametrize("modules, lens", [(("display", "foveation"), None), (("display",), _fov_bank),
+                                           (("display", "foveation"), PSFBank.default)])
+def test_no_visual_angles_without_a_foveation_lens(tmp_path, modules, lens):
+    """Without the foveation module, or with the Cardboard lens, the file is format 1 as before the field existed."""
+    path = saved_adapter(tmp_path, modules=modules, lens=lens and lens())
+    h = read_header(path, kind=ADAPTER_KIND, max_version=ADAPTER_FORMAT_VERSION)
+    assert h["format_version"] == 1 and "visual_angles" not in h
+
+
+def test_named_adapters_keep_their_own_foveation_lens(tmp_path):
+    model, cam = ScaffoldStandIn(30, seed=0), make_camera()
+    lens_path = saved_adapter(tmp_path, file="lens.safetensors", modules=("display", "foveation"), lens=_fov_bank())
+    plain_path = saved_adapter(tmp_path, file="plain.safetensors", modules=("display", "foveation"))
+    lensed = ControlGS.load(lens_path, model)
+    want = lensed.strengths(GAZE_STATE, cam)["foveation"]
+    lensed.load_adapter(plain_path, "plain")
+    lensed.set_adapter("plain")
+    plain = lensed.strengths(GAZE_STATE, cam)["foveation"]
+    assert lensed.schedules["foveation"].lens_angles is None and (plain - want).abs().max() > 0.05
+    lensed.set_adapter(DEFAULT_ADAPTER)
+    assert torch.equal(lensed.strengths(GAZE_STATE, cam)["foveation"], want)
+    other = ControlGS.load(plain_path, lensed.unwrap())
+    other.load_adapter(lens_path, "lens")
+    other.set_adapter("lens")
+    assert torch.equal(other.strengths(GAZE_STATE, cam)["foveation"], want)
 
 
 def test_fp16_storage_halves_conditions_and_stays_close(tmp_path):

@@ -3,6 +3,7 @@ row count, dtype and device, their registration through the plug-in hook, and th
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -14,7 +15,7 @@ from hypothesis import strategies as st
 
 from controlgs_adapter import RuntimeState, plugins
 from controlgs_adapter.builtin import controlgs_register_schedules
-from controlgs_adapter.downstream.optics.visual_angles import VisualAngles
+from controlgs_adapter.downstream.optics.visual_angles import HEADER_SAMPLES, VisualAngles
 from controlgs_adapter.errors import InputValueError, ShapeError
 from controlgs_adapter.schedules import (
     BUILTIN_SCHEDULES,
@@ -82,6 +83,33 @@ def test_schedule_strengths_by_hand():
         fov.strength(RuntimeState(gaze=(17.0, 0.0)), horizon)  # atan(0.3) = 16.7 deg at the edge
     assert torch.equal(FoveationSchedule().strength(RuntimeState(), torch.tensor([[0.5, 0.5], [-1.0, 1.0]])),
                        torch.zeros(2))
+
+
+def test_foveation_lens_angles_are_the_map_given():
+    """``lens_angles`` is what an adapter file records: the map given, None for the Cardboard lens even once it is built."""
+    default = FoveationSchedule()
+    default.strength(RuntimeState(gaze=(1.0, 0.0)), torch.zeros(1, 2))  # builds the Cardboard map
+    assert default.lens_angles is None and default.with_endpoints(hi=20.0).lens_angles is None
+    flat = VisualAngles.of_bank(radial_lens_bank(0.0, C=9))
+    assert default.for_lens(flat).with_endpoints(lo=1.0).lens_angles is flat
+
+
+@pytest.mark.parametrize("k, C, tol_deg", [(0.2, 9, 0.0), (0.0, 257, 1e-12), (0.2, 257, 0.005)])
+def test_visual_angles_header_round_trip(k, C, tol_deg):
+    """A map of at most HEADER_SAMPLES per axis is recorded on its own grid (exact); a finer one is resampled onto
+    65 x 65 (exact for a linear map; for the cubic radial map within ``tol_deg`` of the analytic directions, where
+    the 257-grid map itself is within 0.0002 deg)."""
+    angles = VisualAngles.of_bank(radial_lens_bank(k, C=C))
+    back = VisualAngles.from_header(json.loads(json.dumps(angles.header())))
+    assert back.tangents.shape == (min(C, HEADER_SAMPLES), min(C, HEADER_SAMPLES), 2)
+    assert (back.display_mm, back.axis) == (angles.display_mm, angles.axis)
+    xy = torch.rand(4000, 2, generator=torch.Generator().manual_seed(0), dtype=D) * 2 - 1
+    if C <= HEADER_SAMPLES:
+        assert torch.equal(back.tangents, angles.tangents) and torch.equal(back.directions(xy), angles.directions(xy))
+        return
+    q = xy * (1 + k * (xy ** 2).sum(-1, keepdim=True))
+    analytic = torch.rad2deg(torch.atan(q * 12 * 15 / 600))  # the bank's 12 mm half display, magnification 15, 600 mm
+    assert (back.directions(xy) - analytic).abs().max() <= tol_deg + 1e-9
 
 
 def test_lens_xy_strength_is_signed_q_over_hi_clamped():

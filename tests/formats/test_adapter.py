@@ -181,3 +181,64 @@ def test_bad_adapter_file_headers_are_file_format_errors(tmp_path, kw, pattern):
     p = write_raw(tmp_path / "f.safetensors", {"w": torch.zeros(2)}, {}, **{"kind": ADAPTER_KIND, **kw})
     with pytest.raises(FileFormatError, match=f"f.safetensors.*{pattern}"):
         load_tensors(p, kind=ADAPTER_KIND, max_version=1)
+
+
+# ------------------------------------------------------------------------------ the foveation module's visual angles
+def _angles_header() -> dict:
+    """A valid 3 x 4 visual-angle map: tangents (x / 2, y / 3) at linspace(-1, 1, 4) x linspace(-1, 1, 3)."""
+    return {"tangents": [[[x / 2, y / 3] for x in (-1.0, -1 / 3, 1 / 3, 1.0)] for y in (-1.0, 0.0, 1.0)],
+            "display_mm": [24.0, 18.0], "axis": [0.0, 0.0]}
+
+
+def _angles_with(field: str, value) -> dict:
+    return {**_angles_header(), field: value}
+
+
+_NAN_TANGENTS = _angles_header()["tangents"]
+_NAN_TANGENTS[1][2][0] = math.nan
+
+
+@pytest.mark.parametrize("angles, field", [
+    (_angles_with("tangents", _NAN_TANGENTS), r"visual_angles\.tangents: holds NaN"),
+    (_angles_with("tangents", [[[0.0, 0.0, 0.0]] * 2] * 2), r"visual_angles\.tangents: must be \[Sy, Sx, 2\].*\[2, 2, 3\]"),
+    (_angles_with("tangents", [[[0.0, 0.0]] * 2]), r"visual_angles\.tangents: must be \[Sy, Sx, 2\].*\[1, 2, 2\]"),
+    (_angles_with("tangents", [[[0.0, 0.0]] * 66] * 2), r"visual_angles\.tangents: must be \[Sy, Sx, 2\].*\[2, 66, 2\]"),
+    (_angles_with("tangents", [[[0.0, 0.0]], [[0.0, 0.0], [1.0, 1.0]]]), r"visual_angles\.tangents: must be Sy x Sx x 2"),
+    (_angles_with("tangents", [[[True, 0.0]] * 2] * 2), r"visual_angles\.tangents: must be Sy x Sx x 2 nested lists"),
+    (_angles_with("tangents", None), r"visual_angles\.tangents: must be Sy x Sx x 2"),
+    (_angles_with("display_mm", [24.0, 0.0]), r"visual_angles\.display_mm: must be two finite numbers > 0"),
+    (_angles_with("display_mm", [24.0, math.nan]), r"visual_angles\.display_mm: must be two finite numbers > 0"),
+    (_angles_with("axis", [0.0, math.inf]), r"visual_angles\.axis: must be two finite numbers"),
+    (_angles_with("axis", "centre"), r"visual_angles\.axis: must be two finite numbers"),
+    (_angles_with("extra", 1), r"visual_angles: unknown field\(s\) \['extra'\]"),
+    ([1.0], r"visual_angles: must be an object, got list"),
+])
+def test_hostile_visual_angles_are_refused_naming_the_file_and_field(tmp_path, angles, field):
+    cgs = trained(ScaffoldStandIn(30), modules=("display", "foveation"))
+    path = cgs.save(tmp_path / "a.safetensors")
+    tensors, header = load_tensors(path, kind=ADAPTER_KIND, max_version=3)
+    header = {k: v for k, v in header.items() if k not in ("kind", "format_version", "library_version")}
+    write_raw(path, tensors, {**header, "visual_angles": angles}, kind=ADAPTER_KIND, format_version=3)
+    with pytest.raises(FileFormatError, match=rf"a\.safetensors: adapter header field {field}"):
+        ControlGS.load(path, cgs.unwrap())
+    assert ControlGS.attached(cgs.model) is None  # nothing was wrapped
+
+
+def test_visual_angles_need_the_foveation_module(tmp_path):
+    cgs = trained(ScaffoldStandIn(30), modules=("display",))
+    path = cgs.save(tmp_path / "a.safetensors")
+    rewrite(path, {"visual_angles": _angles_header()})
+    with pytest.raises(FileFormatError, match=r"a\.safetensors: adapter header field visual_angles: only the "
+                                              r"'foveation' module has one"):
+        read_spec(path)
+
+
+def test_a_recorded_map_is_read_on_its_grid(tmp_path):
+    cgs = trained(ScaffoldStandIn(30), modules=("display", "foveation"))
+    path = cgs.save(tmp_path / "a.safetensors")
+    rewrite(path, {"visual_angles": _angles_header()})
+    angles = ControlGS.load(path, cgs.unwrap()).schedules["foveation"].lens_angles
+    xy = torch.tensor([[0.25, -0.5], [-1.0, 1.0], [0.7, 0.1]], dtype=torch.float64)
+    want = torch.rad2deg(torch.atan(xy / torch.tensor([2.0, 3.0], dtype=torch.float64)))  # the map is linear
+    torch.testing.assert_close(angles.directions(xy), want, rtol=0, atol=1e-12)
+    assert (angles.display_mm, angles.axis, list(angles.tangents.shape)) == ((24.0, 18.0), (0.0, 0.0), [3, 4, 2])
