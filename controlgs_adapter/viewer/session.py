@@ -34,7 +34,8 @@ from ..downstream.optics.stage import MODES, set_optics_mode
 from ..downstream.optics.visual_angles import VisualAngles
 from ..downstream.placement import to_display
 from ..errors import InputValueError
-from ..evaluation import BASELINES, make_pipeline, scores
+from ..downstream.foveation import Foveation
+from ..evaluation import BANDS, BASELINES, band_masks, band_scores, make_pipeline, scores
 from ..metrics import optional_metrics
 from ..report import METHOD_LABELS
 from ..state import Camera, RuntimeState
@@ -47,7 +48,7 @@ __all__ = ["STAGES", "OPTICS_MODES", "ViewState", "parse_state", "ViewerSession"
            "scene_centre", "encode_png"]
 
 #: downstream stages the page can switch on and off: the default effects' (pipeline order)
-STAGES: tuple[str, ...] = tuple(DEFAULT_EFFECTS)
+STAGES: tuple[str, ...] = (*DEFAULT_EFFECTS, "foveation")
 #: the optics stage's modes
 OPTICS_MODES: tuple[str, ...] = MODES
 #: the sliders' ranges (the paper's training ranges)
@@ -299,7 +300,8 @@ class ViewerSession:
                 "ranges": {"downsample": DOWNSAMPLE_RANGE, "power_saving": POWER_SAVING_RANGE,
                            "azimuth": AZIMUTH_RANGE, "elevation": ELEVATION_RANGE},
                 "orbit_truth": self.truth is not None, "extra_metrics": list(self.extra_metrics),
-                "diff_gain": DIFF_GAIN, "device": str(self.device)}
+                "diff_gain": DIFF_GAIN, "device": str(self.device),
+                "bands": [[n, lo, None if math.isinf(hi) else hi] for n, lo, hi in BANDS]}
 
     def _pipeline(self, state: ViewState) -> Pipeline:
         if state.stages not in self._pipelines:
@@ -336,7 +338,8 @@ class ViewerSession:
 
     def render(self, state: ViewState, check: Callable[[], None] = lambda: None, tag: int = 0) -> dict[str, Any]:
         """Every method at ``state``: base64 PNGs (``rendered``, ``eye``, ``diff``, lens ``overlay``),
-        PSNR / SSIM against the ground truth (as :func:`evaluate_grid` computes them) and the
+        PSNR / SSIM against the ground truth (as :func:`evaluate_grid` computes them; with a gaze and the
+        foveation stage also per eccentricity band, ``bands``: :func:`~controlgs_adapter.evaluation.band_scores`) and the
         condition strengths. ``check`` is called between methods and raises :class:`Superseded` to
         drop the work when a newer request arrived; ``tag`` names this render for :meth:`extra`."""
         t0 = time.perf_counter()
@@ -348,6 +351,10 @@ class ViewerSession:
             out: dict[str, Any] = {"state": state.to_json(), "size": [cam.width, cam.height], "has_truth": gt is not None,
                                    "gt": pngs.get("gt"), "methods": []}
             eyes: dict[str, torch.Tensor] = {}
+            fov = pipeline["foveation"] if "foveation" in pipeline else None
+            masks = (band_masks(fov.angles, gt.shape[-2], gt.shape[-1], rs.gaze, placement=fov.placement).to(gt.device)
+                     if isinstance(fov, Foveation) and fov.model is not None and rs.gaze is not None and gt is not None
+                     else None)
             for method in self.methods:
                 strengths: dict[str, Any] = {}
                 overlay = None
@@ -371,10 +378,13 @@ class ViewerSession:
                 eyes[method] = eye
                 entry = {"name": method, "label": METHOD_LABELS.get(method, method), "rendered": png, "eye": encode_png(eye),
                          "rendered_size": [rendered.shape[-1], rendered.shape[-2]], "strengths": strengths,
-                         "overlay": overlay, "stages_run": record["stages_run"], "metrics": None, "diff": None}
+                         "overlay": overlay, "stages_run": record["stages_run"], "metrics": None, "diff": None,
+                         "bands": None}
                 if gt is not None:
                     entry["metrics"] = {k: v if math.isfinite(v) else None for k, v in scores(eye, gt, {}).items()}
                     entry["diff"] = encode_png(((eye - gt).abs() * DIFF_GAIN).clamp(0.0, 1.0))
+                if masks is not None and gt is not None:
+                    entry["bands"] = {k: v if math.isfinite(v) else None for k, v in band_scores(eye, gt, masks).items()}
                 out["methods"].append(entry)
                 check()
         self._last = (tag, eyes, gt)

@@ -130,7 +130,7 @@ def test_view_state_defaults_and_constants() -> None:
     assert d == ViewState() and parse_state({}, 2) == ViewState()
     assert (d.view, d.azimuth, d.elevation, d.downsample, d.power_saving, d.optics, d.stages, d.gaze) == (
         0, 0.0, 0.0, 2.0, 0.4, "fast", STAGES, None)
-    assert STAGES == ("lens", "resample", "display", "oled", "optics") and OPTICS_MODES == ("distortion", "fast", "exact")
+    assert STAGES == ("lens", "resample", "display", "oled", "optics", "foveation") and OPTICS_MODES == ("distortion", "fast", "exact")
     assert (vs.DOWNSAMPLE_RANGE, vs.POWER_SAVING_RANGE, vs.AZIMUTH_RANGE, vs.ELEVATION_RANGE, vs.DIFF_GAIN) == (
         (1.0, 8.0), (0.0, 0.8), (-180.0, 180.0), (-80.0, 80.0), 2.0)
     assert d.to_json() == {"view": 0, "azimuth": 0.0, "elevation": 0.0, "downsample": 2.0, "power_saving": 0.4,
@@ -149,7 +149,7 @@ def test_parse_state_values_effects_and_json_round_trip() -> None:
                      "optics": "exact", "stages": ["optics", "lens"], "gaze": [0.5, -1]}, 2)
     assert (s.view, s.azimuth, s.elevation, s.downsample, s.power_saving, s.optics) == (1, -30.0, 12.5, 3.7, 0.25, "exact")
     assert s.stages == ("lens", "optics") and s.gaze == (0.5, -1.0) and s.orbit
-    assert s.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": True}
+    assert s.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": True, "foveation": False}
     assert s.runtime.downsample == 3.7 and s.runtime.gaze is None  # the session turns the click into degrees
     js = s.to_json()
     assert js["stages"] == ["lens", "optics"] and js["gaze"] == [0.5, -1.0]
@@ -160,7 +160,8 @@ def test_parse_state_values_effects_and_json_round_trip() -> None:
         assert parse_state({"optics": optics}, 1).optics == optics
     assert parse_state({"elevation": 5}, 1).orbit and ViewState(azimuth=0.0, elevation=-5.0).orbit and ViewState(azimuth=3.0).orbit
     lens = ViewState(stages=("lens",), gaze=(0.25, -0.5))
-    assert lens.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": False}
+    assert lens.effects == {"lens": True, "resample": False, "display": False, "oled": False, "optics": False,
+                            "foveation": False}
     assert lens.runtime.gaze is None and lens.gaze == (0.25, -0.5)
 
 
@@ -735,3 +736,26 @@ def test_a_lens_conditioned_in_its_xy_frame_shows_the_larger_strength_magnitude(
     assert got["strengths"]["lens"] == pytest.approx(
         {"mean": float(want.mean()), "min": float(want.min()), "max": float(want.max())}, abs=1e-6)
     assert decode_png(got["overlay"]).shape == (SIZE, SIZE, 4)
+
+
+def test_session_band_scores_follow_the_gaze_through_the_foveation_stage(small: Any) -> None:
+    """With a gaze and the foveation stage, each method's PSNR / SSIM per eccentricity band about the clicked
+    direction (those of its eye image over the bands measured through the Cardboard lens); without either, none."""
+    from controlgs_adapter.evaluation import band_masks, band_scores
+
+    session, _ = small
+    click = {"downsample": 2.0, "gaze": [0.5, -0.25]}
+    out = session.render(parse_state(click, 1), tag=21)
+    _, eyes, gt = session._last
+    assert gt is not None and "foveation" in out["methods"][0]["stages_run"]
+    assert session.info()["bands"] == [["foveal", 0.0, 5.0], ["parafoveal", 5.0, 15.0], ["periphery", 15.0, None]]
+    gaze = session.runtime(parse_state(click, 1), session.cameras[0]).gaze
+    masks = band_masks(VisualAngles.of_bank(PSFBank.default()), SIZE, SIZE, gaze)
+    for m in out["methods"]:
+        want = band_scores(eyes[m["name"]], gt, masks)
+        assert set(m["bands"]) == set(want)
+        for k, v in want.items():
+            assert (m["bands"][k] is None) if math.isnan(v) else m["bands"][k] == pytest.approx(v, abs=1e-12), k
+    assert all(m["bands"] is None for m in session.render(parse_state({"downsample": 2.0}, 1))["methods"])
+    no_stage = session.render(parse_state({**click, "stages": ["resample", "display"]}, 1))
+    assert all(m["bands"] is None for m in no_stage["methods"])

@@ -82,6 +82,10 @@ function buildGrid() {
       div.innerHTML = `${k.toUpperCase()} <span id="metric-${m.name}-${k}">–</span>`;
       td.appendChild(div);
     }
+    const bands = document.createElement("div");
+    bands.className = "bands";
+    bands.id = `bands-${m.name}`;
+    td.appendChild(bands);
   }
 }
 
@@ -137,6 +141,12 @@ function show(data, latency) {
     $(`img-${m.name}-diff`).src = png(m.diff);
     $(`img-${m.name}-diff`).parentElement.style.visibility = m.diff ? "visible" : "hidden";
     for (const k of ["psnr", "ssim"]) setMetric(m.name, k, m.metrics ? m.metrics[k] : null);
+    $(`bands-${m.name}`).innerHTML = m.bands ? info.bands.map(([b, lo, hi]) => {
+      const p = m.bands[`psnr_${b}`], s = m.bands[`ssim_${b}`];
+      const range = hi === null ? `≥${lo}°` : `${lo}–${hi}°`;
+      return `<div title="PSNR / SSIM over the pixels ${range} from the gaze">${b} ` +
+        `${p === null ? "–" : p.toFixed(2)} / ${s === null ? "–" : s.toFixed(3)}</div>`;
+    }).join("") : "";
     for (const k of info.extra_metrics) {
       const el = $(`metric-${m.name}-${k}`);
       el.textContent = m.metrics ? "…" : "–";
