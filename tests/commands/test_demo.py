@@ -31,7 +31,7 @@ def test_demo_defaults() -> None:
 
 @pytest.mark.parametrize("option, value", [("--iterations", "-1"), ("--seed", "-1"), ("--lr", "nan"),
                                            ("--test-views", "0"), ("--seeds", "0"), ("--effects", "blur"),
-                                           ("--resolution", "0")])
+                                           ("--resolution", "0"), ("--gazes", "0;0")])
 def test_a_refused_demo_creates_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,
                                         value: str) -> None:
     out = tmp_path / "report"
