@@ -200,7 +200,7 @@ class LensPrewarp(Stage):
                     return cls(BankMap(bank, placement, fallback), basis=basis,
                                supersample=FITTED_SUPERSAMPLE if supersample is None else supersample)
                 warn_user(f"no fitted pre-warp LUT for this PSF bank and radiometry {radiometry!r}: using its chief "
-                          f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --bank BANK --out LUT` "
+                          f"rays (gain {fallback}); make one with `controlgs optics fit-prewarp --lens BANK --out LUT` "
                           "and pass it as {'lens': {'lut': LUT}}", UserWarning)
                 return cls(BankMap(bank, placement, fallback), basis=basis, supersample=supersample or 1)
         else:

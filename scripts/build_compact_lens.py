@@ -6,7 +6,7 @@ Reads ``controlgs_adapter/data/compact_prescription.json`` and writes, next to i
 modes, radiance, 64 to 256 px). The same two commands, run by hand:
 
     controlgs optics build-bank --lens compact --out controlgs_adapter/data/compact_psf_bank.safetensors
-    controlgs optics fit-prewarp --bank controlgs_adapter/data/compact_psf_bank.safetensors \\
+    controlgs optics fit-prewarp --lens controlgs_adapter/data/compact_psf_bank.safetensors \\
         --out controlgs_adapter/data/compact_prewarp_lut.safetensors
 
 About 1 + 3 minutes on 2 CPU cores. ``--out-dir`` writes both files elsewhere (the shipped ones stay).

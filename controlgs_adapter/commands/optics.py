@@ -1,5 +1,5 @@
 """``controlgs optics``: build a PSF bank from a lens prescription, print lens figures, benchmark
-the PSF operators (``controlgs optics bench``), fit the lens pre-warp for a bank (``fit-prewarp``)."""
+the PSF operators (``controlgs optics bench``), fit the lens pre-warp for a lens (``fit-prewarp``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import check_out_path
+from .common import check_out_path, load_lens_arg
 
 
 def add_parser(sub: "argparse._SubParsersAction") -> None:
@@ -46,11 +46,11 @@ def add_parser(sub: "argparse._SubParsersAction") -> None:
     c.add_argument("--doc", dest="out", action="store_const", const=Path("docs") / "benchmarks", help="write them into ./docs/benchmarks")
     c.set_defaults(func=run_bench)
 
-    w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a bank's optics")
-    w.add_argument("--bank", type=Path, default=None, help="PSF bank .safetensors (default: the shipped Cardboard bank)")
-    w.add_argument("--lens", default=None, metavar="LENS",
-                   help="instead of --bank: the bank of a lens as `controlgs train --lens` takes it (a shipped name, a bank, "
-                        "a prescription or distortion-profile .json)")
+    w = osub.add_parser("fit-prewarp", help="fit the lens pre-warp (map + gain per primary) through a lens's optics")
+    w.add_argument("--lens", default="cardboard", metavar="LENS",
+                   help="the lens whose bank to fit through, as `controlgs train --lens` takes it: a shipped lens "
+                        "(cardboard, compact), a PSF bank .safetensors, a prescription or distortion-profile .json "
+                        "(default cardboard)")
     w.add_argument("--out", type=Path, required=True, help="output LUT .safetensors ({'lens': {'lut': OUT}})")
     w.add_argument("--size", type=int, nargs="+", default=[64, 96, 128, 192, 256],
                    help="display pixels along its shorter side for the fit; several: one table per size, an image uses "
@@ -153,20 +153,18 @@ def run_bench(args: argparse.Namespace) -> int:
 def run_fit_prewarp(args: argparse.Namespace) -> int:
     from controlgs_adapter.downstream.optics.stage import PSFOptics
     from controlgs_adapter.downstream.prewarp_fit import fit_bank_prewarp
-    from controlgs_adapter.errors import InputValueError
+    from controlgs_adapter.errors import FileFormatError, InputValueError
 
     check_out_path(args.out, "--out", folder=False)
     bad = [n for n in args.size if n < 8 or n % 2]
     if bad or len(set(args.size)) < len(args.size):
         raise InputValueError(f"--size must be different even integers >= 8, got {' '.join(map(str, args.size))}")
-    if args.bank is not None and args.lens is not None:
-        raise InputValueError(f"give --bank or --lens, not both (got {args.bank} and {args.lens})")
-    bank = args.bank
-    if args.lens is not None:
-        from controlgs_adapter.downstream.optics.lenses import check_lens_spec, load_lens
-
-        check_lens_spec(args.lens, "--lens")
-        bank = load_lens(args.lens).bank
+    try:
+        bank = load_lens_arg(args).bank
+    except (InputValueError, FileFormatError) as e:
+        if str(e).startswith("--lens "):
+            raise
+        raise type(e)(f"--lens {e}") from None
     lut = fit_bank_prewarp(PSFOptics(bank, radiometry=args.radiometry), list(args.size), modes=tuple(args.modes))
     lut.save(args.out)
     print(json.dumps(lut.meta, indent=2))

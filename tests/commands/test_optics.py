@@ -58,7 +58,8 @@ def test_optics_defaults() -> None:
     assert cli.build_parser().parse_args(["optics", "bench", "--doc"]).out == Path("docs") / "benchmarks"
     assert cli.build_parser().parse_args(["optics", "bench", "--no-scaling"]).scaling is False
     w = cli.build_parser().parse_args(["optics", "fit-prewarp", "--out", "l.safetensors"])
-    assert (w.bank, w.size, w.modes, w.radiometry) == (None, [64, 96, 128, 192, 256], ["distortion", "exact"], "radiance")
+    assert (w.lens, w.size, w.modes, w.radiometry) == ("cardboard", [64, 96, 128, 192, 256], ["distortion", "exact"],
+                                                        "radiance")
 
 
 def test_bench_and_fit_prewarp_write_their_outputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -196,14 +197,36 @@ def test_build_bank_lens_traces_the_shipped_or_given_prescription(tmp_path: Path
     assert file.meta["prescription"] == own and not bool((file.chief == default.chief).all())
 
 
-def test_fit_prewarp_takes_a_bank_or_a_lens_not_both(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                     no_work: None) -> None:
-    lut = str(tmp_path / "lut.safetensors")
-    assert main(["optics", "fit-prewarp", "--bank", "b.safetensors", "--lens", "cardboard", "--out", lut]) == 2
-    assert error_line(capsys, "optics") == "give --bank or --lens, not both (got b.safetensors and cardboard)"
-    assert main(["optics", "fit-prewarp", "--lens", "cardbaord", "--out", lut]) == 2
-    assert error_line(capsys, "optics") == "--lens cardbaord: not a shipped lens (cardboard, compact) nor a file"
-    assert not list(tmp_path.iterdir())
+def test_fit_prewarp_lens_refusals(tmp_path: Path, capsys: pytest.CaptureFixture[str], no_work: None) -> None:
+    """``--lens`` is the one way to name the lens: ``--bank`` is unknown; a bad ``--lens`` is one line naming it,
+    exit 2, nothing written."""
+    d = tmp_path / "in"
+    d.mkdir()
+    (d / "junk.safetensors").write_text("junk")
+    (d / "lens.txt").write_text("{}")
+    lut = tmp_path / "lut.safetensors"
+    with pytest.raises(SystemExit) as e:
+        main(["optics", "fit-prewarp", "--bank", "b.safetensors", "--out", str(lut)])
+    assert e.value.code == 2 and "unrecognized arguments: --bank" in capsys.readouterr().err
+    for lens, problem in (("cardbaord", "not a shipped lens (cardboard, compact) nor a file"),
+                          (f"{d}/none.safetensors", "no such file"),
+                          (f"{d}/junk.safetensors", "not a readable safetensors file"),
+                          (f"{d}/lens.txt", "not a lens file")):
+        assert main(["optics", "fit-prewarp", "--lens", lens, "--out", str(lut)]) == 2
+        assert error_line(capsys, "optics").startswith(f"--lens {lens}: {problem}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+
+
+def test_fit_prewarp_fits_through_the_lens_bank(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A bank file given to ``--lens`` is the bank the LUT is fitted for (its fingerprint is in the LUT's meta)."""
+    from controlgs_adapter.downstream.bank_maps import bank_fingerprint
+
+    bank, lut = tmp_path / "own.safetensors", tmp_path / "lut.safetensors"
+    tiny_bank().save(bank)
+    assert main(["optics", "fit-prewarp", "--lens", str(bank), "--size", "8", "--modes", "distortion",
+                 "--out", str(lut)]) == 0
+    out = capsys.readouterr().out
+    assert json.loads(out[:out.rindex("}") + 1])["bank"] == bank_fingerprint(PSFBank.load(bank))
 
 
 @pytest.mark.parametrize("argv, pattern", [
