@@ -728,3 +728,16 @@ def test_foveation_axis_refusals_before_any_render(tiny_adapter):
         evaluate_grid(model, views, {}, gazes=[(1.0,)], **kw)
     with pytest.raises(InputValueError, match=r"^foveation_settings must be a non-empty list of finite"):
         evaluate_grid(model, views, {}, foveation_settings=[], **kw)
+
+
+def test_evaluate_seeds_shares_the_foveation_baselines(tiny_adapter):
+    from controlgs_adapter.commands.demo import evaluate_seeds
+
+    model, views, path = tiny_adapter
+    kw = dict(downsample=(2.0,), power_saving=(0.0,), extra_metrics=False, progress=False, effects=FOVEATED,
+              gazes=[(10.0, 0.0)], foveation_settings=[(2.0, 0.4)])
+    runs = evaluate_seeds(model, views, {1: {"controlgs": path}, 2: {"controlgs": path}}, **kw)
+    a, b = runs[0].foveation, runs[1].foveation
+    assert a is not None and b is not None and list(b.per_view) == ["ss", IDEAL, "controlgs"]
+    assert b.per_view["ss"] is a.per_view["ss"] and b.per_view[IDEAL] is a.per_view[IDEAL]
+    assert a == b  # the same adapter in both seeds: the same numbers
