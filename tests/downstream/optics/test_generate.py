@@ -469,3 +469,25 @@ def test_a_folded_mirror_magnifier_builds_a_bank():
     assert a.meta["lens"]["rotationally_symmetric"] and a.meta["figures"]["550nm"]["efl_mm"] == pytest.approx(35.0)
     assert (a.chief - b.chief).abs().max() < 1e-6
     assert max((x - y).abs().max().item() for x, y in zip(_centroid(a), _centroid(b))) < 2e-4
+
+
+def test_a_decentred_lens_bank_sees_a_flat_field_flat_without_seams():
+    """The invariants of the shipped banks hold for a bank traced in 2-D: its PSFs sum to 1, under radiance a flat
+    display is seen as the pupil transmission (here a 1.5 mm display offset with 50 % path efficiency: 0.5) over the
+    inner 90 %, and exact mode shows no step above 1e-4 between adjacent pixels; the energy form, which steps at
+    the field-sample lines, shows the seam check can fail."""
+    from helpers.lens_checks import inner, steps
+
+    from controlgs_adapter.downstream.optics.operators import psf_exact
+
+    bank = build_bank(cardboard_spec(display_offset_mm=[1.5, 0.0], efficiency=0.5),
+                      **{**_SMALL, "grid": (6, 6), "psf_size": 15, "chief_grid": (17, 17)})
+    assert not bank.rotationally_symmetric and bank.axis == pytest.approx((0.125, 0.0))
+    assert torch.allclose(bank.psf.double().sum((-1, -2)), torch.ones(3, 6, 6, dtype=torch.float64), atol=1e-6)
+    S = 48
+    x = torch.ones(3, S, S, dtype=torch.float64)
+    out = psf_exact(x, bank.resample_to(S, S, dtype=torch.float64))
+    assert (inner(out) - 0.5).abs().max() < 3e-4
+    assert steps(inner(out)) < 1e-4
+    energy = psf_exact(x, bank.resample_to(S, S, dtype=torch.float64, radiometry="energy"))
+    assert steps(inner(energy)) > 1e-4
