@@ -73,3 +73,23 @@ def test_train_eval_and_view_through_a_distortion_profile(tmp_path: Path, capsys
     line = error_line(capsys, "eval")
     assert line.startswith(f"{run / 'run.json'}: field 'lens': lens {profile.resolve()}: no such file"), line
     assert snapshot(report) == before
+
+
+@needs_backbone
+def test_train_and_eval_through_the_shipped_compact_lens(tmp_path: Path) -> None:
+    """`--lens compact`: the run records the name, eval takes it back, and the ground truth is seen through the
+    compact lens (its ideal render differs from Cardboard's); the shipped LUT serves it without a warning."""
+    data = write_tiny_colmap(tmp_path / "scene")
+    run, report, cardboard = tmp_path / "run", tmp_path / "report", tmp_path / "cardboard"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main(["train", "--model", str(MODEL), "--data", str(data), "--out", str(run), "--lens", "compact",
+                     *ADAPTER]) == 0
+    assert not [w for w in caught if "pre-warp" in str(w.message)]
+    assert json.loads((run / "run.json").read_text())["lens"] == "compact"
+    assert main(["eval", "--run", str(run), "--out", str(report), "--test-views", "1", "--no-progress"]) == 0
+    assert json.loads((report / "results.json").read_text())["info"]["lens"] == "compact"
+    assert main(["eval", "--run", str(run), "--out", str(cardboard), "--test-views", "1", "--no-progress",
+                 "--lens", "cardboard"]) == 0
+    ideal = [json.loads((f / "results.json").read_text())["methods"]["ideal"]["psnr"]["mean"] for f in (report, cardboard)]
+    assert ideal[0] != pytest.approx(ideal[1], abs=1e-3), ideal
