@@ -132,10 +132,7 @@ class FoveationAxis:
                        per_view)
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise InputValueError(f"not a FoveationAxis JSON ({type(e).__name__}: {e})") from None
-        shape = (len(axis.gazes), len(axis.settings))
-        bad = [f"{m}.{k}" for m, mv in per_view.items() for k, v in mv.items() if v.dim() != 3 or tuple(v.shape[:2]) != shape]
-        if bad:
-            raise InputValueError(f"FoveationAxis JSON: per_view of {bad} is not [{shape[0]}, {shape[1]}, V]")
+        _check_per_view("FoveationAxis", per_view, (len(axis.gazes), len(axis.settings)))
         return axis
 
 
@@ -217,10 +214,7 @@ class GridResult:
             fov = data.get("foveation")
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise InputValueError(f"not a GridResult JSON ({type(e).__name__}: {e})") from None
-        shape = (len(result.downsample), len(result.power_saving))
-        bad = [f"{m}.{k}" for m, mv in per_view.items() for k, v in mv.items() if v.dim() != 3 or tuple(v.shape[:2]) != shape]
-        if bad:
-            raise InputValueError(f"GridResult JSON: per_view of {bad} is not [{shape[0]}, {shape[1]}, V]")
+        _check_per_view("GridResult", per_view, (len(result.downsample), len(result.power_saving)))
         if fov is not None:
             result.foveation = FoveationAxis.from_json(fov)
         return result
@@ -233,6 +227,13 @@ def make_pipeline(effects: Mapping[str, Any] | None = None, optics_mode: str = "
     pipeline = Pipeline.from_config(effects_for_lens(DEFAULT_EFFECTS if effects is None else effects, lens))
     set_optics_mode(pipeline, optics_mode)
     return pipeline.eval()
+
+
+def _check_per_view(kind: str, per_view: Mapping[str, Mapping[str, torch.Tensor]], shape: tuple[int, int]) -> None:
+    """InputValueError naming every ``method.metric`` of a ``kind`` JSON whose values are not ``[*shape, V]``."""
+    bad = [f"{m}.{k}" for m, mv in per_view.items() for k, v in mv.items() if v.dim() != 3 or tuple(v.shape[:2]) != shape]
+    if bad:
+        raise InputValueError(f"{kind} JSON: per_view of {bad} is not [{shape[0]}, {shape[1]}, V]")
 
 
 def lens_ppd(bank: PSFBank, height: int, width: int, placement: Placement = "fit") -> float:
