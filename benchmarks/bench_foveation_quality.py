@@ -19,7 +19,6 @@ import json
 import os
 import platform
 import shutil
-import subprocess
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
@@ -29,15 +28,10 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-CLI = [sys.executable, "-m", "controlgs_adapter.cli"]
+from bench_lenses import CLI, add_run_options, run  # noqa: E402  (a sibling script)
+
 EFFECTS = "lens,resample,display,oled,optics,foveation"
 METHODS = (("ss", "SS-backbone"), ("controlgs", "ControlGS"), ("wo_foveation", "w/o Foveation"))
-
-
-def run(cmd: list[str], log: Path) -> None:
-    with log.open("w") as f:
-        if subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT) != 0:
-            raise SystemExit(f"failed: {' '.join(cmd)}; see {log}")
 
 
 def foveation_means(report: Path) -> dict[str, Any]:
@@ -114,11 +108,7 @@ def page(a: argparse.Namespace, res: dict[str, Any]) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=2)
-    ap.add_argument("--iterations", type=int, default=500)
-    ap.add_argument("--views", type=int, default=24, help="views of the own-scene capture")
-    ap.add_argument("--own-resolution", type=int, default=128)
-    ap.add_argument("--no-own-scene", dest="own", action="store_false")
+    add_run_options(ap)
     ap.add_argument("--work", default=str(Path(os.environ.get("TMPDIR", "/tmp")) / "controlgs-bench-foveation"))
     ap.add_argument("--doc", action="store_true", help="write docs/benchmarks/foveation-quality.md")
     ap.add_argument("--page-only", action="store_true", help="no runs: the page from WORK/results.json")

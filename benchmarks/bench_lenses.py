@@ -222,16 +222,21 @@ def page(a: argparse.Namespace, res: dict[str, Any]) -> list[str]:
     return lines
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_run_options(ap: argparse.ArgumentParser) -> None:
+    """The trainings' options shared with the other quality benchmarks: seeds, iterations, the own scene's capture."""
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--iterations", type=int, default=500)
     ap.add_argument("--views", type=int, default=24, help="views of the own-scene capture")
     ap.add_argument("--own-resolution", type=int, default=128, help="working resolution of the own scene (longer side)")
+    ap.add_argument("--no-own-scene", dest="own", action="store_false")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_run_options(ap)
     ap.add_argument("--step-resolution", type=int, default=96)
     ap.add_argument("--step-reps", type=int, default=5)
     ap.add_argument("--no-builtin", dest="builtin", action="store_false")
-    ap.add_argument("--no-own-scene", dest="own", action="store_false")
     ap.add_argument("--no-decentred", dest="decentred", action="store_false")
     ap.add_argument("--no-steps", dest="steps", action="store_false")
     ap.add_argument("--work", default=str(Path(os.environ.get("TMPDIR", "/tmp")) / "controlgs-bench-lenses"))
