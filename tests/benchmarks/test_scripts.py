@@ -70,3 +70,41 @@ def test_bench_step_doc_page_keeps_cpu_and_gpu_rows_apart():
     assert mod.doc_page([("cpu", "torch")]) == cpu
     assert mod.doc_page([]) == cpu  # nothing measured (no GPU): the CPU page, with its note
     assert gpu.is_file() and cpu.is_file()
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bench_lenses_page_reports_the_gains_per_lens_from_the_summaries():
+    """The per-lens gains are differences of the seed means in the runs' summaries (ControlGS - SS-backbone,
+    ControlGS - w/o Lens), one column per lens, and the step table's ratio is against Cardboard's."""
+    lenses = _script("bench_lenses")
+
+    def summary(cgs: float, ss: float, wo: float) -> dict:
+        one = lambda v: {"psnr": [v, 0.01], "ssim": [0.5, 0.0], "flip": [0.3, 0.0]}  # noqa: E731
+        return {"controlgs": one(cgs), "ss": one(ss), "wo_lens": one(wo), "ideal": one(20.0)}
+
+    res = {"builtin": {"cardboard": {"summary": summary(21.0, 20.5, 20.9), "wall_s": 60.0},
+                       "compact": {"summary": summary(21.5, 20.75, 21.25), "wall_s": 120.0}},
+           "steps": {"cardboard": {"distortion": 50.0, "exact": 80.0}, "compact": {"distortion": 40.0, "exact": 60.0}}}
+    args = type("A", (), {"seeds": 2, "iterations": 5, "step_resolution": 96, "step_reps": 3})()
+    text = "\n".join(lenses.page(args, res))
+    assert "| ControlGS − SS-backbone, PSNR dB | +0.50 | +0.75 |" in text
+    assert "| ControlGS − w/o Lens, PSNR dB | +0.10 | +0.25 |" in text
+    assert "| compact | 40 | 60 | 0.75x |" in text and "| cardboard | 50 | 80 | 1.00x |" in text
+    assert "under the compact lens and +0.50 dB under Cardboard" in text
+
+
+def test_bench_foveation_quality_page_averages_seeds_per_gaze_and_band():
+    fq = _script("bench_foveation_quality")
+    methods = {m: {"psnr": [[v, v + 0.2]], "psnr_foveal": [[None, None]], "psnr_parafoveal": [[v, v]],
+                   "psnr_periphery": [[1.0, 3.0]]} for m, v in (("ss", 20.0), ("controlgs", 21.0), ("wo_foveation", 20.5))}
+    res = {"builtin": {"gazes": [[10.0, 0.0]], "bands": ["foveal", "parafoveal", "periphery"], "methods": methods}}
+    args = type("A", (), {"seeds": 2, "iterations": 5})()
+    text = "\n".join(fq.page(args, res))
+    assert "| (10, 0) | ControlGS | 21.10 ± 0.14 | – | 21.00 ± 0.00 | 2.00 ± 1.41 |" in text
+    assert "ControlGS − w/o Foveation, whole image: (10, 0): +0.500 dB." in text
