@@ -14,7 +14,7 @@ from .lens_frame import LensFrame
 from .schedules import LensSchedule, StrengthSchedule
 from .state import Camera, RuntimeState
 
-__all__ = ["check_modules", "module_strengths", "lens_strength", "display_positions"]
+__all__ = ["check_modules", "module_strengths", "lens_strength"]
 
 
 def check_modules(modules: Sequence[str], cond_dim: int,
@@ -80,13 +80,14 @@ def module_strengths(schedules: Mapping[str, StrengthSchedule], state: RuntimeSt
                     f"(Camera.from_scaffold converts a Scaffold-GS camera), got {type(camera).__name__}"
                 )
             positions = anchor_positions().detach()
-            screen, display_state = display_positions(
-                camera, camera.normalized_screen(positions.index_select(0, ids.to(positions.device))), state, placement)
+            # the image placed on the display as the optics places it (p_v of the lens and foveation schedules)
+            screen = to_display(camera.normalized_screen(positions.index_select(0, ids.to(positions.device))),
+                                camera.height, camera.width, placement)
         # per-anchor strengths stay even where all zero (they add exact zeros): testing would sync the device
         if isinstance(schedule, LensSchedule) and lens_frame is not None:
-            out[m] = lens_strength(schedule, lens_frame, display_state, screen, dtype, ids.device)
+            out[m] = lens_strength(schedule, lens_frame, state, screen, dtype, ids.device)
         else:
-            out[m] = schedule.strength(display_state, screen, dtype=dtype, device=ids.device)
+            out[m] = schedule.strength(state, screen, dtype=dtype, device=ids.device)
     return out
 
 
@@ -101,11 +102,3 @@ def lens_strength(schedule: LensSchedule, frame: LensFrame, state: RuntimeState,
         screen = torch.stack([screen[:, 0] - frame.axis[0], screen[:, 1] - frame.axis[1]], -1)
     return schedule.strength(state, screen, dtype=dtype, device=device)
 
-
-def display_positions(camera: Camera, screen: torch.Tensor, state: RuntimeState,
-                      placement: Placement) -> tuple[torch.Tensor, RuntimeState]:
-    """Image-normalised anchor positions ``[R, 2]`` -> display-normalised ones (p_v of the lens and
-    foveation schedules), with ``state`` (its gaze is a direction in degrees, independent of the
-    image's placement): the image placed on the display as the optics places it, so a strength
-    follows the position on the display (a square image: as is)."""
-    return to_display(screen, camera.height, camera.width, placement), state

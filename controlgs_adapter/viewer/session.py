@@ -290,7 +290,6 @@ class ViewerSession:
         self._frames = _Cache(16)    # (camera key) -> (camera, gt or None, ss render, png of both)
         self._small = _Cache(32)     # (camera key, w, h) -> no-SS render
         self._last: tuple[int, dict[str, torch.Tensor], torch.Tensor | None] | None = None
-        self._angles: tuple[PSFBank, VisualAngles] | None = None  # the lens's visual angles, for the gaze
 
     def info(self) -> dict[str, Any]:
         """What the page needs to build its controls."""
@@ -329,11 +328,9 @@ class ViewerSession:
         rs = state.runtime
         if state.gaze is None:
             return rs
-        bank = PSFBank.default() if self.lens is None else self.lens.bank
-        if self._angles is None or self._angles[0] is not bank:
-            self._angles = (bank, VisualAngles.of_bank(bank))
+        angles = VisualAngles.of_bank(PSFBank.default() if self.lens is None else self.lens.bank)
         xy = torch.tensor(state.gaze, dtype=torch.float64).clamp(-0.999, 0.999)  # inside the display's outline
-        gaze = self._angles[1].directions(to_display(xy, camera.height, camera.width))
+        gaze = angles.directions(to_display(xy, camera.height, camera.width))
         return replace(rs, gaze=(float(gaze[0]), float(gaze[1])))
 
     def render(self, state: ViewState, check: Callable[[], None] = lambda: None, tag: int = 0) -> dict[str, Any]:

@@ -88,9 +88,16 @@ class VisualAngles:
 
     @classmethod
     def of_bank(cls, bank: PSFBank) -> "VisualAngles":
-        """The map of ``bank``'s green chief rays (module docstring for the scale per lens kind)."""
+        """The map of ``bank``'s green chief rays (module docstring for the scale per lens kind); made once
+        per bank (kept in its cache)."""
         if not isinstance(bank, PSFBank):
             raise InputValueError(f"bank must be a PSFBank, got {type(bank).__name__}")
+        if "visual_angles" not in bank._cache:
+            bank._cache["visual_angles"] = cls._trace(bank)
+        return bank._cache["visual_angles"]
+
+    @classmethod
+    def _trace(cls, bank: PSFBank) -> "VisualAngles":
         ch = min(REFERENCE_CHANNEL, bank.chief.shape[0] - 1)
         chief = bank.chief[ch].double()
         gx, gy = bank.chief_x.double(), bank.chief_y.double()
