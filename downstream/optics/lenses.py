@@ -169,9 +169,10 @@ def check_lens_spec(spec: str, what: str = "lens") -> None:
         return
     path = Path(spec)
     if not path.is_file():
-        looks_like_name = not path.suffix and len(path.parts) == 1
-        raise InputValueError(f"{what} {spec}: " + (f"not a shipped lens ({', '.join(SHIPPED_LENSES)}) nor a file"
-                                                     if looks_like_name else "no such file"))
+        looks_like_name = not path.suffix and len(path.parts) == 1 and not path.exists()
+        why = (f"not a shipped lens ({', '.join(SHIPPED_LENSES)}) nor a file" if looks_like_name
+               else "not a regular file" if path.exists() else "no such file")
+        raise InputValueError(f"{what} {spec}: {why}")
     if path.suffix.lower() not in (".safetensors", ".json"):
         raise FileFormatError(f"{path}: not a lens file: expected a PSF bank (.safetensors), a prescription or a "
                               "distortion profile (.json)")
@@ -209,7 +210,10 @@ def load_lens(spec: LensSpec = None) -> Lens:
         print(f"lens {path}: tracing its PSF bank from the prescription (tens of seconds to minutes); trace it once "
               f"with `controlgs optics build-bank --lens {path} --out BANK.safetensors` and give --lens BANK.safetensors",
               flush=True)
-        bank = build_bank(rx)
+        try:
+            bank = build_bank(rx)
+        except InputValueError as e:  # e.g. a field with no chief ray: the file is what is wrong
+            raise FileFormatError(f"{path}: {e}") from None
         return Lens(text, bank, prewarp_for_bank(bank), "prescription")
     bank = _profile_bank(path, content)
     return Lens(text, bank, prewarp_for_bank(bank, _neighbour_luts(path.with_suffix(".safetensors"))), "profile")

@@ -96,31 +96,32 @@ def trace_exit(rx: Prescription, wavelength_nm: float, x: ArrayLike, y: ArrayLik
     p = np.stack([x, y, np.zeros_like(x)], -1)
     ok = np.ones(x.shape, dtype=bool)
     n1 = 1.0
-    for z0, sf in zip(rx.vertices, rx.surfaces):
-        n2 = rx.index(sf.material, wavelength_nm)
-        if sf.moved:
-            origin, rot = np.array([sf.decenter[0], sf.decenter[1], z0]), _rotation(sf)
-            q, d = (p - origin) @ rot, d @ rot                     # into the surface's frame: R^T (p - o)
-        else:
-            q = p - np.array([0.0, 0.0, z0])
-        q, nrm = _hit(sf, q, d, ok)
-        ok &= q[..., 0] ** 2 + q[..., 1] ** 2 <= sf.semi_diameter ** 2
-        nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-        cosi = -np.einsum("...i,...i", nrm, d)
-        nrm = np.where(cosi[..., None] < 0, -nrm, nrm)
-        cosi = np.abs(cosi)
-        if sf.mirror:
-            d = d + (2.0 * cosi)[..., None] * nrm
-        else:
-            mu = n1 / n2
-            k = 1.0 - mu * mu * (1.0 - cosi * cosi)
-            ok &= k >= 0
-            d = mu * d + (mu * cosi - np.sqrt(np.maximum(k, 0.0)))[..., None] * nrm
-        if sf.moved:
-            p, d = origin + q @ rot.T, d @ rot.T
-        else:
-            p = q + np.array([0.0, 0.0, z0])
-        n1 = n2
+    with np.errstate(over="ignore", invalid="ignore"):  # rays sent off to infinity fail ok, quietly
+        for z0, sf in zip(rx.vertices, rx.surfaces):
+            n2 = rx.index(sf.material, wavelength_nm)
+            if sf.moved:
+                origin, rot = np.array([sf.decenter[0], sf.decenter[1], z0]), _rotation(sf)
+                q, d = (p - origin) @ rot, d @ rot                     # into the surface's frame: R^T (p - o)
+            else:
+                q = p - np.array([0.0, 0.0, z0])
+            q, nrm = _hit(sf, q, d, ok)
+            ok &= q[..., 0] ** 2 + q[..., 1] ** 2 <= sf.semi_diameter ** 2
+            nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+            cosi = -np.einsum("...i,...i", nrm, d)
+            nrm = np.where(cosi[..., None] < 0, -nrm, nrm)
+            cosi = np.abs(cosi)
+            if sf.mirror:
+                d = d + (2.0 * cosi)[..., None] * nrm
+            else:
+                mu = n1 / n2
+                k = 1.0 - mu * mu * (1.0 - cosi * cosi)
+                ok &= k >= 0
+                d = mu * d + (mu * cosi - np.sqrt(np.maximum(k, 0.0)))[..., None] * nrm
+            if sf.moved:
+                p, d = origin + q @ rot.T, d @ rot.T
+            else:
+                p = q + np.array([0.0, 0.0, z0])
+            n1 = n2
     return p, d, ok
 
 

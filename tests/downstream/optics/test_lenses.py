@@ -203,3 +203,17 @@ def test_without_optics_the_lens_stage_follows_the_banks_chief_rays():
 def test_a_lens_records_what_names_it():
     lens = Lens("x.json", random_bank(C=5), None, "profile")
     assert not lens.is_default and load_lens(lens) is lens
+
+
+def test_a_folder_or_device_is_not_a_lens_file_and_an_untraceable_prescription_names_its_file(tmp_path):
+    """A path that exists but is not a regular file is said to be one (not 'no such file'); a prescription whose
+    chief rays cannot be traced is refused naming the file, not the prescription in the abstract."""
+    for spec in (str(tmp_path), "/dev/null"):
+        with pytest.raises(InputValueError, match=r": not a regular file$"):
+            check_lens_spec(spec)
+    with pytest.raises(InputValueError, match=r": no such file$"):
+        check_lens_spec(str(tmp_path / "gone.json"))
+    bad = tmp_path / "far.json"
+    bad.write_text(json.dumps(cardboard_spec(display_offset_mm=[9.0, 0.0])))   # the far corners have no chief ray
+    with pytest.raises(FileFormatError, match=rf"^{bad}: prescription: the chief rays of \d+ warp-grid points"):
+        load_lens(bad)
