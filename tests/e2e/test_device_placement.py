@@ -46,12 +46,14 @@ def placed(tiny) -> tuple[Any, Any]:
     return scene, model
 
 
-def _train(scene: Any, model: Any, device: Any) -> list[float]:
+def _train(scene: Any, model: Any, device: Any, effects: dict[str, Any] | None = None, lens: Any = None,
+           **config: Any) -> list[float]:
     """Two steps of a fresh adapter on a copy of ``model`` (on ``device``), the second one through the PSF."""
     t = Trainer(copy.deepcopy(model).to(device), scene.views("train"),
-                TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.5, seed=1),
-                effects={**ALL, "optics": {"mode": "distortion"}})
+                TrainConfig(iterations=2, checkpoint_every=0, psf_fraction=0.5, seed=1, **config),
+                effects={**ALL, "optics": {"mode": "distortion"}, **(effects or {})}, lens=lens)
     t.train(progress=False)
+    t.cgs.unwrap()
     return t.history
 
 
@@ -61,6 +63,16 @@ def test_a_training_step_keeps_to_the_model_device(placed):
         guarded = _train(scene, model, MODEL_DEVICE)
     assert guard.made > 0  # the step makes host tensors (the view and state draws) and keeps them apart
     assert guarded == _train(scene, model, "cpu")
+
+
+def test_a_foveated_training_step_in_the_lens_frame_keeps_to_the_model_device(placed):
+    """The lens condition in its (x, y) frame (its field-map table), the foveation stage and condition (the gaze
+    drawn through the lens's visual angles), through the compact lens."""
+    scene, model = placed
+    kw = dict(effects={"foveation": True}, lens="compact", lens_conditioning="xy", modules=("lens", "foveation"))
+    with DeviceGuard():
+        guarded = _train(scene, model, MODEL_DEVICE, **kw)
+    assert guarded == _train(scene, model, "cpu", **kw)
 
 
 @pytest.mark.parametrize("mode", MODES)
